@@ -1,0 +1,47 @@
+"""`dstereo` command line: thin wrappers that parse, call one library function and print.
+
+Each subcommand lives in `dstereo/commands/<name>.py` (heavy imports inside the function body so
+`dstereo --help` stays instant). Errors a user can fix (`DstereoError`) become one line on stderr, exit 1.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from dstereo.commands import register_all
+from dstereo.errors import DstereoError
+
+app = typer.Typer(
+    name="dstereo",
+    help="Differentiable stereo photogrammetry: calibrate, rectify, reconstruct, measure with error bars.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+register_all(app)
+
+
+def main() -> None:
+    try:
+        app(standalone_mode=False)
+    except DstereoError as exc:
+        typer.echo(f"dstereo: error: {exc}", err=True)
+        sys.exit(1)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        typer.echo("dstereo: aborted", err=True)
+        sys.exit(1)
+    except Exception as exc:  # click usage errors carry their own exit code (2)
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        raise
+
+
+if __name__ == "__main__":
+    main()

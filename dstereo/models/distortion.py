@@ -1,0 +1,98 @@
+"""OpenCV's rational lens distortion (k1..k6, p1, p2) on normalised image coordinates.
+
+Coefficients are stored in OpenCV's order (k1, k2, p1, p2, k3, k4, k5, k6) so a vector can be handed to
+cv2 unchanged. Which of them a calibration may move is static configuration (`free`); the others are
+held at their stored value (zero unless the user fixed them elsewhere).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from dstereo.errors import DstereoError
+
+COEFF_NAMES: tuple[str, ...] = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+# Named presets accepted wherever a model is asked for (CLI --model, configuration files).
+PRESETS: dict[str, tuple[str, ...]] = {
+    "none": (),
+    "k1": ("k1",),
+    "k1k2": ("k1", "k2"),
+    "k1k2p1p2": ("k1", "k2", "p1", "p2"),
+    "k1k2k3p1p2": ("k1", "k2", "p1", "p2", "k3"),
+    "default": ("k1", "k2", "p1", "p2", "k3"),
+    "rational": COEFF_NAMES,
+}
+
+
+def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """'k1,k2,p1,p2,k3' or a preset name or a list -> free coefficient names in OpenCV order."""
+    if isinstance(spec, str):
+        key = spec.strip().lower()
+        if key in PRESETS:
+            return PRESETS[key]
+        names = [s.strip().lower() for s in key.replace(" ", ",").split(",") if s.strip()]
+    else:
+        names = [s.strip().lower() for s in spec]
+    bad = [n for n in names if n not in COEFF_NAMES]
+    if bad:
+        raise DstereoError(
+            f"model: unknown distortion coefficient(s) {bad}; use a subset of {list(COEFF_NAMES)} "
+            f"or a preset {list(PRESETS)}"
+        )
+    return tuple(n for n in COEFF_NAMES if n in names)
+
+
+class Distortion(eqx.Module):
+    """Rational + tangential distortion. `coeffs` (8,) in OpenCV order; `free` names the solvable ones."""
+
+    coeffs: Float[Array, "8"]
+    free: tuple[str, ...] = eqx.field(static=True, default=PRESETS["default"])
+
+    @classmethod
+    def zeros(cls, free: tuple[str, ...] = PRESETS["default"]) -> "Distortion":
+        return cls(jnp.zeros(8), tuple(free))
+
+    @property
+    def free_index(self) -> tuple[int, ...]:
+        return tuple(COEFF_NAMES.index(n) for n in self.free)
+
+    def free_values(self) -> Float[Array, " nfree"]:
+        return self.coeffs[jnp.array(self.free_index, dtype=int)] if self.free else jnp.zeros(0)
+
+    def with_free_values(self, values: Float[Array, " nfree"]) -> "Distortion":
+        if not self.free:
+            return self
+        return Distortion(self.coeffs.at[jnp.array(self.free_index, dtype=int)].set(values), self.free)
+
+
+def distort(coeffs: Float[Array, "8"], xy: Float[Array, "2"]) -> Float[Array, "2"]:
+    """Normalised undistorted (x, y) -> distorted (x'', y''), OpenCV's equations, one point."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = coeffs
+    x, y = xy[0], xy[1]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = (1.0 + k1 * r2 + k2 * r4 + k3 * r6) / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return jnp.stack([xd, yd])
+
+
+def undistort(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 8) -> Float[Array, "2"]:
+    """Exact inverse of `distort` for one point: Newton's method on distort(x) = xy_d.
+
+    Newton with the 2x2 JAX Jacobian converges quadratically where the model is invertible, so a handful of
+    iterations reach machine precision (OpenCV's undistortPoints uses a fixed-point scheme that does not).
+    """
+
+    def step(xy, _):
+        f = distort(coeffs, xy) - xy_d
+        jac = jax.jacfwd(distort, argnums=1)(coeffs, xy)
+        return xy - jnp.linalg.solve(jac, f), None
+
+    xy, _ = jax.lax.scan(step, xy_d, None, length=iterations)
+    return xy

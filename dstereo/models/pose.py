@@ -1,0 +1,59 @@
+"""Rigid pose as an axis-angle (Rodrigues) vector plus translation: `T_cam_world`, maps world -> camera."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def rodrigues(rvec: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """Rotation matrix of an axis-angle vector, with finite value and gradient at zero rotation.
+
+    Near zero the series of sin(t)/t and (1-cos t)/t^2 replaces the closed form; the double `where` keeps
+    the unused branch from producing NaN gradients.
+    """
+    t2 = jnp.dot(rvec, rvec)
+    small = t2 < 1e-12
+    t2_safe = jnp.where(small, 1.0, t2)
+    t = jnp.sqrt(t2_safe)
+    a = jnp.where(small, 1.0 - t2 / 6.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2_safe)
+    kx = jnp.array([
+        [0.0, -rvec[2], rvec[1]],
+        [rvec[2], 0.0, -rvec[0]],
+        [-rvec[1], rvec[0], 0.0],
+    ])
+    return jnp.eye(3) + a * kx + b * (kx @ kx)
+
+
+def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
+    """Axis-angle vector of a rotation matrix (numpy-side helper for initialisation and I/O, angle < pi)."""
+    cos_t = jnp.clip((jnp.trace(rmat) - 1.0) / 2.0, -1.0, 1.0)
+    t = jnp.arccos(cos_t)
+    w = jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
+    sin_t = jnp.sin(t)
+    scale = jnp.where(sin_t < 1e-12, 0.5, t / (2.0 * jnp.where(sin_t < 1e-12, 1.0, sin_t)))
+    return w * scale
+
+
+def transform(rvec: Float[Array, "3"], tvec: Float[Array, "3"], p: Float[Array, "3"]) -> Float[Array, "3"]:
+    """R(rvec) p + t for one point."""
+    return rodrigues(rvec) @ p + tvec
+
+
+class Pose(eqx.Module):
+    """`T_cam_world`: rvec (3,) axis-angle, tvec (3,) in the board/world unit."""
+
+    rvec: Float[Array, "3"]
+    tvec: Float[Array, "3"]
+
+    def apply(self, p: Float[Array, "3"]) -> Float[Array, "3"]:
+        return transform(self.rvec, self.tvec, p)
+
+    def as_vector(self) -> Float[Array, "6"]:
+        return jnp.concatenate([self.rvec, self.tvec])
+
+    @classmethod
+    def from_vector(cls, v: Float[Array, "6"]) -> "Pose":
+        return cls(v[:3], v[3:6])
