@@ -25,22 +25,10 @@ register_all(app)
 
 def main() -> None:
     try:
-        app(standalone_mode=False)
+        app()  # standalone: usage errors print and exit 2 by themselves
     except DstereoError as exc:
         typer.echo(f"dstereo: error: {exc}", err=True)
         sys.exit(1)
-    except typer.Exit as exc:
-        sys.exit(exc.exit_code)
-    except typer.Abort:
-        typer.echo("dstereo: aborted", err=True)
-        sys.exit(1)
-    except Exception as exc:  # click usage errors carry their own exit code (2)
-        import click
-
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        raise
 
 
 if __name__ == "__main__":

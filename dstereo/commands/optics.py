@@ -1,0 +1,1 @@
+"""`dstereo optics`: placeholder replaced by the optics calculator."""
