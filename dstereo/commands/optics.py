@@ -1,1 +1,0 @@
-"""`dstereo optics`: placeholder replaced by the optics calculator."""
