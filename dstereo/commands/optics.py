@@ -1,0 +1,112 @@
+"""`dstereo optics`: depth of field, diffraction and stereo resolution for a planned capture (thesis 5.1)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+# (results key, label) in the order the console table shows them; rows whose value is None are skipped.
+ROWS = (
+    ("focus_distance_mm", "focus distance (mm)"),
+    ("focal_length_mm", "lens focal length (mm)"),
+    ("f_number", "f-number"),
+    ("sensor_width_mm", "sensor width (mm)"),
+    ("sensor_height_mm", "sensor height (mm)"),
+    ("sensor_diagonal_mm", "sensor diagonal (mm)"),
+    ("crop_factor", "crop factor"),
+    ("effective_focal_length_mm", "effective focal length (mm)"),
+    ("dof_focal_length_mm", "focal length used for DoF (mm)"),
+    ("coc_mm", "circle of confusion (mm)"),
+    ("hyperfocal_mm", "hyperfocal distance (mm)"),
+    ("near_mm", "near limit (mm)"),
+    ("far_mm", "far limit (mm)"),
+    ("total_dof_mm", "total depth of field (mm)"),
+    ("front_mm", "in front of subject (mm)"),
+    ("front_percent", "in front of subject (%)"),
+    ("behind_mm", "behind subject (mm)"),
+    ("behind_percent", "behind subject (%)"),
+    ("wavelength_mm", "wavelength (mm)"),
+    ("airy_disk_mm", "Airy disk diameter (mm)"),
+    ("pixel_size_mm", "pixel size (mm)"),
+    ("three_pixels_mm", "3 x pixel size (mm)"),
+    ("airy_over_pixel", "Airy disk / pixel"),
+    ("diffraction_limited", "diffraction limited"),
+    ("fov_horizontal_deg", "horizontal field of view (deg)"),
+    ("fov_vertical_deg", "vertical field of view (deg)"),
+    ("fov_diagonal_deg", "diagonal field of view (deg)"),
+    ("footprint_width_mm", "footprint width at focus (mm)"),
+    ("footprint_height_mm", "footprint height at focus (mm)"),
+    ("baseline_mm", "stereo baseline (mm)"),
+    ("disparity_at_focus_px", "disparity at focus (px)"),
+    ("depth_per_pixel_mm", "depth per pixel of disparity (mm)"),
+    ("disparity_precision_px", "matcher precision (px)"),
+    ("depth_resolution_mm", "depth resolution at that precision (mm)"),
+)
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if value == float("inf"):
+        return "infinity"
+    return f"{value:.2f}" if abs(value) >= 10 else f"{value:.4g}"
+
+
+def render_table(results: dict[str, Any]) -> str:
+    """Plain two-column text table of the results, then the notes."""
+    rows = [(label, _fmt(results[key])) for key, label in ROWS if results.get(key) is not None]
+    width = max(len(label) for label, _ in rows)
+    lines = [f"{label:<{width}}  {value}" for label, value in rows]
+    lines += [f"note: {note}" for note in results["notes"]]
+    return "\n".join(lines)
+
+
+def to_json(results: dict[str, Any]) -> str:
+    """JSON text of the results; an infinite length (far limit beyond the hyperfocal) becomes null."""
+    import json
+    import math
+
+    clean = {k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in results.items()}
+    return json.dumps(clean, indent=2)
+
+
+def optics(
+    focus_distance: Optional[float] = typer.Option(None, "--focus-distance", help="Distance to the subject, mm."),
+    focal_length: Optional[float] = typer.Option(None, "--focal-length", help="Lens focal length, mm."),
+    sensor: Optional[str] = typer.Option(None, "--sensor", help="Sensor WIDTHxHEIGHT in mm, e.g. 22.5x16.9."),
+    crop_factor: Optional[float] = typer.Option(None, "--crop-factor", help="Crop factor (instead of --sensor)."),
+    f_number: Optional[float] = typer.Option(None, "--f-number", help="Aperture f-number N."),
+    coc: Optional[float] = typer.Option(None, "--coc", help="Circle of confusion, mm [from the sensor diagonal]."),
+    pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="Pixel pitch, mm."),
+    wavelength: Optional[float] = typer.Option(None, "--wavelength", help="Light wavelength, mm [0.00055]."),
+    baseline: Optional[float] = typer.Option(None, "--baseline", help="Stereo baseline, mm."),
+    disparity_precision: Optional[float] = typer.Option(
+        None, "--disparity-precision", help="Matcher sub-pixel precision, px [1]."),
+    dof_focal_length: Optional[str] = typer.Option(
+        None, "--dof-focal-length", help="Focal length in the DoF equations: effective (thesis) or lens [effective]."),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML file with an [optics] section; flags override."),
+    plots: Optional[Path] = typer.Option(None, "--plots", help="Write the three DoF figures (PNG) to this folder."),
+    json_output: bool = typer.Option(False, "--json", help="Print only JSON (lengths in mm)."),
+) -> None:
+    """Depth of field, hyperfocal distance, diffraction check and stereo depth resolution for a capture set-up."""
+    from dstereo import optics as lib
+
+    flags = {
+        "focus_distance": focus_distance, "focal_length": focal_length, "sensor": sensor,
+        "crop_factor": crop_factor, "f_number": f_number, "coc": coc, "pixel_size": pixel_size,
+        "wavelength": wavelength, "baseline": baseline, "disparity_precision": disparity_precision,
+        "dof_focal_length": dof_focal_length,
+    }
+    file_values = lib.load_config_file(config) if config is not None else {}
+    setup = lib.make_config(lib.merge_settings(file_values, flags))
+    results = lib.compute_optics(setup)
+    if plots is not None:
+        results["plots"] = [str(p) for p in lib.write_plots(setup, plots)]
+    if json_output:
+        typer.echo(to_json(results))
+        return
+    typer.echo(render_table(results))
+    for path in results.get("plots", []):
+        typer.echo(f"wrote {path}")

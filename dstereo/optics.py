@@ -1,0 +1,446 @@
+"""Depth of field, diffraction and stereo resolution for planning a capture (thesis sections 2.2.2 and 5.1).
+
+All lengths are in mm, angles in degrees. The depth-of-field equations (5.1-5.3) are the exact thin-lens
+ones for a focal length `f`, f-number `N` and circle of confusion `c`, with the focus distance `s` measured
+from the lens. Which `f` goes into them is a choice (`OpticsConfig.dof_focal_length`):
+
+* ``"effective"`` (default, the thesis's Tables 5.2-5.3 and Figures 5.1-5.3): the effective
+  (35 mm-equivalent) focal length of eq. 2.2 together with the CoC of the actual sensor;
+* ``"lens"``: the lens's own focal length with the CoC of the actual sensor, which is the thin-lens blur
+  geometry of the camera as built (a larger depth of field than the thesis's convention, by about crop^2
+  in the hyperfocal distance).
+
+Field of view, footprint and stereo depth resolution always use the lens focal length and the actual sensor
+(pinhole model: the principal distance is taken as `f`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+FULL_FRAME_MM = (36.0, 24.0)  # eq. 2.3, 2.5
+PRINT_MM = (250.0, 200.0)  # 8 x 10 inch print, eq. 2.4
+PRINT_COC_MM = 0.25  # smallest blur the eye sees on that print at 1 foot, eq. 2.6
+DEFAULT_WAVELENGTH_MM = 0.00055  # eq. 2.1 nominal green light
+DOF_FOCAL_CHOICES = ("effective", "lens")
+PLOT_NAMES = ("dof_vs_focal_length.png", "dof_vs_f_number.png", "dof_contour.png")
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    """Capture set-up. Lengths in mm; `sensor` is (width, height); give `sensor` or `crop_factor`.
+
+    `coc` defaults to the value derived from the sensor diagonal (eq. 2.4-2.6). `pixel_size` enables the
+    3 x pixel diffraction check and the stereo figures; `baseline` (distance between the two camera centres)
+    enables the stereo depth resolution, at `disparity_precision` pixels of matcher precision.
+    """
+
+    focus_distance: float
+    focal_length: float
+    f_number: float
+    sensor: tuple[float, float] | None = None
+    crop_factor: float | None = None
+    coc: float | None = None
+    pixel_size: float | None = None
+    wavelength: float = DEFAULT_WAVELENGTH_MM
+    baseline: float | None = None
+    disparity_precision: float = 1.0
+    dof_focal_length: str = "effective"
+
+
+CONFIG_KEYS = tuple(f.name for f in fields(OpticsConfig))
+REQUIRED_KEYS = ("focus_distance", "focal_length", "f_number")
+
+
+def describe(key: str) -> str:
+    """How a user names parameter `key`: the flag and the `[optics]` config key."""
+    return f"--{key.replace('_', '-')} / [optics] {key}"
+
+
+# --- eq. 2.1-2.7 and 5.1-5.3 -----------------------------------------------------------------------------
+def diagonal(size: tuple[float, float]) -> float:
+    """Diagonal (mm) of a (width, height) rectangle in mm."""
+    return math.hypot(*size)
+
+
+def crop_factor_from_sensor(sensor: tuple[float, float]) -> float:
+    """Crop factor (eq. 2.3): full-frame diagonal over the sensor diagonal. `sensor` is (w, h) in mm."""
+    return diagonal(FULL_FRAME_MM) / diagonal(sensor)
+
+
+def sensor_from_crop_factor(crop_factor: float, aspect: tuple[float, float] = (3.0, 2.0)) -> tuple[float, float]:
+    """Sensor (width, height) in mm with the full-frame diagonal / `crop_factor` and the given aspect ratio."""
+    scale = diagonal(FULL_FRAME_MM) / crop_factor / diagonal(aspect)
+    return (aspect[0] * scale, aspect[1] * scale)
+
+
+def coc_from_sensor(sensor: tuple[float, float]) -> float:
+    """Circle of confusion (mm) on a sensor of (w, h) mm: the 0.25 mm print CoC scaled by diagonals (eq. 2.4-2.6)."""
+    return PRINT_COC_MM * diagonal(sensor) / diagonal(PRINT_MM)
+
+
+def effective_focal_length(focal_length, crop_factor):
+    """35 mm-equivalent focal length (eq. 2.2), mm."""
+    return crop_factor * focal_length
+
+
+def hyperfocal_distance(focal_length, f_number, coc):
+    """Hyperfocal distance H = f^2 / (N c) + f (eq. 2.7 / 5.1), mm; f and c in mm."""
+    f = np.asarray(focal_length, float)
+    return f * f / (np.asarray(f_number, float) * coc) + f
+
+
+def near_limit(focus_distance, focal_length, hyperfocal):
+    """Near limit of acceptable sharpness D_n = s (H - f) / (H + s - 2 f) (eq. 5.3), mm."""
+    s = np.asarray(focus_distance, float)
+    return s * (hyperfocal - focal_length) / (hyperfocal + s - 2.0 * focal_length)
+
+
+def far_limit(focus_distance, focal_length, hyperfocal):
+    """Far limit D_f = s (H - f) / (H - s) (eq. 5.2), mm; infinite when the focus is at or beyond H."""
+    s = np.asarray(focus_distance, float)
+    h = np.asarray(hyperfocal, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        far = s * (h - focal_length) / (h - s)
+    return np.where(s < h, far, np.inf)
+
+
+def total_depth_of_field(focus_distance, focal_length, f_number, coc):
+    """Far minus near limit, mm (infinite beyond the hyperfocal distance); broadcasts over arrays."""
+    h = hyperfocal_distance(focal_length, f_number, coc)
+    return far_limit(focus_distance, focal_length, h) - near_limit(focus_distance, focal_length, h)
+
+
+def depth_of_field(focus_distance: float, focal_length: float, f_number: float, coc: float) -> dict[str, float]:
+    """Hyperfocal, near/far limits, total and the parts in front of/behind the subject (mm, and % of total)."""
+    h = float(hyperfocal_distance(focal_length, f_number, coc))
+    near = float(near_limit(focus_distance, focal_length, h))
+    far = float(far_limit(focus_distance, focal_length, h))
+    front, behind = focus_distance - near, far - focus_distance
+    finite = math.isfinite(far)
+    return {
+        "hyperfocal_mm": h,
+        "near_mm": near,
+        "far_mm": far,
+        "far_is_infinite": not finite,
+        "total_dof_mm": far - near,
+        "front_mm": front,
+        "behind_mm": behind,
+        "front_percent": 100.0 * front / (far - near) if finite else 0.0,
+        "behind_percent": 100.0 * behind / (far - near) if finite else 100.0,
+    }
+
+
+def airy_disk_diameter(f_number, wavelength=DEFAULT_WAVELENGTH_MM):
+    """Airy disk diameter 2.44 N lambda (eq. 2.1), mm; wavelength in mm."""
+    return 2.44 * f_number * wavelength
+
+
+def diffraction_check(airy_disk: float, coc: float, pixel_size: float | None) -> dict[str, Any]:
+    """Table 5.1 logic: diffraction does not limit resolution while the Airy disk (mm) is below the CoC and
+    below 3 x the pixel size (mm); below one pixel is better still. Pixel checks are None without a pixel."""
+    three_px = None if pixel_size is None else 3.0 * pixel_size
+    below_px = None if pixel_size is None else airy_disk < three_px
+    return {
+        "three_pixels_mm": three_px,
+        "airy_over_pixel": None if pixel_size is None else airy_disk / pixel_size,
+        "airy_below_coc": airy_disk < coc,
+        "airy_below_three_pixels": below_px,
+        "diffraction_limited": not (airy_disk < coc and below_px is not False),
+    }
+
+
+def field_of_view(sensor: tuple[float, float], focal_length: float) -> dict[str, float]:
+    """Horizontal, vertical and diagonal angle of view (degrees) of a pinhole of focal length f (mm)."""
+    def angle(size):
+        return math.degrees(2.0 * math.atan(size / (2.0 * focal_length)))
+
+    w, h = sensor
+    return {"fov_horizontal_deg": angle(w), "fov_vertical_deg": angle(h), "fov_diagonal_deg": angle(diagonal(sensor))}
+
+
+def footprint(sensor: tuple[float, float], focal_length: float, distance: float) -> dict[str, float]:
+    """Width and height (mm) of the plane seen at `distance` (mm) by a pinhole of focal length f (mm)."""
+    scale = distance / focal_length
+    return {"footprint_width_mm": sensor[0] * scale, "footprint_height_mm": sensor[1] * scale}
+
+
+def stereo_depth_resolution(
+    depth: float, focal_length: float, baseline: float, pixel_size: float, precision_px: float = 1.0
+) -> dict[str, float]:
+    """Depth change per pixel of disparity dZ = Z^2 p / (f B) at depth Z, and at the matcher's precision.
+
+    Z, f, B, p in mm; the disparity at Z is f B / (Z p) pixels.
+    """
+    per_px = depth * depth * pixel_size / (focal_length * baseline)
+    return {
+        "disparity_at_focus_px": focal_length * baseline / (depth * pixel_size),
+        "depth_per_pixel_mm": per_px,
+        "depth_resolution_mm": per_px * precision_px,
+    }
+
+
+# --- configuration -----------------------------------------------------------------------------------------
+def parse_sensor(value: Any) -> tuple[float, float]:
+    """Sensor size from "WxH" (mm, e.g. "22.5x16.9") or a two-number list."""
+    if isinstance(value, str):
+        parts = value.lower().replace("\u00d7", "x").split("x")
+    elif isinstance(value, (list, tuple)):
+        parts = list(value)
+    else:
+        parts = []
+    try:
+        width, height = (float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise DstereoError(f"sensor ({describe('sensor')}) must be WIDTHxHEIGHT in mm, e.g. 22.5x16.9; got {value!r}")
+    return (width, height)
+
+
+def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """The `[optics]` section of a TOML file, as a dict; unknown keys are an error naming them."""
+    import tomllib
+
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise DstereoError(f"cannot read config file {path}: {exc.strerror}; check --config")
+    except tomllib.TOMLDecodeError as exc:
+        raise DstereoError(f"config file {path} is not valid TOML ({exc}); fix the file")
+    section = data.get("optics")
+    if not isinstance(section, dict):
+        raise DstereoError(f"config file {path} has no [optics] section; add one with keys {', '.join(CONFIG_KEYS)}")
+    unknown = sorted(set(section) - set(CONFIG_KEYS))
+    if unknown:
+        allowed = ", ".join(CONFIG_KEYS)
+        raise DstereoError(f"unknown key(s) {', '.join(unknown)} in [optics] of {path}; allowed: {allowed}")
+    return dict(section)
+
+
+def merge_settings(file_values: Mapping[str, Any], flag_values: Mapping[str, Any]) -> dict[str, Any]:
+    """Flags (non-None) override the file; a flag giving `sensor` or `crop_factor` drops the other from the file."""
+    given = {k: v for k, v in flag_values.items() if v is not None}
+    merged = dict(file_values)
+    for a, b in (("sensor", "crop_factor"), ("crop_factor", "sensor")):
+        if a in given:
+            merged.pop(b, None)
+    merged.update(given)
+    return merged
+
+
+def _positive(key: str, value: Any) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    if not ok:
+        raise DstereoError(f"{key.replace('_', ' ')} ({describe(key)}) must be a positive number; got {value!r}")
+    return float(value)
+
+
+def make_config(settings: Mapping[str, Any]) -> OpticsConfig:
+    """Checked `OpticsConfig` from a dict of config keys; every problem is a `DstereoError` naming the key."""
+    unknown = sorted(set(settings) - set(CONFIG_KEYS))
+    if unknown:
+        raise DstereoError(f"unknown optics parameter(s) {', '.join(unknown)}; allowed: {', '.join(CONFIG_KEYS)}")
+    for key in REQUIRED_KEYS:
+        if settings.get(key) is None:
+            raise DstereoError(f"missing {key.replace('_', ' ')}: pass {describe(key)}")
+    values = {k: v for k, v in settings.items() if v is not None}
+    if ("sensor" in values) == ("crop_factor" in values):
+        raise DstereoError(f"give exactly one of the sensor size ({describe('sensor')}) "
+                           f"or the crop factor ({describe('crop_factor')})")
+    if "sensor" in values:
+        values["sensor"] = tuple(_positive("sensor", v) for v in parse_sensor(values["sensor"]))
+    choice = values.get("dof_focal_length", "effective")
+    if choice not in DOF_FOCAL_CHOICES:
+        raise DstereoError(f"dof focal length ({describe('dof_focal_length')}) must be one of "
+                           f"{', '.join(DOF_FOCAL_CHOICES)}; got {choice!r}")
+    for key in set(values) - {"sensor", "dof_focal_length"}:
+        values[key] = _positive(key, values[key])
+    config = OpticsConfig(**values)
+    _check_geometry(config)
+    return config
+
+
+def _check_geometry(config: OpticsConfig) -> None:
+    f_dof = dof_focal_length_mm(config)
+    if config.focus_distance <= max(f_dof, config.focal_length):
+        raise DstereoError(
+            f"focus distance ({describe('focus_distance')}) {config.focus_distance:g} mm must exceed the focal "
+            f"length used ({max(f_dof, config.focal_length):g} mm); a thin lens cannot focus closer"
+        )
+    if config.baseline is not None and config.pixel_size is None:
+        raise DstereoError(
+            f"the stereo depth resolution needs the pixel size: pass {describe('pixel_size')} with the baseline")
+
+
+# --- the whole calculation ---------------------------------------------------------------------------------
+def sensor_of(config: OpticsConfig) -> tuple[tuple[float, float], bool]:
+    """Sensor (w, h) in mm and whether it was derived from the crop factor (3:2 aspect)."""
+    if config.sensor is not None:
+        return config.sensor, False
+    return sensor_from_crop_factor(config.crop_factor), True
+
+
+def crop_factor_of(config: OpticsConfig) -> float:
+    """The given crop factor, or eq. 2.3 on the given sensor (not rounded)."""
+    return config.crop_factor if config.crop_factor is not None else crop_factor_from_sensor(config.sensor)
+
+
+def coc_of(config: OpticsConfig) -> float:
+    """The given CoC (mm), or eq. 2.4-2.6 on the sensor diagonal (not rounded)."""
+    return config.coc if config.coc is not None else coc_from_sensor(sensor_of(config)[0])
+
+
+def dof_focal_length_mm(config: OpticsConfig) -> float:
+    """Focal length (mm) put into eq. 5.1-5.3: effective (thesis) or the lens's own."""
+    if config.dof_focal_length == "lens":
+        return config.focal_length
+    return effective_focal_length(config.focal_length, crop_factor_of(config))
+
+
+def compute_optics(config: OpticsConfig) -> dict[str, Any]:
+    """Every quantity of the calculator as a flat dict (lengths in mm, angles in degrees) plus `notes`."""
+    sensor, sensor_derived = sensor_of(config)
+    coc = coc_of(config)
+    f_dof = dof_focal_length_mm(config)
+    airy = airy_disk_diameter(config.f_number, config.wavelength)
+    out: dict[str, Any] = {
+        "focus_distance_mm": config.focus_distance,
+        "focal_length_mm": config.focal_length,
+        "f_number": config.f_number,
+        "sensor_width_mm": sensor[0],
+        "sensor_height_mm": sensor[1],
+        "sensor_diagonal_mm": diagonal(sensor),
+        "crop_factor": crop_factor_of(config),
+        "effective_focal_length_mm": effective_focal_length(config.focal_length, crop_factor_of(config)),
+        "dof_focal_length": config.dof_focal_length,
+        "dof_focal_length_mm": f_dof,
+        "coc_mm": coc,
+        **depth_of_field(config.focus_distance, f_dof, config.f_number, coc),
+        "wavelength_mm": config.wavelength,
+        "pixel_size_mm": config.pixel_size,
+        "airy_disk_mm": airy,
+        **diffraction_check(airy, coc, config.pixel_size),
+        **field_of_view(sensor, config.focal_length),
+        **footprint(sensor, config.focal_length, config.focus_distance),
+        "baseline_mm": config.baseline,
+    }
+    if config.baseline is not None:
+        out["disparity_precision_px"] = config.disparity_precision
+        out.update(stereo_depth_resolution(
+            config.focus_distance, config.focal_length, config.baseline, config.pixel_size, config.disparity_precision))
+    out["notes"] = _notes(config, sensor_derived, out)
+    return out
+
+
+def _notes(config: OpticsConfig, sensor_derived: bool, out: Mapping[str, Any]) -> list[str]:
+    notes = []
+    if sensor_derived:
+        notes.append("sensor size derived from the crop factor assuming a 3:2 aspect ratio")
+    if config.coc is None:
+        notes.append("circle of confusion derived from the sensor diagonal (thesis eq. 2.4-2.6)")
+    if config.dof_focal_length == "effective":
+        notes.append("depth of field uses the effective focal length with the sensor's CoC, as the thesis "
+                     "does; --dof-focal-length lens gives the thin-lens value for the lens itself")
+    if out["far_is_infinite"]:
+        notes.append("focus at or beyond the hyperfocal distance: everything from the near limit to infinity is sharp")
+    if out["diffraction_limited"]:
+        notes.append("diffraction limits resolution: open the aperture (smaller f-number)")
+    return notes
+
+
+# --- Figures 5.1-5.3 ---------------------------------------------------------------------------------------
+def write_plots(config: OpticsConfig, out_dir: str | os.PathLike) -> list[Path]:
+    """Total DoF vs focal length (fixed N), vs N (fixed f) and over (f, N) with the set-up marked; PNGs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    figures = (_plot_vs_focal(config, plt), _plot_vs_f_number(config, plt), _plot_contour(config, plt))
+    paths = []
+    for name, fig in zip(PLOT_NAMES, figures):
+        tmp = out_dir / f".{name}.partial"
+        fig.savefig(tmp, format="png", dpi=120)
+        plt.close(fig)
+        os.replace(tmp, out_dir / name)
+        paths.append(out_dir / name)
+    return paths
+
+
+def _focal_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
+    """Lens focal lengths (mm) from f/2 to 2 f, kept short enough for the DoF focal length to focus at s."""
+    scale = dof_focal_length_mm(config) / config.focal_length
+    top = min(2.0 * config.focal_length, 0.5 * config.focus_distance / max(scale, 1.0))
+    return np.linspace(config.focal_length / 2.0, max(top, config.focal_length), n)
+
+
+def _f_number_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
+    return np.linspace(1.0, max(32.0, 2.0 * config.f_number), n)
+
+
+def _total(config: OpticsConfig, focal, f_number) -> np.ndarray:
+    """Total DoF (mm) for lens focal length(s) and f-number(s), NaN where it is infinite."""
+    scale = dof_focal_length_mm(config) / config.focal_length
+    total = total_depth_of_field(config.focus_distance, scale * np.asarray(focal), f_number, coc_of(config))
+    return np.where(np.isfinite(total), total, np.nan)
+
+
+def _label_focal(config: OpticsConfig) -> str:
+    return f"lens focal length (mm); DoF with the {config.dof_focal_length} focal length"
+
+
+def _plot_vs_focal(config: OpticsConfig, plt):
+    fig, ax = plt.subplots(figsize=(6, 4))
+    focal = _focal_axis(config)
+    ax.plot(focal, _total(config, focal, config.f_number))
+    ax.plot([config.focal_length], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    ax.set(xlabel=_label_focal(config), ylabel="total depth of field (mm)",
+           title=f"N = {config.f_number:g}, s = {config.focus_distance:g} mm")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def _plot_vs_f_number(config: OpticsConfig, plt):
+    fig, ax = plt.subplots(figsize=(6, 4))
+    f_number = _f_number_axis(config)
+    ax.plot(f_number, _total(config, config.focal_length, f_number))
+    ax.plot([config.f_number], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    ax.set(xlabel="f-number N", ylabel="total depth of field (mm)",
+           title=f"f = {config.focal_length:g} mm, s = {config.focus_distance:g} mm")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def _plot_contour(config: OpticsConfig, plt):
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    from matplotlib.colors import LogNorm
+
+    focal, f_number = np.meshgrid(_focal_axis(config, 120), _f_number_axis(config, 120))
+    total = _total(config, focal, f_number)
+    if np.all(np.isnan(total)):
+        ax.text(0.5, 0.5, "focus beyond the hyperfocal distance everywhere", ha="center", transform=ax.transAxes)
+    else:
+        levels = np.geomspace(np.nanmin(total), np.nanmax(total), 21)
+        filled = ax.contourf(focal, f_number, total, levels=levels, norm=LogNorm())
+        fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)", format="%.0f")
+    chosen = float(_total(config, config.focal_length, config.f_number))
+    if np.isfinite(chosen):
+        line = ax.contour(focal, f_number, total, levels=[chosen], colors="white", linewidths=1)
+        ax.clabel(line, fmt="%.0f mm")
+    ax.plot([config.focal_length], [config.f_number], "rx", ms=12, mew=2, label="chosen set-up")
+    ax.set(xlabel=_label_focal(config), ylabel="f-number N", title=f"s = {config.focus_distance:g} mm")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    return fig
