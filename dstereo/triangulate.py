@@ -1,0 +1,105 @@
+"""Triangulation in JAX: dense (disparity through Q) and sparse (two rays per matched pixel pair).
+
+Units follow the calibration (T in mm gives mm). Dense points are in the rectified left camera frame; rotate them
+by R1^T (`to_original_left`) for the original left camera's frame.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from dstereo.models.camera import project
+from dstereo.models.distortion import undistort
+
+
+@jax.jit
+def reproject_disparity(disparity: Float[Array, "h w"], Q: Float[Array, "4 4"]) -> Float[Array, "h w 3"]:
+    """(u, v, d) -> (X, Y, Z) = Q [u v d 1] dehomogenised, as `cv2.reprojectImageTo3D`, in float64.
+
+    NaN where the disparity is not finite or the point is at or beyond infinity (W <= 0, i.e. d + doffs <= 0).
+    """
+    h, w = disparity.shape
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=float), jnp.arange(w, dtype=float), indexing="ij")
+    hom = jnp.stack([u, v, disparity.astype(float), jnp.ones_like(u)], axis=-1) @ Q.T
+    xyz = hom[..., :3] / hom[..., 3:4]
+    ok = jnp.isfinite(disparity) & (hom[..., 3] * jnp.sign(Q[2, 3]) > 0)
+    return jnp.where(ok[..., None], xyz, jnp.nan)
+
+
+@jax.jit
+def depth_from_disparity(disparity: Float[Array, "h w"], Q: Float[Array, "4 4"]) -> Float[Array, "h w"]:
+    """Z of every pixel (NaN where invalid): Z = f / (Q[3,2] d + Q[3,3])."""
+    return reproject_disparity(disparity, Q)[..., 2]
+
+
+def to_original_left(points: Float[Array, "... 3"], R1: Float[Array, "3 3"]) -> Float[Array, "... 3"]:
+    """Rectified-left-frame points -> original left camera frame (R1 maps original -> rectified)."""
+    return points @ jnp.asarray(R1)
+
+
+def _dlt_one(P1, P2, q1, q2):
+    a = jnp.stack([
+        q1[0] * P1[2] - P1[0],
+        q1[1] * P1[2] - P1[1],
+        q2[0] * P2[2] - P2[0],
+        q2[1] * P2[2] - P2[1],
+    ])
+    _, _, vt = jnp.linalg.svd(a)
+    x = vt[-1]
+    return x[:3] / x[3]
+
+
+@jax.jit
+def triangulate_dlt(
+    P1: Float[Array, "3 4"], P2: Float[Array, "3 4"], q1: Float[Array, "n 2"], q2: Float[Array, "n 2"]
+) -> Float[Array, "n 3"]:
+    """Linear (DLT) triangulation of matched pixels by two projection matrices, as `cv2.triangulatePoints`
+    (the smallest right singular vector of the 4 x 4 system, dehomogenised)."""
+    return jax.vmap(_dlt_one, in_axes=(None, None, 0, 0))(P1, P2, q1, q2)
+
+
+def _midpoint_one(o2, v1, v2):
+    """Closest-approach midpoint of rays 0 + s v1 and o2 + t v2."""
+    a = jnp.stack([v1, -v2], axis=1)  # 3 x 2
+    st = jnp.linalg.solve(a.T @ a, a.T @ o2)
+    return 0.5 * (st[0] * v1 + o2 + st[1] * v2)
+
+
+@jax.jit
+def triangulate_rays(
+    o2: Float[Array, "3"], v1: Float[Array, "n 3"], v2: Float[Array, "n 3"]
+) -> Float[Array, "n 3"]:
+    """Midpoint of the common perpendicular of rays from the origin along v1 and from o2 along v2 (one frame)."""
+    return jax.vmap(_midpoint_one, in_axes=(None, 0, 0))(o2, v1, v2)
+
+
+@jax.jit
+def triangulate_pixels(
+    k1: Float[Array, "4"],
+    coeffs1: Float[Array, "8"],
+    k2: Float[Array, "4"],
+    coeffs2: Float[Array, "8"],
+    R: Float[Array, "3 3"],
+    T: Float[Array, "3"],
+    q1: Float[Array, "n 2"],
+    q2: Float[Array, "n 2"],
+) -> Float[Array, "n 3"]:
+    """Raw (distorted) matched pixels -> points in the left camera frame: exact undistortion, two-ray midpoint.
+
+    x_right = R x_left + T, so the right camera centre in the left frame is -R^T T and its rays rotate by R^T.
+    """
+
+    def ray(k, coeffs, q):
+        xy = undistort(coeffs, (q - k[2:4]) / k[0:2])
+        return jnp.array([xy[0], xy[1], 1.0])
+
+    v1 = jax.vmap(ray, in_axes=(None, None, 0))(k1, coeffs1, q1)
+    v2 = jax.vmap(ray, in_axes=(None, None, 0))(k2, coeffs2, q2) @ R
+    return triangulate_rays(-R.T @ T, v1, v2)
+
+
+def reprojection_residuals(k, coeffs, R, T, p_left: Float[Array, "n 3"], q: Float[Array, "n 2"]) -> Float[Array, "n 2"]:
+    """Pixel residuals of left-frame points seen by a camera at x_cam = R x_left + T (identity for the left)."""
+    return jax.vmap(lambda p, qq: project(k, coeffs, R @ p + T) - qq)(p_left, q)
