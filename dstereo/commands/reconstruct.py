@@ -1,0 +1,94 @@
+"""`dstereo reconstruct`: rectify, match and triangulate stereo pairs into a results folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def reconstruct(
+    left: list[Path] = typer.Option(..., "--left", help="Left image (repeat for several pairs)."),
+    right: list[Path] = typer.Option(..., "--right", help="Right image, in the same order as --left."),
+    out: Path = typer.Option(..., "--out", help="Results folder (refused if it exists, unless --force)."),
+    calib: Optional[Path] = typer.Option(
+        None, "--calib", help="stereo.yml, OpenCV YAML with M1 D1 M2 D2 R T, or Middlebury calib.txt. "
+        "Without it the uncalibrated path runs (needs --focal-mm or --focal-px)."),
+    project: Optional[Path] = typer.Option(
+        None, "--project", help="Project folder: its stereo.yml/calib.txt and dstereo.toml are used as defaults."),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML/JSON file with [reconstruct] and [sgbm]."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="SGBM preset: default, thesis-5.9, thesis-5.15."),
+    sgbm: list[str] = typer.Option([], "--sgbm", help="SGBM parameter NAME=VALUE (repeat), e.g. block_size=7."),
+    z_min: Optional[float] = typer.Option(None, "--z-min", help="Nearest depth of the scene, mm (sets the range)."),
+    z_max: Optional[float] = typer.Option(None, "--z-max", help="Farthest depth of the scene, mm."),
+    alpha: Optional[float] = typer.Option(None, "--alpha", help="Rectification free scaling: -1 default, 0..1."),
+    zero_disparity: Optional[bool] = typer.Option(
+        None, "--zero-disparity/--own-centres", help="Share one principal point (OpenCV's default) or centre each view."),
+    lr_check: Optional[float] = typer.Option(None, "--lr-check", help="Left-right consistency tolerance, px."),
+    roi: Optional[str] = typer.Option(None, "--roi", help="x,y,w,h on the rectified left image: keep points inside."),
+    outliers: Optional[int] = typer.Option(None, "--outliers", help="Statistical outlier removal: neighbours (0 off)."),
+    outlier_std: Optional[float] = typer.Option(None, "--outlier-std", help="Outlier threshold in std devs."),
+    max_jump: Optional[float] = typer.Option(None, "--max-jump", help="Relative depth step that breaks the mesh."),
+    focal_mm: Optional[float] = typer.Option(None, "--focal-mm", help="Uncalibrated: lens focal length, mm."),
+    pixel_size_mm: Optional[float] = typer.Option(None, "--pixel-size-mm", help="Uncalibrated: pixel pitch, mm."),
+    crop_factor: Optional[float] = typer.Option(None, "--crop-factor", help="Uncalibrated: crop factor (36 mm)."),
+    focal_px: Optional[float] = typer.Option(None, "--focal-px", help="Uncalibrated: focal length in px."),
+    baseline_mm: Optional[float] = typer.Option(
+        None, "--baseline-mm", help="Uncalibrated: baseline, mm (without it the output is unscaled)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
+) -> None:
+    """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
+    from dataclasses import replace
+
+    from dstereo.disparity import PRESETS, parse_overrides
+    from dstereo.errors import DstereoError
+    from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
+
+    if len(left) != len(right):
+        raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
+    cfg = ReconstructionConfig()
+    if project is not None:
+        if not project.is_dir():
+            raise DstereoError(f"project folder {project} does not exist")
+        if calib is None:
+            calib = next((project / n for n in ("stereo.yml", "stereo.yaml", "calib.txt") if (project / n).is_file()),
+                         None)
+        found = next((project / n for n in CONFIG_NAMES if (project / n).is_file()), None)
+        if found is not None:
+            cfg = load_config(found, cfg)
+    if config is not None:
+        cfg = load_config(config, cfg)
+    sgbm_params = cfg.sgbm
+    if preset is not None:
+        if preset not in PRESETS:
+            raise DstereoError(f"--preset {preset!r}: use one of {sorted(PRESETS)}")
+        sgbm_params = PRESETS[preset]
+    sgbm_params = sgbm_params.with_overrides(parse_overrides(sgbm))
+    if lr_check is not None:
+        sgbm_params = sgbm_params.with_overrides({"lr_check": lr_check})
+    changes = {k: v for k, v in dict(
+        alpha=alpha, zero_disparity=zero_disparity, outlier_neighbours=outliers, outlier_std=outlier_std,
+        max_jump=max_jump, focal_mm=focal_mm, pixel_size_mm=pixel_size_mm, crop_factor=crop_factor,
+        focal_px=focal_px, baseline_mm=baseline_mm).items() if v is not None}
+    if (z_min is None) != (z_max is None):
+        raise DstereoError("give both --z-min and --z-max (mm), or neither")
+    if z_min is not None:
+        changes["depth_range"] = (z_min, z_max)
+    if roi is not None:
+        try:
+            x, y, w, h = (int(v) for v in roi.split(","))
+        except ValueError:
+            raise DstereoError(f"--roi {roi!r}: write x,y,w,h in pixels, e.g. --roi 100,50,400,300") from None
+        changes["roi"] = (x, y, w, h)
+    cfg = replace(cfg, sgbm=sgbm_params, **changes)
+
+    results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
+    for r in results:
+        s = r.summary
+        depth = s.get("depth_mm") or {}
+        typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
+                   f"{depth.get('max', float('nan')):.1f} {s['units']}")
+        for w in r.warnings:
+            typer.echo(f"dstereo: warning: {w}", err=True)
+    typer.echo(f"wrote {out}")

@@ -1,0 +1,282 @@
+"""Calibration and disparity files: OpenCV stereo YAML/XML, Middlebury `calib.txt`, PFM.
+
+`read_stereo_calibration(path)` accepts
+- one OpenCV FileStorage file (YAML or XML) holding M1 D1 M2 D2 R T (also K1/K2, cameraMatrix1/2,
+  distCoeffs1/2), with the image size if present (`imageSize`/`image_size` [w, h], or `width`/`height`);
+- either file of an `intrinsics.yml` + `extrinsics.yml` pair (OpenCV's stereo_calib sample): the other is
+  read from the same folder;
+- a Middlebury `calib.txt` (an already rectified pair).
+Distortion vectors are padded to OpenCV's 8 rational coefficients; thin-prism and tilt terms must be zero.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+ALIASES = {
+    "K1": ("M1", "K1", "cameraMatrix1", "camera_matrix_1", "cameraMatrixL"),
+    "D1": ("D1", "distCoeffs1", "dist_coeffs_1", "distCoeffsL"),
+    "K2": ("M2", "K2", "cameraMatrix2", "camera_matrix_2", "cameraMatrixR"),
+    "D2": ("D2", "distCoeffs2", "dist_coeffs_2", "distCoeffsR"),
+    "R": ("R",),
+    "T": ("T",),
+}
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """A stereo pair's calibration in numpy (mm, px): x_right = R x_left + T.
+
+    `rectified` marks a pair that needs no rectification (Middlebury); then P1, P2 are [K1 | 0], [K2 | -f B].
+    `image_size` is (width, height) or None when the file does not say.
+    """
+
+    K1: np.ndarray
+    D1: np.ndarray
+    K2: np.ndarray
+    D2: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    image_size: tuple[int, int] | None = None
+    rectified: bool = False
+    source: str = ""
+    extras: dict = field(default_factory=dict)
+
+    @staticmethod
+    def k_vector(K: np.ndarray) -> np.ndarray:
+        return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+    @property
+    def k1(self) -> np.ndarray:
+        return self.k_vector(self.K1)
+
+    @property
+    def k2(self) -> np.ndarray:
+        return self.k_vector(self.K2)
+
+    @property
+    def baseline(self) -> float:
+        return float(np.linalg.norm(self.T))
+
+    def projections(self) -> tuple[np.ndarray, np.ndarray]:
+        """P1, P2 of an already rectified pair (only meaningful when `rectified`)."""
+        P1 = np.c_[self.K1, np.zeros(3)]
+        P2 = np.c_[self.K2, self.K2 @ self.T]
+        return P1, P2
+
+
+def _coeffs8(d: np.ndarray | None, where: str) -> np.ndarray:
+    d = np.zeros(8) if d is None else np.asarray(d, dtype=float).ravel()
+    if d.size not in (0, 4, 5, 8, 12, 14):
+        raise DstereoError(f"{where}: {d.size} distortion coefficients; OpenCV uses 4, 5, 8, 12 or 14")
+    if d.size > 8 and np.any(d[8:] != 0):
+        raise DstereoError(
+            f"{where}: thin-prism/tilt coefficients (s1..s4, tauX, tauY) are not supported; recalibrate without them"
+        )
+    out = np.zeros(8)
+    out[: min(d.size, 8)] = d[:8]
+    return out
+
+
+def _check_matrix(K: np.ndarray, where: str) -> np.ndarray:
+    K = np.asarray(K, dtype=float)
+    if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DstereoError(f"{where}: camera matrix must be 3x3 with positive focal lengths, got {K.tolist()}")
+    if K[0, 1] != 0:
+        raise DstereoError(f"{where}: camera matrix has skew {K[0, 1]}; dstereo's camera model has none")
+    return K
+
+
+def _read_storage(path: Path) -> dict:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise DstereoError(f"{path}: cannot be read as an OpenCV YAML/XML file")
+    out = {}
+    try:
+        root = fs.root()
+        for key in root.keys():
+            node = fs.getNode(key)
+            if node.isMap() and not node.empty():
+                value = node.mat()
+                out[key] = value if value is not None else None
+            elif node.isSeq():
+                out[key] = np.array([node.at(i).real() for i in range(node.size())])
+            elif node.isReal() or node.isInt():
+                out[key] = node.real()
+            elif node.isString():
+                out[key] = node.string()
+    finally:
+        fs.release()
+    return out
+
+
+def _pick(data: dict, name: str):
+    for alias in ALIASES[name]:
+        if alias in data and data[alias] is not None:
+            return np.asarray(data[alias], dtype=float)
+    return None
+
+
+def _image_size(data: dict) -> tuple[int, int] | None:
+    for key in ("imageSize", "image_size", "image_width"):
+        if key in data and data[key] is not None:
+            v = np.asarray(data[key]).ravel()
+            if v.size >= 2:
+                return int(v[0]), int(v[1])
+    if "width" in data and "height" in data:
+        return int(data["width"]), int(data["height"])
+    return None
+
+
+def read_opencv_stereo(path: str | Path) -> StereoCalibration:
+    """OpenCV stereo calibration file (or an intrinsics/extrinsics pair, given either of them)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DstereoError(f"calibration file {path} does not exist")
+    data = _read_storage(path)
+    partner = {"intrinsics": "extrinsics", "extrinsics": "intrinsics"}.get(path.stem)
+    if partner and (_pick(data, "K1") is None or _pick(data, "R") is None):
+        other = path.with_name(partner + path.suffix)
+        if other.is_file():
+            data = {**_read_storage(other), **data}
+    missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
+    if missing:
+        raise DstereoError(
+            f"{path}: missing {missing}; a stereo calibration needs M1 D1 M2 D2 R T "
+            "(or intrinsics.yml + extrinsics.yml side by side)"
+        )
+    R = _pick(data, "R")
+    if R.size == 3:
+        import cv2
+
+        R = cv2.Rodrigues(R.reshape(3, 1))[0]
+    R = R.reshape(3, 3)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+        raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
+    return StereoCalibration(
+        K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
+        D1=_coeffs8(_pick(data, "D1"), f"{path}: D1"),
+        K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
+        D2=_coeffs8(_pick(data, "D2"), f"{path}: D2"),
+        R=R,
+        T=_pick(data, "T").reshape(3),
+        image_size=_image_size(data),
+        source=str(path),
+    )
+
+
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+def read_middlebury_calib(path: str | Path) -> StereoCalibration:
+    """Middlebury 2014 `calib.txt` (tolerant of spaces around '=', '[' and ';'): an already rectified pair.
+
+    Depth Z = baseline f / (d + doffs); the extras hold every scalar of the file (doffs, ndisp, vmin, ...).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DstereoError(f"Middlebury calibration {path} does not exist")
+    values: dict[str, object] = {}
+    for line in path.read_text().splitlines():
+        if "=" not in line:
+            continue
+        key, _, value = line.partition("=")
+        key = key.strip()
+        numbers = [float(x) for x in re.findall(_NUMBER, value)]
+        if "[" in value:
+            if len(numbers) != 9:
+                raise DstereoError(f"{path}: {key} should be a 3x3 matrix '[fx 0 cx; 0 fy cy; 0 0 1]'")
+            values[key] = np.array(numbers).reshape(3, 3)
+        elif len(numbers) == 1:
+            values[key] = numbers[0]
+    missing = [k for k in ("cam0", "cam1", "baseline") if k not in values]
+    if missing:
+        raise DstereoError(f"{path}: missing {missing} (a Middlebury calib.txt has cam0, cam1, doffs, baseline)")
+    K1 = _check_matrix(values["cam0"], f"{path}: cam0")
+    K2 = _check_matrix(values["cam1"], f"{path}: cam1")
+    doffs = float(values.get("doffs", K2[0, 2] - K1[0, 2]))
+    if abs(doffs - (K2[0, 2] - K1[0, 2])) > 1e-3:
+        raise DstereoError(f"{path}: doffs {doffs} differs from cx1 - cx0 = {K2[0, 2] - K1[0, 2]}; fix the file")
+    K2 = K2.copy()
+    K2[0, 2] = K1[0, 2] + doffs  # the files round cx; depth is defined through doffs
+    size = (int(values["width"]), int(values["height"])) if "width" in values and "height" in values else None
+    extras = {k: v for k, v in values.items() if not isinstance(v, np.ndarray)}
+    return StereoCalibration(
+        K1=K1, D1=np.zeros(8), K2=K2, D2=np.zeros(8), R=np.eye(3), T=np.array([-float(values["baseline"]), 0.0, 0.0]),
+        image_size=size, rectified=True, source=str(path), extras=extras,
+    )
+
+
+def read_stereo_calibration(path: str | Path) -> StereoCalibration:
+    """Any supported stereo calibration file (see the module docstring), by content."""
+    path = Path(path)
+    if not path.is_file():
+        raise DstereoError(f"calibration file {path} does not exist; give --calib a stereo.yml, OpenCV YAML or calib.txt")
+    head = path.read_text(errors="replace")[:4000]
+    if re.search(r"^\s*cam0\s*=", head, flags=re.MULTILINE):
+        return read_middlebury_calib(path)
+    return read_opencv_stereo(path)
+
+
+def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.ndarray) -> None:
+    """Write M1 D1 M2 D2 R T (+ imageSize, + any extra matrices such as R1 P1 Q) as OpenCV YAML."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        for key, value in (("M1", calib.K1), ("D1", calib.D1), ("M2", calib.K2), ("D2", calib.D2),
+                           ("R", calib.R), ("T", calib.T.reshape(3, 1)), *extra.items()):
+            fs.write(key, np.asarray(value, dtype=float))
+        if calib.image_size is not None:
+            fs.write("imageSize", np.array(calib.image_size, dtype=np.int32).reshape(1, 2))
+    finally:
+        fs.release()
+
+
+# --- PFM ---------------------------------------------------------------------------------------------------
+
+
+def read_pfm(path: str | Path) -> np.ndarray:
+    """Portable float map -> float32 array (h, w) or (h, w, 3), top row first (PFM stores bottom-up)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            kind = f.readline().strip()
+            if kind not in (b"Pf", b"PF"):
+                raise DstereoError(f"{path}: not a PFM file (header {kind[:8]!r}, expected 'Pf' or 'PF')")
+            dims = f.readline().split()
+            while not dims:
+                dims = f.readline().split()
+            width, height = int(dims[0]), int(dims[1])
+            scale = float(f.readline().strip())
+            data = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4")
+    except FileNotFoundError:
+        raise DstereoError(f"PFM file {path} does not exist") from None
+    except DstereoError:
+        raise
+    except (ValueError, IndexError):
+        raise DstereoError(f"{path}: malformed PFM header") from None
+    channels = 3 if kind == b"PF" else 1
+    if data.size != width * height * channels:
+        raise DstereoError(f"{path}: {data.size} values for a {width}x{height}x{channels} PFM; the file is truncated")
+    shape = (height, width, 3) if channels == 3 else (height, width)
+    return np.flipud(data.reshape(shape)).astype(np.float32)
+
+
+def write_pfm(path: str | Path, image: np.ndarray) -> None:
+    """float array (h, w) or (h, w, 3), top row first -> little-endian PFM."""
+    image = np.asarray(image, dtype="<f4")
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise DstereoError(f"PFM {path}: need an (h, w) or (h, w, 3) array, got shape {image.shape}")
+    kind = b"PF" if image.ndim == 3 else b"Pf"
+    with Path(path).open("wb") as f:
+        f.write(kind + b"\n" + f"{image.shape[1]} {image.shape[0]}\n-1.0\n".encode())
+        f.write(np.ascontiguousarray(np.flipud(image)).tobytes())

@@ -1,0 +1,103 @@
+"""Point clouds and meshes out: coloured PLY points, a triangle mesh over the pixel grid, outlier removal.
+
+Organised clouds are (h, w, 3) arrays with NaN where a pixel has no point; colours are (h, w, 3) uint8 RGB.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+
+def _flat(points: np.ndarray, colors: np.ndarray | None):
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ok = np.all(np.isfinite(pts), axis=1)
+    cols = None if colors is None else np.asarray(colors, dtype=np.uint8).reshape(-1, 3)[ok]
+    return pts[ok], cols
+
+
+def write_ply_points(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> int:
+    """Binary little-endian PLY of the finite points (float32 x y z, uint8 r g b); returns the point count."""
+    pts, cols = _flat(points, colors)
+    props = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([] if cols is None else [("red", "u1"), ("green", "u1"),
+                                                                                ("blue", "u1")])
+    rec = np.empty(len(pts), dtype=props)
+    rec["x"], rec["y"], rec["z"] = pts.T
+    if cols is not None:
+        rec["red"], rec["green"], rec["blue"] = cols.T
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
+    header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in props] + ["end_header"]
+    with Path(path).open("wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        f.write(rec.tobytes())
+    return len(pts)
+
+
+def grid_faces(points: np.ndarray, max_jump: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles over the pixel grid of an organised cloud: two per 2 x 2 pixel cell whose corners are valid.
+
+    A triangle is dropped when two of its corners differ in depth by more than `max_jump` x the nearer depth
+    (a depth jump, e.g. an occluding edge). Returns (vertex index per valid pixel (h, w), faces (m, 3)), vertex
+    indices counting the valid pixels row by row.
+    """
+    h, w, _ = points.shape
+    valid = np.all(np.isfinite(points), axis=2)
+    index = np.full((h, w), -1, dtype=np.int64)
+    index[valid] = np.arange(int(valid.sum()))
+    z = np.where(valid, points[..., 2], np.nan)
+    corners = [(slice(0, -1), slice(0, -1)), (slice(0, -1), slice(1, None)),
+               (slice(1, None), slice(0, -1)), (slice(1, None), slice(1, None))]
+    ids = [index[c] for c in corners]  # top-left, top-right, bottom-left, bottom-right
+    zs = [z[c] for c in corners]
+    faces = []
+    for a, b, c in ((0, 2, 1), (1, 2, 3)):  # counter-clockwise seen from the camera (y down, z forward)
+        za, zb, zc = zs[a], zs[b], zs[c]
+        with np.errstate(invalid="ignore"):
+            near = np.fmin(np.fmin(za, zb), zc)
+            far = np.fmax(np.fmax(za, zb), zc)
+            ok = (ids[a] >= 0) & (ids[b] >= 0) & (ids[c] >= 0) & (far - near <= max_jump * np.abs(near))
+        faces.append(np.stack([ids[a][ok], ids[b][ok], ids[c][ok]], axis=1))
+    return index, np.concatenate(faces, axis=0)
+
+
+def grid_mesh(points: np.ndarray, colors: np.ndarray | None = None, max_jump: float = 0.05):
+    """trimesh.Trimesh over the pixel grid (see `grid_faces`), vertex colours from the image."""
+    import trimesh
+
+    index, faces = grid_faces(points, max_jump)
+    valid = index >= 0
+    kwargs = {}
+    if colors is not None:
+        rgb = np.asarray(colors, dtype=np.uint8)[valid]
+        kwargs["vertex_colors"] = np.c_[rgb, np.full(len(rgb), 255, np.uint8)]
+    return trimesh.Trimesh(vertices=points[valid], faces=faces, process=False, **kwargs)
+
+
+def write_mesh_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None,
+                   max_jump: float = 0.05) -> tuple[int, int]:
+    """Grid mesh as binary PLY via trimesh; returns (vertices, faces)."""
+    mesh = grid_mesh(points, colors, max_jump)
+    Path(path).write_bytes(mesh.export(file_type="ply"))
+    return len(mesh.vertices), len(mesh.faces)
+
+
+def remove_statistical_outliers(points: np.ndarray, neighbours: int = 16, std_ratio: float = 2.0) -> np.ndarray:
+    """Copy of an organised cloud with NaN at points whose mean distance to their `neighbours` nearest points
+    exceeds the mean of that statistic by `std_ratio` standard deviations (PCL's statistical filter)."""
+    from scipy.spatial import cKDTree
+
+    if neighbours < 1 or std_ratio <= 0:
+        raise DstereoError(f"outlier removal: neighbours={neighbours} must be >= 1 and std_ratio={std_ratio} > 0")
+    out = np.array(points, dtype=np.float64, copy=True)
+    flat = out.reshape(-1, 3)
+    ok = np.flatnonzero(np.all(np.isfinite(flat), axis=1))
+    if len(ok) <= neighbours:
+        return out
+    dist, _ = cKDTree(flat[ok]).query(flat[ok], k=neighbours + 1)
+    mean = dist[:, 1:].mean(axis=1)
+    limit = mean.mean() + std_ratio * mean.std()
+    flat[ok[mean > limit]] = np.nan
+    return out

@@ -1,0 +1,492 @@
+"""The reconstruction pipeline: rectify, match (SGBM), triangulate, and write a results folder atomically.
+
+Calibrated path: Bouguet rectification in JAX (`dstereo.rectify`), images resampled by `cv2.remap` on maps
+computed in JAX, SGBM disparity, points from Q in the original left camera frame (mm). A Middlebury-style
+calibration of an already rectified pair skips the resampling.
+Uncalibrated path (thesis 4.2.2.4): SIFT matches, robust F, Hartley homographies; Q from the user's focal
+length and baseline (baseline 1: unscaled), its disparity offset fitted to the sparse matches triangulated
+from E = K^T F K. Library functions return results and warnings; they never print.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
+from dstereo.errors import DstereoError
+from dstereo.io.calib_files import StereoCalibration
+
+LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """Everything a reconstruction can be told (the CLI and configuration files fill it).
+
+    depth_range (mm) overrides the SGBM search range; alpha / zero_disparity are stereoRectify's (the default
+    zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
+    (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
+    statistical outlier removal; max_jump is the relative depth step that breaks the mesh.
+    """
+
+    sgbm: SGBMParams = PRESETS["default"]
+    depth_range: tuple[float, float] | None = None
+    alpha: float = -1.0
+    zero_disparity: bool = False
+    undistort: str = "opencv"
+    color_matching: bool = False
+    roi: tuple[int, int, int, int] | None = None
+    outlier_neighbours: int = 0
+    outlier_std: float = 2.0
+    max_jump: float = 0.05
+    # uncalibrated path
+    focal_mm: float | None = None
+    pixel_size_mm: float | None = None
+    crop_factor: float | None = None
+    focal_px: float | None = None
+    baseline_mm: float | None = None
+    ratio: float = 0.75
+    f_threshold: float = 1.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class PairResult:
+    """One reconstructed pair: rectified images (BGR), disparity (px), depth and points (mm, left camera frame)."""
+
+    name: str
+    left_rect: np.ndarray
+    right_rect: np.ndarray
+    disparity: np.ndarray
+    depth: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    matrices: dict[str, np.ndarray]
+    summary: dict
+    warnings: list[str] = field(default_factory=list)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """8-bit BGR image (grey images are expanded to three channels)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DstereoError(f"image {path} does not exist")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DstereoError(f"image {path} cannot be decoded; give a PNG, JPEG or TIFF file")
+    return image
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, calib: StereoCalibration | None, names=("left", "right")):
+    """Same size for both images, and the calibration's image size when it states one."""
+    if left.shape[:2] != right.shape[:2]:
+        raise DstereoError(
+            f"{names[0]} is {left.shape[1]}x{left.shape[0]} but {names[1]} is {right.shape[1]}x{right.shape[0]}; "
+            "a stereo pair must have equal sizes (crop or resize both the same way)"
+        )
+    size = (left.shape[1], left.shape[0])
+    if calib is not None and calib.image_size is not None and tuple(calib.image_size) != size:
+        raise DstereoError(
+            f"calibration {calib.source} is for {calib.image_size[0]}x{calib.image_size[1]} images but "
+            f"{names[0]} is {size[0]}x{size[1]}; use images of the calibrated size or recalibrate at this one"
+        )
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def _search_range(config: ReconstructionConfig, Q: np.ndarray) -> SGBMParams:
+    """SGBM parameters with the search range from the depth range, for the sign-normalised disparity."""
+    if config.depth_range is None:
+        return config.sgbm
+    b = 1.0 / abs(Q[3, 2])
+    lo, num = disparity_range(Q[2, 3], b, *config.depth_range, doffs=Q[3, 3] * b, margin=2.0)
+    return config.sgbm.with_overrides({"min_disparity": lo, "num_disparities": num})
+
+
+def _disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:
+    """SGBM on the rectified pair; a rig whose right camera sits on the left (Q[3,2] < 0) is matched mirrored."""
+    a, b = (left, right) if color else (_grey(left), _grey(right))
+    if Q[3, 2] >= 0:
+        return compute_disparity(a, b, params)
+    mirrored = compute_disparity(np.ascontiguousarray(a[:, ::-1]), np.ascontiguousarray(b[:, ::-1]), params)
+    return -mirrored[:, ::-1]
+
+
+def _finish(name, left_rect, right_rect, disparity, Q, R1, config: ReconstructionConfig, matrices, summary,
+            timings, warnings) -> PairResult:
+    """Disparity -> points in the left frame, ROI, outliers, density checks and the summary."""
+    from dstereo.io.pointcloud import remove_statistical_outliers
+    from dstereo.triangulate import reproject_disparity, to_original_left
+
+    t0 = time.perf_counter()
+    finite = np.isfinite(disparity)
+    if not finite.any():
+        raise DstereoError(
+            f"{name}: SGBM found no valid disparity (range {summary['sgbm']['min_disparity']}.."
+            f"{summary['sgbm']['min_disparity'] + summary['sgbm']['num_disparities'] - 1} px). The images may lack "
+            "texture, or the range misses the scene: set --z-min/--z-max to the object's depth range or widen "
+            "--sgbm num_disparities; check that --left and --right are not swapped"
+        )
+    points = np.asarray(to_original_left(reproject_disparity(disparity.astype(np.float64), Q), R1))
+    if config.roi is not None:
+        x, y, w, h = config.roi
+        keep = np.zeros(disparity.shape, bool)
+        keep[max(y, 0): y + h, max(x, 0): x + w] = True
+        if not keep.any():
+            raise DstereoError(f"roi {config.roi} lies outside the {disparity.shape[1]}x{disparity.shape[0]} "
+                               "rectified image; give x, y, w, h inside it")
+        points[~keep] = np.nan
+    if config.outlier_neighbours > 0:
+        points = remove_statistical_outliers(points, config.outlier_neighbours, config.outlier_std)
+    valid = np.all(np.isfinite(points), axis=2)
+    disparity = np.where(valid, disparity, np.nan).astype(np.float32)
+    depth = np.where(valid, points[..., 2], np.nan)
+    timings["triangulate_s"] = time.perf_counter() - t0
+    fraction = float(valid.mean())
+    if fraction < LOW_DENSITY:
+        warnings.append(
+            f"{name}: only {100 * fraction:.1f}% of pixels have a point; add texture to the scene, set the depth "
+            "range (--z-min/--z-max), or lower --sgbm uniqueness_ratio"
+        )
+    z = depth[valid]
+    summary.update({
+        "name": name,
+        "image_size": [int(disparity.shape[1]), int(disparity.shape[0])],
+        "valid_fraction": fraction,
+        "valid_points": int(valid.sum()),
+        "depth_mm": {"min": float(z.min()), "max": float(z.max()), "median": float(np.median(z)),
+                     "p05": float(np.percentile(z, 5)), "p95": float(np.percentile(z, 95))} if z.size else None,
+        "disparity_px": {"min": float(np.nanmin(disparity)), "max": float(np.nanmax(disparity))} if z.size else None,
+        "timings_s": timings,
+        "warnings": warnings,
+    })
+    colors = left_rect[..., ::-1] if left_rect.ndim == 3 else np.repeat(left_rect[..., None], 3, axis=2)
+    return PairResult(name, left_rect, right_rect, disparity, depth, points, np.ascontiguousarray(colors),
+                      matrices, summary, warnings)
+
+
+def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
+                           config: ReconstructionConfig = ReconstructionConfig(), name: str = "pair") -> PairResult:
+    """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
+    import cv2
+
+    from dstereo.rectify import rectified_from_projections, rectify_map, stereo_rectify
+
+    check_pair(left, right, calib)
+    size = (left.shape[1], left.shape[0])
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if calib.rectified:
+        rect = rectified_from_projections(*calib.projections(), size)
+        left_rect, right_rect = left, right
+        outside = np.zeros(left.shape[:2], bool)
+    else:
+        rect = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, size, calib.R, calib.T, alpha=config.alpha,
+                              zero_disparity=config.zero_disparity, undistort=config.undistort)
+        if rect.vertical:
+            raise DstereoError(
+                f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
+                "images (and the calibration) by 90 degrees"
+            )
+        maps = []
+        for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2)):
+            mx, my = rectify_map(k, d, R, P, rect.size)
+            maps.append((np.asarray(mx, np.float32), np.asarray(my, np.float32)))
+        left_rect, right_rect = (cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                                 for img, (mx, my) in zip((left, right), maps))
+        mx, my = maps[0]
+        outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
+    timings["rectify_s"] = time.perf_counter() - t0
+    Q = np.asarray(rect.Q)
+    params = _search_range(config, Q)
+    t0 = time.perf_counter()
+    disparity = _disparity(left_rect, right_rect, params, Q, config.color_matching)
+    disparity[outside] = np.nan
+    timings["disparity_s"] = time.perf_counter() - t0
+    matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
+    summary = {"mode": "calibrated", "calibration": calib.source, "units": "mm", "scaled": True,
+               "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
+               "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity}
+    return _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
+                   timings, [])
+
+
+def uncalibrated_q(f_px: float, size, baseline: float, d_sparse: np.ndarray, z_sparse: np.ndarray) -> np.ndarray:
+    """Q for a homography-rectified pair: centre principal point, focal f_px, and the disparity sign and offset
+    that best fit Z = f B / (s d + doffs) to sparse depths (median fit; s = +-1 by the smaller spread)."""
+    best = None
+    for s in (1.0, -1.0):
+        offsets = f_px * baseline / z_sparse - s * d_sparse
+        spread = np.median(np.abs(offsets - np.median(offsets)))
+        if best is None or spread < best[0]:
+            best = (spread, s, float(np.median(offsets)))
+    _, s, doffs = best
+    cx, cy = (size[0] - 1) / 2.0, (size[1] - 1) / 2.0
+    return np.array([[1.0, 0, 0, -cx], [0, 1.0, 0, -cy], [0, 0, 0, f_px], [0, 0, s / baseline, doffs / baseline]])
+
+
+def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: ReconstructionConfig,
+                             name: str = "pair") -> PairResult:
+    """Thesis 4.2.2.4: SIFT + robust F + Hartley rectification; Q from the focal length and baseline."""
+    import cv2
+
+    from dstereo.features import match_sift, ransac_fundamental, relative_pose
+    from dstereo.rectify import focal_px, rectify_uncalibrated
+    from dstereo.triangulate import triangulate_rays
+
+    check_pair(left, right, None)
+    size = (left.shape[1], left.shape[0])
+    if config.focal_px is not None:
+        f = float(config.focal_px)
+    elif config.focal_mm is not None:
+        f = focal_px(config.focal_mm, size[0], pixel_size_mm=config.pixel_size_mm, crop_factor=config.crop_factor)
+    else:
+        raise DstereoError("uncalibrated reconstruction needs the focal length: give --focal-mm with --pixel-size-mm "
+                           "or --crop-factor (or --focal-px)")
+    scaled = config.baseline_mm is not None
+    baseline = float(config.baseline_mm) if scaled else 1.0
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    matches = match_sift(left, right, ratio=config.ratio)
+    fit = ransac_fundamental(matches.left, matches.right, threshold=config.f_threshold)
+    m1, m2 = matches.left[fit.inliers], matches.right[fit.inliers]
+    H1, H2 = rectify_uncalibrated(m1, m2, fit.F, size, threshold=0)
+    left_rect = cv2.warpPerspective(left, H1, size, flags=cv2.INTER_LINEAR)
+    right_rect = cv2.warpPerspective(right, H2, size, flags=cv2.INTER_LINEAR)
+    K = np.array([[f, 0.0, (size[0] - 1) / 2.0], [0.0, f, (size[1] - 1) / 2.0], [0.0, 0.0, 1.0]])
+    R, t = relative_pose(fit.F, K, K, m1, m2)
+    v1 = np.c_[m1, np.ones(len(m1))] @ np.linalg.inv(K).T
+    v2 = np.c_[m2, np.ones(len(m2))] @ np.linalg.inv(K).T @ R
+    z = np.asarray(triangulate_rays(-R.T @ t * baseline, v1, v2))[:, 2]
+
+    def warp(H, p):
+        h = np.c_[p, np.ones(len(p))] @ H.T
+        return h[:, :2] / h[:, 2:3]
+
+    d_sparse = warp(H1, m1)[:, 0] - warp(H2, m2)[:, 0]
+    front = z > 0
+    if front.sum() < 8:
+        raise DstereoError(f"{name}: fewer than 8 matches triangulate in front of the cameras; check the focal length")
+    Q = uncalibrated_q(f, size, baseline, d_sparse[front], z[front])
+    timings["rectify_s"] = time.perf_counter() - t0
+    if config.depth_range is not None:
+        params = _search_range(config, Q)
+    else:
+        ds = np.sign(Q[3, 2]) * d_sparse[front]
+        lo = int(np.floor(np.percentile(ds, 1))) - 8
+        params = config.sgbm.with_overrides(
+            {"min_disparity": lo, "num_disparities": 16 * int(np.ceil((np.percentile(ds, 99) + 8 - lo + 1) / 16))})
+    t0 = time.perf_counter()
+    disparity = _disparity(left_rect, right_rect, params, Q, config.color_matching)
+    timings["disparity_s"] = time.perf_counter() - t0
+    warnings = [] if scaled else [f"{name}: no baseline given: the reconstruction is UNSCALED (baseline = 1)"]
+    matrices = {"H1": H1, "H2": H2, "F": fit.F, "Q": Q, "R": R, "t": t}
+    summary = {"mode": "uncalibrated", "units": "mm" if scaled else "unscaled (baseline = 1)", "scaled": scaled,
+               "frame": "homography-rectified left image (approximately the left camera; distortion ignored)",
+               "matches": int(len(matches.left)), "inliers": int(fit.inliers.sum()), "f_sampson_rms_px": fit.rms,
+               "focal_px": f, "sgbm": params.as_dict()}
+    return _finish(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
+                   warnings)
+
+
+# --- writing ----------------------------------------------------------------------------------------------
+
+
+def _epipolar_image(left: np.ndarray, right: np.ndarray, step: int = 32) -> np.ndarray:
+    import cv2
+
+    pair = np.concatenate([left, right], axis=1)
+    pair = pair if pair.ndim == 3 else cv2.cvtColor(pair, cv2.COLOR_GRAY2BGR)
+    pair = np.ascontiguousarray(pair)
+    for i, y in enumerate(range(step // 2, pair.shape[0], step)):
+        cv2.line(pair, (0, y), (pair.shape[1] - 1, y), (0, 255, 0) if i % 2 else (0, 0, 255), 1)
+    return pair
+
+
+def _disparity_png(path: Path, disparity: np.ndarray, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h, w = disparity.shape
+    fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
+    cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
+    im = ax.imshow(np.ma.masked_invalid(disparity), cmap=cmap, interpolation="nearest")
+    ax.set_title(title)
+    ax.set_axis_off()
+    fig.colorbar(im, ax=ax, label="disparity [px]", fraction=0.046, pad=0.04)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+
+
+def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig = ReconstructionConfig()) -> None:
+    """All outputs of one pair into `folder` (which exists)."""
+    import cv2
+
+    from dstereo.io.calib_files import write_pfm
+    from dstereo.io.pointcloud import write_mesh_ply, write_ply_points
+
+    t0 = time.perf_counter()
+    cv2.imwrite(str(folder / "rectified_left.png"), result.left_rect)
+    cv2.imwrite(str(folder / "rectified_right.png"), result.right_rect)
+    cv2.imwrite(str(folder / "epipolar.png"), _epipolar_image(result.left_rect, result.right_rect))
+    np.save(folder / "disparity.npy", result.disparity)
+    write_pfm(folder / "disparity.pfm", result.disparity)
+    _disparity_png(folder / "disparity.png", result.disparity, f"{result.name}: disparity")
+    np.save(folder / "depth.npy", result.depth.astype(np.float32))
+    write_pfm(folder / "depth.pfm", result.depth.astype(np.float32))
+    np.save(folder / "points.npy", result.points.astype(np.float32))
+    n_points = write_ply_points(folder / "points.ply", result.points, result.colors)
+    n_vertices, n_faces = write_mesh_ply(folder / "mesh.ply", result.points, result.colors, config.max_jump)
+    np.savez(folder / "matrices.npz", **result.matrices)
+    summary = dict(result.summary)
+    summary["ply_points"] = n_points
+    summary["mesh"] = {"vertices": n_vertices, "faces": n_faces, "max_jump": config.max_jump}
+    summary["config"] = config.as_dict()
+    summary["timings_s"] = {**summary.get("timings_s", {}), "write_s": time.perf_counter() - t0}
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value)}")
+
+
+def check_output(out: str | Path, force: bool) -> Path:
+    """Refuse an existing results folder unless `force` (checked before any work is done)."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
+    if out.exists() and not out.is_dir():
+        raise DstereoError(f"{out} exists and is not a folder; choose another --out")
+    return out
+
+
+def write_atomically(out: str | Path, force: bool, fill) -> Path:
+    """Call fill(tmp_folder), then rename the folder to `out`; nothing is left half-written on failure."""
+    out = check_output(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        fill(tmp)
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, old / out.name)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def run_reconstruction(
+    pairs: list[tuple[str | Path, str | Path]],
+    out: str | Path,
+    calib_path: str | Path | None = None,
+    config: ReconstructionConfig = ReconstructionConfig(),
+    force: bool = False,
+) -> list[PairResult]:
+    """Reconstruct every (left, right) pair and write the results folder (one sub-folder per pair if several)."""
+    from dstereo.io.calib_files import read_stereo_calibration
+
+    check_output(out, force)
+    if not pairs:
+        raise DstereoError("no image pair given; pass --left and --right")
+    calib = read_stereo_calibration(calib_path) if calib_path is not None else None
+    results = []
+    for left_path, right_path in pairs:
+        left, right = read_image(left_path), read_image(right_path)
+        check_pair(left, right, calib, names=(str(left_path), str(right_path)))
+        name = Path(left_path).stem
+        if calib is None:
+            results.append(reconstruct_uncalibrated(left, right, config, name))
+        else:
+            results.append(reconstruct_calibrated(calib, left, right, config, name))
+    names = [r.name for r in results]
+    if len(set(names)) != len(names):
+        for i, r in enumerate(results):
+            r.name = f"{i:02d}_{r.name}"
+
+    def fill(tmp: Path):
+        if len(results) == 1:
+            write_pair(tmp, results[0], config)
+            return
+        for r in results:
+            (tmp / r.name).mkdir()
+            write_pair(tmp / r.name, r, config)
+        index = {"pairs": [r.summary for r in results], "config": config.as_dict()}
+        (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=_json_default))
+
+    write_atomically(out, force, fill)
+    return results
+
+
+# --- configuration files --------------------------------------------------------------------------------------
+
+CONFIG_NAMES = ("dstereo.toml", "reconstruct.toml", "dstereo.json", "reconstruct.json")
+
+
+def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionConfig(), where: str = "config"):
+    """ReconstructionConfig from {'reconstruct': {...}, 'sgbm': {...}} (TOML/JSON layout); 'preset' picks the
+    SGBM starting point, 'z_min'/'z_max' give the depth range in mm."""
+    from dataclasses import fields, replace
+
+    section = dict(data.get("reconstruct", {}))
+    sgbm = base.sgbm
+    preset = section.pop("preset", data.get("sgbm", {}).get("preset"))
+    if preset is not None:
+        if preset not in PRESETS:
+            raise DstereoError(f"{where}: unknown SGBM preset {preset!r}; use one of {sorted(PRESETS)}")
+        sgbm = PRESETS[preset]
+    sgbm = sgbm.with_overrides({k: v for k, v in data.get("sgbm", {}).items() if k != "preset"})
+    z = (section.pop("z_min", None), section.pop("z_max", None))
+    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm"}
+    unknown = sorted(set(section) - known)
+    if unknown:
+        raise DstereoError(f"{where}: unknown [reconstruct] key(s) {unknown}; known: {sorted(known)} + z_min, z_max")
+    if "roi" in section and section["roi"] is not None:
+        section["roi"] = tuple(int(v) for v in section["roi"])
+    if "depth_range" in section and section["depth_range"] is not None:
+        section["depth_range"] = tuple(float(v) for v in section["depth_range"])
+    if any(v is not None for v in z):
+        if None in z:
+            raise DstereoError(f"{where}: give both z_min and z_max (mm)")
+        section["depth_range"] = (float(z[0]), float(z[1]))
+    return replace(base, sgbm=sgbm, **section)
+
+
+def load_config(path: str | Path, base: ReconstructionConfig = ReconstructionConfig()) -> ReconstructionConfig:
+    """ReconstructionConfig from a TOML or JSON file (see `config_from_mapping`)."""
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise DstereoError(f"configuration file {path} does not exist")
+    try:
+        data = json.loads(path.read_text()) if path.suffix == ".json" else tomllib.loads(path.read_text())
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise DstereoError(f"{path}: cannot be parsed ({exc})") from None
+    return config_from_mapping(data, base, str(path))
