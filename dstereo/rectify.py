@@ -53,10 +53,11 @@ class Rectification(eqx.Module):
 def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
     """Axis-angle vector of a rotation (angle < pi), accurate at small angles (atan2 rather than arccos)."""
     w = 0.5 * jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
-    s = jnp.linalg.norm(w)
+    s2 = w @ w
+    small = s2 < 1e-24  # series of theta / sin(theta); the double `where` keeps gradients finite at identity
+    s = jnp.sqrt(jnp.where(small, 1.0, s2))
     theta = jnp.arctan2(s, 0.5 * (jnp.trace(rmat) - 1.0))
-    small = s < 1e-12
-    return w * jnp.where(small, 1.0 + s * s / 6.0, theta / jnp.where(small, 1.0, s))
+    return w * jnp.where(small, 1.0 + s2 / 6.0, theta / s)
 
 
 def undistort_fixed_point(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 5) -> Float[Array, "2"]:
@@ -152,11 +153,11 @@ def _rectify(k1, c1, k2, c2, R, T, alpha, zero_disparity, sizes, *, idx, method)
     r_r, t = _half_rotations(R, T)
     c = t[idx]
     uu = jnp.zeros(3).at[idx].set(jnp.where(c > 0, 1.0, -1.0))
-    ww = jnp.cross(t, uu)
-    nw = jnp.linalg.norm(ww)
-    angle = jnp.arccos(jnp.abs(c) / jnp.linalg.norm(t))
-    ww = ww * jnp.where(nw > 0, angle / jnp.where(nw > 0, nw, 1.0), 0.0)
-    w_r = rodrigues(ww)
+    ww = jnp.cross(t, uu)  # rotation axis x sin(angle) |t| that turns t onto the image axis
+    nw2 = ww @ ww
+    small = nw2 < 1e-24 * (c * c)  # baseline already aligned: angle / nw -> 1 / |c| (finite gradients)
+    nw = jnp.sqrt(jnp.where(small, 1.0, nw2))
+    w_r = rodrigues(ww * jnp.where(small, 1.0 / jnp.abs(c), jnp.arctan2(nw, jnp.abs(c)) / nw))
     R1 = w_r @ r_r.T
     R2 = w_r @ r_r
     t_idx = (R2 @ T)[idx]

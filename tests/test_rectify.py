@@ -182,6 +182,10 @@ def test_rectification_gradients_match_finite_differences():
     h = 1e-4
     fd = jnp.stack([(f(T.at[i].add(h)) - f(T.at[i].add(-h))) / (2 * h) for i in range(3)], axis=1)
     assert np.allclose(jac, fd, rtol=1e-5, atol=1e-9)
+    # Singular case by name: an already rectified rig (R = I, T along x) has finite derivatives.
+    aligned = jax.jacfwd(lambda R: stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), R, jnp.array([-100.0, 0, 0]),
+                                                  vertical=False).P1)(jnp.eye(3))
+    assert np.all(np.isfinite(aligned))
 
 
 def test_log_rotation_accurate_at_small_angles():
