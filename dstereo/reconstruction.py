@@ -143,7 +143,7 @@ def _finish(name, left_rect, right_rect, disparity, Q, R1, config: Reconstructio
             "texture, or the range misses the scene: set --z-min/--z-max to the object's depth range or widen "
             "--sgbm num_disparities; check that --left and --right are not swapped"
         )
-    points = np.asarray(to_original_left(reproject_disparity(disparity.astype(np.float64), Q), R1))
+    points = np.array(to_original_left(reproject_disparity(disparity.astype(np.float64), Q), R1))  # writable
     if config.roi is not None:
         x, y, w, h = config.roi
         keep = np.zeros(disparity.shape, bool)

@@ -338,3 +338,14 @@ def test_cli_reconstruct(tmp_path, monkeypatch, capsys):
         cli.main()
     err = capsys.readouterr().err
     assert exc.value.code == 1 and "already exists" in err and len(err.strip().splitlines()) == 1
+
+
+def test_roi_keeps_points_inside_only():
+    _, calib, left, right = _teddy()
+    result = reconstruct_calibrated(calib, left, right, ReconstructionConfig(sgbm=MIDDLEBURY_SGBM,
+                                                                             roi=(100, 50, 200, 150)))
+    valid = np.all(np.isfinite(result.points), axis=2)
+    assert valid[50:200, 100:300].mean() > 0.8 and not valid[:50].any() and not valid[:, 300:].any()
+    assert result.summary["valid_fraction"] == pytest.approx(valid.mean())
+    with pytest.raises(DstereoError, match="outside"):
+        reconstruct_calibrated(calib, left, right, ReconstructionConfig(sgbm=MIDDLEBURY_SGBM, roi=(900, 0, 10, 10)))
