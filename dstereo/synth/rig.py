@@ -1,0 +1,89 @@
+"""Stereo rigs for synthetic scenes, including a reduced version of the thesis's Plasmatron set-up.
+
+Reduced Plasmatron geometry (thesis 5.3.1): two cameras ~100 mm apart, both ~600 mm from the sample and aimed at
+it (an isosceles triangle, d / B ~ 6). The thesis cameras (12 MP, 4000 x 3000, ~10,000 px focal length) are
+reduced to 640 x 480 px with a 4,800 px focal length, so the field at 600 mm is 80 x 60 mm and the sample's 49 mm
+head spans ~390 px, filling the frame as in the experiment while rendering in about a second.
+
+The rig's world frame has its origin midway between the camera centres, x from the left to the right camera,
+z towards the sample, y down.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dstereo.models.camera import Camera
+from dstereo.synth.poses import compose, invert, look_at, pose_matrix
+from dstereo.synth.truth import camera_truth
+
+# Two slightly different lenses (OpenCV order k1, k2, p1, p2, k3): the rig need not be symmetric.
+PLASMATRON_COEFFS_LEFT = (-0.18, 0.9, 0.0004, -0.0003, 0.0)
+PLASMATRON_COEFFS_RIGHT = (-0.22, 1.1, -0.0002, 0.0005, 0.0)
+
+
+@dataclass
+class StereoRig:
+    """Two cameras, `T_right_left` (x_right = R x_left + T, OpenCV's stereoCalibrate) and `T_left_world`."""
+
+    left: Camera
+    right: Camera
+    T_right_left: np.ndarray
+    T_left_world: np.ndarray
+
+    @property
+    def T_right_world(self) -> np.ndarray:
+        return compose(self.T_right_left, self.T_left_world)
+
+    def rotation_translation(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, T) of T_right_left as OpenCV's stereoCalibrate returns them."""
+        m = pose_matrix(self.T_right_left)
+        return m[:3, :3], m[:3, 3]
+
+    def to_truth(self) -> dict:
+        r, t = self.rotation_translation()
+        return {
+            "left": camera_truth(self.left), "right": camera_truth(self.right),
+            "T_right_left": np.asarray(self.T_right_left).tolist(), "R": r.tolist(), "T": t.tolist(),
+            "T_left_world": np.asarray(self.T_left_world).tolist(),
+        }
+
+
+def stereo_rig(left: Camera, right: Camera, T_right_left) -> StereoRig:
+    """Rig from two cameras and their relative pose; the world frame is the left camera's."""
+    return StereoRig(left, right, np.asarray(T_right_left, float).reshape(6), np.zeros(6))
+
+
+def plasmatron_rig(
+    image_size: tuple[int, int] = (640, 480),
+    focal_px: float = 4800.0,
+    baseline_mm: float = 100.0,
+    distance_mm: float = 600.0,
+    coeffs_left=PLASMATRON_COEFFS_LEFT,
+    coeffs_right=PLASMATRON_COEFFS_RIGHT,
+) -> StereoRig:
+    """The reduced Plasmatron rig (module docstring): cameras at x = -+baseline/2 aimed at (0, 0, distance)."""
+    w, h = image_size
+    left = Camera.create(focal_px, focal_px * 1.0005, (w - 1) / 2 + 2.5, (h - 1) / 2 - 1.5, coeffs_left,
+                         image_size=image_size)
+    right = Camera.create(focal_px * 1.004, focal_px * 1.0035, (w - 1) / 2 - 3.0, (h - 1) / 2 + 2.0, coeffs_right,
+                          image_size=image_size)
+    target = np.array([0.0, 0.0, distance_mm])
+    t_left_world = look_at([-baseline_mm / 2, 0.0, 0.0], target)
+    t_right_world = look_at([baseline_mm / 2, 0.0, 0.0], target)
+    return StereoRig(left, right, compose(t_right_world, invert(t_left_world)), t_left_world)
+
+
+def sample_pose(length_mm: float = 50.0, distance_mm: float = 600.0, yaw_deg: float = 0.0,
+                pitch_deg: float = 0.0) -> np.ndarray:
+    """T_world_sample: the sample's axis (+z of its frame) points back at the rig, turned by `yaw_deg` about the
+    world y axis and `pitch_deg` about x, with the centre of the head circle (z = length) at (0, 0, distance)."""
+    r_face = np.diag([1.0, -1.0, -1.0])  # sample +z -> world -z
+    r_turn = Rotation.from_euler("yx", [yaw_deg, pitch_deg], degrees=True).as_matrix()
+    rmat = r_turn @ r_face
+    head = np.array([0.0, 0.0, distance_mm])
+    tvec = head - rmat @ np.array([0.0, 0.0, length_mm])
+    return np.concatenate([Rotation.from_matrix(rmat).as_rotvec(), tvec])

@@ -1,0 +1,58 @@
+"""Write whole synthetic data sets to a folder (thesis layout: images_left/, images_right/), truth beside each image.
+
+A set is written into a temporary sibling folder and renamed into place at the end, so an interrupted write
+never leaves a half-written folder; an existing folder is replaced only with `force=True`.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+from dstereo.errors import DstereoError
+from dstereo.synth.scenes import CalibrationSet, StereoRender
+from dstereo.synth.truth import write_render
+
+
+def _write_folder(folder, force: bool, fill) -> Path:
+    folder = Path(folder)
+    if folder.exists() and not force:
+        raise DstereoError(f"{folder} already exists; choose another folder or pass force=True to replace it")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        fill(tmp)
+        if folder.exists():
+            shutil.rmtree(folder)
+        tmp.rename(folder)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return folder
+
+
+def write_calibration_set(folder, cset: CalibrationSet, force: bool = False) -> Path:
+    """`images_left/left_NN.png` (+ .json/.npz truth), `images_right/right_NN.*` for a rig, and `truth.*`."""
+
+    def fill(tmp: Path):
+        sides = [("left", cset.left, cset.views_left)]
+        if cset.right is not None:
+            sides.append(("right", cset.right, cset.views_right))
+        for side, images, views in sides:
+            for i, (image, truth) in enumerate(zip(images, views)):
+                write_render(tmp / f"images_{side}", image, truth, name=f"{side}_{i:02d}")
+        write_render(tmp, None, cset.truth, name="truth")
+
+    return _write_folder(folder, force, fill)
+
+
+def write_stereo_renders(folder, renders: list[StereoRender], force: bool = False) -> Path:
+    """`images_left/left_NNN.*` and `images_right/right_NNN.*` for each pair (a sample pair or a sequence)."""
+
+    def fill(tmp: Path):
+        for i, pair in enumerate(renders):
+            write_render(tmp / "images_left", pair.left, pair.truth_left, name=f"left_{i:03d}")
+            write_render(tmp / "images_right", pair.right, pair.truth_right, name=f"right_{i:03d}")
+
+    return _write_folder(folder, force, fill)
