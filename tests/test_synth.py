@@ -12,7 +12,7 @@ from dstereo.models import Camera
 from dstereo.synth import (
     CALIBRATION_OPTIONS, Board, Plane, RenderOptions, Sample, Sphere, Speckle, board_pose_set, calibration_set,
     camera_rays, corner_coverage, look_at, plasmatron_rig, pose_matrix, read_truth, recession_sequence,
-    render_board, render_object, sample_pair, true_corners, write_calibration_set, write_render,
+    render_board, render_object, sample_pair, true_corners, write_calibration_set, write_render, write_stereo_renders,
 )
 
 W, H = 640, 480
@@ -43,7 +43,8 @@ def _detect(image):
 
 def _aligned(detected, truth):
     """OpenCV may list the corners from the opposite end; compare in the order that matches."""
-    return detected if np.sum((detected[0] - truth[0]) ** 2) < np.sum((detected[-1] - truth[0]) ** 2) else detected[::-1]
+    forward = np.sum((detected[0] - truth[0]) ** 2) < np.sum((detected[-1] - truth[0]) ** 2)
+    return detected if forward else detected[::-1]
 
 
 def _rms(a, b):
@@ -143,6 +144,22 @@ def test_stereo_renders_detect_at_truth(rig_set):
             assert _rms(_aligned(detected, truth), truth) <= 0.05
 
 
+def test_board_depth_truth_matches_closed_form(rig_set):
+    rig, cset = rig_set
+    truth = cset.views_right[2]
+    o, d = _object_frame(_cv2_rays(rig.right), truth["pose_cam_board"])
+    t = -o[2] / d[..., 2]
+    p = o + t[..., None] * d
+    # 9 x 6 inner corners, 3.75 mm squares: squares reach one square beyond the outer corners, the margin one more.
+    x0, y0, x1, y1 = -3.75 * 2, -3.75 * 2, 3.75 * 10, 3.75 * 7
+    on_board = (p[..., 0] >= x0) & (p[..., 0] <= x1) & (p[..., 1] >= y0) & (p[..., 1] <= y1)
+    depth = truth["depth"]
+    assert np.sum(np.isfinite(depth) != on_board) <= 2 and on_board.mean() > 0.1
+    both = on_board & np.isfinite(depth)
+    assert np.max(np.abs(depth[both] - t[both]) / t[both]) <= 1e-6
+    assert np.all(truth["corners_in_image"])
+
+
 def test_calibration_set_is_deterministic_and_written_with_truth(rig_set, tmp_path):
     rig, cset = rig_set
     noisy = RenderOptions(supersample=1, read_noise_dn=2.0, full_well=2000.0, vignetting=0.3, defocus_sigma_px=0.7)
@@ -153,7 +170,8 @@ def test_calibration_set_is_deterministic_and_written_with_truth(rig_set, tmp_pa
     assert [png(i) for i in a.left + a.right] == [png(i) for i in b.left + b.right]
     assert png(a.left[0]) != png(c.left[0])
     folder = write_calibration_set(tmp_path / "cal", a)
-    assert sorted(p.name for p in (folder / "images_left").iterdir())[:3] == ["left_00.json", "left_00.npz", "left_00.png"]
+    names = sorted(p.name for p in (folder / "images_left").iterdir())
+    assert names[:3] == ["left_00.json", "left_00.npz", "left_00.png"] and len(names) == 6
     back = read_truth(folder / "images_right", "right_01")
     np.testing.assert_array_equal(back["corners"], a.views_right[1]["corners"])
     np.testing.assert_array_equal(cv2.imread(str(folder / "images_right" / "right_01.png"), 0), a.right[1])
@@ -271,8 +289,11 @@ def test_object_render_is_deterministic(object_camera):
     pose = np.array([0.2, -0.3, 0.1, 8.0, -5.0, 140.0])
     noisy = RenderOptions(supersample=2, read_noise_dn=1.5, full_well=3000.0, vignetting=0.2, defocus_sigma_px=0.6)
     cam, rays, centre = object_camera
-    run = lambda seed: render_object(cam, pose, Sphere(30.0), Speckle.create(seed), options=noisy, seed=seed,  # noqa: E731
-                                     rays=rays, centre_rays=centre)
+
+    def run(seed):
+        return render_object(cam, pose, Sphere(30.0), Speckle.create(seed), options=noisy, seed=seed, rays=rays,
+                             centre_rays=centre)
+
     (a, ta), (b, tb), (c, _) = run(4), run(4), run(5)
     assert a.tobytes() == b.tobytes() and np.array_equal(ta["depth"], tb["depth"], equal_nan=True)
     assert a.tobytes() != c.tobytes()
@@ -298,13 +319,14 @@ def test_sample_pair_both_cameras_see_the_same_surface_point(small_rig, tmp_path
         assert abs(truth["depth"][v, u] - p[2]) < 0.05
         assert 595.0 < p[2] < 600.0  # head circle 600 mm from each camera, dome apex 4 mm nearer
     # The relative pose in the truth is the rig's.
-    rel = pose_matrix(pair.truth_right["pose_cam_object"]) @ np.linalg.inv(pose_matrix(pair.truth_left["pose_cam_object"]))
+    t_left, t_right = (pose_matrix(t["pose_cam_object"]) for t in (pair.truth_left, pair.truth_right))
+    rel = t_right @ np.linalg.inv(t_left)
     np.testing.assert_allclose(rel, pose_matrix(rig.T_right_left), atol=1e-9)
     write_render(tmp_path, pair.left, pair.truth_left, name="left")
     assert np.array_equal(read_truth(tmp_path, "left")["depth"], pair.truth_left["depth"], equal_nan=True)
 
 
-def test_recession_sequence_truth(small_rig):
+def test_recession_sequence_truth(small_rig, tmp_path):
     frames = recession_sequence(small_rig, n_frames=10, duration_s=40.0, seed=1, options=OBJECT_TEST_OPTIONS)
     times = np.array([f.truth_left["time_s"] for f in frames])
     stag = np.array([f.truth_left["recession_stagnation_mm"] for f in frames])
@@ -328,3 +350,7 @@ def test_recession_sequence_truth(small_rig):
     assert np.all(np.diff(depth) > 0)
     np.testing.assert_allclose(depth - depth[0], stag / -(n_cam @ (p0 / p0[2])), atol=0.005)
     assert not np.array_equal(frames[0].left, frames[-1].left)
+    folder = write_stereo_renders(tmp_path / "seq", frames)
+    index = json.loads((folder / "index.json").read_text())
+    assert [e["time_s"] for e in index] == times.tolist() and index[-1]["right"] == "images_right/right_009.png"
+    assert read_truth(folder / "images_right", "right_004")["time_s"] == times[4]

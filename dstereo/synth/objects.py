@@ -14,6 +14,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from dstereo.errors import DstereoError
+
 MISS = -1
 
 
@@ -94,10 +96,10 @@ class Sample(eqx.Module):
         F(rho) = length + cap(rho) - recession_uniform - recession_peak * exp(-rho^2 / (2 recession_sigma^2))
 
     with cap the spherical cap of height `dome_height` whose rim is the head circle (sphere radius
-    (head_radius^2 + dome_height^2) / (2 dome_height)); `dome_height = 0` is a flat front (`Sample.flat()`). The solid is
-    {0 <= z <= F(rho), rho <= r_side(z)}; its base (z = 0, on the holder) is not rendered. The front-face hit is
-    found by bisection along the ray, which assumes the ray crosses the face once (true for views within ~50 deg
-    of the axis, the stereo geometry of the thesis).
+    (head_radius^2 + dome_height^2) / (2 dome_height)); `dome_height = 0` is a flat front (`Sample.flat()`).
+    The solid is {0 <= z <= F(rho), rho <= r_side(z)}; its base (z = 0, on the holder) is not rendered. The
+    front-face hit is found by bisection then Newton along the ray, which assumes the ray crosses the face once
+    (true for views within ~50 deg of the axis, the stereo geometry of the thesis).
     """
 
     length: float = 50.0
@@ -107,6 +109,13 @@ class Sample(eqx.Module):
     recession_uniform: float = 0.0
     recession_peak: float = 0.0
     recession_sigma: float = 8.0
+
+    def __check_init__(self):
+        sizes = {"length": self.length, "base_radius": self.base_radius, "head_radius": self.head_radius,
+                 "recession_sigma": self.recession_sigma}
+        bad = {k: v for k, v in sizes.items() if isinstance(v, (int, float)) and not v > 0}
+        if bad:
+            raise DstereoError(f"Sample {bad}: lengths must be positive (mm)")
 
     @classmethod
     def flat(cls, **kwargs) -> "Sample":
@@ -169,7 +178,8 @@ class Sample(eqx.Module):
 
     def _side_valid(self, o, d, t):
         p = o + t * d
-        return (t > 0) & (p[2] >= 0) & (p[2] <= self.front_height(self.side_radius(p[2]) ** 2)) & (self.side_radius(p[2]) > 0)
+        r = self.side_radius(p[2])
+        return (t > 0) & (p[2] >= 0) & (p[2] <= self.front_height(r**2)) & (r > 0)
 
     def _hit_side(self, o, d):
         kk = (self.head_radius - self.base_radius) / self.length
@@ -203,9 +213,13 @@ class Sample(eqx.Module):
         return jnp.where(part == SIDE, self._implicit_side(p), self._implicit_front(p))
 
     def normal(self, p: Float[Array, "3"], part: Array) -> Float[Array, "3"]:
-        n_front = _unit(jax.grad(self._implicit_front)(p))
-        n_side = _unit(jax.grad(self._implicit_side)(p))
-        return jnp.where(part == SIDE, n_side, n_front)
+        """Gradient of the hit part's implicit function, normalised: front (-2x F', -2y F', 1) with
+        F' = dF/d(rho^2), side (x/rho, y/rho, -dr/dz)."""
+        slope = jax.grad(self.front_height)(p[0] ** 2 + p[1] ** 2)
+        n_front = jnp.array([-2.0 * p[0] * slope, -2.0 * p[1] * slope, 1.0])
+        rho = jnp.sqrt(p[0] ** 2 + p[1] ** 2 + 1e-300)
+        n_side = jnp.array([p[0] / rho, p[1] / rho, -(self.head_radius - self.base_radius) / self.length])
+        return _unit(jnp.where(part == SIDE, n_side, n_front))
 
     def texture_point(self, p: Float[Array, "3"], part: Array) -> Float[Array, "3"]:
         # The front face carries its speckle in (x, y), so the pattern stays put as the face recedes.

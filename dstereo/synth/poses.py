@@ -93,8 +93,8 @@ def board_visible(camera: Camera, pose_cam_board, board: Board, margin_px: float
     q, depth = _project_many(camera, pose_cam_board, pts)
     if np.any(depth <= 0) or not np.all(np.isfinite(q)):
         return False
-    inside = (q[:, 0] >= margin_px) & (q[:, 0] <= w - 1 - margin_px) & (q[:, 1] >= margin_px) & (q[:, 1] <= h - 1 - margin_px)
-    if not np.all(inside):
+    lo, hi = margin_px, np.array([w - 1, h - 1]) - margin_px
+    if not np.all((q >= lo) & (q <= hi)):
         return False
     rays = np.asarray(unproject_points(camera.k, camera.dist.coeffs, jnp.asarray(q)))
     m = pose_matrix(pose_cam_board)

@@ -43,7 +43,9 @@ class RecessionProfile:
         return asdict(self) | {"formula": "r(t, rho) = uniform_rate*t + peak_rate*t*exp(-rho^2/(2 sigma^2))"}
 
 
-def profile_for_total(total_mm: float, duration_s: float, peak_share: float = 0.6, sigma: float = 8.0) -> RecessionProfile:
+def profile_for_total(
+    total_mm: float, duration_s: float, peak_share: float = 0.6, sigma: float = 8.0
+) -> RecessionProfile:
     """Profile whose stagnation-point recession reaches `total_mm` at `duration_s`, `peak_share` of it peaked."""
     if duration_s <= 0:
         raise DstereoError(f"recession duration {duration_s} s: need > 0")

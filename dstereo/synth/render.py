@@ -53,17 +53,40 @@ def board_radiance(rays: Float[Array, "h w s2 2"], pose: Float[Array, "6"], boar
     return jnp.mean(refl.reshape(h, w, s2), axis=2)
 
 
+@partial(jax.jit, static_argnames=("board",))
+def board_depth(centre_rays: Float[Array, "h w 1 2"], pose: Float[Array, "6"], board: Board) -> Float[Array, "h w"]:
+    """Depth Z (camera frame, mm) of the printed board through each pixel centre; NaN off the board."""
+    o, r_t = _ray_frame(pose)
+    xy1 = jnp.concatenate([centre_rays[:, :, 0], jnp.ones(centre_rays.shape[:2] + (1,))], axis=-1)
+    d = jnp.einsum("ij,hwj->hwi", r_t, xy1)
+    t = -o[2] / jnp.where(jnp.abs(d[..., 2]) > 1e-15, d[..., 2], 1e-15)
+    xy = o[:2] + t[..., None] * d[..., :2]
+    x0, y0, x1, y1 = board.squares_extent()
+    b = board.border
+    inside_x = (xy[..., 0] >= x0 - b) & (xy[..., 0] <= x1 + b)
+    inside_y = (xy[..., 1] >= y0 - b) & (xy[..., 1] <= y1 + b)
+    return jnp.where((t > 0) & inside_x & inside_y, t, jnp.nan)
+
+
 def render_board(
     camera: Camera, pose, board: Board, options: RenderOptions = RenderOptions(), seed=0, rays=None,
+    centre_rays=None,
 ) -> tuple[np.ndarray, dict]:
-    """8-bit image of `board` at T_cam_board `pose` (rvec, tvec), and its truth (camera, pose, true corners).
+    """8-bit image of `board` at T_cam_board `pose` (rvec, tvec), and its truth: camera, pose, true corners
+    (`corners`, (n, 2) px, OpenCV's object-point order; `corners_in_image` flags those inside the frame) and the
+    board's depth map (`depth`, NaN off the board).
 
-    `rays`: `camera_rays(camera, options.supersample)` if already computed; `seed` feeds the sensor noise.
+    `rays` / `centre_rays`: `camera_rays(camera, options.supersample)` / `camera_rays(camera, 1)` if already
+    computed; `seed` (an int or a list of ints) feeds the sensor noise.
     """
     rays = camera_rays(camera, options.supersample) if rays is None else rays
+    if centre_rays is None:
+        centre_rays = rays if options.supersample == 1 else camera_rays(camera, 1)
     pose = np.asarray(pose, float).reshape(6)
     radiance = np.asarray(board_radiance(rays, jnp.asarray(pose), board))
     image = expose(radiance, np.asarray(camera.k[2:4]), options, np.random.default_rng(seed))
+    corners = true_corners(camera, pose, board.pattern, board.square)
+    w, h = camera.image_size
     truth = {
         "kind": "board",
         "camera": camera_truth(camera),
@@ -71,7 +94,9 @@ def render_board(
         "board": {"pattern": list(board.pattern), "square": board.square, "border": board.border},
         "render": options.to_truth(),
         "seed": np.asarray(seed).tolist(),
-        "corners": true_corners(camera, pose, board.pattern, board.square),
+        "corners": corners,
+        "corners_in_image": np.all((corners >= -0.5) & (corners <= np.array([w, h]) - 0.5), axis=1),
+        "depth": np.asarray(board_depth(centre_rays, jnp.asarray(pose), board)),
     }
     return image, truth
 

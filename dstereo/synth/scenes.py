@@ -71,9 +71,9 @@ def calibration_set(
     poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
     images, views = [], []
     for c, (cam, t_cam_left) in enumerate(zip(cameras, rig)):
-        rays = camera_rays(cam, options.supersample)
-        rendered = [render_board(cam, compose(t_cam_left, p), board, options, seed=[seed, c, i], rays=rays)
-                    for i, p in enumerate(poses)]
+        rays, centre = camera_rays(cam, options.supersample), camera_rays(cam, 1)
+        rendered = [render_board(cam, compose(t_cam_left, p), board, options, seed=[seed, c, i], rays=rays,
+                                 centre_rays=centre) for i, p in enumerate(poses)]
         images.append([img for img, _ in rendered])
         views.append([t for _, t in rendered])
     truth = {
@@ -120,7 +120,8 @@ def _object_pair(rig: StereoRig, surface, texture: Speckle, T_world_object, ligh
 
 
 def _rays_for(rig: StereoRig, options: RenderOptions) -> dict:
-    return {c: (camera_rays(cam, options.supersample), camera_rays(cam, 1)) for c, cam in enumerate((rig.left, rig.right))}
+    cams = (rig.left, rig.right)
+    return {c: (camera_rays(cam, options.supersample), camera_rays(cam, 1)) for c, cam in enumerate(cams)}
 
 
 def object_pair(rig: StereoRig, surface, T_world_object, seed: int = 0, speckle_mm: float = 0.6,
@@ -140,8 +141,8 @@ def sample_pair(
     light_world=LIGHT_WORLD,
     options: RenderOptions = OBJECT_OPTIONS,
 ) -> StereoRender:
-    """The cork sample (domed front unless `sample` says otherwise, e.g. `Sample.flat()`) seen by the reduced Plasmatron rig
-    (`rig.plasmatron_rig`), its head 600 mm from both cameras and its axis pointing back at the rig."""
+    """The cork sample (domed unless `sample` says otherwise, e.g. `Sample.flat()`) seen by the reduced
+    Plasmatron rig (`rig.plasmatron_rig`), its head 600 mm from both cameras, its axis pointing back at the rig."""
     rig = plasmatron_rig() if rig is None else rig
     sample = Sample() if sample is None else sample
     T_world_sample = sample_pose(sample.length) if T_world_sample is None else T_world_sample

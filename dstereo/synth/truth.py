@@ -78,7 +78,7 @@ def write_render(folder, image: np.ndarray | None, truth: dict, name: str = "ren
 
     def write_npz(p):
         with open(p, "wb") as f:
-            np.savez(f, **arrays)
+            np.savez_compressed(f, **arrays)
 
     _replace_atomically(folder / f"{name}.npz", write_npz)
     return folder / name

@@ -6,6 +6,7 @@ never leaves a half-written folder; an existing folder is replaced only with `fo
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -13,6 +14,8 @@ from pathlib import Path
 from dstereo.errors import DstereoError
 from dstereo.synth.scenes import CalibrationSet, StereoRender
 from dstereo.synth.truth import write_render
+
+INDEX_KEYS = ("frame", "time_s", "recession_stagnation_mm")
 
 
 def _write_folder(folder, force: bool, fill) -> Path:
@@ -48,11 +51,16 @@ def write_calibration_set(folder, cset: CalibrationSet, force: bool = False) -> 
 
 
 def write_stereo_renders(folder, renders: list[StereoRender], force: bool = False) -> Path:
-    """`images_left/left_NNN.*` and `images_right/right_NNN.*` for each pair (a sample pair or a sequence)."""
+    """`images_left/left_NNN.*` and `images_right/right_NNN.*` for each pair (a sample pair or a sequence), and
+    `index.json` listing the pairs with their timestamps and stagnation-point recession where they have them."""
 
     def fill(tmp: Path):
+        index = []
         for i, pair in enumerate(renders):
             write_render(tmp / "images_left", pair.left, pair.truth_left, name=f"left_{i:03d}")
             write_render(tmp / "images_right", pair.right, pair.truth_right, name=f"right_{i:03d}")
+            entry = {k: pair.truth_left[k] for k in INDEX_KEYS if k in pair.truth_left}
+            index.append({"left": f"images_left/left_{i:03d}.png", "right": f"images_right/right_{i:03d}.png"} | entry)
+        (tmp / "index.json").write_text(json.dumps(index, indent=1))
 
     return _write_folder(folder, force, fill)
