@@ -4,6 +4,7 @@ recession truth. Truth is checked with code independent of the renderer (cv2 ray
 import json
 
 import cv2
+import jax
 import numpy as np
 import pytest
 
@@ -94,6 +95,18 @@ def test_board_pose_set_covers_corners_and_respects_tilt():
         du = np.abs(corners[:, 0] / (W - 1) - cu)
         dv = np.abs(corners[:, 1] / (H - 1) - cv)
         assert np.any((du < 0.2) & (dv < 0.2)), f"no board point near image corner {(cu, cv)}"
+
+
+@pytest.mark.parametrize("model", sorted(CORNER_MODELS))
+def test_rays_match_camera_unproject(model):
+    """The renderer's fast Newton inverse equals the model's `Camera.unproject` at every sub-pixel sample."""
+    cam = _camera(*CORNER_MODELS[model], size=SMALL)
+    rays = np.asarray(camera_rays(cam, 2))
+    rng = np.random.default_rng(0)
+    v, u, k = rng.integers(0, SMALL[1], 50), rng.integers(0, SMALL[0], 50), rng.integers(0, 4, 50)
+    q = np.stack([u + (k % 2 + 0.5) / 2 - 0.5, v + (k // 2 + 0.5) / 2 - 0.5], axis=1)  # 2 x 2 samples, row-major
+    expected = np.asarray(jax.jit(jax.vmap(Camera.unproject, in_axes=(None, 0)))(cam, q))[:, :2]
+    np.testing.assert_allclose(rays[v, u, k], expected, rtol=0, atol=1e-13)
 
 
 def test_board_rejects_symmetric_pattern_and_non_invertible_lens():

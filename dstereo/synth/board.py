@@ -75,7 +75,10 @@ def true_corners(camera: Camera, pose, pattern: tuple[int, int], square: float) 
     """
     pose = jnp.asarray(np.asarray(pose, float).reshape(6))
     pts = jnp.asarray(object_points(pattern, square))
-    return np.asarray(jax.vmap(project_view, in_axes=(None, None, None, 0))(camera.k, camera.dist.coeffs, pose, pts))
+    return np.asarray(_project_view_points(camera.k, camera.dist.coeffs, pose, pts))
+
+
+_project_view_points = jax.jit(jax.vmap(project_view, in_axes=(None, None, None, 0)))
 
 
 def _triangle(t: Float[Array, ""]) -> Float[Array, ""]:

@@ -176,10 +176,3 @@ def recession_sequence(
                                    options, [seed, i], rays, extra))
     return frames
 
-
-def stereo_point(rig: StereoRig, p_world) -> tuple[np.ndarray, np.ndarray]:
-    """A world point in the left and right camera frames (for truth checks)."""
-    p_left = pose_matrix(rig.T_left_world) @ np.append(np.asarray(p_world, float), 1.0)
-    p_right = pose_matrix(rig.T_right_left) @ p_left
-    return p_left[:3], p_right[:3]
-
