@@ -164,14 +164,16 @@ class Sample(eqx.Module):
             above = g(m) > 0
             return jnp.where(above, m, a), jnp.where(above, b, m)
 
-        def newton(_, t):
+        def newton(_, state):
+            t, a, b = state
             value, slope = jax.jvp(g, (t,), (jnp.ones_like(t),))
+            a, b = jnp.where(value > 0, t, a), jnp.where(value > 0, b, t)
             step = t - value / jnp.where(slope == 0, -1.0, slope)
-            return jnp.where((step >= a) & (step <= b), step, t)
+            return jnp.where((step >= a) & (step <= b), step, 0.5 * (a + b)), a, b
 
-        # Bisection narrows the bracket to 1/4096 of its length, Newton (kept inside it) polishes to rounding.
+        # Bisection narrows the bracket to 1/4096 of its length; safeguarded Newton polishes to rounding.
         a, b = jax.lax.fori_loop(0, BISECTIONS, bisect, (lo, hi))
-        t = jax.lax.fori_loop(0, NEWTON_STEPS, newton, 0.5 * (a + b))
+        t, _, _ = jax.lax.fori_loop(0, NEWTON_STEPS, newton, (0.5 * (a + b), a, b))
         p = o + t * d
         ok = (d[2] < -1e-12) & (g(lo) > 0) & (hi > lo) & (p[0] ** 2 + p[1] ** 2 <= self.side_radius(p[2]) ** 2)
         return jnp.where(ok, t, jnp.inf)
