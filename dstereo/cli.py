@@ -23,6 +23,11 @@ app = typer.Typer(
 register_all(app)
 
 
+@app.callback()
+def _root() -> None:
+    """Keeps typer in multi-command mode even while only one subcommand is registered."""
+
+
 def main() -> None:
     try:
         app()  # standalone: usage errors print and exit 2 by themselves

@@ -1,0 +1,1 @@
+"""Camera calibration: closed-form start, full-set and batched subset solves, uncertainty."""

@@ -1,0 +1,53 @@
+"""Parameter covariance from the Schur complement, and an identifiability report.
+
+cov(g) = sigma^2 S^-1 with S the Schur complement of J'J on the shared parameters (exactly the g-block of
+(J'J)^-1) and sigma^2 = SSE / (residuals - free parameters), the unbiased noise estimate. When S is near
+singular, standard deviations are meaningless: `conditioning` says so and names the parameters involved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Scaled (correlation-form) condition number above which the shared parameters are not all identifiable.
+ILL_CONDITIONED = 1e10
+
+
+def covariance(schur: np.ndarray, sse: float, n_residuals: int, n_params: int) -> np.ndarray:
+    dof = n_residuals - n_params
+    sigma2 = sse / dof if dof > 0 else np.nan
+    return sigma2 * np.linalg.pinv(schur, rcond=1e-15, hermitian=True)
+
+
+@dataclass
+class Conditioning:
+    condition_number: float  # of the scale-free (unit-diagonal) Schur complement
+    identifiable: bool
+    weak_parameters: list[str]  # those loading on the near-null directions
+    max_correlation: tuple[str, str, float]
+
+    def message(self) -> str:
+        if self.identifiable:
+            return f"well conditioned (scaled condition number {self.condition_number:.2g})"
+        return (
+            f"not identifiable from these views: scaled condition number {self.condition_number:.2g} "
+            f"(> {ILL_CONDITIONED:.0e}); weakly determined: {', '.join(self.weak_parameters)}. Their standard "
+            "deviations are not meaningful; use a simpler distortion model or add views that fill the image corners"
+        )
+
+
+def conditioning(schur: np.ndarray, names: tuple[str, ...]) -> Conditioning:
+    d = np.sqrt(np.maximum(np.diag(schur), 1e-300))
+    scaled = schur / np.outer(d, d)
+    evals, evecs = np.linalg.eigh(scaled)
+    cond = float(evals[-1] / max(evals[0], 1e-300))
+    weak_dirs = evecs[:, evals < evals[-1] / ILL_CONDITIONED]
+    weak = [names[i] for i in range(len(names)) if weak_dirs.size and np.max(np.abs(weak_dirs[i])) > 0.2]
+    corr = np.linalg.pinv(scaled, hermitian=True)
+    cd = np.sqrt(np.maximum(np.diag(corr), 1e-300))
+    corr = corr / np.outer(cd, cd)
+    np.fill_diagonal(corr, 0.0)
+    i, j = np.unravel_index(np.argmax(np.abs(corr)), corr.shape)
+    return Conditioning(cond, cond <= ILL_CONDITIONED, weak, (names[i], names[j], float(corr[i, j])))

@@ -1,0 +1,1 @@
+"""Edges of the system: OpenCV detection, files in and out. The core never imports cv2."""

@@ -1,0 +1,147 @@
+"""Chessboard corner detection at the OpenCV edge, with a per-image-content cache.
+
+Every image either yields a full board (corners in OpenCV's order, sub-pixel refined) or is listed in
+`rejected` with the reason; nothing is dropped silently. Mixed image sizes are an error, not a rejection,
+because one camera cannot have two sizes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+_DETECTOR_VERSION = "v1"  # bump when detection parameters change so cached corners are not reused
+
+
+@dataclass
+class Detection:
+    """Corners of the usable images (name -> (n, 2) float64), rejects (name -> reason), image size (w, h)."""
+
+    corners: dict[str, np.ndarray]
+    rejected: dict[str, str]
+    image_size: tuple[int, int]
+    object_points: np.ndarray
+    pattern: tuple[int, int]
+    square: float
+    folder: str = ""
+    from_cache: int = 0
+    names: list[str] = field(default_factory=list)  # every image considered, sorted
+
+
+def board_points(pattern: tuple[int, int], square: float) -> np.ndarray:
+    """(cols*rows, 3) object points of the inner corners, z = 0, OpenCV's order (x fastest)."""
+    cols, rows = pattern
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    return np.column_stack([xx.ravel() * square, yy.ravel() * square, np.zeros(cols * rows)]).astype(np.float64)
+
+
+def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
+    """'9x6' -> (9, 6) inner corners (columns x rows)."""
+    if isinstance(text, tuple):
+        cols, rows = text
+    else:
+        try:
+            cols, rows = (int(v) for v in str(text).lower().replace(",", "x").split("x"))
+        except ValueError:
+            raise DstereoError(f"pattern: '{text}' is not COLSxROWS inner corners, e.g. 9x6") from None
+    if cols < 2 or rows < 2:
+        raise DstereoError(f"pattern: {cols}x{rows} has fewer than 2 inner corners per side; use e.g. 9x6")
+    return int(cols), int(rows)
+
+
+def list_images(folder: Path, suffix: str | None = None) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
+    suffixes = (("." + suffix.lstrip(".").lower()),) if suffix else IMAGE_SUFFIXES
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    if not files:
+        raise DstereoError(f"images: no {'/'.join(suffixes)} images in {folder}; check the folder or the image format")
+    return files
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("DSTEREO_CACHE") or os.path.join(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"), "dstereo")
+    return Path(root) / "corners"
+
+
+def _detect_one(gray: np.ndarray, pattern: tuple[int, int]) -> tuple[np.ndarray | None, str]:
+    import cv2
+
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
+    if not found or corners is None or len(corners) != pattern[0] * pattern[1]:
+        return None, f"no full {pattern[0]}x{pattern[1]} board found"
+    pts = corners.reshape(-1, 2).astype(np.float32)
+    # Window from the board's own scale: half a square at most, so the window never reaches the next corner.
+    grid = pts.reshape(pattern[1], pattern[0], 2)
+    spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
+    half = int(np.clip(round(0.4 * spacing), 2, 11))
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    refined = cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (half, half), (-1, -1), criteria)
+    return refined.reshape(-1, 2).astype(np.float64), ""
+
+
+def detect_folder(
+    folder: Path | str,
+    pattern: tuple[int, int],
+    square: float,
+    suffix: str | None = None,
+    files: list[Path] | None = None,
+    use_cache: bool = True,
+    progress=None,
+) -> Detection:
+    """Detect the board in every image of `folder` (or the given `files`); cache by image content."""
+    import cv2
+
+    files = list_images(Path(folder), suffix) if files is None else files
+    cache = _cache_dir()
+    corners: dict[str, np.ndarray] = {}
+    rejected: dict[str, str] = {}
+    sizes: dict[tuple[int, int], str] = {}
+    hits = 0
+    for i, path in enumerate(files):
+        data = path.read_bytes()
+        gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+        if gray is None:
+            rejected[path.name] = "unreadable: not an image file OpenCV can decode"
+            continue
+        sizes.setdefault((gray.shape[1], gray.shape[0]), path.name)
+        key = hashlib.sha256(data + f"{pattern}{_DETECTOR_VERSION}".encode()).hexdigest()[:32]
+        cached = cache / f"{key}.npz"
+        pts = None
+        if use_cache and cached.exists():
+            with np.load(cached) as z:
+                pts, reason = (z["corners"] if z["found"] else None), str(z["reason"])
+            hits += 1
+        else:
+            pts, reason = _detect_one(gray, pattern)
+            if use_cache:
+                cache.mkdir(parents=True, exist_ok=True)
+                tmp = cached.with_suffix(f".{os.getpid()}.tmp.npz")
+                np.savez(tmp, found=pts is not None, corners=pts if pts is not None else np.zeros((0, 2)), reason=reason)
+                os.replace(tmp, cached)
+        if pts is None:
+            rejected[path.name] = reason
+        else:
+            corners[path.name] = pts
+        if progress is not None:
+            progress(i + 1, len(files))
+    if len(sizes) > 1:
+        listing = ", ".join(f"{w}x{h} (e.g. {name})" for (w, h), name in sizes.items())
+        raise DstereoError(f"images: {folder} mixes image sizes {listing}; one camera's images must share one size")
+    if not corners:
+        raise DstereoError(
+            f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board; "
+            "check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+        )
+    size = next(iter(sizes))
+    return Detection(corners, rejected, size, board_points(pattern, square), pattern, square, str(folder), hits,
+                     [p.name for p in files])
