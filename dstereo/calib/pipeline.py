@@ -1,0 +1,224 @@
+"""One camera's calibration job: detect -> full-set solve -> subsets -> robust steps -> a results object.
+
+Nothing here prints or writes files; `dstereo.io.results` writes the results folder and the CLI renders the
+console. The stereo pipeline runs `calibrate_camera` once per camera.
+
+Each subset's reprojection error `re` is its RMS over all its points, sqrt(SSE / points): the number
+cv2.calibrateCamera returns (the thesis calls it the mean reprojection error).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from dstereo.calib.robust_steps import FilterResult, run_steps
+from dstereo.config import Config, Step
+from dstereo.errors import DstereoError
+
+Progress = Callable[[str, int, int], None]  # (stage, done, total)
+
+# Presets from the richest to the simplest: where to look for a simpler, identifiable model.
+MODEL_LADDER = ("rational", "k1k2k3p1p2", "k1k2p1p2", "k1k2", "k1")
+# Distortion-coverage check (thesis section 5.2.1.2): a quadrant with fewer than this share of the corners
+# is poorly covered (a uniform spread gives 25 %), and an image corner (the outer quarter of the width and
+# of the height, 1/16 of the area) with fewer than CORNER_MIN_PERCENT is where distortion goes unmodelled.
+QUADRANT_MIN_PERCENT = 12.5
+CORNER_MIN_PERCENT = 1.0
+REGIONS = ("upper_left", "lower_left", "upper_right", "lower_right", "centre")
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Share (%) of all detected corners per image region; `centre` is the middle half in x and in y."""
+
+    percent: dict[str, float]  # REGIONS -> %
+    corner_percent: dict[str, float]  # the four outer corner patches -> %
+    points: int
+    warnings: tuple[str, ...]
+
+
+def corner_coverage(points: np.ndarray, image_size: tuple[int, int]) -> Coverage:
+    """Quadrant, centre and image-corner shares of `points` (N, 2) px in an image of (width, height)."""
+    w, h = image_size
+    u = (points[:, 0] + 0.5) / w  # 0..1 across the image (pixel centres at integer coordinates)
+    v = (points[:, 1] + 0.5) / h
+    n = max(len(points), 1)
+    pct = lambda mask: 100.0 * float(np.count_nonzero(mask)) / n  # noqa: E731
+    left, upper = u < 0.5, v < 0.5
+    percent = {
+        "upper_left": pct(left & upper), "lower_left": pct(left & ~upper),
+        "upper_right": pct(~left & upper), "lower_right": pct(~left & ~upper),
+        "centre": pct((abs(u - 0.5) < 0.25) & (abs(v - 0.5) < 0.25)),
+    }
+    near_l, near_r, near_u, near_d = u < 0.25, u >= 0.75, v < 0.25, v >= 0.75
+    corners = {"upper_left": pct(near_l & near_u), "lower_left": pct(near_l & near_d),
+               "upper_right": pct(near_r & near_u), "lower_right": pct(near_r & near_d)}
+    warnings = [f"{name.replace('_', '-')} quadrant holds only {p:.1f}% of the corners (< {QUADRANT_MIN_PERCENT}%): "
+                "take more views with the board there" for name, p in percent.items()
+                if name != "centre" and p < QUADRANT_MIN_PERCENT]
+    warnings += [f"{name.replace('_', '-')} image corner holds only {p:.1f}% of the corners (< {CORNER_MIN_PERCENT}%): "
+                 "distortion is largest there; add views that reach it" for name, p in corners.items()
+                 if p < CORNER_MIN_PERCENT]
+    return Coverage(percent, corners, int(len(points)), tuple(warnings))
+
+
+def suggest_model(free: tuple[str, ...], identifiable: bool, weak: Sequence[str]) -> str | None:
+    """None when the model is identifiable; else which simpler preset to use (and why)."""
+    from dstereo.models.distortion import PRESETS
+
+    if identifiable:
+        return None
+    weak_coeffs = set(weak) & set(PRESETS["rational"])
+    simpler = [p for p in MODEL_LADDER if set(PRESETS[p]) < set(free)]
+    dropping = [p for p in simpler if weak_coeffs - set(PRESETS[p])]
+    choice = (dropping or simpler or [None])[0]
+    weak_text = ", ".join(weak) or "none named"
+    if choice is None:
+        return (f"model {','.join(free) or 'none'} is not identifiable from these views (weak: {weak_text}); "
+                "add views that tilt the board and fill the image corners")
+    return (f"model {','.join(free)} is not identifiable from these views (weak: {weak_text}); use the simpler "
+            f"model --model {choice} ({','.join(PRESETS[choice])}) or add views that fill the image corners")
+
+
+@dataclass
+class CameraCalibration:
+    """Everything one camera's run produced. `final` is the thesis's answer (mean over surviving subsets)
+    when subsets were solved, else the full-set solve; `full` always holds the full-set solve."""
+
+    config: Config
+    folder: Path
+    files: list[Path]
+    detection: object  # dstereo.io.corners.Detection
+    used: list[str]  # usable image names, in the order of `observations`
+    observations: np.ndarray  # (V, n, 2) px
+    full: object  # dstereo.calib.mono.CameraSolution
+    plan: object | None  # dstereo.calib.subsets.SubsetPlan
+    subsets: object | None  # dstereo.calib.mono.SubsetSolutions
+    filtering: FilterResult | None
+    columns: tuple[str, ...]  # ("re", fx, fy, cx, cy, free coefficients...)
+    final: dict[str, float]
+    spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
+    coverage: Coverage
+    model_advice: str | None
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def unconverged(self) -> list[int]:
+        return [] if self.subsets is None else [int(i) for i in np.flatnonzero(~self.subsets.converged)]
+
+    @property
+    def final_coefficients(self) -> np.ndarray:
+        """(8,) distortion coefficients of `final`, OpenCV order, zeros where not free."""
+        from dstereo.models.distortion import COEFF_NAMES
+
+        return np.array([self.final.get(n, 0.0) for n in COEFF_NAMES])
+
+    @property
+    def final_camera_matrix(self) -> np.ndarray:
+        f = self.final
+        return np.array([[f["fx"], 0.0, f["cx"]], [0.0, f["fy"], f["cy"]], [0.0, 0.0, 1.0]])
+
+
+def list_camera_images(folder: Path, config: Config, image_format: str | None = None) -> list[Path]:
+    """The images of one camera: `config.glob` inside `folder` if set, else every file of the image format."""
+    from dstereo.io.corners import list_images
+
+    folder = Path(folder)
+    if config.glob is None:
+        return list_images(folder, image_format or config.image_format)
+    if not folder.is_dir():
+        raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
+    files = sorted(p for p in folder.glob(config.glob) if p.is_file())
+    if not files:
+        raise DstereoError(f"images: no file in {folder} matches {config.glob!r}; check --glob")
+    return files
+
+
+def calibrate_camera(
+    folder: Path,
+    config: Config,
+    files: Sequence[Path] | None = None,
+    steps: Sequence[Step] | None = None,
+    progress: Progress | None = None,
+    use_cache: bool = True,
+) -> CameraCalibration:
+    """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
+    `config.steps`). Raises DstereoError for unreadable files, m > N, or a step that leaves no subset."""
+    from dstereo.calib.mono import calibrate_full, solve_subsets
+    from dstereo.calib.subsets import plan_subsets
+    from dstereo.io.corners import detect_folder
+
+    steps = config.steps if steps is None else tuple(steps)
+    files = list_camera_images(folder, config) if files is None else list(files)
+    timings, warnings = {}, list(config.warnings)
+    t0 = time.perf_counter()
+    det = detect_folder(folder, config.pattern, config.square, files=files, use_cache=use_cache,
+                        progress=None if progress is None else (lambda i, n: progress("detect", i, n)))
+    timings["detect_s"] = time.perf_counter() - t0
+    unreadable = {n: r for n, r in det.rejected.items() if r.startswith("unreadable")}
+    if unreadable:
+        name = next(iter(unreadable))
+        raise DstereoError(f"images: {Path(folder) / name} is not an image file OpenCV can decode "
+                           f"({len(unreadable)} such file(s)); remove it or narrow the image format / --glob")
+    used = [n for n in det.names if n in det.corners]
+    obs = np.stack([det.corners[n] for n in used])
+    for name, reason in det.rejected.items():
+        warnings.append(f"image {name} rejected: {reason}")
+    plan = None
+    if config.per_set is not None:
+        plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
+        if len(plan.index) < 2 and steps:
+            raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
+                               "the steps need several: lower --per-set")
+
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress("full-set solve", 0, 1)
+    full = calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
+    if progress is not None:
+        progress("full-set solve", 1, 1)
+    timings["full_solve_s"] = time.perf_counter() - t0
+    if not full.converged:
+        warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
+    columns = ("re",) + tuple(full.names)
+    advice = suggest_model(tuple(config.model), full.conditioning.identifiable, full.conditioning.weak_parameters)
+    if advice:
+        warnings.append(advice)
+
+    subsets = filtering = None
+    final = dict(zip(full.names, map(float, full.values)))
+    spread = {n: float("nan") for n in full.names}
+    if plan is not None:
+        t0 = time.perf_counter()
+        subsets = solve_subsets(det.object_points, obs, plan, full,
+                                progress=None if progress is None else (lambda i, n: progress("subsets", i, n)))
+        timings["subsets_s"] = time.perf_counter() - t0
+        table = np.column_stack([subsets.rms, subsets.values])
+        usable = subsets.converged & np.all(np.isfinite(table), axis=1)
+        if not usable.any():
+            raise DstereoError(f"none of the {len(table)} subset solves converged; check the images and --pattern")
+        if not usable.all():
+            bad = np.flatnonzero(~usable)
+            warnings.append(f"{len(bad)} of {len(table)} subset solves did not converge and are left out of the "
+                            f"statistics (subsets {', '.join(map(str, bad[:10]))}{', ...' if len(bad) > 10 else ''})")
+        t0 = time.perf_counter()
+        filtering = run_steps(table, columns, steps, usable, config.min_subsets)
+        timings["steps_s"] = time.perf_counter() - t0
+        warnings += [s.message for s in filtering.steps if s.stopped_by_minimum]
+        rows = filtering.table[filtering.survivors]
+        final = {n: float(np.mean(rows[:, j + 1])) for j, n in enumerate(full.names)}
+        spread = {n: float(np.std(rows[:, j + 1])) for j, n in enumerate(full.names)}
+
+    coverage = corner_coverage(obs.reshape(-1, 2), det.image_size)
+    warnings += list(coverage.warnings)
+    return CameraCalibration(
+        config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
+        full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
+        coverage=coverage, model_advice=advice, warnings=warnings, timings=timings,
+    )
