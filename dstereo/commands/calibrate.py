@@ -1,0 +1,173 @@
+"""`dstereo calibrate`: one camera from a project folder (thesis layout) or from flags alone."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def calibrate(
+    project: Optional[Path] = typer.Argument(
+        None, help="Project folder: a configuration file (dstereo.toml or the thesis's .ini) and images/."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Configuration file (TOML or thesis .ini)."),
+    images: Optional[Path] = typer.Option(None, "--images", help="Image folder (default PROJECT/images)."),
+    glob: Optional[str] = typer.Option(None, "--glob", help="Only images whose name matches, e.g. 'left*.jpg'."),
+    image_format: Optional[str] = typer.Option(None, "--format", help="Image file extension, e.g. jpg."),
+    pattern: Optional[str] = typer.Option(None, "--pattern", help="Inner corners COLSxROWS, e.g. 9x6."),
+    square: Optional[float] = typer.Option(None, "--square", help="Square size of the board."),
+    unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (e.g. mm)."),
+    model: Optional[str] = typer.Option(
+        None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
+        "k1k2k3p1p2, rational)."),
+    per_set: Optional[int] = typer.Option(
+        None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
+    max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the subset sample."),
+    step: list[str] = typer.Option(
+        [], "--step", help="An optimisation step NAME=MAX[,NAME=MAX...] (repeat, in order; replaces the file's "
+        "steps), e.g. --step re=0.5 --step p1=1.5,p2=1.5"),
+    min_subsets: Optional[int] = typer.Option(
+        None, "--min-subsets", help="A step stops before it would leave fewer subsets."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
+    no_cache: bool = typer.Option(False, "--no-cache", help="Detect corners again instead of using the cache."),
+) -> None:
+    """Calibrate one camera: full-set solve, subset analysis and the thesis's robust optimisation steps."""
+    from dstereo.config import Config, find_project_config, load_config, parse_step_flag, validate
+    from dstereo.errors import DstereoError
+    from dstereo.io.corners import parse_pattern
+    from dstereo.io.results import check_output
+
+    started = time.perf_counter()
+    config_path = config if config is not None else (find_project_config(project) if project is not None else None)
+    cfg = load_config(config_path) if config_path is not None else Config()
+    cfg = cfg.with_overrides(
+        pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
+        unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
+        image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
+        seed=seed, min_subsets=min_subsets,
+        steps=tuple(parse_step_flag(s, k) for k, s in enumerate(step, 1)) if step else None,
+    )
+    cfg = validate(cfg)
+    if cfg.mode != "individual":
+        raise DstereoError(f"{cfg.source or 'configuration'}: stereo calibration is not available in this version; "
+                           "set Individual calibration = 1 (or mode = \"individual\") to calibrate one camera")
+    base = project if project is not None else (config_path.parent if config_path is not None else None)
+    if images is None:
+        if base is None:
+            raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
+        images = base / cfg.images
+    if out is None:
+        if project is None:
+            raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
+        out = project / "results"
+    check_output(out, force)
+    for warning in cfg.warnings:
+        typer.echo(f"dstereo: warning: {warning}", err=True)
+    _run(images, cfg, out, force, quiet, not no_cache, started)
+
+
+def _model(spec: Optional[str]):
+    if spec is None:
+        return None
+    from dstereo.models.distortion import parse_model
+
+    return parse_model(spec)
+
+
+def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float) -> None:
+    from dstereo.calib.pipeline import calibrate_camera
+    from dstereo.io.results import write_camera_results
+
+    with _progress(quiet) as progress:
+        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
+        t0 = time.perf_counter()
+        if progress is not None:
+            progress("writing results", 0, 1)
+        write_camera_results(out, cal, force)
+        if progress is not None:
+            progress("writing results", 1, 1)
+    cal.timings["write_s"] = time.perf_counter() - t0
+    cal.timings["total_s"] = time.perf_counter() - started
+    for warning in cal.warnings:
+        if warning not in cfg.warnings:
+            typer.echo(f"dstereo: warning: {warning}", err=True)
+    if not quiet:
+        _render(cal, out)
+
+
+class _progress:
+    """Context manager giving a progress(stage, done, total) callback: rich bars on stderr, else plain lines."""
+
+    def __init__(self, quiet: bool):
+        self.quiet, self.bars, self.tasks, self.plain = quiet, None, {}, None
+
+    def __enter__(self):
+        if self.quiet:
+            return None
+        try:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        except ImportError:
+            return self._plain
+        console = Console(stderr=True)
+        if not console.is_terminal:
+            return self._plain
+        self.bars = Progress(TextColumn("{task.description:<16}"), BarColumn(), MofNCompleteColumn(),
+                             TimeElapsedColumn(), console=console, transient=False)
+        self.bars.__enter__()
+        return self._rich
+
+    def _rich(self, stage: str, done: int, total: int) -> None:
+        if stage not in self.tasks:
+            self.tasks[stage] = self.bars.add_task(stage, total=total)
+        self.bars.update(self.tasks[stage], completed=done, total=total)
+
+    def _plain(self, stage: str, done: int, total: int) -> None:
+        if done == total:
+            typer.echo(f"{stage}: {done}/{total} done", err=True)
+
+    def __exit__(self, *exc):
+        if self.bars is not None:
+            self.bars.__exit__(*exc)
+        return False
+
+
+def _pm(value: float, spread: float) -> str:
+    if spread != spread:  # NaN: no subsets
+        return "-"
+    return f"{value:.6g} +- {spread:.3g}"
+
+
+def _render(cal, out: Path) -> None:
+    """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
+    full = cal.full
+    rows = [(n, _pm(float(v), float(s)), _pm(cal.final[n], cal.spread[n])) for n, v, s in zip(full.names, full.values, full.std)]
+    subsets = "subset mean +- spread"
+    if cal.filtering is not None:
+        subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
+    try:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"camera: {len(cal.used)} images, RMS {full.rms:.4f} px (full set)")
+        for title in ("parameter", "full set +- std", subsets):
+            table.add_column(title, justify="right")
+        for row in rows:
+            table.add_row(*row)
+        Console(width=110).print(table)
+    except ImportError:
+        width = max(len(r[1]) for r in rows) + 2
+        typer.echo(f"{'parameter':>9}  {'full set +- std':>{width}}  {subsets}")
+        for name, a, b in rows:
+            typer.echo(f"{name:>9}  {a:>{width}}  {b}")
+    if cal.filtering is not None:
+        for s in cal.filtering.steps:
+            typer.echo(f"  {s.message}")
+    t = cal.timings
+    typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
+    typer.echo(f"wrote {out}")

@@ -1,0 +1,358 @@
+"""The calibration results folder (the thesis's "Results" folder), written atomically.
+
+Layout of `write_camera_results(out, cal)`:
+    report.md            what was done and what came out, with links to everything below
+    summary.json         machine-readable: full_set, subsets (steps, survivors), final, images, coverage, ...
+    camera.yml/.json     the result for OpenCV (FileStorage) and for anything else
+    subsets.csv          one row per subset: image indices, every parameter, rms, fate
+    corners.npz          detected corners per usable image + object_points: re-run a solve on them
+    config.toml          the configuration as run (files and flags merged)
+    stats/step_K.txt     thesis section 5.2.1.3: mean, std, error % per parameter, reprojection error, count
+    plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
+    plots/coverage.png, per_image_rms.png, residuals.png
+    undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
+The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
+partial folder, and an existing folder is replaced only with `force`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, FilterResult
+from dstereo.config import ABSOLUTE_PARAMETERS, as_dict, to_toml
+from dstereo.errors import DstereoError
+
+UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
+N_UNDISTORTED = 3
+
+
+def check_output(out: str | Path, force: bool) -> Path:
+    """Refuse an existing results folder unless `force`; call before any long work."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DstereoError(f"results: {out} exists and is not a folder; choose another --out")
+    if out.exists() and not force:
+        raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
+    return out
+
+
+@contextmanager
+def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
+    """Yield a temporary folder next to `out`; on success it replaces `out`, on error it is removed."""
+    out = check_output(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        yield tmp
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, old / out.name)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value)}")
+
+
+def _finite(value):
+    """NaN and infinities -> None, so the file is strict JSON."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: Path, data) -> None:
+    text = json.dumps(data, indent=2, default=_json_default)
+    path.write_text(json.dumps(_finite(json.loads(text)), indent=2, allow_nan=False) + "\n")
+
+
+# --- generic tables (reused per camera and by the stereo results) -------------------------------------------
+
+
+def stats_text(filtering: FilterResult, k: int, total: int, title: str = "CALIBRATION PARAMETERS") -> str:
+    """The thesis's statistics file for the survivors of steps 1..k (k = 0: before optimisation)."""
+    stats = filtering.stats(k)
+    if k == 0:
+        head = ["STEP 0 (before optimization)"]
+    else:
+        s = filtering.steps[k - 1]
+        limits = ", ".join(f"{p} {e:g}" + (" px" if p in ABSOLUTE_PARAMETERS else " IQR")
+                           for p, e in zip(s.parameters, s.max_error))
+        head = [f"STEP {k} (max error: {limits})", s.message]
+    lines = [*head, f"Subsets = {stats[filtering.columns[0]]['count']} (of {total} solved; "
+                   f"{int(filtering.usable.sum())} converged)",
+             "Error = standard deviation / |average| * 100 (%); standard deviation over subsets (numpy std)", ""]
+    for name in filtering.columns:
+        if name in ABSOLUTE_PARAMETERS:
+            continue
+        s = stats[name]
+        lines += [f"[{title}] = [[{name} ]]", f"Average = {s['mean']!r}", f"Standard deviation = {s['std']!r}",
+                  f"Error = {s['error_percent']!r}", ""]
+    for name in filtering.columns:
+        if name in ABSOLUTE_PARAMETERS:
+            s = stats[name]
+            lines += [f"[REPROJECTION ERROR] = [[{name} ]] (RMS per subset, px)", f"Average = {s['mean']!r}",
+                      f"Minimum = {s['min']!r}", f"Maximum = {s['max']!r}", ""]
+    return "\n".join(lines)
+
+
+def write_stats_files(folder: Path, filtering: FilterResult, title: str = "CALIBRATION PARAMETERS") -> list[str]:
+    """stats/step_0_initial.txt, stats/step_1.txt, ...; returns the file names written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    names = []
+    for k in range(len(filtering.steps) + 1):
+        name = "step_0_initial.txt" if k == 0 else f"step_{k}.txt"
+        (folder / name).write_text(stats_text(filtering, k, len(filtering.table), title))
+        names.append(name)
+    return names
+
+
+def write_subsets_csv(path: Path, index: np.ndarray, filtering: FilterResult, status: np.ndarray | None = None) -> None:
+    """One row per subset: image indices (space separated), parameters, reprojection error(s), fate."""
+    params = [c for c in filtering.columns if c not in ABSOLUTE_PARAMETERS]
+    errors = [c for c in filtering.columns if c in ABSOLUTE_PARAMETERS]
+    order = [filtering.columns.index(c) for c in params + errors]
+    header = ["subset", "images", *params, *("rms" if c == "re" else c for c in errors), "converged", "survives",
+              "removed_at_step"]
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header + (["solver_status"] if status is not None else []))
+        for i, row in enumerate(filtering.table):
+            fate = int(filtering.removed_at[i])
+            cells = [i, " ".join(map(str, index[i])), *(repr(float(row[j])) for j in order),
+                     int(fate != UNUSABLE), int(fate == SURVIVES), fate if fate > 0 else ""]
+            writer.writerow(cells + ([int(status[i])] if status is not None else []))
+
+
+def steps_summary(filtering: FilterResult) -> list[dict]:
+    return [{"step": s.number, "parameters": list(s.parameters), "max_error": list(s.max_error),
+             "kind": ["absolute (px)" if p in ABSOLUTE_PARAMETERS else "IQR multiple" for p in s.parameters],
+             "before": s.before, "survivors": s.after, "removed": s.removed, "passes": s.passes,
+             "bounds": {p: list(b) for p, b in s.bounds.items()}, "stopped_by_minimum": s.stopped_by_minimum,
+             "message": s.message} for s in filtering.steps]
+
+
+# --- one camera ---------------------------------------------------------------------------------------------
+
+
+def distortion_vector(coeffs8: np.ndarray, free: Sequence[str]) -> np.ndarray:
+    """OpenCV's 5-vector (k1 k2 p1 p2 k3), or all 8 when a rational coefficient is free."""
+    return np.asarray(coeffs8, float)[: 8 if set(free) & {"k4", "k5", "k6"} else 5]
+
+
+def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict) -> None:
+    """camera.yml (cv2.FileStorage) and camera.json with the same numbers."""
+    import cv2
+
+    fs = cv2.FileStorage(str(folder / "camera.yml"), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("image_width", int(image_size[0]))
+        fs.write("image_height", int(image_size[1]))
+        fs.write("camera_matrix", np.asarray(K, np.float64))
+        fs.write("distortion_coefficients", np.asarray(D, np.float64).reshape(1, -1))
+    finally:
+        fs.release()
+    write_json(folder / "camera.json", {"image_width": int(image_size[0]), "image_height": int(image_size[1]),
+                                        "camera_matrix": np.asarray(K).tolist(),
+                                        "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
+
+
+def summary_dict(cal) -> dict:
+    """summary.json of a `CameraCalibration`."""
+    full, det = cal.full, cal.detection
+    names = list(full.names)
+    summary = {
+        "config": as_dict(cal.config),
+        "image_size": list(det.image_size),
+        "pattern": {"columns": det.pattern[0], "rows": det.pattern[1], "square": det.square, "unit": cal.config.unit},
+        "model": list(full.free),
+        "images": {"folder": str(cal.folder), "used": list(cal.used), "rejected": dict(det.rejected),
+                   "considered": list(det.names)},
+        "full_set": {**dict(zip(names, map(float, full.values))), "rms": float(full.rms),
+                     "std": dict(zip(names, map(float, full.std))),
+                     "per_image_rms": dict(zip(cal.used, map(float, full.per_view_rms))),
+                     "iterations": int(full.iterations), "status": full.status_text, "converged": bool(full.converged),
+                     "conditioning": {"identifiable": bool(full.conditioning.identifiable),
+                                      "condition_number": float(full.conditioning.condition_number),
+                                      "weak_parameters": list(full.conditioning.weak_parameters),
+                                      "message": full.conditioning.message()}},
+        "subsets": None,
+        "final": dict(cal.final),
+        "final_source": "full-set solve (no subsets: set images per set to run the subset analysis)",
+        "comparison": [{"parameter": n, "full_set": float(v), "full_set_std": float(s),
+                        "subset_mean": cal.final[n] if cal.filtering is not None else None,
+                        "subset_spread": cal.spread[n] if cal.filtering is not None else None}
+                       for n, v, s in zip(names, full.values, full.std)],
+        "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
+                     "points": cal.coverage.points},
+        "model_advice": cal.model_advice,
+        "warnings": list(cal.warnings),
+        "timings": dict(cal.timings),
+    }
+    if cal.filtering is not None:
+        f, plan = cal.filtering, cal.plan
+        survivors = f.survivors
+        summary["subsets"] = {
+            "per_set": int(plan.index.shape[1]), "total_combinations": int(plan.total), "solved": int(len(plan.index)),
+            "exhaustive": bool(plan.exhaustive), "sampling": plan.describe(), "seed": int(plan.seed),
+            "initial_count": int(f.usable.sum()), "final_count": int(survivors.sum()),
+            "unconverged": {"count": len(cal.unconverged), "subsets": cal.unconverged},
+            "reprojection_error": "re = each subset's RMS reprojection error, sqrt(SSE / points) px, "
+                                  "the value cv2.calibrateCamera returns",
+            "steps": steps_summary(f),
+            "initial": f.stats(0), "final": f.stats(len(f.steps)),
+            "survivor_subsets": [int(i) for i in np.flatnonzero(survivors)],
+        }
+        summary["final_source"] = f"mean over the {int(survivors.sum())} surviving subsets (the thesis's answer)"
+        summary["final_spread"] = dict(cal.spread)
+        summary["final"]["re"] = float(np.mean(f.column("re")[survivors]))
+    return summary
+
+
+def write_camera_results(out: str | Path, cal, force: bool = False) -> Path:
+    """Write the whole results folder of one camera's `CameraCalibration` (see the module docstring)."""
+    out = Path(out)
+    with atomic_folder(out, force) as tmp:
+        fill_camera_folder(tmp, cal)
+    return out
+
+
+def fill_camera_folder(folder: Path, cal) -> dict:
+    """Everything of the results folder into an existing (temporary) folder; returns the summary."""
+    from dstereo.io import plots
+
+    full, det = cal.full, cal.detection
+    summary = summary_dict(cal)
+    K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
+    names = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][: len(D)]
+    write_camera_files(folder, K, D, det.image_size, {
+        "distortion_names": names, "source": summary["final_source"],
+        "full_set": {"camera_matrix": full.camera_matrix.tolist(),
+                     "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
+                     "rms": float(full.rms), "std": summary["full_set"]["std"]}})
+    np.savez(folder / "corners.npz", object_points=det.object_points,
+             **{name: det.corners[name] for name in cal.used})
+    (folder / "config.toml").write_text(to_toml(cal.config, comments=False))
+    plot_dir = folder / "plots"
+    plot_dir.mkdir()
+    if cal.filtering is not None:
+        f = cal.filtering
+        summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
+        write_subsets_csv(folder / "subsets.csv", cal.plan.index, f, cal.subsets.status)
+        initial, final = f.alive_after(0), f.survivors
+        for j, name in enumerate(f.columns):
+            ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
+            plots.parameter_figure(name, f.table[initial, j], f.table[final, j], plot_dir / f"{name}.png",
+                                   UNITS.get(name, ""), ref)
+    pts = cal.observations.reshape(-1, 2)
+    plots.coverage_heatmap(pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png")
+    plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
+    plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
+    summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
+    summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
+        ["summary.json", "report.md"]
+    write_json(folder / "summary.json", summary)
+    (folder / "report.md").write_text(report_markdown(cal, summary))
+    return summary
+
+
+def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
+    """Original | undistorted side by side for the images whose corners reach furthest from the centre."""
+    import cv2
+
+    folder.mkdir()
+    w, h = cal.detection.image_size
+    reach = np.max(np.linalg.norm(cal.observations - np.array([w / 2, h / 2]), axis=2), axis=1)
+    by_name = {p.name: p for p in cal.files}
+    written = []
+    for i in np.argsort(-reach)[:N_UNDISTORTED]:
+        name = cal.used[int(i)]
+        image = cv2.imread(str(by_name[name]), cv2.IMREAD_COLOR)
+        if image is None:
+            continue
+        fixed = cv2.undistort(image, K, coeffs8)
+        gap = np.full((image.shape[0], 8, 3), 255, np.uint8)
+        target = f"{Path(name).stem}_undistorted.png"
+        cv2.imwrite(str(folder / target), np.hstack([image, gap, fixed]))
+        written.append(f"undistorted/{target}")
+    return written
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.6g}" if value == value else "-"
+
+
+def report_markdown(cal, summary: dict) -> str:
+    """report.md: the run in a page, tying the files of the folder together."""
+    full, cfg = cal.full, cal.config
+    lines = [f"# Camera calibration: {cal.folder}", "",
+             f"- board: {cfg.pattern[0]} x {cfg.pattern[1]} inner corners, square {cfg.square:g} {cfg.unit}",
+             f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
+             f"({len(cal.detection.rejected)} rejected), {cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
+             f"- distortion model: {', '.join(full.free) or 'none'}",
+             f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
+    if cal.model_advice:
+        lines += [f"**Model:** {cal.model_advice}", ""]
+    sub = summary["subsets"]
+    if sub is not None:
+        lines += [f"## Subsets and optimisation steps", "",
+                  f"{sub['sampling']} of m = {sub['per_set']} images; {sub['initial_count']} converged "
+                  f"({sub['unconverged']['count']} did not and are left out). Reprojection error `re` is each "
+                  "subset's RMS (the value cv2.calibrateCamera returns).", "",
+                  "| step | parameters | max error | before | survivors | passes | note |",
+                  "|---|---|---|---|---|---|---|"]
+        for s in sub["steps"]:
+            note = "stopped by the minimum number of subsets" if s["stopped_by_minimum"] else ""
+            lines.append(f"| {s['step']} | {', '.join(s['parameters'])} | {', '.join(f'{e:g}' for e in s['max_error'])}"
+                         f" | {s['before']} | {s['survivors']} | {s['passes']} | {note} |")
+        lines += ["", "Statistics per step: " + ", ".join(f"[{n}](stats/{n})" for n in sub.get("stats_files", [])),
+                  "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
+    lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
+              "standard deviations, and the spread (standard deviation) across the surviving subsets.", "",
+              "| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
+    for row in summary["comparison"]:
+        spread = row["subset_spread"]
+        lines.append(f"| {row['parameter']} | {_fmt(summary['final'][row['parameter']])} | {_fmt(row['full_set'])} | "
+                     f"{_fmt(row['full_set_std'])} | {_fmt(spread) if spread is not None else '-'} |")
+    lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
+              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
+    cov = cal.coverage
+    lines += ["## Distortion coverage (thesis section 5.2.1.2)", "", "| image area | % of corners |", "|---|---|"]
+    lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]
+    lines += ["", "![coverage](plots/coverage.png)", ""]
+    lines += [f"- warning: {w}" for w in cov.warnings] + ([""] if cov.warnings else [])
+    lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "", "![residuals](plots/residuals.png)", ""]
+    if cal.filtering is not None:
+        lines += [f"![{n}](plots/{n}.png)" for n in cal.filtering.columns] + [""]
+    lines += ["Undistorted images (straight lines should look straight): "
+              + ", ".join(f"[{Path(p).name}]({p})" for p in summary["undistorted"]), ""]
+    others = [w for w in cal.warnings if w not in cov.warnings and w != cal.model_advice]
+    if others:
+        lines += ["## Warnings", ""] + [f"- {w}" for w in others] + [""]
+    return "\n".join(lines)
