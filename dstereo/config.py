@@ -178,7 +178,8 @@ def config_from_toml(text: str, where: str) -> Config:
         if key in FOREIGN_TABLES:
             continue
         if key not in known_tables and key not in _TOML_KEYS[""]:
-            raise DstereoError(f"{where}: unknown key or table {key!r}; known: {sorted(known_tables - {''} | {'mode'})}")
+            known = sorted(known_tables - {""} | {"mode"})
+            raise DstereoError(f"{where}: unknown key or table {key!r}; known: {known}")
     for table, keys in _TOML_KEYS.items():
         section = data.get(table, {}) if table else {}
         if table and not isinstance(section, dict):
@@ -191,7 +192,8 @@ def config_from_toml(text: str, where: str) -> Config:
     if "columns" in pat or "rows" in pat:
         if not ("columns" in pat and "rows" in pat):
             raise DstereoError(f"{where}: [pattern] needs both columns and rows (inner corners)")
-        pattern = (_whole(pat["columns"], f"{where}: [pattern] columns", 2), _whole(pat["rows"], f"{where}: [pattern] rows", 2))
+        pattern = (_whole(pat["columns"], f"{where}: [pattern] columns", 2),
+                   _whole(pat["rows"], f"{where}: [pattern] rows", 2))
     model = cal.get("model", _DEFAULT_MODEL)
     cfg = Config(
         mode=str(data.get("mode", "individual")),
@@ -331,7 +333,8 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         top = path[0] if path else ""
         if top == "calibration" and len(path) == 1:
             if key not in _CALIBRATION_KEYS:
-                raise DstereoError(f"{here}: unknown key {key!r} in [ Calibration ]; known: {sorted(_CALIBRATION_KEYS)}")
+                raise DstereoError(
+                    f"{here}: unknown key {key!r} in [ Calibration ]; known: {sorted(_CALIBRATION_KEYS)}")
             calib[key] = (value, line)
         elif top in _STEP_SECTIONS:
             stereo = _STEP_SECTIONS[top]
@@ -346,7 +349,8 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
                 continue
             match = re.fullmatch(r"step\s*(\d+)", path[2])
             if not match or len(path) > 3:
-                raise DstereoError(f"{here}: unknown block [[[ {path[-1]} ]]]; name steps [[[ step 1 ]]], [[[ step 2 ]]], ...")
+                raise DstereoError(
+                    f"{here}: unknown block [[[ {path[-1]} ]]]; name steps [[[ step 1 ]]], [[[ step 2 ]]], ...")
             if key not in ("parameters", "max error", "minimum subsets"):
                 raise DstereoError(f"{here}: unknown key {key!r} in a step; use parameters, max error, minimum subsets")
             step_blocks[stereo].setdefault(int(match.group(1)), {})[key] = (value, line)

@@ -86,7 +86,8 @@ def test_thesis_file_run_and_console(thesis_run):
     sub = s["subsets"]
     assert (sub["per_set"], sub["total_combinations"], sub["initial_count"]) == (10, 286, 286)
     assert sub["unconverged"] == {"count": 0, "subsets": []}
-    assert [st["parameters"] for st in sub["steps"]] == [["re"], ["p1", "p2"], ["k1", "k2", "k3"], ["fx", "fy", "cx", "cy"]]
+    assert [st["parameters"] for st in sub["steps"]] == [
+        ["re"], ["p1", "p2"], ["k1", "k2", "k3"], ["fx", "fy", "cx", "cy"]]
     assert [st["max_error"] for st in sub["steps"]] == [[0.5], [1.5, 1.5], [1.5, 1.5, 1.5], [1.0] * 4]
     assert sub["steps"][0]["survivors"] == 286  # every subset RMS is below 0.5 px, as in the thesis
     assert sub["final_count"] == sub["steps"][-1]["survivors"] < 286
@@ -254,7 +255,8 @@ def test_coverage_regions():
 
 def _bad_ini(tmp_path: Path, steps: str) -> Path:
     path = tmp_path / "bad.ini"
-    path.write_text("[ Calibration ]\nIndividual calibration = 1\nmesh width = 9\nmesh height = 6\nimages per set = 10\n"
+    path.write_text("[ Calibration ]\nIndividual calibration = 1\nmesh width = 9\nmesh height = 6\n"
+                    "images per set = 10\n"
                     f"[ Optimization ]\n[[ Calibration steps ]]\nnumber steps = 1\n[[[ step 1 ]]]\n{steps}")
     return path
 
@@ -284,7 +286,8 @@ def test_bad_input_is_one_line_and_leaves_no_folder(case, message, tmp_path, lef
         "missing": lambda: ["--config", _bad_ini(tmp_path, "parameters = fx, fy\n"), *images],
         "lengths": lambda: ["--config", _bad_ini(tmp_path, "parameters = fx, fy\nmax error = 1,\n"), *images],
         "m>N": lambda: [*images, "--pattern", "9x6", "--per-set", "14"],
-        "zero-left": lambda: [*images, "--pattern", "9x6", "--per-set", "10", "--max-subsets", "32", "--step", "re=0.1"],
+        "zero-left": lambda: [*images, "--pattern", "9x6", "--per-set", "10", "--max-subsets", "32",
+                              "--step", "re=0.1"],
         "unreadable": lambda: ["--images", own, "--pattern", "9x6"],
         "non-image": lambda: ["--images", own, "--glob", "*", "--pattern", "9x6"],
         "no-images": lambda: ["--images", tmp_path / "nowhere", "--pattern", "9x6"],

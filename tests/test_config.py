@@ -98,7 +98,8 @@ block size = 5
 
 
 def _ini(steps: str, calibration: str = "mesh width = 9\nmesh height = 6\nimages per set = 10\n") -> str:
-    return f"[ Calibration ]\nIndividual calibration = 1\n{calibration}[ Optimization ]\n[[ Calibration steps ]]\n{steps}"
+    return (f"[ Calibration ]\nIndividual calibration = 1\n{calibration}"
+            f"[ Optimization ]\n[[ Calibration steps ]]\n{steps}")
 
 
 @pytest.mark.parametrize("steps, message", [
@@ -107,7 +108,8 @@ def _ini(steps: str, calibration: str = "mesh width = 9\nmesh height = 6\nimages
     ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx,\nmax error = 0,\n", "must be a positive number"),
     ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx,\nmax error = big,\n", "is not a number"),
     ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx, fy\n", "max error is missing"),
-    ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx, fy\nmax error = 1,\n", "2 parameter(s) (fx, fy) but 1 max error"),
+    ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx, fy\nmax error = 1,\n",
+     "2 parameter(s) (fx, fy) but 1 max error"),
     ("number steps = 1\n[[[ step 1 ]]]\nmax error = 1,\n", "no parameters"),
     ("number steps = 1\n[[[ step 1 ]]]\nparameters = fx, fx\nmax error = 1, 1\n", "listed twice"),
     ("number steps = 2\n[[[ step 1 ]]]\nparameters = fx\nmax error = 1\n", "number steps = 2 but"),

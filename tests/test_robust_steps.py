@@ -110,7 +110,8 @@ def test_iterates_until_none_is_outside():
     alive = x[got.survivors]
     q1, q3 = thesis_quartiles(alive)
     assert alive.min() >= q1 - 0.5 * (q3 - q1) and alive.max() <= q3 + 0.5 * (q3 - q1)
-    np.testing.assert_array_equal(got.removed_at, reference_removed_at(x[:, None].tolist(), ("a",), [Step(("a",), (0.1,))]))
+    expected = reference_removed_at(x[:, None].tolist(), ("a",), [Step(("a",), (0.1,))])
+    np.testing.assert_array_equal(got.removed_at, expected)
 
 
 def test_minimum_stops_the_step_and_says_so():

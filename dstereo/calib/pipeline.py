@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from dstereo.calib.robust_steps import FilterResult, run_steps
-from dstereo.config import Config, Step
+from dstereo.config import Config, Step, validate
 from dstereo.errors import DstereoError
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
@@ -154,10 +154,13 @@ def calibrate_camera(
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
 
+    validate(config)
     steps = config.steps if steps is None else tuple(steps)
     files = list_camera_images(folder, config) if files is None else list(files)
     timings, warnings = {}, list(config.warnings)
     t0 = time.perf_counter()
+    if progress is not None:
+        progress("detect", 0, len(files))
     det = detect_folder(folder, config.pattern, config.square, files=files, use_cache=use_cache,
                         progress=None if progress is None else (lambda i, n: progress("detect", i, n)))
     timings["detect_s"] = time.perf_counter() - t0
@@ -196,6 +199,8 @@ def calibrate_camera(
     spread = {n: float("nan") for n in full.names}
     if plan is not None:
         t0 = time.perf_counter()
+        if progress is not None:
+            progress("subsets", 0, len(plan.index))
         subsets = solve_subsets(det.object_points, obs, plan, full,
                                 progress=None if progress is None else (lambda i, n: progress("subsets", i, n)))
         timings["subsets_s"] = time.perf_counter() - t0

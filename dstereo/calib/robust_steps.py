@@ -151,5 +151,6 @@ def run_steps(
         if stopped:
             message += (f"; stopped before a pass that would leave {left} < minimum {minimum} subsets "
                         f"(kept {after}, some still outside the limits)")
-        outcomes.append(StepOutcome(k, step.parameters, step.max_error, before, after, passes, bounds, stopped, message))
+        outcomes.append(
+            StepOutcome(k, step.parameters, step.max_error, before, after, passes, bounds, stopped, message))
     return FilterResult(columns, table, usable, removed_at, outcomes)

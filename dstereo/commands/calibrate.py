@@ -128,7 +128,7 @@ class _progress:
         self.bars.update(self.tasks[stage], completed=done, total=total)
 
     def _plain(self, stage: str, done: int, total: int) -> None:
-        if done == total:
+        if done == total and total:
             typer.echo(f"{stage}: {done}/{total} done", err=True)
 
     def __exit__(self, *exc):
@@ -146,8 +146,9 @@ def _pm(value: float, spread: float) -> str:
 def _render(cal, out: Path) -> None:
     """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
     full = cal.full
-    rows = [(n, _pm(float(v), float(s)), _pm(cal.final[n], cal.spread[n])) for n, v, s in zip(full.names, full.values, full.std)]
-    subsets = "subset mean +- spread"
+    rows = [(n, _pm(float(v), float(s)), _pm(cal.final[n], cal.spread[n]))
+            for n, v, s in zip(full.names, full.values, full.std)]
+    subsets = "final: subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
     try:

@@ -22,4 +22,5 @@ def init(
         raise DstereoError(f"init: {target} already exists; edit it, or pass --force to overwrite it")
     (project / "images").mkdir(parents=True, exist_ok=True)
     target.write_text(to_toml(template()))
-    typer.echo(f"wrote {target}; put the chessboard images in {project / 'images'} and run: dstereo calibrate {project}")
+    typer.echo(f"wrote {target}; put the chessboard images in {project / 'images'} and run: "
+               f"dstereo calibrate {project}")

@@ -51,7 +51,8 @@ def parameter_figure(name: str, initial: np.ndarray, final: np.ndarray, path: Pa
     grid = np.linspace(lo - pad, hi + pad, 400)
     label = f"{name} ({unit})" if unit else name
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
-    sets = ((initial, f"initial ({initial.size} subsets)", "tab:gray"), (final, f"final ({final.size} subsets)", "tab:blue"))
+    sets = ((initial, f"initial ({initial.size} subsets)", "tab:gray"),
+            (final, f"final ({final.size} subsets)", "tab:blue"))
     for values, text, colour in sets:
         axes[0].hist(values, bins=bins, alpha=0.55, color=colour, label=text, histtype="stepfilled")
         density = _kde(values, grid)

@@ -314,7 +314,8 @@ def report_markdown(cal, summary: dict) -> str:
     lines = [f"# Camera calibration: {cal.folder}", "",
              f"- board: {cfg.pattern[0]} x {cfg.pattern[1]} inner corners, square {cfg.square:g} {cfg.unit}",
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
-             f"({len(cal.detection.rejected)} rejected), {cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
+             f"({len(cal.detection.rejected)} rejected), "
+             f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
              f"- distortion model: {', '.join(full.free) or 'none'}",
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
@@ -347,7 +348,8 @@ def report_markdown(cal, summary: dict) -> str:
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]
     lines += ["", "![coverage](plots/coverage.png)", ""]
     lines += [f"- warning: {w}" for w in cov.warnings] + ([""] if cov.warnings else [])
-    lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "", "![residuals](plots/residuals.png)", ""]
+    lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
+              "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:
         lines += [f"![{n}](plots/{n}.png)" for n in cal.filtering.columns] + [""]
     lines += ["Undistorted images (straight lines should look straight): "
