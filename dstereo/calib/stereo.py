@@ -145,6 +145,13 @@ def _residuals_fn(spec: _Spec):
     return jax.jit(jax.vmap(per_view, in_axes=(0, 0, 0, None)))
 
 
+@jax.jit
+def _rig_matrices(rig, k_left, k_right):
+    """R, E, F of a rig vector (one compiled call instead of dozens of eager ones)."""
+    E = essential_matrix(rig[:3], rig[3:6])
+    return rodrigues(rig[:3]), E, fundamental_matrix(k_left, k_right, E)
+
+
 @functools.lru_cache(maxsize=None)
 def _normalised_points():
     one = jax.vmap(undistort, in_axes=(None, 0))
@@ -332,11 +339,10 @@ def _solution_from(out, spec: _Spec, mode: str, obj, data, left: Camera, right: 
     resid = np.asarray(_residuals_fn(spec)(jnp.asarray(g)[None], jnp.asarray(out.p)[None], data[None], shared))[0]
     n = obj.shape[0]
     resid = resid.reshape(len(out.p), 2, n, 2)
-    E = np.asarray(essential_matrix(jnp.asarray(g[:3]), jnp.asarray(g[3:6])))
-    F = np.asarray(fundamental_matrix(cam_l.k, cam_r.k, jnp.asarray(E)))
+    R, E, F = (np.asarray(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
     return StereoSolution(
         mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, left=cam_l,
-        right=cam_r, rvec=g[:3].copy(), R=np.asarray(rodrigues(jnp.asarray(g[:3]))), T=g[3:6].copy(), E=E, F=F,
+        right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
         poses=out.p, rms=float(np.sqrt(out.sse / (2 * resid.shape[0] * n))),
         per_pair_rms=np.sqrt(np.mean(np.sum(resid ** 2, axis=3), axis=(1, 2))), residuals=resid,
         iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),
