@@ -8,6 +8,7 @@ Layout of `write_camera_results(out, cal)`:
     corners.npz          detected corners per usable image + object_points: re-run a solve on them
     config.toml          the configuration as run (files and flags merged)
     stats/step_K.txt     thesis section 5.2.1.3: mean, std, error % per parameter, reprojection error, count
+    stats/parameter_P.txt  one parameter through the steps, as the thesis prints f_x
     plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
     plots/coverage.png, per_image_rms.png, residuals.png
     undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
@@ -122,13 +123,34 @@ def stats_text(filtering: FilterResult, k: int, total: int, title: str = "CALIBR
     return "\n".join(lines)
 
 
+def history_text(filtering: FilterResult, name: str, title: str = "CALIBRATION PARAMETERS") -> str:
+    """One parameter through the steps, laid out as the thesis prints f_x in section 5.2.1.3."""
+    absolute = name in ABSOLUTE_PARAMETERS
+    lines = [f"[REPROJECTION ERROR] = [[{name} ]] (RMS per subset, px)" if absolute else f"[{title}] = [[{name} ]]"]
+    for k in range(len(filtering.steps) + 1):
+        s = filtering.stats(k)[name]
+        lines.append("STEP 0 (before optimization)" if k == 0 else f"STEP {k}")
+        if absolute:
+            lines += [f"Average = {s['mean']!r}", f"Minimum = {s['min']!r}", f"Maximum = {s['max']!r}"]
+        else:
+            lines += [f"Average = {s['mean']!r}", f"Standard deviation = {s['std']!r}",
+                      f"Error = {s['error_percent']!r}"]
+        lines.append(f"Subsets = {s['count']}")
+    return "\n".join(lines) + "\n"
+
+
 def write_stats_files(folder: Path, filtering: FilterResult, title: str = "CALIBRATION PARAMETERS") -> list[str]:
-    """stats/step_0_initial.txt, stats/step_1.txt, ...; returns the file names written."""
+    """stats/step_0_initial.txt, stats/step_1.txt, ... (one per step) and stats/parameter_<name>.txt (one per
+    column, through the steps); returns the file names written."""
     folder.mkdir(parents=True, exist_ok=True)
     names = []
     for k in range(len(filtering.steps) + 1):
         name = "step_0_initial.txt" if k == 0 else f"step_{k}.txt"
         (folder / name).write_text(stats_text(filtering, k, len(filtering.table), title))
+        names.append(name)
+    for column in filtering.columns:
+        name = f"parameter_{column}.txt"
+        (folder / name).write_text(history_text(filtering, column, title))
         names.append(name)
     return names
 
@@ -332,7 +354,10 @@ def report_markdown(cal, summary: dict) -> str:
             note = "stopped by the minimum number of subsets" if s["stopped_by_minimum"] else ""
             lines.append(f"| {s['step']} | {', '.join(s['parameters'])} | {', '.join(f'{e:g}' for e in s['max_error'])}"
                          f" | {s['before']} | {s['survivors']} | {s['passes']} | {note} |")
-        lines += ["", "Statistics per step: " + ", ".join(f"[{n}](stats/{n})" for n in sub.get("stats_files", [])),
+        files = sub.get("stats_files", [])
+        lines += ["", "Statistics per step: " + ", ".join(f"[{n}](stats/{n})" for n in files if n.startswith("step")),
+                  "", "Per parameter through the steps: "
+                  + ", ".join(f"[{n[10:-4]}](stats/{n})" for n in files if n.startswith("parameter")),
                   "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
     lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
               "standard deviations, and the spread (standard deviation) across the surviving subsets.", "",
