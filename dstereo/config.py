@@ -7,7 +7,12 @@ Mono optimisation steps (`[ Optimization ]`) and stereo steps (`[ Stereo Optimiz
 
 `mesh width` x `mesh height` are the board's *inner* corners (columns x rows), the `patternSize` the thesis
 hands to cv2.findChessboardCorners: its Figure 5.5 says 9 x 6 for OpenCV's sample set, whose board has
-10 x 7 squares and 9 x 6 inner corners.
+10 x 7 squares and 9 x 6 inner corners. (Section 4.2.2.1's "20 x 10 board, 20 mm squares" example lists object
+points up to (400, 200), i.e. 21 x 11 points, and so does not fit either reading; the figures and the code
+path through OpenCV do.)
+
+`max error` follows section 4.2.2.1: pixels for `re`, the IQR multiple alpha for every other parameter. The
+template's comment "Y for the rest of parameters in max_deviation/average" is not what that section describes.
 """
 
 from __future__ import annotations
