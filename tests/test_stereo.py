@@ -30,10 +30,10 @@ def _pairs(folder):
 
 @pytest.fixture(scope="module", params=["opencv_stereo", "rig640"])
 def real(request):
-    """Pairs of a real data set calibrated with intrinsics fixed; rig640 also on 64 subsets of 22 pairs."""
+    """Pairs of a real data set calibrated with intrinsics fixed; rig640 also on 32 subsets of 20 of its 25 pairs."""
     left, right = _pairs(require_data(request.param))
-    per_set = 22 if request.param == "rig640" else None
-    return request.param, st.calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=64)
+    per_set = 20 if request.param == "rig640" else None
+    return request.param, st.calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=32)
 
 
 def _cv2_stereo(result, obs_l, obs_r, flags):
@@ -154,14 +154,16 @@ def test_rig640_baseline_std_and_subset_spread(real):
         pytest.skip("the subset study runs on rig640")
     s, sub = result.stereo, result.subsets
     assert 3.7 < s.baseline < 4.0 and 0 < s.baseline_std < 0.01 * s.baseline  # squares
-    assert sub.converged.all() and sub.values.shape == (64, 6)
+    assert sub.converged.all() and sub.values.shape == (32, 6)
     cols = sub.columns()
-    n, m = len(result.pairs), sub.plan.index.shape[1]
-    # Subsets of m of N pairs scatter by sigma_1 sqrt(1/m - 1/N) about the full set (sigma_1: one pair's), while
-    # each subset's Jacobian says sigma_1 / sqrt(m): their ratio is sqrt(1 - m/N) if corner noise is all there is.
+    # Linear model: a subset's estimate minus the full set's is uncorrelated with the latter, so the subsets
+    # scatter by sqrt(mean(J_S^2) - J_N^2) (J: Jacobian standard deviations). On iid corner noise the ratio is 1
+    # (experiments/stereo_uncertainty.py, synthetic control); on rig640 it is ~3.5: neighbouring corners'
+    # residuals correlate (0.38) and per-pair shifts take 17 % of the SSE, so a pair carries less information
+    # than its 216 residuals suggest and the Jacobian is optimistic by that factor.
     spread = np.std(cols["Tnorm"], ddof=1)
-    predicted = np.mean(sub.norm_std[:, 0]) * np.sqrt(1 - m / n)
-    assert 0.3 < spread / predicted < 3.0
+    predicted = np.sqrt(np.mean(sub.norm_std[:, 0] ** 2) - s.baseline_std ** 2)
+    assert 1.5 < spread / predicted < 6.0
     assert np.all(np.abs(cols["Tnorm"] - s.baseline) < 10 * sub.norm_std[:, 0])
     # The subsets' mean per-pair RMS is the thesis's stereo_re; every subset fits to about the full set's level.
     assert np.all(np.abs(cols["stereo_re"] / s.stereo_re - 1) < 0.2)
@@ -215,6 +217,14 @@ def test_synthetic_rig_of_different_cameras_is_recovered(synthetic, noise_px):
             assert sol.rms == pytest.approx(np.sqrt(2) * noise_px, rel=0.1)  # per-corner 2D RMS
             assert abs(sol.baseline - np.linalg.norm(SYN_RIG[3:])) < 4 * sol.baseline_std
         assert np.all(joint.std[:6] > fixed.std)  # freeing the intrinsics widens the rig's uncertainty
+        # The Jacobian standard deviations are right on iid noise: pooled z-scores over 10 noise draws.
+        z = []
+        for seed in range(10):
+            draw = np.random.default_rng(100 + seed)
+            sol = st.calibrate_stereo(obj, synthetic[1] + draw.normal(0, noise_px, ql.shape),
+                                      synthetic[2] + draw.normal(0, noise_px, qr.shape), SYN_LEFT, SYN_RIGHT)
+            z.append((sol.values - SYN_RIG) / sol.std)
+        assert 0.7 < np.sqrt(np.mean(np.square(z))) < 1.35
     assert joint.left.image_size == (640, 480) and joint.right.image_size == (800, 600)
 
 
