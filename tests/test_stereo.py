@@ -13,12 +13,12 @@ from dstereo.calib import stereo as st
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.io.corners import Detection
-from dstereo.io.stereo_files import match_pairs, write_json, write_stereo_corners, write_stereo_yml
+from dstereo.io.stereo_files import box_plots, match_pairs, write_json, write_stereo_corners, write_stereo_yml
 from dstereo.models.camera import Camera
 from dstereo.models.rig import Rig, essential_matrix, fundamental_matrix, pair_residual, skew
 from dstereo.solver.lm import jacfwd_linearize
 from dstereo.synth import Board, board_pose_set, compose, object_points, true_corners
-from tests.conftest import require_data
+from conftest import require_data
 
 CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
 PATTERN = (9, 6)
@@ -317,3 +317,80 @@ def test_unknown_mode_and_mismatched_pairs_are_errors(synthetic):
         st.calibrate_stereo(obj, ql, qr, SYN_LEFT, SYN_RIGHT, "both")
     with pytest.raises(DstereoError, match="13 left views but 12 right views"):
         st.calibrate_stereo(obj, ql, qr[:12], SYN_LEFT, SYN_RIGHT)
+
+
+# --- command line ----------------------------------------------------------------------------------------------------
+
+
+def _run_cli(*args) -> tuple[int, str, str]:
+    import contextlib
+    import io
+    import sys
+
+    from dstereo.cli import main
+
+    out, err, argv = io.StringIO(), io.StringIO(), sys.argv
+    sys.argv = ["dstereo", *map(str, args)]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main()
+                code = 0
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.argv = argv
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_cli_thesis_layout_writes_the_stereo_results(real, tmp_path):
+    """PROJECT/images/images_left + images_right (links to the pairs): individual calibrations, then the rig."""
+    name, result = real
+    if name != "opencv_stereo":
+        pytest.skip("one data set suffices for the command line")
+    left, right = _pairs(require_data(name))
+    for folder, files in (("images_left", left), ("images_right", right)):
+        (tmp_path / "project" / "images" / folder).mkdir(parents=True)
+        for f in files:
+            (tmp_path / "project" / "images" / folder / f.name).symlink_to(f)
+    code, out, err = _run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1")
+    assert code == 0, err
+    res = tmp_path / "project" / "results"
+    assert "stereo: 13 pairs (0 dropped)" in out and "baseline |T|" in out
+    for f in ("stereo.yml", "stereo.json", "corners.npz", "stereo_pairs.csv", "report.md", "summary.json",
+              "left/camera.yml", "right/camera.yml", "plots/rig.png", "plots/pair_rms.png"):
+        assert (res / f).is_file(), f
+    back = read_stereo_calibration(res / "stereo.yml")
+    np.testing.assert_allclose(back.T, result.stereo.T, rtol=1e-9)  # no subsets: intrinsics = full-set solves
+    np.testing.assert_allclose(back.R, result.stereo.R, atol=1e-12)
+    np.testing.assert_allclose(back.K2, result.mono_right.camera_matrix, rtol=1e-12)
+    summary = json.loads((res / "stereo.json").read_text())
+    assert summary["full_set"]["baseline"]["std"] == pytest.approx(result.stereo.baseline_std, rel=1e-6)
+    assert [p["left"] for p in summary["pairs"]] == [a for a, _ in result.pairs]
+    with np.load(res / "corners.npz") as z:
+        assert sorted(z.files) == sorted(["object_points"] + [f"left/{a}" for a, _ in result.pairs]
+                                         + [f"right/{b}" for _, b in result.pairs])
+
+
+def test_cli_stereo_errors_exit_1_and_write_nothing(tmp_path):
+    data = require_data("rig640")
+    out = tmp_path / "results"
+    code, _, err = _run_cli("calibrate", "--left", data / "left*.jpg", "--pattern", "9x6", "--out", out)
+    assert code == 1 and "give both --left and --right" in err
+    code, _, err = _run_cli("calibrate", "--left", data / "left0*.jpg", "--right", data / "right*.jpg",
+                            "--pattern", "9x6", "--out", out)
+    assert code == 1 and "9 left images" in err and "25 right images" in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_box_plots_of_initial_and_optimised_subsets(tmp_path):
+    from dstereo.calib.robust_steps import run_steps
+    from dstereo.config import Step
+
+    rng = np.random.default_rng(0)
+    table = np.column_stack([rng.uniform(0.1, 0.2, 40), rng.normal(3.3, 0.01, (40, 8))])
+    table[0, 1] = 9.0  # an outlier |T|
+    f = run_steps(table, st.STEP_COLUMNS, [Step(("Tnorm",), (0.75,))])
+    assert not f.survivors[0]
+    box_plots(f, ("Tnorm", "Tx", "Ty", "Tz"), tmp_path / "T.png", "translation vector T", "mm")
+    assert (tmp_path / "T.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -312,7 +312,7 @@ def calibrate_stereo(
     if spec.joint:
         out = _full_solver(spec, options)(jnp.asarray(_g0(spec, np.asarray(out.g), left, right)), out.p, data, shared)
         iterations += int(out.iterations)
-    out = jax.tree_util.tree_map(np.asarray, out)
+    out = jax.tree_util.tree_map(np.array, out)
     sol = _solution_from(out, spec, mode, obj, data, left, right, iterations)
     sol.timings["solve_s"] = time.perf_counter() - t0
     if not np.isfinite(sol.rms):
@@ -339,7 +339,7 @@ def _solution_from(out, spec: _Spec, mode: str, obj, data, left: Camera, right: 
     resid = np.asarray(_residuals_fn(spec)(jnp.asarray(g)[None], jnp.asarray(out.p)[None], data[None], shared))[0]
     n = obj.shape[0]
     resid = resid.reshape(len(out.p), 2, n, 2)
-    R, E, F = (np.asarray(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
+    R, E, F = (np.array(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
     return StereoSolution(
         mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, left=cam_l,
         right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
@@ -406,7 +406,7 @@ def solve_stereo_subsets(
         out = solver(g0, poses[idx], data[idx], shared)
         r = np.asarray(residuals(out.g, out.p, data[idx], shared))  # (chunk, m, 4n)
         re.append(np.mean(np.sqrt(np.sum(r ** 2, axis=2) / (r.shape[2] / 2)), axis=1))
-        outs.append(jax.tree_util.tree_map(np.asarray, out))
+        outs.append(jax.tree_util.tree_map(np.array, out))
         if progress is not None:
             progress(min(c + chunk, n_sub), n_sub)
     out = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n_sub], *outs)

@@ -35,8 +35,12 @@ def calibrate(
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
     no_cache: bool = typer.Option(False, "--no-cache", help="Detect corners again instead of using the cache."),
+    left: Optional[Path] = typer.Option(
+        None, "--left", help="Stereo: left camera's images, a folder or a pattern such as DIR/left*.jpg."),
+    right: Optional[Path] = typer.Option(None, "--right", help="Stereo: right camera's images (pairs by name order)."),
 ) -> None:
-    """Calibrate one camera: full-set solve, subset analysis and the thesis's robust optimisation steps."""
+    """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
+    solve, subset analysis and the thesis's robust optimisation steps."""
     from dstereo.config import Config, find_project_config, load_config, parse_step_flag, validate
     from dstereo.errors import DstereoError
     from dstereo.io.corners import parse_pattern
@@ -53,6 +57,10 @@ def calibrate(
         steps=tuple(parse_step_flag(s, k) for k, s in enumerate(step, 1)) if step else None,
     )
     cfg = validate(cfg)
+    stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
+    if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
+        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started)
+        return
     if cfg.mode != "individual":
         raise DstereoError(f"{cfg.source or 'configuration'}: stereo calibration is not available in this version; "
                            "set Individual calibration = 1 (or mode = \"individual\") to calibrate one camera")
@@ -69,6 +77,37 @@ def calibrate(
     for warning in cfg.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
     _run(images, cfg, out, force, quiet, not no_cache, started)
+
+
+def _stereo_layout(images: Path) -> bool:
+    from dstereo.calib.stereo_pipeline import has_stereo_layout
+
+    return has_stereo_layout(images)
+
+
+def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started) -> None:
+    """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
+    from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
+    from dstereo.errors import DstereoError
+    from dstereo.io.results import check_output
+    from dstereo.io.stereo_files import write_stereo_results
+
+    sources = stereo_sources(images, cfg, left, right)
+    if out is None:
+        if project is None:
+            raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
+        out = project / "results"
+    check_output(out, force)
+    for warning in cfg.warnings:
+        typer.echo(f"dstereo: warning: {warning}", err=True)
+    with _progress(quiet) as progress:
+        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
+        write_stereo_results(out, job, force)
+    job.timings["total_s"] = time.perf_counter() - started
+    for warning in job.warnings:
+        typer.echo(f"dstereo: warning: {warning}", err=True)
+    if not quiet:
+        typer.echo("\n".join(summary_lines(job, out)))
 
 
 def _model(spec: Optional[str]):

@@ -169,3 +169,235 @@ def write_stereo_corners(path, detection: StereoDetection) -> Path:
             np.savez_compressed(f, **arrays)
 
     return _replace_atomically(Path(path), write)
+
+
+# --- the stereo results folder -------------------------------------------------------------------------------------
+
+STEREO_TITLE = "STEREO PARAMETERS"
+STEREO_UNITS = {"stereo_re": "px", "RVnorm": "rad", "RVx": "rad", "RVy": "rad", "RVz": "rad"}
+
+
+def write_stereo_results(out, job, force: bool = False) -> Path:
+    """The results folder of a `stereo_pipeline.StereoCalibrationJob`, filled under a temporary name:
+        left/, right/            each camera's folder, as `dstereo calibrate` writes for one camera
+        stereo.yml, stereo.json  M1 D1 M2 D2 R T E F imageSize (final values) / everything, with std
+        corners.npz              left/<file>, right/<file> of the stereo pairs, object_points
+        stereo_pairs.csv         each pair's RMS reprojection error (both cameras, left, right), full-set solve
+        stereo_subsets.csv, stereo_stats/   per subset and per step (with images per set)
+        plots/                   T.png, RV.png (thesis Figures 5.15/5.16), <param>.png, rig.png, pair_rms.png
+        summary.json, report.md
+    """
+    from dstereo.io.results import atomic_folder, fill_camera_folder
+
+    out = Path(out)
+    with atomic_folder(out, force) as tmp:
+        for side, cal in (("left", job.left), ("right", job.right)):
+            (tmp / side).mkdir()
+            fill_camera_folder(tmp / side, cal)
+        _fill_stereo_folder(tmp, job)
+    return out
+
+
+def stereo_summary(job) -> dict:
+    """summary.json / stereo.json of a stereo job."""
+    from dstereo.config import as_dict
+    from dstereo.models.distortion import COEFF_NAMES
+
+    s, det = job.full, job.detection
+    cams = {side: {"camera_matrix": c.matrix(), "coeffs": dict(zip(COEFF_NAMES, map(float, c.coeffs()))),
+                   "free": list(c.dist.free), "image_size": list(c.image_size)}
+            for side, c in (("left", s.left), ("right", s.right))}
+    full_std = dict(zip(s.names, map(float, s.std))) | {"Tnorm": s.baseline_std, "RVnorm": s.angle_std}
+    summary = {
+        "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
+        "cameras": cams, "pattern": {"columns": det.left.pattern[0], "rows": det.left.pattern[1],
+                                     "square": det.left.square, "unit": job.config.unit},
+        "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
+                  "F": job.F, **job.final},
+        "final_spread": job.spread,
+        "final_source": (f"mean over the {int(job.filtering.survivors.sum())} surviving subsets (the thesis's answer)"
+                         if job.filtering is not None else "full-set solve (no subsets: set images per set)"),
+        "full_set": {"mode": s.mode, "R": s.R, "rvec": s.rvec, "T": s.T, "E": s.E, "F": s.F, **s.columns(),
+                     "std": full_std, "baseline": {"value": s.baseline, "std": s.baseline_std},
+                     "rms": s.rms, "stereo_re": s.stereo_re, "status": s.status_text, "iterations": s.iterations,
+                     "conditioning": s.conditioning.message(), "covariance": s.cov, "names": list(s.names)},
+        "reprojection_error": "rms: sqrt(SSE / corners) over both cameras (cv2.stereoCalibrate's value); stereo_re: "
+                              "the mean over pairs of each pair's RMS (thesis 4.2.2.2)",
+        "pairs": [{"left": a, "right": b, "rms": float(e)} for (a, b), e in zip(det.pairs, s.per_pair_rms)],
+        "dropped": [{"left": d.left, "right": d.right, "reason": d.reason} for d in det.dropped],
+        "individual": {side: {"rms": float(c.full.rms), "images": len(c.used), "final": c.final}
+                       for side, c in (("left", job.left), ("right", job.right))},
+        "subsets": None, "warnings": list(job.warnings), "timings": dict(job.timings),
+    }
+    if job.filtering is not None:
+        f, plan = job.filtering, job.plan
+        summary["subsets"] = {"per_set": int(plan.index.shape[1]), "solved": int(len(plan.index)),
+                              "sampling": plan.describe(), "initial_count": int(f.usable.sum()),
+                              "final_count": int(f.survivors.sum()), "initial": f.stats(0),
+                              "final": f.stats(len(f.steps)),
+                              "steps": [{"step": s.number, "parameters": list(s.parameters),
+                                         "max_error": list(s.max_error), "before": s.before, "survivors": s.after,
+                                         "message": s.message} for s in f.steps]}
+    return summary
+
+
+def _fill_stereo_folder(folder: Path, job) -> None:
+    from dstereo.io.results import write_stats_files, write_subsets_csv
+
+    s, det = job.full, job.detection
+    write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
+                     job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms)
+    summary = stereo_summary(job)
+    write_json(folder / "stereo.json", summary)
+    write_stereo_corners(folder / "corners.npz", det)
+    rms_l = np.sqrt(np.mean(np.sum(s.residuals[:, 0] ** 2, axis=2), axis=1))
+    rms_r = np.sqrt(np.mean(np.sum(s.residuals[:, 1] ** 2, axis=2), axis=1))
+    lines = ["left,right,rms_px,left_rms_px,right_rms_px"]
+    lines += [f"{a},{b},{e!r},{el!r},{er!r}" for (a, b), e, el, er in
+              zip(det.pairs, s.per_pair_rms.tolist(), rms_l.tolist(), rms_r.tolist())]
+    (folder / "stereo_pairs.csv").write_text("\n".join(lines) + "\n")
+    plots = folder / "plots"
+    plots.mkdir()
+    if job.filtering is not None:
+        f = job.filtering
+        write_stats_files(folder / "stereo_stats", f, STEREO_TITLE)
+        write_subsets_csv(folder / "stereo_subsets.csv", job.plan.index, f, job.subsets.status)
+        from dstereo.io import plots as mono_plots
+
+        full_values = s.columns()
+        for j, name in enumerate(f.columns):
+            mono_plots.parameter_figure(name, f.table[f.alive_after(0), j], f.table[f.survivors, j],
+                                        plots / f"{name}.png", STEREO_UNITS.get(name, job.config.unit),
+                                        full_values[name])
+        for names, target, title in ((("Tnorm", "Tx", "Ty", "Tz"), "T.png", "translation vector T"),
+                                     (("RVnorm", "RVx", "RVy", "RVz"), "RV.png", "rotation vector RV")):
+            box_plots(f, names, plots / target, title, job.config.unit)
+    rig_figure(s, det, plots / "rig.png", job.config.unit)
+    pair_rms_figure([a for a, _ in det.pairs], s.per_pair_rms, rms_l, rms_r, plots / "pair_rms.png")
+    write_json(folder / "summary.json", summary)
+    (folder / "report.md").write_text(report_markdown(job, summary))
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
+    """Thesis Figures 5.15/5.16: one panel per parameter, box plots of the initial and the optimised subsets."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.8))
+    for ax, name in zip(axes, names):
+        col = filtering.column(name)
+        ax.boxplot([col[filtering.alive_after(0)], col[filtering.survivors]], widths=0.6)
+        ax.set_xticks([1, 2], ["initial", "optimised"])
+        ax.set_title(f"{name} ({STEREO_UNITS.get(name, unit)})")
+        ax.ticklabel_format(axis="y", useOffset=False)
+    fig.suptitle(f"{title}: {int(filtering.usable.sum())} initial, {int(filtering.survivors.sum())} optimised subsets")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _frustum(k: np.ndarray, size: tuple[int, int], depth: float) -> np.ndarray:
+    """(5, 3) apex and image-corner rays of a camera at `depth`, camera frame."""
+    fx, fy, cx, cy = k
+    w, h = size
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float) - 0.5
+    rays = np.column_stack([(corners[:, 0] - cx) / fx, (corners[:, 1] - cy) / fy, np.ones(4)]) * depth
+    return np.vstack([np.zeros(3), rays])
+
+
+def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
+    """3D view in the left camera's frame: both cameras (frusta) and every pair's board."""
+    from scipy.spatial.transform import Rotation
+
+    plt = _pyplot()
+    obj = detection.object_points
+    cols, rows = detection.left.pattern
+    outline = obj[[0, cols - 1, cols * rows - 1, cols * (rows - 1), 0]]
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    boards = []
+    for pose in solution.poses:
+        pts = Rotation.from_rotvec(pose[:3]).apply(outline) + pose[3:]
+        boards.append(pts)
+        ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
+    depth = 0.25 * float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
+    centre_r = -solution.R.T @ solution.T
+    for name, cam, rot, centre, colour in (("left", solution.left, np.eye(3), np.zeros(3), "tab:blue"),
+                                           ("right", solution.right, solution.R.T, centre_r, "tab:red")):
+        f = _frustum(np.asarray(cam.k), cam.image_size, depth) @ rot.T + centre
+        for i in range(1, 5):
+            ax.plot(*_display([f[0], f[i]]), color=colour, lw=1)
+        ax.plot(*_display(f[[1, 2, 3, 4, 1]]), color=colour, lw=1.5, label=name)
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"z ({unit})")
+    ax.set_zlabel(f"-y ({unit})")
+    everything = np.vstack(boards + [np.zeros((1, 3)), centre_r[None]])
+    span = np.ptp(everything, axis=0).max() / 2
+    mid = (everything.max(axis=0) + everything.min(axis=0)) / 2
+    ax.set_xlim(mid[0] - span, mid[0] + span)
+    ax.set_ylim(mid[2] - span, mid[2] + span)
+    ax.set_zlim(-mid[1] - span, -mid[1] + span)
+    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _display(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera frame (x right, y down, z forward) -> plot axes (x, z, -y): the cameras look 'into' the plot."""
+    p = np.asarray(points)
+    return p[:, 0], p[:, 2], -p[:, 1]
+
+
+def pair_rms_figure(names: list[str], rms: np.ndarray, left: np.ndarray, right: np.ndarray, path: Path) -> None:
+    """Each pair's RMS reprojection error in the stereo full-set solve, both cameras and each camera."""
+    plt = _pyplot()
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(max(6, 0.45 * len(names) + 2), 4))
+    ax.bar(x - 0.27, rms, 0.27, label="both cameras", color="tab:purple")
+    ax.bar(x, left, 0.27, label="left", color="tab:blue")
+    ax.bar(x + 0.27, right, 0.27, label="right", color="tab:red")
+    ax.axhline(float(np.mean(rms)), color="k", ls="--", lw=1, label=f"stereo_re {np.mean(rms):.3f} px")
+    ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
+    ax.set_ylabel("RMS reprojection error (px)")
+    ax.set_title("stereo reprojection error per pair (full-set solve)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def report_markdown(job, summary: dict) -> str:
+    """report.md of a stereo run."""
+    s, det, unit = job.full, job.detection, job.config.unit
+    fmt = lambda v: f"{v:.6g}" if v == v else "-"  # noqa: E731
+    lines = [f"# Stereo calibration: {job.sources.description}", "",
+             f"- individual calibrations: [left](left/report.md) RMS {job.left.full.rms:.4f} px, "
+             f"[right](right/report.md) RMS {job.right.full.rms:.4f} px",
+             f"- stereo pairs: {len(det.pairs)} used, {len(det.dropped)} dropped; intrinsics fixed at each camera's "
+             "final values", f"- full-set solve: RMS {s.rms:.4f} px, stereo_re {s.stereo_re:.4f} px, {s.status_text}",
+             f"- baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (Jacobian)", ""]
+    lines += ["| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
+    full_vals, std = s.columns(), summary["full_set"]["std"]
+    for k in job.columns:
+        lines.append(f"| {k} | {fmt(job.final[k])} | {fmt(full_vals[k])} | {fmt(std.get(k, float('nan')))} | "
+                     f"{fmt(job.spread[k])} |")
+    lines += ["", f"Final values: {summary['final_source']}. Files: [stereo.yml](stereo.yml) (OpenCV), "
+              "[stereo.json](stereo.json), [corners.npz](corners.npz), [stereo_pairs.csv](stereo_pairs.csv).", ""]
+    if job.filtering is not None:
+        lines += ["## Stereo steps", ""] + [f"- {st.message}" for st in job.filtering.steps] + [
+            "", "![T](plots/T.png)", "", "![RV](plots/RV.png)", ""]
+    lines += ["## Figures", "", "![rig](plots/rig.png)", "", "![pair rms](plots/pair_rms.png)", ""]
+    if det.dropped:
+        lines += ["## Dropped pairs", ""] + [f"- {d.left} / {d.right}: {d.reason}" for d in det.dropped] + [""]
+    if job.warnings:
+        lines += ["## Warnings", ""] + [f"- {w}" for w in job.warnings] + [""]
+    return "\n".join(lines)

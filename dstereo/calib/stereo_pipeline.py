@@ -1,0 +1,243 @@
+"""A stereo calibration job (thesis 4.2.2.2): both cameras individually, then the rig, its subsets and steps.
+
+Where the images come from (`stereo_sources`):
+- flags `--left L --right R`: a folder each, or a file pattern such as `DATA/left*.jpg`; the same images serve
+  the individual calibrations and the stereo pairs;
+- the thesis's layout under the project's images folder: `images_left`, `images_right` (individual
+  calibrations; `calibrate_left`/`calibrate_right` as in the thesis's template comment are accepted too) and,
+  optionally, `images_stereo_left`, `images_stereo_right` (the pairs; without them the individual images are
+  the pairs).
+Pairs are matched by name order; a pair missing the board on either side is dropped with the reason.
+
+The job: detect the pairs (errors about the pairs come before any long work), calibrate each camera with the
+one-camera pipeline and its own steps, fix the intrinsics at each camera's final values, solve the rig on all
+pairs, then (with images per set m) on the C(pairs, m) subsets, filtered by the stereo steps on the columns
+stereo_re, Tnorm, Tx, Ty, Tz, RVnorm, RVx, RVy, RVz. Nothing here prints or writes files.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera
+from dstereo.calib.robust_steps import FilterResult, run_steps
+from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
+    solve_stereo_subsets
+from dstereo.config import Config
+from dstereo.errors import DstereoError
+from dstereo.io.corners import list_images
+from dstereo.io.stereo_files import StereoDetection, detect_pairs
+
+LEFT_FOLDERS = ("images_left", "calibrate_left")
+RIGHT_FOLDERS = ("images_right", "calibrate_right")
+STEREO_FOLDERS = ("images_stereo_left", "images_stereo_right")
+
+
+@dataclass(frozen=True)
+class StereoSources:
+    """Image files of the individual calibrations and of the stereo pairs (same lists when shared)."""
+
+    mono_left: tuple[Path, ...]
+    mono_right: tuple[Path, ...]
+    stereo_left: tuple[Path, ...]
+    stereo_right: tuple[Path, ...]
+    description: str
+
+    @property
+    def shared(self) -> bool:
+        return self.mono_left == self.stereo_left and self.mono_right == self.stereo_right
+
+
+def has_stereo_layout(images: Path) -> bool:
+    """Whether `images` holds the thesis's stereo folders (images_left / calibrate_left)."""
+    return any((Path(images) / name).is_dir() for name in LEFT_FOLDERS + RIGHT_FOLDERS)
+
+
+def _files(source: Path, image_format: str | None, flag: str) -> tuple[Path, ...]:
+    """A folder's images of the given format, or the files matching a pattern such as DIR/left*.jpg."""
+    source = Path(source)
+    if source.is_dir():
+        return tuple(list_images(source, image_format))
+    if any(ch in source.name for ch in "*?["):
+        if not source.parent.is_dir():
+            raise DstereoError(f"{flag}: folder {source.parent} does not exist")
+        files = tuple(sorted(p for p in source.parent.glob(source.name) if p.is_file()))
+        if not files:
+            raise DstereoError(f"{flag}: no file matches {source}; check the pattern")
+        return files
+    raise DstereoError(f"{flag}: {source} is neither a folder nor a file pattern such as DIR/left*.jpg")
+
+
+def stereo_sources(images: Path | None, config: Config, left: Path | None = None,
+                   right: Path | None = None) -> StereoSources:
+    """Resolve the flags or the thesis layout (module docstring) into lists of image files."""
+    fmt_l = config.image_format_left or config.image_format
+    fmt_r = config.image_format_right or config.image_format
+    if left is not None or right is not None:
+        if left is None or right is None:
+            raise DstereoError("stereo: give both --left and --right (a folder or a pattern such as DIR/left*.jpg)")
+        files_l, files_r = _files(left, fmt_l, "--left"), _files(right, fmt_r, "--right")
+        return StereoSources(files_l, files_r, files_l, files_r, f"--left {left} --right {right}")
+    if images is None or not Path(images).is_dir():
+        raise DstereoError(f"stereo: image folder {images} does not exist; give a PROJECT with images/images_left and "
+                           "images/images_right, or --left DIR --right DIR")
+    images = Path(images)
+    found = [next((images / n for n in names if (images / n).is_dir()), None) for names in (LEFT_FOLDERS, RIGHT_FOLDERS)]
+    if None in found:
+        raise DstereoError(f"stereo: {images} needs the folders images_left and images_right (thesis 4.2.2.2); "
+                           "or give --left DIR --right DIR")
+    mono_l, mono_r = _files(found[0], fmt_l, str(found[0])), _files(found[1], fmt_r, str(found[1]))
+    pair_dirs = [images / n for n in STEREO_FOLDERS]
+    present = [d.is_dir() for d in pair_dirs]
+    if any(present) and not all(present):
+        raise DstereoError(f"stereo: {images} has only one of {', '.join(STEREO_FOLDERS)}; give both (stereo pairs) "
+                           "or neither (the individual images are then the pairs)")
+    if all(present):
+        pairs_l, pairs_r = _files(pair_dirs[0], fmt_l, str(pair_dirs[0])), _files(pair_dirs[1], fmt_r, str(pair_dirs[1]))
+        return StereoSources(mono_l, mono_r, pairs_l, pairs_r, f"{images} (individual and stereo folders)")
+    return StereoSources(mono_l, mono_r, mono_l, mono_r, f"{images} (the same images for both uses)")
+
+
+@dataclass
+class StereoCalibrationJob:
+    """Everything a stereo run produced. `final` is the thesis's answer (mean over surviving subsets) when
+    subsets were solved, else the full-set solve; `full` always holds the full-set solve with Jacobian std."""
+
+    config: Config
+    sources: StereoSources
+    left: CameraCalibration
+    right: CameraCalibration
+    detection: StereoDetection
+    full: StereoSolution
+    plan: object | None
+    subsets: StereoSubsetSolutions | None
+    filtering: FilterResult | None
+    final: dict[str, float]  # STEP_COLUMNS
+    spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
+    R: np.ndarray
+    T: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return STEP_COLUMNS
+
+
+def _camera(cal: CameraCalibration):
+    from dstereo.models.camera import Camera
+
+    f = cal.final
+    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
+                         cal.detection.image_size)
+
+
+def _prefixed(progress: Progress | None, side: str) -> Progress | None:
+    return None if progress is None else (lambda stage, done, total: progress(f"{side} {stage}", done, total))
+
+
+def calibrate_stereo_project(sources: StereoSources, config: Config, progress: Progress | None = None,
+                             use_cache: bool = True) -> StereoCalibrationJob:
+    """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps."""
+    from dstereo.calib.subsets import plan_subsets
+    from dstereo.models.rig import essential_matrix, fundamental_matrix
+    from dstereo.models.pose import rodrigues
+
+    if config.stereo_steps and config.per_set is None:
+        raise DstereoError("stereo steps need subsets of pairs; set images per set (--per-set m)")
+    timings, warnings = {}, []
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress("stereo pairs", 0, 1)
+    det = detect_pairs(list(sources.stereo_left), list(sources.stereo_right), config.pattern, config.square,
+                       use_cache=use_cache)
+    if progress is not None:
+        progress("stereo pairs", 1, 1)
+    timings["pairs_s"] = time.perf_counter() - t0
+    warnings += [f"stereo pair {d.left} / {d.right} dropped: {d.reason}" for d in det.dropped]
+    cams = {}
+    for side, files, fmt in (("left", sources.mono_left, config.image_format_left),
+                             ("right", sources.mono_right, config.image_format_right)):
+        t0 = time.perf_counter()
+        cfg = config.with_overrides(image_format=fmt)
+        try:
+            cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
+                                          use_cache=use_cache)
+        except DstereoError as exc:
+            raise DstereoError(f"{side} camera: {exc}") from None
+        timings[f"{side}_s"] = time.perf_counter() - t0
+        warnings += [f"{side} camera: {w}" for w in cams[side].warnings if w not in config.warnings]
+        stereo_size = (det.left if side == "left" else det.right).image_size
+        if cams[side].detection.image_size != stereo_size:
+            raise DstereoError(f"{side} camera: individual images are {cams[side].detection.image_size} px but its "
+                               f"stereo images are {stereo_size} px; one camera has one image size")
+    obs_l, obs_r = det.observations()
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress("stereo solve", 0, 1)
+    full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed")
+    if progress is not None:
+        progress("stereo solve", 1, 1)
+    timings["stereo_s"] = time.perf_counter() - t0
+    if not full.converged:
+        warnings.append(f"stereo full-set solve did not converge ({full.status_text}); its values are unreliable")
+    final = full.columns()
+    spread = {k: float("nan") for k in STEP_COLUMNS}
+    plan = subsets = filtering = None
+    if config.per_set is not None:
+        t0 = time.perf_counter()
+        plan = plan_subsets(len(det.pairs), config.per_set, cap=config.max_subsets, seed=config.seed)
+        subsets = solve_stereo_subsets(det.object_points, obs_l, obs_r, plan, full, progress=None if progress is None
+                                       else (lambda d, n: progress("stereo subsets", d, n)))
+        cols = subsets.columns()
+        table = np.column_stack([cols[k] for k in STEP_COLUMNS])
+        usable = subsets.converged & np.all(np.isfinite(table), axis=1)
+        if not usable.any():
+            raise DstereoError(f"none of the {len(table)} stereo subset solves converged; check the pairs")
+        if not usable.all():
+            warnings.append(f"{int((~usable).sum())} of {len(table)} stereo subset solves did not converge and are "
+                            "left out of the statistics")
+        filtering = run_steps(table, STEP_COLUMNS, config.stereo_steps, usable, config.min_subsets)
+        warnings += [f"stereo {s.message}" for s in filtering.steps if s.stopped_by_minimum]
+        rows = table[filtering.survivors]
+        final = {k: float(np.mean(rows[:, j])) for j, k in enumerate(STEP_COLUMNS)}
+        spread = {k: float(np.std(rows[:, j])) for j, k in enumerate(STEP_COLUMNS)}
+        timings["stereo_subsets_s"] = time.perf_counter() - t0
+    rvec = np.array([final["RVx"], final["RVy"], final["RVz"]])
+    T = np.array([final["Tx"], final["Ty"], final["Tz"]])
+    E = np.asarray(essential_matrix(rvec, T))
+    F = np.asarray(fundamental_matrix(full.left.k, full.right.k, E))
+    return StereoCalibrationJob(
+        config=config, sources=sources, left=cams["left"], right=cams["right"], detection=det, full=full, plan=plan,
+        subsets=subsets, filtering=filtering, final=final, spread=spread, R=np.asarray(rodrigues(rvec)), T=T, E=E,
+        F=F, warnings=warnings, timings=timings,
+    )
+
+
+def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
+    """Console text of a finished job (the CLI prints it)."""
+    s, pm = job.full, (lambda v, e: f"{v:.6g} +- {e:.3g}" if e == e else f"{v:.6g}")  # noqa: E731
+    unit = job.config.unit
+    lines = [f"individual: left RMS {job.left.full.rms:.4f} px ({len(job.left.used)} images), right RMS "
+             f"{job.right.full.rms:.4f} px ({len(job.right.used)} images)",
+             f"stereo: {len(job.detection.pairs)} pairs ({len(job.detection.dropped)} dropped), RMS {s.rms:.4f} px, "
+             f"stereo_re {s.stereo_re:.4f} px, {s.status_text}",
+             f"{'parameter':>9}  {'full set +- std (Jacobian)':>28}  final" + (
+                 f" (mean +- spread of {int(job.filtering.survivors.sum())} subsets)" if job.filtering else "")]
+    full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
+    full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
+    full_vals = s.columns()
+    for k in STEP_COLUMNS:
+        lines.append(f"{k:>9}  {pm(full_vals[k], full_std[k]):>28}  {pm(job.final[k], job.spread[k])}")
+    lines.append(f"baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (full set, Jacobian)")
+    if job.filtering is not None:
+        lines += [f"  stereo {st.message}" for st in job.filtering.steps]
+    lines.append("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in job.timings.items()))
+    lines.append(f"wrote {out}")
+    return lines
