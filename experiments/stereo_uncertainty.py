@@ -133,13 +133,15 @@ def main() -> None:
         for mode in ("fixed", "joint"):
             result = st.calibrate_stereo_folders(left, right, (9, 6), 1.0, mode=mode)
             s = result.stereo
-            print(f"\n== {name} [{mode}]: {len(result.pairs)} pairs, RMS {s.rms:.4f} px, stereo_re {s.stereo_re:.4f} px, "
+            print(f"\n== {name} [{mode}]: {len(result.pairs)} pairs, RMS {s.rms:.4f} px, "
+                  f"stereo_re {s.stereo_re:.4f} px, "
                   f"|T| = {s.baseline:.5f} +- {s.baseline_std:.5f} squares, |rv| = {np.linalg.norm(s.rvec):.5f} +- "
                   f"{s.angle_std:.5f} rad, T = {np.round(s.T, 5).tolist()}")
             if mode == "fixed":
                 for m, c in compare_with_cv2(result).items():
                     print(f"   vs cv2.stereoCalibrate [{m}]: max rel dT {c['T_rel']:.2e}, max |dR| {c['R_abs']:.2e}, "
-                          f"RMS {c['rms']:.10f} vs {c['rms_cv2']:.10f}; time {c['time_s']:.2f} s vs {c['time_cv2_s']:.2f} s")
+                          f"RMS {c['rms']:.10f} vs {c['rms_cv2']:.10f}; "
+                          f"time {c['time_s']:.2f} s vs {c['time_cv2_s']:.2f} s")
             if name != "rig640":
                 continue
             study = subset_study(result, args.per_set, args.cap)

@@ -344,12 +344,14 @@ def _run_cli(*args) -> tuple[int, str, str]:
 
 
 def test_cli_thesis_layout_writes_the_stereo_results(real, tmp_path):
-    """PROJECT/images/images_left + images_right (links to the pairs): individual calibrations, then the rig."""
+    """PROJECT/images/images_left, images_right, images_stereo_left, images_stereo_right (links to the same
+    pairs): individual calibrations, then the rig."""
     name, result = real
     if name != "opencv_stereo":
         pytest.skip("one data set suffices for the command line")
     left, right = _pairs(require_data(name))
-    for folder, files in (("images_left", left), ("images_right", right)):
+    for folder, files in (("images_left", left), ("images_right", right), ("images_stereo_left", left),
+                          ("images_stereo_right", right)):
         (tmp_path / "project" / "images" / folder).mkdir(parents=True)
         for f in files:
             (tmp_path / "project" / "images" / folder / f.name).symlink_to(f)

@@ -469,7 +469,8 @@ class StereoCalibrationResult:
             "pairs": [{"left": a, "right": b, "rms_px": float(e)} for (a, b), e in zip(self.pairs, s.per_pair_rms)],
             "dropped": [{"left": d.left, "right": d.right, "reason": d.reason} for d in self.dropped],
             "individual": {side: {"rms_px": m.rms, "status": m.status_text, "images": len(m.poses),
-                                  **{n: {"value": float(v), "std": float(e)} for n, v, e in zip(m.names, m.values, m.std)}}
+                                  **{n: {"value": float(v), "std": float(e)}
+                                     for n, v, e in zip(m.names, m.values, m.std)}}
                            for side, m in (("left", self.mono_left), ("right", self.mono_right))},
         }
         if self.subsets is not None:

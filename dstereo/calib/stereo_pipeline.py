@@ -86,7 +86,8 @@ def stereo_sources(images: Path | None, config: Config, left: Path | None = None
         raise DstereoError(f"stereo: image folder {images} does not exist; give a PROJECT with images/images_left and "
                            "images/images_right, or --left DIR --right DIR")
     images = Path(images)
-    found = [next((images / n for n in names if (images / n).is_dir()), None) for names in (LEFT_FOLDERS, RIGHT_FOLDERS)]
+    found = [next((images / n for n in names if (images / n).is_dir()), None)
+             for names in (LEFT_FOLDERS, RIGHT_FOLDERS)]
     if None in found:
         raise DstereoError(f"stereo: {images} needs the folders images_left and images_right (thesis 4.2.2.2); "
                            "or give --left DIR --right DIR")
@@ -97,7 +98,8 @@ def stereo_sources(images: Path | None, config: Config, left: Path | None = None
         raise DstereoError(f"stereo: {images} has only one of {', '.join(STEREO_FOLDERS)}; give both (stereo pairs) "
                            "or neither (the individual images are then the pairs)")
     if all(present):
-        pairs_l, pairs_r = _files(pair_dirs[0], fmt_l, str(pair_dirs[0])), _files(pair_dirs[1], fmt_r, str(pair_dirs[1]))
+        pairs_l = _files(pair_dirs[0], fmt_l, str(pair_dirs[0]))
+        pairs_r = _files(pair_dirs[1], fmt_r, str(pair_dirs[1]))
         return StereoSources(mono_l, mono_r, pairs_l, pairs_r, f"{images} (individual and stereo folders)")
     return StereoSources(mono_l, mono_r, mono_l, mono_r, f"{images} (the same images for both uses)")
 

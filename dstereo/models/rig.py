@@ -61,8 +61,8 @@ def pair_residual(
     obj: Float[Array, "n 3"],
     obs_left: Float[Array, "n 2"],
     obs_right: Float[Array, "n 2"],
-) -> Float[Array, " 4n"]:
-    """Projected - observed pixels of one board pose in both cameras: [left (n, 2) ravelled, right ravelled]."""
+) -> Float[Array, " r"]:
+    """Projected - observed pixels of one board pose in both cameras: r = [left (n, 2) ravelled, right], 4n."""
     p_left, p_right = board_in_cameras(rig_rt, pose_left, obj)
     q_left = jax.vmap(project, in_axes=(None, None, 0))(k_left, coeffs_left, p_left)
     q_right = jax.vmap(project, in_axes=(None, None, 0))(k_right, coeffs_right, p_right)
