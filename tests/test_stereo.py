@@ -169,6 +169,22 @@ def test_rig640_baseline_std_and_subset_spread(real):
     assert np.all(np.abs(cols["stereo_re"] / s.stereo_re - 1) < 0.2)
 
 
+def test_separate_individual_images(real):
+    """Individual calibrations on their own image lists (here the same views in reverse order): same cameras;
+    individual images of another size than the camera's stereo images are an error."""
+    name, result = real
+    if name != "opencv_stereo":
+        pytest.skip("one data set suffices")
+    left, right = _pairs(require_data(name))
+    other = st.calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=left[::-1], mono_right=right[::-1])
+    np.testing.assert_allclose(other.mono_left.values, result.mono_left.values, rtol=1e-8)
+    np.testing.assert_allclose(other.stereo.T, result.stereo.T, rtol=1e-8)
+    assert other.mono_detection_left.names == [p.name for p in left[::-1]]
+    wrong = sorted(require_data("rig640").glob("left*.jpg"))[:5]
+    with pytest.raises(DstereoError, match="individual calibration images are 640x512 but stereo images are 640x480"):
+        st.calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=wrong)
+
+
 # --- synthetic rig of two different cameras ----------------------------------------------------------------------
 
 SYN_LEFT = Camera.create(820, 818, 322, 236, (-0.25, 0.12, 0.001, -0.0005, -0.02), image_size=(640, 480))
