@@ -275,7 +275,7 @@ def _bad_ini(tmp_path: Path, steps: str) -> Path:
     ("unreadable", "broken.jpg is not an image file"),
     ("non-image", "notes.txt is not an image file"),
     ("no-images", "does not exist"),
-    ("stereo", "stereo calibration is not available"),
+    ("stereo", "a stereo configuration needs the stereo images"),
     ("no-pattern", "no board pattern"),
     ("bad-pattern", "is not COLSxROWS"),
 ])

@@ -62,8 +62,8 @@ def calibrate(
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started)
         return
     if cfg.mode != "individual":
-        raise DstereoError(f"{cfg.source or 'configuration'}: stereo calibration is not available in this version; "
-                           "set Individual calibration = 1 (or mode = \"individual\") to calibrate one camera")
+        raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
+                           "in images/images_left and images/images_right, or give --left DIR --right DIR")
     base = project if project is not None else (config_path.parent if config_path is not None else None)
     if images is None:
         if base is None:
