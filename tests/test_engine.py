@@ -223,3 +223,19 @@ def test_too_few_views_is_an_error():
     obj, obs, size = _load("opencv_stereo", "left")
     with pytest.raises(DstereoError, match="at least 3"):
         mono.calibrate_full(obj, obs[:2], size, FIVE)
+
+
+def test_covariance_survives_badly_scaled_parameters():
+    """fx ~ 1e4 px next to k3 ~ 1e-3: the raw matrix's condition number (~1e19) must not cut real directions."""
+    from dstereo.calib.uncertainty import scaled_inverse
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(9, 9))
+    corr = a @ a.T + 9 * np.eye(9)  # well conditioned in scaled form
+    d = np.logspace(-3, 6, 9)
+    schur = corr * np.outer(d, d)
+    assert np.linalg.cond(schur) > 1e15
+    np.testing.assert_allclose(scaled_inverse(schur) * np.outer(d, d), np.linalg.inv(corr), rtol=1e-9, atol=1e-12)
+    # The raw pseudo-inverse is what this replaced: it loses the weak directions entirely.
+    raw = np.linalg.pinv(schur, rcond=1e-15, hermitian=True) * np.outer(d, d)
+    assert not np.allclose(raw, np.linalg.inv(corr), rtol=1e-3)

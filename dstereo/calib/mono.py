@@ -17,7 +17,7 @@ import numpy as np
 
 from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subsets import SubsetPlan
-from dstereo.calib.uncertainty import Conditioning, conditioning, covariance
+from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.pose import rodrigues
@@ -231,7 +231,7 @@ def solve_subsets(
     n_points = m * obj.shape[0]
     n_params = len(g0) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)
-    cov_diag = np.array([np.diag(np.linalg.pinv(s, rcond=1e-15, hermitian=True)) for s in out.schur])
+    cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)
     return SubsetSolutions(
         plan=plan, names=start.names, values=out.g, std=np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0)),
         rms=np.sqrt(out.sse / n_points), iterations=out.iterations, status=out.status,

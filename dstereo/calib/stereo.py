@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.init_zhang import homography, pose_from_homography
 from dstereo.calib.mono import CameraSolution, calibrate_full
 from dstereo.calib.subsets import SubsetPlan, plan_subsets
-from dstereo.calib.uncertainty import Conditioning, conditioning, covariance
+from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files
@@ -412,7 +412,7 @@ def solve_stereo_subsets(
     out = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n_sub], *outs)
     n_points = 2 * m * obj.shape[0]
     sigma2 = out.sse / (out.n_residuals - (out.g.shape[1] + 6 * m))
-    cov = np.stack([np.linalg.pinv(s, rcond=1e-15, hermitian=True) for s in out.schur]) * sigma2[:, None, None]
+    cov = scaled_inverse(out.schur) * sigma2[:, None, None]
     norm_std = np.array([[_norm_std(g[3:6], c[3:6, 3:6]), _norm_std(g[0:3], c[0:3, 0:3])]
                          for g, c in zip(out.g, cov)])
     return StereoSubsetSolutions(

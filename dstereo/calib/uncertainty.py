@@ -15,10 +15,22 @@ import numpy as np
 ILL_CONDITIONED = 1e10
 
 
+def scaled_inverse(schur: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive matrix after Jacobi scaling.
+
+    Parameters differ by 10^6 in scale (fx vs k3), so the raw matrix's condition number (up to ~1e16 at narrow
+    fields of view) would make a pseudo-inverse cut real, weakly determined directions and report standard
+    deviations far too small. Scaled to unit diagonal, only true near-degeneracies remain.
+    """
+    d = np.sqrt(np.maximum(np.diagonal(schur, axis1=-2, axis2=-1), 1e-300))
+    outer = d[..., :, None] * d[..., None, :]
+    return np.linalg.pinv(schur / outer, rcond=1e-15, hermitian=True) / outer
+
+
 def covariance(schur: np.ndarray, sse: float, n_residuals: int, n_params: int) -> np.ndarray:
     dof = n_residuals - n_params
     sigma2 = sse / dof if dof > 0 else np.nan
-    return sigma2 * np.linalg.pinv(schur, rcond=1e-15, hermitian=True)
+    return sigma2 * scaled_inverse(schur)
 
 
 @dataclass
