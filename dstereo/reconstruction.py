@@ -11,9 +11,6 @@ from E = K^T F K. Library functions return results and warnings; they never prin
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,6 +19,7 @@ import numpy as np
 
 from dstereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.errors import DstereoError
+from dstereo.io.results import atomic_folder, check_output
 from dstereo.io.calib_files import StereoCalibration
 
 LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
@@ -372,34 +370,11 @@ def _json_default(value):
     raise TypeError(f"not JSON serialisable: {type(value)}")
 
 
-def check_output(out: str | Path, force: bool) -> Path:
-    """Refuse an existing results folder unless `force` (checked before any work is done)."""
-    out = Path(out)
-    if out.exists() and not force:
-        raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
-    if out.exists() and not out.is_dir():
-        raise DstereoError(f"{out} exists and is not a folder; choose another --out")
-    return out
-
-
 def write_atomically(out: str | Path, force: bool, fill) -> Path:
     """Call fill(tmp_folder), then rename the folder to `out`; nothing is left half-written on failure."""
-    out = check_output(out, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
+    with atomic_folder(out, force) as tmp:
         fill(tmp)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, old / out.name)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    return Path(out)
 
 
 def run_reconstruction(
