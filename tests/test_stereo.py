@@ -28,12 +28,22 @@ def _pairs(folder):
     return sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg"))
 
 
+_REAL: dict = {}
+
+
+def _real(name: str):
+    """Pairs of a real data set calibrated with intrinsics fixed; rig640 also on 32 subsets of 20 of its 25 pairs.
+    Computed once per data set for the whole module."""
+    if name not in _REAL:
+        left, right = _pairs(require_data(name))
+        per_set = 20 if name == "rig640" else None
+        _REAL[name] = st.calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=32)
+    return name, _REAL[name]
+
+
 @pytest.fixture(scope="module", params=["opencv_stereo", "rig640"])
 def real(request):
-    """Pairs of a real data set calibrated with intrinsics fixed; rig640 also on 32 subsets of 20 of its 25 pairs."""
-    left, right = _pairs(require_data(request.param))
-    per_set = 20 if request.param == "rig640" else None
-    return request.param, st.calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=32)
+    return _real(request.param)
 
 
 def _cv2_stereo(result, obs_l, obs_r, flags):
@@ -148,10 +158,8 @@ def test_epipolar_distances_on_detected_corners(real):
     assert np.median(np.abs(e_res)) * float(s.left.k[0]) / s.baseline < 2 * s.rms
 
 
-def test_rig640_baseline_std_and_subset_spread(real):
-    name, result = real
-    if name != "rig640":
-        pytest.skip("the subset study runs on rig640")
+def test_rig640_baseline_std_and_subset_spread():
+    name, result = _real("rig640")
     s, sub = result.stereo, result.subsets
     assert 3.7 < s.baseline < 4.0 and 0 < s.baseline_std < 0.01 * s.baseline  # squares
     assert sub.converged.all() and sub.values.shape == (32, 6)
@@ -169,12 +177,10 @@ def test_rig640_baseline_std_and_subset_spread(real):
     assert np.all(np.abs(cols["stereo_re"] / s.stereo_re - 1) < 0.2)
 
 
-def test_separate_individual_images(real):
+def test_separate_individual_images():
     """Individual calibrations on their own image lists (here the same views in reverse order): same cameras;
     individual images of another size than the camera's stereo images are an error."""
-    name, result = real
-    if name != "opencv_stereo":
-        pytest.skip("one data set suffices")
+    name, result = _real("opencv_stereo")
     left, right = _pairs(require_data(name))
     other = st.calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=left[::-1], mono_right=right[::-1])
     np.testing.assert_allclose(other.mono_left.values, result.mono_left.values, rtol=1e-8)
@@ -359,12 +365,10 @@ def _run_cli(*args) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-def test_cli_thesis_layout_writes_the_stereo_results(real, tmp_path):
+def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
     """PROJECT/images/images_left, images_right, images_stereo_left, images_stereo_right (links to the same
     pairs): individual calibrations, then the rig."""
-    name, result = real
-    if name != "opencv_stereo":
-        pytest.skip("one data set suffices for the command line")
+    name, result = _real("opencv_stereo")
     left, right = _pairs(require_data(name))
     for folder, files in (("images_left", left), ("images_right", right), ("images_stereo_left", left),
                           ("images_stereo_right", right)):
