@@ -4,20 +4,16 @@ One full run with the thesis's Figure 5.5 file (all 286 subsets) is shared by th
 flags-only runs reuse the compiled solver (same shapes) and must give identical results.
 """
 
-import contextlib
 import csv
-import io
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import require_data
+from conftest import require_data, run_cli
 from dstereo.calib.pipeline import corner_coverage, suggest_model
-from dstereo.cli import main
 from test_robust_steps import reference_removed_at
 
 SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
@@ -25,22 +21,6 @@ THESIS_FLAGS = ["--pattern", "9x6", "--square", "10", "--model", "k1,k2,k3,p1,p2
                 "--step", "re=0.5", "--step", "p1=1.5,p2=1.5", "--step", "k1=1.5,k2=1.5,k3=1.5",
                 "--step", "fx=1.0,fy=1.0,cx=1.0,cy=1.0"]
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
-
-
-def run_cli(*args) -> tuple[int, str, str]:
-    """Run `dstereo ARGS` in-process through `dstereo.cli.main`; returns (exit code, stdout, stderr)."""
-    out, err, argv = io.StringIO(), io.StringIO(), sys.argv
-    sys.argv = ["dstereo", *map(str, args)]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main()
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        sys.argv = argv
-    return code, out.getvalue(), err.getvalue()
 
 
 def _link_images(folder: Path, sources) -> Path:

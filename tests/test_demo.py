@@ -15,7 +15,6 @@ misses fx by ~0.1 % and the rotation by ~0.8 deg, within its own single-camera u
 """
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -18,7 +18,7 @@ from dstereo.models.camera import Camera
 from dstereo.models.rig import Rig, essential_matrix, fundamental_matrix, pair_residual, skew
 from dstereo.solver.lm import jacfwd_linearize
 from dstereo.synth import Board, board_pose_set, compose, object_points, true_corners
-from conftest import require_data
+from conftest import require_data, run_cli
 
 CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
 PATTERN = (9, 6)
@@ -344,27 +344,6 @@ def test_unknown_mode_and_mismatched_pairs_are_errors(synthetic):
 # --- command line ----------------------------------------------------------------------------------------------------
 
 
-def _run_cli(*args) -> tuple[int, str, str]:
-    import contextlib
-    import io
-    import sys
-
-    from dstereo.cli import main
-
-    out, err, argv = io.StringIO(), io.StringIO(), sys.argv
-    sys.argv = ["dstereo", *map(str, args)]
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                main()
-                code = 0
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    finally:
-        sys.argv = argv
-    return code, out.getvalue(), err.getvalue()
-
-
 def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
     """PROJECT/images/images_left, images_right, images_stereo_left, images_stereo_right (links to the same
     pairs): individual calibrations, then the rig."""
@@ -375,7 +354,7 @@ def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
         (tmp_path / "project" / "images" / folder).mkdir(parents=True)
         for f in files:
             (tmp_path / "project" / "images" / folder / f.name).symlink_to(f)
-    code, out, err = _run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1")
+    code, out, err = run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1")
     assert code == 0, err
     res = tmp_path / "project" / "results"
     assert "stereo: 13 pairs (0 dropped)" in out and "baseline |T|" in out
@@ -397,9 +376,9 @@ def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
 def test_cli_stereo_errors_exit_1_and_write_nothing(tmp_path):
     data = require_data("rig640")
     out = tmp_path / "results"
-    code, _, err = _run_cli("calibrate", "--left", data / "left*.jpg", "--pattern", "9x6", "--out", out)
+    code, _, err = run_cli("calibrate", "--left", data / "left*.jpg", "--pattern", "9x6", "--out", out)
     assert code == 1 and "give both --left and --right" in err
-    code, _, err = _run_cli("calibrate", "--left", data / "left0*.jpg", "--right", data / "right*.jpg",
+    code, _, err = run_cli("calibrate", "--left", data / "left0*.jpg", "--right", data / "right*.jpg",
                             "--pattern", "9x6", "--out", out)
     assert code == 1 and "9 left images" in err and "25 right images" in err
     assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -44,7 +44,6 @@ def calibrate(
     from dstereo.config import Config, find_project_config, load_config, parse_step_flag, validate
     from dstereo.errors import DstereoError
     from dstereo.io.corners import parse_pattern
-    from dstereo.io.results import check_output
 
     started = time.perf_counter()
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
@@ -69,6 +68,15 @@ def calibrate(
         if base is None:
             raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
         images = base / cfg.images
+    out = _results_folder(out, project, force, cfg)
+    _run(images, cfg, out, force, quiet, not no_cache, started)
+
+
+def _results_folder(out, project, force: bool, cfg):
+    """--out, else PROJECT/results; refused before any work if it exists without --force. Prints config warnings."""
+    from dstereo.errors import DstereoError
+    from dstereo.io.results import check_output
+
     if out is None:
         if project is None:
             raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
@@ -76,7 +84,7 @@ def calibrate(
     check_output(out, force)
     for warning in cfg.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
-    _run(images, cfg, out, force, quiet, not no_cache, started)
+    return out
 
 
 def _stereo_layout(images: Path) -> bool:
@@ -88,18 +96,10 @@ def _stereo_layout(images: Path) -> bool:
 def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started) -> None:
     """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
     from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
-    from dstereo.errors import DstereoError
-    from dstereo.io.results import check_output
     from dstereo.io.stereo_files import write_stereo_results
 
     sources = stereo_sources(images, cfg, left, right)
-    if out is None:
-        if project is None:
-            raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
-        out = project / "results"
-    check_output(out, force)
-    for warning in cfg.warnings:
-        typer.echo(f"dstereo: warning: {warning}", err=True)
+    out = _results_folder(out, project, force, cfg)
     with _progress(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
         write_stereo_results(out, job, force)

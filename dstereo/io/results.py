@@ -344,7 +344,7 @@ def report_markdown(cal, summary: dict) -> str:
         lines += [f"**Model:** {cal.model_advice}", ""]
     sub = summary["subsets"]
     if sub is not None:
-        lines += [f"## Subsets and optimisation steps", "",
+        lines += ["## Subsets and optimisation steps", "",
                   f"{sub['sampling']} of m = {sub['per_set']} images; {sub['initial_count']} converged "
                   f"({sub['unconverged']['count']} did not and are left out). Reprojection error `re` is each "
                   "subset's RMS (the value cv2.calibrateCamera returns).", "",
