@@ -1,0 +1,107 @@
+"""Residuals of each reference object as a function of x = [rig correction theta, nuisance parameters].
+
+Every function is `residual(x, data, free) -> (r,)`, pure JAX; `data` is a pytree holding the RigBase and the
+observations; `free` (static) lists the indices of the free correction parameters among `correction.PARAM_NAMES`,
+and x starts with them (the others stay zero). Written for one point and vmapped.
+
+Which residual is statistically right:
+- Board: the corners are the measurements, with independent ~isotropic pixel noise, and the board's geometry is
+  exact; maximum likelihood is the reprojection error of the posed known board in both images (nuisance: the
+  board pose per view). A residual on triangulated corners would weight depth errors (f B / Z^2 times larger
+  than lateral ones) as if they were as precise as lateral ones. The triangulated square size is reported as a
+  metric check instead (`board_metric_check`).
+- Sphere: dense matches (SGBM) give pixel pairs; each pair is triangulated with the corrected rig (midpoint of
+  the two rays) and the residual is its distance to the sphere of known radius (nuisance: the centre). The
+  point's noise is mostly along the line of sight, so this 3D residual is an approximation to the likelihood
+  (unweighted, one scale); with thousands of points the scale it yields is still unbiased to first order.
+- Distances: the marked points are nuisance 3D points, reprojected into both images (whitened by sigma_px),
+  and every known distance is one more observation (whitened by sigma_mm): the full likelihood, so the marks
+  also carry their epipolar information.
+- Mesh: point-to-plane distance of each triangulated point to the triangle found nearest to it (ICP's
+  linearisation; the triangle is re-chosen between solves), nuisance: the mesh pose.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from dstereo.models.camera import project
+from dstereo.models.distortion import undistort
+from dstereo.models.pose import rodrigues
+from dstereo.reference.correction import PARAM_NAMES, apply
+
+_project = jax.vmap(project, in_axes=(None, None, 0))
+
+
+def split(x: Float[Array, " p"], free: tuple[int, ...]) -> tuple[Float[Array, " 8"], Float[Array, " q"]]:
+    """x -> (full correction vector, nuisance parameters)."""
+    theta = jnp.zeros(len(PARAM_NAMES), x.dtype).at[jnp.array(free)].set(x[: len(free)])
+    return theta, x[len(free):]
+
+
+def _ray(k, coeffs, q):
+    xy = undistort(coeffs, (q - k[2:4]) / k[0:2])
+    return jnp.array([xy[0], xy[1], 1.0])
+
+
+def triangulate(k_l, c_l, k_r, c_r, R, T, q_l: Float[Array, "n 2"], q_r: Float[Array, "n 2"]) -> Float[Array, "n 3"]:
+    """Midpoint triangulation of raw pixel pairs in the left camera frame (as `dstereo.triangulate`, traceable)."""
+    v1 = jax.vmap(_ray, in_axes=(None, None, 0))(k_l, c_l, q_l)
+    v2 = jax.vmap(_ray, in_axes=(None, None, 0))(k_r, c_r, q_r) @ R
+    o2 = -R.T @ T
+
+    def mid(a, b):
+        m = jnp.stack([a, -b], axis=1)
+        st = jnp.linalg.solve(m.T @ m, m.T @ o2)
+        return 0.5 * (st[0] * a + o2 + st[1] * b)
+
+    return jax.vmap(mid)(v1, v2)
+
+
+def board_residuals(x, data, free: tuple[int, ...]):
+    """Reprojection residuals (px) of V board views, left then right per view: data = (base, obj, obs_l, obs_r)."""
+    base, obj, obs_l, obs_r = data
+    theta, nuisance = split(x, free)
+    k_l, c_l, k_r, c_r, R, T = apply(base, theta)
+    poses = nuisance.reshape(-1, 6)
+
+    def view(pose, ql, qr):
+        p_l = obj @ rodrigues(pose[:3]).T + pose[3:6]
+        p_r = p_l @ R.T + T
+        return jnp.concatenate([(_project(k_l, c_l, p_l) - ql).ravel(), (_project(k_r, c_r, p_r) - qr).ravel()])
+
+    return jax.vmap(view)(poses, obs_l, obs_r).ravel()
+
+
+def sphere_residuals(x, data, free: tuple[int, ...]):
+    """Distance (mm) of each triangulated match to the sphere: data = (base, q_l, q_r, radius); x ends in the centre."""
+    base, q_l, q_r, radius = data
+    theta, centre = split(x, free)
+    p = triangulate(*apply(base, theta), q_l, q_r)
+    return jnp.linalg.norm(p - centre, axis=1) - radius
+
+
+def distance_residuals(x, data, free: tuple[int, ...]):
+    """Whitened reprojection residuals of the marked points, then whitened distance residuals.
+
+    data = (base, q_l, q_r, pairs, lengths, sigma_px, sigma_mm); x ends in the m points (left frame, mm)."""
+    base, q_l, q_r, pairs, lengths, sigma_px, sigma_mm = data
+    theta, nuisance = split(x, free)
+    k_l, c_l, k_r, c_r, R, T = apply(base, theta)
+    p = nuisance.reshape(-1, 3)
+    r_l = (_project(k_l, c_l, p) - q_l) / sigma_px
+    r_r = (_project(k_r, c_r, p @ R.T + T) - q_r) / sigma_px
+    d = jnp.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
+    return jnp.concatenate([r_l.ravel(), r_r.ravel(), (d - lengths) / sigma_mm])
+
+
+def mesh_residuals(x, data, free: tuple[int, ...]):
+    """Point-to-plane distances (mm): data = (base, q_l, q_r, v0, normal) with each point's chosen triangle's
+    vertex v0 and unit normal (mesh frame); x ends in the mesh pose T_left_mesh (rvec, tvec)."""
+    base, q_l, q_r, v0, normal = data
+    theta, pose = split(x, free)
+    p = triangulate(*apply(base, theta), q_l, q_r)
+    p_mesh = (p - pose[3:6]) @ rodrigues(pose[:3])  # R^T (p - t), row-wise
+    return jnp.sum((p_mesh - v0) * normal, axis=1)
