@@ -64,3 +64,24 @@ def write_stereo_renders(folder, renders: list[StereoRender], force: bool = Fals
         (tmp / "index.json").write_text(json.dumps(index, indent=1))
 
     return _write_folder(folder, force, fill)
+
+
+def write_recession_sequence(folder, renders: list[StereoRender], force: bool = False) -> Path:
+    """A recession sequence as `dstereo recession` reads it: `images_left/left_NNN.png`, `images_right/right_NNN.png`
+    (truth beside each), `timestamps.csv` (`name,time_s`, name = the left image's file name) and `index.json`."""
+
+    def fill(tmp: Path):
+        lines = ["name,time_s"]
+        index = []
+        for i, pair in enumerate(renders):
+            write_render(tmp / "images_left", pair.left, pair.truth_left, name=f"left_{i:03d}")
+            write_render(tmp / "images_right", pair.right, pair.truth_right, name=f"right_{i:03d}")
+            if "time_s" not in pair.truth_left:
+                raise DstereoError(f"render {i} has no time_s in its truth; render it with recession_sequence")
+            lines.append(f"left_{i:03d}.png,{pair.truth_left['time_s']!r}")
+            entry = {k: pair.truth_left[k] for k in INDEX_KEYS if k in pair.truth_left}
+            index.append({"left": f"images_left/left_{i:03d}.png", "right": f"images_right/right_{i:03d}.png"} | entry)
+        (tmp / "timestamps.csv").write_text("\n".join(lines) + "\n")
+        (tmp / "index.json").write_text(json.dumps(index, indent=1))
+
+    return _write_folder(folder, force, fill)

@@ -1,0 +1,114 @@
+"""`dstereo recession`: surface recession over a sequence of stereo pairs, with rates and 95 % intervals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def recession(
+    sequence: Path = typer.Argument(..., help="Sequence folder: left/ + right/ (or images_left/ + images_right/) "
+                                    "with one image per frame and camera, partners named alike (left_007 / right_007)."),
+    calib: Path = typer.Option(..., "--calib", help="stereo.yml (or any calibration `dstereo reconstruct` reads)."),
+    out: Path = typer.Option(..., "--out", help="Results folder (refused if it exists, unless --force)."),
+    timestamps: Optional[Path] = typer.Option(
+        None, "--timestamps", help="CSV `name,time_s` (default SEQUENCE/timestamps.csv if present, else times in "
+        "the names such as left_t=12.5s.png, or --fps)."),
+    fps: Optional[float] = typer.Option(None, "--fps", help="Frame rate: time = frame number in the name / fps."),
+    axis: Optional[str] = typer.Option(
+        None, "--axis", help="Sample axis x,y,z in the left camera frame (default: estimated from the first frame)."),
+    point: Optional[str] = typer.Option(None, "--point", help="Stagnation point x,y,z mm, left camera (with --axis)."),
+    grid: float = typer.Option(0.5, "--grid", help="Grid cell size over the front face, mm."),
+    stagnation_radius: float = typer.Option(2.0, "--stagnation-radius", help="Radius of the stagnation disc, mm."),
+    stagnation_fit: str = typer.Option(
+        "quadratic", "--stagnation-fit", help="Value at the stagnation point: quadratic (a + b u + c v + d rho^2 over "
+        "the disc, unbiased at a peak) or mean."),
+    min_points: int = typer.Option(8, "--min-points", help="Points a grid cell needs for a height (else empty)."),
+    refine: bool = typer.Option(True, "--refine/--no-refine", help="Sub-pixel refinement of SGBM's disparity."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="SGBM preset: default, thesis-5.9, thesis-5.15."),
+    sgbm: list[str] = typer.Option([], "--sgbm", help="SGBM parameter NAME=VALUE (repeat), e.g. block_size=7."),
+    z_min: Optional[float] = typer.Option(None, "--z-min", help="Nearest depth of the sample, mm (sets the range)."),
+    z_max: Optional[float] = typer.Option(None, "--z-max", help="Farthest depth of the sample, mm."),
+    roi: Optional[str] = typer.Option(None, "--roi", help="x,y,w,h on the rectified left image: keep points inside."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary."),
+) -> None:
+    """Recession of a sample's front face over time: a surface per stereo pair, recession along the sample axis
+    on a grid over the face, at the stagnation point and as maps, and recession rates with 95 % intervals."""
+    from dataclasses import replace
+
+    from dstereo.commands.calibrate import _progress
+    from dstereo.disparity import PRESETS, parse_overrides
+    from dstereo.errors import DstereoError
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.io.results import check_output
+    from dstereo.recession import RecessionConfig, check_sizes, discover, run_recession
+    from dstereo.recession.results import write_results
+    from dstereo.reconstruction import ReconstructionConfig
+
+    check_output(out, force)
+    if stagnation_fit not in ("quadratic", "mean"):
+        raise DstereoError(f"--stagnation-fit {stagnation_fit!r}: use quadratic or mean")
+    cfg = RecessionConfig(grid_mm=grid, stagnation_radius_mm=stagnation_radius, stagnation_model=stagnation_fit,
+                          axis=_vector(axis, "--axis"), point=_vector(point, "--point"), min_points_per_cell=min_points,
+                          refine_subpixel=refine)
+    sgbm_params = ReconstructionConfig().sgbm
+    if preset is not None:
+        if preset not in PRESETS:
+            raise DstereoError(f"--preset {preset!r}: use one of {sorted(PRESETS)}")
+        sgbm_params = PRESETS[preset]
+    changes = {"sgbm": sgbm_params.with_overrides(parse_overrides(sgbm))}
+    if (z_min is None) != (z_max is None):
+        raise DstereoError("give both --z-min and --z-max (mm), or neither")
+    if z_min is not None:
+        changes["depth_range"] = (z_min, z_max)
+    if roi is not None:
+        try:
+            x, y, w, h = (int(v) for v in roi.split(","))
+        except ValueError:
+            raise DstereoError(f"--roi {roi!r}: write x,y,w,h in pixels, e.g. --roi 100,50,400,300") from None
+        changes["roi"] = (x, y, w, h)
+    recon = replace(ReconstructionConfig(), **changes)
+
+    calibration = read_stereo_calibration(calib)
+    if calibration.rectified:
+        raise DstereoError(f"calibration {calib}: a rectified (Middlebury) calibration has no camera frame for a "
+                           "sample axis; give the stereo.yml of the rig")
+    frames = discover(sequence, timestamps, fps)
+    check_sizes(frames, calibration.image_size, str(calib))
+    with _progress(quiet) as progress:
+        result = run_recession(frames, calibration, cfg, recon, progress=progress)
+        summary = write_results(out, result, calib, sequence, force)
+    for f in result.frames:
+        if not f.ok:
+            typer.echo(f"dstereo: warning: frame {f.name} (t = {f.time_s:g} s) skipped: {f.reason}", err=True)
+    for w in result.warnings:
+        typer.echo(f"dstereo: warning: {w}", err=True)
+    if quiet:
+        return
+    fit = result.fit
+    typer.echo(f"{summary['frames_used']} of {summary['frames']} frames; stagnation point "
+               f"{[round(v, 2) for v in result.sample.point.tolist()]} mm, axis "
+               f"{[round(v, 4) for v in result.sample.axis.tolist()]} ({result.sample.source})")
+    last = [f for f in result.frames if f.ok][-1]
+    typer.echo(f"recession at the stagnation point after {last.time_s - result.frames[result.reference].time_s:g} s: "
+               f"{last.recession.value:.3f} +- {last.recession.se:.3f} mm")
+    typer.echo(f"rate: {1000 * fit.rate:.4g} um/s, 95 % interval [{1000 * fit.ci95[0]:.4g}, {1000 * fit.ci95[1]:.4g}] "
+               f"um/s (residual RMS {fit.residual_rms:.3g} mm, {fit.n} frames)")
+    typer.echo(f"wrote {out}")
+
+
+def _vector(text: Optional[str], flag: str):
+    if text is None:
+        return None
+    from dstereo.errors import DstereoError
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise DstereoError(f"{flag} {text!r}: write three numbers x,y,z, e.g. {flag} 0,0,1")
+    return values

@@ -1,0 +1,244 @@
+"""Recession of the front face over a sequence of stereo pairs: a surface per frame, heights per grid cell along
+the sample axis, recession against the reference frame, its value at the stagnation point and the rates.
+
+The reference is the first frame (the first one that reconstructs, if earlier ones fail). A frame that fails
+(unreadable image, no disparity, too little of the face) is recorded with its reason and left out of every
+fit and map: nothing is interpolated. Library code: progress goes to a callback, nothing is printed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_fit, rate_map
+from dstereo.recession.sequence import Frame
+from dstereo.recession.surface import Grid, SampleFrame, cell_heights, estimate_axis, frame_from_axis, grid_over
+from dstereo.recession.surface import _trim, valid_points
+
+
+@dataclass(frozen=True)
+class RecessionConfig:
+    """Analysis settings (mm unless stated). `axis`/`point`: the sample axis and stagnation point in the left
+    camera frame (None: estimated from the reference frame; a given axis without a point keeps the estimated
+    face centre). `slab_mm` (in front, behind): points this far in front of the reference face or behind it are
+    not the face. A frame whose valid cells fall below `min_face_fraction` of the reference's fails.
+    `refine_subpixel`: refine SGBM's pixel-locked disparity (`recession.subpixel`) before triangulating."""
+
+    grid_mm: float = 0.5
+    stagnation_radius_mm: float = 2.0
+    stagnation_model: str = "quadratic"
+    axis: tuple[float, float, float] | None = None
+    point: tuple[float, float, float] | None = None
+    min_points_per_cell: int = 8
+    min_face_fraction: float = 0.3
+    slab_mm: tuple[float, float] = (5.0, 30.0)
+    refine_subpixel: bool = True
+
+    def __post_init__(self):
+        if not self.stagnation_radius_mm > 0:
+            raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm}: need a positive radius in mm")
+        if self.stagnation_radius_mm < 2 * self.grid_mm:
+            raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm} mm is under two grid cells "
+                               f"({self.grid_mm} mm); use a larger radius or a finer --grid")
+        if self.point is not None and self.axis is None:
+            raise DstereoError("--point needs --axis too (the point alone does not fix the axis)")
+
+
+@dataclass
+class FrameResult:
+    """One frame: its time, status ('ok' or 'skipped') with the reason, and its stagnation values (mm)."""
+
+    index: int
+    name: str
+    time_s: float
+    status: str = "ok"
+    reason: str = ""
+    recession: PointValue = PointValue(float("nan"), float("nan"), 0)
+    height: PointValue = PointValue(float("nan"), float("nan"), 0)
+    valid_cells: int = 0
+    valid_fraction: float = float("nan")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass
+class RecessionResult:
+    """Everything `run_recession` found. Maps are (frames, ny, nx) over `grid`, NaN where a cell had too few
+    points or its frame was skipped."""
+
+    frames: list[FrameResult]
+    sample: SampleFrame
+    grid: Grid
+    reference: int
+    heights: np.ndarray
+    height_se: np.ndarray
+    recession: np.ndarray
+    fit: LineFit
+    weighted_fit: LineFit | None
+    rates: dict[str, np.ndarray]
+    config: RecessionConfig
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def times(self) -> np.ndarray:
+        return np.array([f.time_s for f in self.frames])
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.array([f.ok for f in self.frames])
+
+    def summary(self) -> dict:
+        ok = [f for f in self.frames if f.ok]
+        u, v = self.grid.centres()
+        stag = at_stagnation(self.rates["rate"], u, v, self.config.stagnation_radius_mm, self.config.stagnation_model)
+        return {
+            "units": {"length": "mm", "time": "s", "rate": "mm/s"},
+            "frames": len(self.frames), "frames_used": len(ok),
+            "reference_frame": self.frames[self.reference].name,
+            "skipped": [{"frame": f.index, "name": f.name, "time_s": f.time_s, "reason": f.reason}
+                        for f in self.frames if not f.ok],
+            "rate": self.fit.as_dict(),
+            "rate_weighted": self.weighted_fit.as_dict() if self.weighted_fit is not None else None,
+            "rate_map_at_stagnation": {"rate": stag.value, "se": stag.se, "cells": stag.cells},
+            "final_recession_mm": ok[-1].recession.value if ok else None,
+            "sample": self.sample.as_dict(),
+            "grid": {"spacing_mm": self.grid.spacing, "nx": len(self.grid.u), "ny": len(self.grid.v),
+                     "u_range_mm": [float(self.grid.u[0]), float(self.grid.u[-1])],
+                     "v_range_mm": [float(self.grid.v[0]), float(self.grid.v[-1])]},
+            "config": asdict(self.config),
+            "method": "per grid cell: local plane through the cell's points along the axis, at the cell centre "
+                      "(robust, MAD-trimmed); recession = height - reference height; stagnation value: "
+                      f"{self.config.stagnation_model} fit over the cells within "
+                      f"{self.config.stagnation_radius_mm:g} mm; rate: least-squares line over time, 95 % "
+                      "interval from Student's t on the fit residuals (n - 2 dof)",
+            "warnings": list(self.warnings),
+        }
+
+
+def _sample_frame(points: np.ndarray, config: RecessionConfig) -> SampleFrame:
+    if config.axis is None:
+        return estimate_axis(points, config.grid_mm)
+    if config.point is not None:
+        frame = frame_from_axis(config.axis, config.point)
+        return replace(frame, source="given axis and point")
+    auto = estimate_axis(points, config.grid_mm)
+    return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre")
+
+
+class _Reference:
+    """The reference frame's sample frame, grid, face slab and cell heights."""
+
+    def __init__(self, points: np.ndarray, config: RecessionConfig):
+        self.sample = _sample_frame(points, config)
+        uvh = self.sample.coordinates(valid_points(points))
+        keep, _ = _trim(uvh, 4.0)
+        face = uvh[keep]
+        self.grid = grid_over(face[:, :2], config.grid_mm)
+        self.slab = (float(face[:, 2].min()) - config.slab_mm[0], float(face[:, 2].max()) + config.slab_mm[1])
+
+
+def _frame_heights(points: np.ndarray, ref: _Reference, config: RecessionConfig):
+    uvh = ref.sample.coordinates(valid_points(points))
+    uvh = uvh[(uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])]
+    return cell_heights(uvh, ref.grid, config.min_points_per_cell)
+
+
+def run_recession(frames: list[Frame], calib, config: RecessionConfig = RecessionConfig(), recon_config=None,
+                  progress=None, reconstruct=None) -> RecessionResult:
+    """Reconstruct every frame with `calib` (a StereoCalibration) and measure the recession (module docstring).
+
+    `progress(stage, done, total)` is called once per frame. `reconstruct(frame) -> points (h, w, 3)` replaces
+    the image reading and stereo matching (tests, other matchers); it raises DstereoError for a failed frame.
+    """
+    from dstereo.reconstruction import ReconstructionConfig
+
+    recon_config = recon_config or ReconstructionConfig()
+    report = progress or (lambda stage, done, total: None)
+    reconstruct = reconstruct or _reconstructor(calib, recon_config, config.refine_subpixel)
+    results = [FrameResult(i, f.key.strip("_-. ") or f.left.stem, f.time_s) for i, f in enumerate(frames)]
+    ref, ref_index, maps, ses = None, -1, {}, {}
+    report("frames", 0, len(frames))
+    for i, frame in enumerate(frames):
+        res = results[i]
+        try:
+            points = reconstruct(frame)
+            res.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
+            current = ref if ref is not None else _Reference(points, config)
+            heights, se, _ = _frame_heights(points, current, config)
+            if ref is None:
+                ref, ref_index = current, i
+        except DstereoError as exc:
+            res.status, res.reason = "skipped", str(exc)
+            report("frames", i + 1, len(frames))
+            continue
+        maps[i], ses[i] = heights, se
+        report("frames", i + 1, len(frames))
+    if ref is None:
+        raise DstereoError(f"no frame of the sequence could be reconstructed; first failure: {results[0].reason}")
+    return _assemble(results, ref, ref_index, maps, ses, config)
+
+
+def _reconstructor(calib, recon_config, refine: bool):
+    from dstereo.reconstruction import read_image, reconstruct_calibrated
+    from dstereo.recession.subpixel import Refiner
+
+    refiner = Refiner(calib)
+
+    def run(frame: Frame) -> np.ndarray:
+        left, right = read_image(frame.left), read_image(frame.right)
+        try:
+            result = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
+            return refiner.points(result, left, right) if refine else result.points
+        except DstereoError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
+            raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
+
+    return run
+
+
+def _assemble(results, ref: _Reference, ref_index: int, maps: dict, ses: dict, config) -> RecessionResult:
+    shape = (len(results), *ref.grid.shape)
+    heights, height_se = np.full(shape, np.nan), np.full(shape, np.nan)
+    for i in maps:
+        heights[i], height_se[i] = maps[i], ses[i]
+    recession = heights - heights[ref_index]
+    u, v = ref.grid.centres()
+    ref_cells = int(np.isfinite(heights[ref_index]).sum())
+    radius, model = config.stagnation_radius_mm, config.stagnation_model
+    for i, res in enumerate(results):
+        if not res.ok:
+            continue
+        res.valid_cells = int(np.isfinite(recession[i]).sum())
+        res.recession = at_stagnation(recession[i], u, v, radius, model)
+        res.height = at_stagnation(heights[i], u, v, radius, model)
+        if res.valid_cells < config.min_face_fraction * ref_cells:
+            res.status, res.reason = "skipped", (
+                f"only {res.valid_cells} of the reference's {ref_cells} grid cells have a surface "
+                f"(< {config.min_face_fraction:.0%}); the face is not seen well enough in this frame")
+        elif not np.isfinite(res.recession.value):
+            res.status, res.reason = "skipped", (
+                f"{res.recession.cells} grid cells with a surface within {radius:g} mm of the stagnation point; "
+                "too few for a value there")
+        if not res.ok:
+            heights[i] = height_se[i] = recession[i] = np.nan
+    ok = np.array([r.ok for r in results])
+    t = np.array([r.time_s for r in results])[ok]
+    stag = np.array([r.recession.value for r in results])[ok]
+    warnings = []
+    if ok.sum() < 2:
+        raise DstereoError(f"only {int(ok.sum())} frame(s) gave a recession; need at least 2 for a rate. Skipped: "
+                           + "; ".join(f"{r.name}: {r.reason}" for r in results if not r.ok))
+    if ok.sum() < 3:
+        warnings.append("only 2 frames gave a recession: the rate has no confidence interval (needs >= 3)")
+    fit = line_fit(t, stag)
+    sig = np.array([r.height.se for r in results])[ok]
+    weighted = line_fit(t, stag, sig) if np.all(np.isfinite(sig) & (sig > 0)) and ok.sum() > 2 else None
+    rates = rate_map(np.array([r.time_s for r in results]), recession)
+    return RecessionResult(results, ref.sample, ref.grid, ref_index, heights, height_se, recession, fit, weighted,
+                           rates, config, warnings)

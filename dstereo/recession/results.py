@@ -1,0 +1,102 @@
+"""The recession results folder, written atomically (`io.results.atomic_folder`):
+
+    report.md             the run in a page, with the figures
+    summary.json          rate (with its 95 % interval), weighted rate, axis, stagnation point, grid, skipped
+                          frames with reasons, configuration, units
+    recession.csv         one row per frame: time, stagnation-point recession and its standard error, cells, status
+    recession_maps.npz    grid coordinates u, v (mm), per-frame heights / recession maps (frames, ny, nx), rate map
+    plots/recession_vs_time.png, recession_maps.png, rate_map.png, radial_profiles.png
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.io.results import atomic_folder, write_json
+
+CSV_COLUMNS = ("frame", "name", "time_s", "recession_mm", "recession_se_mm", "stagnation_cells", "valid_cells",
+               "valid_fraction", "status", "reason")
+
+
+def write_csv(path: Path, result) -> None:
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(CSV_COLUMNS)
+        for f in result.frames:
+            writer.writerow([f.index, f.name, f"{f.time_s:.6g}", _num(f.recession.value), _num(f.recession.se),
+                             f.recession.cells, f.valid_cells, _num(f.valid_fraction), f.status, f.reason])
+
+
+def _num(value: float) -> str:
+    return f"{value:.6f}" if np.isfinite(value) else ""
+
+
+def write_npz(path: Path, result) -> None:
+    np.savez_compressed(
+        path, u_mm=result.grid.u, v_mm=result.grid.v, time_s=result.times,
+        names=np.array([f.name for f in result.frames]), ok=result.ok, heights_mm=result.heights,
+        height_se_mm=result.height_se, recession_mm=result.recession, rate_mm_s=result.rates["rate"],
+        rate_se_mm_s=result.rates["rate_se"], rate_ci95_half_mm_s=result.rates["ci95_half"],
+        rate_frames=result.rates["frames"], axis=result.sample.axis, stagnation_point_mm=result.sample.point,
+        axes=result.sample.axes)
+
+
+def write_results(out, result, calibration: str, sequence: str, force: bool = False, extra: dict | None = None) -> dict:
+    """Fill the results folder (module docstring); returns the summary written to summary.json."""
+    from dstereo.recession import plots
+
+    summary = {"sequence": str(sequence), "calibration": str(calibration), **result.summary(), **(extra or {})}
+    with atomic_folder(out, force) as tmp:
+        write_csv(tmp / "recession.csv", result)
+        write_npz(tmp / "recession_maps.npz", result)
+        (tmp / "plots").mkdir()
+        plots.recession_vs_time(result, tmp / "plots" / "recession_vs_time.png")
+        plots.recession_maps(result, tmp / "plots" / "recession_maps.png")
+        plots.rate_map(result, tmp / "plots" / "rate_map.png")
+        plots.radial_profiles(result, tmp / "plots" / "radial_profiles.png")
+        summary["files"] = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file()) + \
+            ["summary.json", "report.md"]
+        write_json(tmp / "summary.json", summary)
+        (tmp / "report.md").write_text(report_markdown(result, summary))
+    return summary
+
+
+def _rate(fit) -> str:
+    return (f"{1000 * fit.rate:.4g} um/s (95 % interval {1000 * fit.ci95[0]:.4g} .. {1000 * fit.ci95[1]:.4g} um/s, "
+            f"standard error {1000 * fit.rate_se:.2g} um/s, {fit.n} frames, residual RMS {fit.residual_rms:.3g} mm)")
+
+
+def report_markdown(result, summary: dict) -> str:
+    s = result.sample
+    lines = [f"# Surface recession: {summary['sequence']}", "",
+             f"- calibration: {summary['calibration']}",
+             f"- frames: {summary['frames']}, used {summary['frames_used']}, reference {summary['reference_frame']}",
+             f"- sample axis (left camera frame, away from the cameras): {np.round(s.axis, 5).tolist()} ({s.source})",
+             f"- stagnation point: {np.round(s.point, 3).tolist()} mm",
+             f"- grid: {result.grid.spacing:g} mm cells, {len(result.grid.u)} x {len(result.grid.v)}; stagnation "
+             f"value: {result.config.stagnation_model} fit within {result.config.stagnation_radius_mm:g} mm", "",
+             "## Rate at the stagnation point", "",
+             f"**{_rate(result.fit)}**", "",
+             "Least-squares line through (time, stagnation-point recession); the interval is Student's t on the "
+             "fit residuals (n - 2 degrees of freedom), the thesis's HSC analysis (3.2.1) in 3D."]
+    if result.weighted_fit is not None:
+        lines += ["", f"Weighted by each frame's standard error: {_rate(result.weighted_fit)}."]
+    lines += ["", "![recession vs time](plots/recession_vs_time.png)", "",
+              "| frame | time [s] | recession [mm] | +- se [mm] | cells | status |", "|---|---|---|---|---|---|"]
+    for f in result.frames:
+        status = f.status + (f": {f.reason}" if f.reason else "")
+        lines.append(f"| {f.name} | {f.time_s:g} | {_num(f.recession.value)} | {_num(f.recession.se)} | "
+                     f"{f.valid_cells} | {status} |")
+    lines += ["", "Standard errors treat grid cells as independent (neighbours share the matching window), so "
+              "they are lower bounds; the rate's interval comes from the scatter about the line.", "",
+              "## Maps", "", "![maps](plots/recession_maps.png)", "", "![rate map](plots/rate_map.png)", "",
+              "![profiles](plots/radial_profiles.png)", "",
+              "Data: [recession.csv](recession.csv), [recession_maps.npz](recession_maps.npz), "
+              "[summary.json](summary.json).", ""]
+    if result.warnings or summary["skipped"]:
+        lines += ["## Warnings", ""] + [f"- {w}" for w in result.warnings]
+        lines += [f"- frame {k['name']} skipped: {k['reason']}" for k in summary["skipped"]] + [""]
+    return "\n".join(lines)

@@ -1,0 +1,198 @@
+"""The front face in sample coordinates: its axis, a grid over it, and the face height per grid cell.
+
+Sample frame: origin at the stagnation point `s`, unit axis `n` pointing away from the cameras (into the
+sample), `e1`, `e2` completing a right-handed frame. A point p has face coordinates u = (p - s).e1,
+v = (p - s).e2 and height h = (p - s).n; as the face recedes its height grows, so recession = h(t) - h(t0).
+
+Auto axis (`estimate_axis`): a robust least-squares plane through the first frame's points (outliers trimmed
+on the residuals of a quadric in the plane's coordinates, so a domed face is not trimmed at its top or rim);
+its normal is the axis, and the stagnation point is the centre of the face: the centroid of the occupied
+grid cells, moved onto the quadric. This assumes the face is seen whole and the axis is roughly normal to
+the face's outline (true for the flat and the domed samples of the thesis); give the axis and the point
+otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+MAD_SCALE = 1.4826  # MAD -> standard deviation for Gaussian noise
+
+
+@dataclass(frozen=True)
+class SampleFrame:
+    """Stagnation point (mm) and orthonormal axes (rows e1, e2, n) in the left camera frame."""
+
+    point: np.ndarray
+    axes: np.ndarray
+    source: str = "auto"
+
+    @property
+    def axis(self) -> np.ndarray:
+        return self.axes[2]
+
+    def coordinates(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) left-camera points -> (n, 3) face coordinates (u, v, h) in mm."""
+        return (points - self.point) @ self.axes.T
+
+    def to_camera(self, uvh: np.ndarray) -> np.ndarray:
+        return uvh @ self.axes + self.point
+
+    def as_dict(self) -> dict:
+        return {"stagnation_point_mm": self.point.tolist(), "axis": self.axis.tolist(), "e1": self.axes[0].tolist(),
+                "e2": self.axes[1].tolist(), "source": self.source,
+                "frame": "left camera (x right, y down, z forward), mm; axis points away from the cameras"}
+
+
+def frame_from_axis(axis, point) -> SampleFrame:
+    """Orthonormal frame around a given axis (turned to point away from the cameras, i.e. axis.z > 0 side)."""
+    n = np.asarray(axis, float).reshape(3)
+    if not np.linalg.norm(n) > 0:
+        raise DstereoError(f"axis {n.tolist()}: give a non-zero direction x,y,z")
+    n = n / np.linalg.norm(n)
+    point = np.asarray(point, float).reshape(3)
+    if n @ point < 0:
+        n = -n  # away from the cameras: the camera centre (origin) lies on the side the face looks at
+    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = helper - (helper @ n) * n
+    e1 /= np.linalg.norm(e1)
+    return SampleFrame(point, np.stack([e1, np.cross(n, e1), n]))
+
+
+def valid_points(points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, float).reshape(-1, 3)
+    return p[np.all(np.isfinite(p), axis=1)]
+
+
+def _quadric_design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+
+
+def _trim(uvh: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inlier mask and quadric coefficients: points within k robust sigma of a quadric h(u, v), twice."""
+    keep = np.ones(len(uvh), bool)
+    coef = np.zeros(6)
+    for _ in range(3):
+        a = _quadric_design(uvh[keep, 0], uvh[keep, 1])
+        coef = np.linalg.lstsq(a, uvh[keep, 2], rcond=None)[0]
+        res = uvh[:, 2] - _quadric_design(uvh[:, 0], uvh[:, 1]) @ coef
+        scale = MAD_SCALE * np.median(np.abs(res[keep] - np.median(res[keep])))
+        keep = np.abs(res) <= k * max(scale, 1e-6)
+    return keep, coef
+
+
+def estimate_axis(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float = 4.0) -> SampleFrame:
+    """Sample frame from the first frame's points (module docstring)."""
+    p = valid_points(points)
+    if len(p) < min_points:
+        raise DstereoError(f"only {len(p)} points in the first frame; need at least {min_points} to find the "
+                           "sample axis (check the calibration and the depth range, or give --axis and --point)")
+    keep = np.ones(len(p), bool)
+    frame = None
+    for _ in range(3):
+        centre = p[keep].mean(axis=0)
+        _, _, vt = np.linalg.svd(p[keep] - centre, full_matrices=False)
+        frame = frame_from_axis(vt[2], centre)
+        keep, _ = _trim(frame.coordinates(p), k)
+    uvh = frame.coordinates(p[keep])
+    _, coef = _trim(uvh, k)
+    cells = np.unique(np.round(uvh[:, :2] / grid_mm).astype(np.int64), axis=0) * grid_mm
+    u0, v0 = cells.mean(axis=0)
+    h0 = float((_quadric_design(np.array([u0]), np.array([v0])) @ coef)[0])
+    centre = frame.to_camera(np.array([u0, v0, h0]))
+    return SampleFrame(centre, frame.axes, "auto: robust plane fit of the first frame, face centre")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Cell centres at integer multiples of `spacing` (mm) in (u, v): index (iy, ix) <-> (v, u)."""
+
+    spacing: float
+    u: np.ndarray  # (nx,) cell centres
+    v: np.ndarray  # (ny,)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return len(self.v), len(self.u)
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ny, nx) arrays U, V of cell centres."""
+        return np.meshgrid(self.u, self.v)
+
+    def cell_index(self, uv: np.ndarray) -> np.ndarray:
+        """Flat cell index per point, -1 outside the grid."""
+        ix = np.round((uv[:, 0] - self.u[0]) / self.spacing).astype(np.int64)
+        iy = np.round((uv[:, 1] - self.v[0]) / self.spacing).astype(np.int64)
+        inside = (ix >= 0) & (ix < len(self.u)) & (iy >= 0) & (iy < len(self.v))
+        return np.where(inside, iy * len(self.u) + ix, -1)
+
+
+def grid_over(uv: np.ndarray, spacing: float) -> Grid:
+    """Grid covering the given face coordinates (first frame) with a cell centre on the stagnation point."""
+    if not spacing > 0:
+        raise DstereoError(f"--grid {spacing}: need a positive cell size in mm")
+    lo = np.floor(uv.min(axis=0) / spacing).astype(int)
+    hi = np.ceil(uv.max(axis=0) / spacing).astype(int)
+    if np.prod(hi - lo + 1) > 4_000_000:
+        raise DstereoError(f"--grid {spacing} mm gives {np.prod(hi - lo + 1)} cells over the face; use a coarser grid")
+    return Grid(float(spacing), np.arange(lo[0], hi[0] + 1) * spacing, np.arange(lo[1], hi[1] + 1) * spacing)
+
+
+def _cell_plane_fit(cell, du, dv, h, w, n_cells):
+    """Per-cell weighted least-squares plane h = a + b du + c dv; returns a, its SE, count, residuals."""
+    def s(x):
+        return np.bincount(cell, weights=w * x, minlength=n_cells)
+
+    one = np.ones_like(du)
+    m = np.stack([np.stack([s(one), s(du), s(dv)], -1), np.stack([s(du), s(du * du), s(du * dv)], -1),
+                  np.stack([s(dv), s(du * dv), s(dv * dv)], -1)], -2)
+    rhs = np.stack([s(h), s(h * du), s(h * dv)], -1)
+    count = np.bincount(cell, weights=w, minlength=n_cells)
+    det = np.linalg.det(m)
+    ok = (count >= 4) & (np.abs(det) > 1e-12 * np.maximum(count, 1) ** 3)
+    coef = np.full((n_cells, 3), np.nan)
+    inv = np.full((n_cells, 3, 3), np.nan)
+    if ok.any():
+        inv[ok] = np.linalg.inv(m[ok])
+        coef[ok] = np.einsum("cij,cj->ci", inv[ok], rhs[ok])
+    res = h - (coef[cell, 0] + coef[cell, 1] * du + coef[cell, 2] * dv)
+    rss = np.bincount(cell, weights=w * np.nan_to_num(res) ** 2, minlength=n_cells)
+    dof = np.maximum(count - 3, 1)
+    se = np.sqrt(rss / dof * inv[:, 0, 0])
+    return coef[:, 0], np.where(ok, se, np.nan), count, res
+
+
+def _per_cell_median(cell: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndarray:
+    order = np.lexsort((values, cell))
+    c, x = cell[order], values[order]
+    starts = np.searchsorted(c, np.arange(n_cells))
+    counts = np.bincount(c, minlength=n_cells)
+    mid = np.clip(starts + (counts - 1) // 2, 0, max(len(x) - 1, 0))
+    return np.where(counts > 0, x[mid] if len(x) else np.nan, np.nan)
+
+
+def cell_heights(uvh: np.ndarray, grid: Grid, min_points: int = 8, k: float = 3.0) -> tuple[np.ndarray, ...]:
+    """Face height per grid cell: a local plane through the cell's points, evaluated at the cell centre, refitted
+    once without the points beyond k robust sigma (the cell's MAD) of the first fit. Returns (height, its
+    standard error, points used), each (ny, nx); cells with fewer than `min_points` are NaN, never filled."""
+    n_cells = grid.shape[0] * grid.shape[1]
+    idx = grid.cell_index(uvh[:, :2])
+    inside = idx >= 0
+    cell, u, v, h = idx[inside], uvh[inside, 0], uvh[inside, 1], uvh[inside, 2]
+    uc, vc = grid.centres()
+    du, dv = u - uc.ravel()[cell], v - vc.ravel()[cell]
+    w = np.ones_like(h)
+    _, _, _, res = _cell_plane_fit(cell, du, dv, h, w, n_cells)
+    absdev = np.where(np.isfinite(res), np.abs(res), np.inf)
+    mad = MAD_SCALE * _per_cell_median(cell, absdev, n_cells)
+    floor = 1e-3  # mm: a cell of identical heights keeps its points
+    limit = k * np.maximum(np.where(np.isfinite(mad), mad, 0.0), floor)
+    w = (absdev <= limit[cell]).astype(float)
+    height, se, count, _ = _cell_plane_fit(cell, du, dv, h, w, n_cells)
+    few = count < min_points
+    height[few], se[few] = np.nan, np.nan
+    return height.reshape(grid.shape), se.reshape(grid.shape), count.reshape(grid.shape).astype(int)

@@ -1,0 +1,70 @@
+"""A rendered recession sequence with known truth, written as `dstereo recession` reads it (for users and tests).
+
+`write_synthetic_sequence(folder)` renders the cork sample in the reduced Plasmatron rig (`synth.rig`) while
+its front face recedes by a known profile (`synth.recession`: uniform + centre-peaked, linear in time) and
+writes the sequence (`synth.writers.write_recession_sequence`), the rig's true calibration as `stereo.yml`,
+and `truth.json`: times, stagnation-point recession, the profile, the true axis and stagnation point in the
+left camera frame.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+
+def true_calibration_files(folder: Path, rig) -> Path:
+    """stereo.yml of a synthetic rig's true calibration (what a perfect calibration would write)."""
+    from dstereo.io.stereo_files import write_stereo_yml
+
+    r, t = rig.rotation_translation()
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    e = tx @ r
+    k1, k2 = np.asarray(rig.left.matrix()), np.asarray(rig.right.matrix())
+    f = np.linalg.inv(k2).T @ e @ np.linalg.inv(k1)
+    return write_stereo_yml(folder / "stereo.yml", k1, rig.left.coeffs(), k2, rig.right.coeffs(), r, t, e, f / f[2, 2],
+                            tuple(rig.left.image_size))
+
+
+def sample_truth(rig, sample, T_world_sample) -> dict:
+    """The sample's axis (away from the cameras) and stagnation point (t = 0) in the left camera frame."""
+    from dstereo.synth.poses import compose, pose_matrix
+
+    m = pose_matrix(compose(rig.T_left_world, T_world_sample))
+    p = m[:3, :3] @ np.asarray(sample.stagnation_point(), float) + m[:3, 3]
+    return {"axis": (-m[:3, 2]).tolist(), "stagnation_point_mm": p.tolist()}
+
+
+def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.0, total_mm: float = 2.0,
+                             peak_share: float = 0.6, sigma_mm: float = 8.0, image_size: tuple[int, int] = (640, 480),
+                             seed: int = 0, flat: bool = False, options=None, force: bool = False) -> dict:
+    """Render and write a sequence (module docstring); returns the truth. `image_size` scales the reduced rig
+    (the focal length with it, so the field of view is kept); `flat` renders a flat front face instead of the
+    domed one; `options` are the RenderOptions (default `synth.scenes.OBJECT_OPTIONS`)."""
+    from dstereo.synth import Sample, plasmatron_rig, recession_sequence, sample_pose
+    from dstereo.synth.recession import profile_for_total
+    from dstereo.synth.scenes import OBJECT_OPTIONS
+    from dstereo.synth.writers import write_recession_sequence
+
+    if n_frames < 2:
+        raise DstereoError(f"n_frames={n_frames}: a sequence needs at least 2 frames")
+    folder = Path(folder)
+    rig = plasmatron_rig(tuple(image_size), 4800.0 * image_size[0] / 640.0)
+    sample = Sample.flat() if flat else Sample()
+    profile = profile_for_total(total_mm, duration_s, peak_share, sigma_mm)
+    pose = sample_pose(sample.length)
+    renders = recession_sequence(rig, sample, profile, n_frames, duration_s, pose, seed=seed,
+                                 options=options or OBJECT_OPTIONS)
+    write_recession_sequence(folder, renders, force=force)
+    true_calibration_files(folder, rig)
+    truth = {"time_s": [r.truth_left["time_s"] for r in renders],
+             "recession_stagnation_mm": [r.truth_left["recession_stagnation_mm"] for r in renders],
+             "profile": profile.to_truth(), "rate_stagnation_mm_s": profile.uniform_rate + profile.peak_rate,
+             "sample": sample.truth(), "image_size": list(image_size), "seed": seed,
+             **sample_truth(rig, sample, pose)}
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1))
+    return truth
