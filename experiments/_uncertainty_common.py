@@ -63,6 +63,18 @@ class SyntheticViews:
             out.append(q)
         return (None, missed) if missed else (np.stack(out), missed)
 
+    def detect_clean(self) -> np.ndarray | None:
+        """(V, n, 2) corners detected on the noise-free exposures: the detector's own fixed error."""
+        from dataclasses import replace
+
+        from dstereo.io.corners import _detect_one
+        from dstereo.synth.sensor import expose
+
+        clean = replace(self.options, full_well=0.0, read_noise_dn=0.0)
+        pp = np.asarray(self.camera.k[2:4])
+        out = [_detect_one(expose(rad, pp, clean, np.random.default_rng(0)), PATTERN)[0] for rad in self.radiance]
+        return None if any(q is None for q in out) else np.stack(out)
+
 
 def truth_camera(coeffs=(-0.25, 0.12), free=("k1", "k2")):
     """The synthetic camera: 640 x 480, f ~ 820 px (a webcam like opencv_stereo's), known distortion."""

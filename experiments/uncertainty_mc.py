@@ -46,6 +46,8 @@ def run(n_list=(10, 15, 20), draws=100, subset_draws=20, cap=128, progress=print
     sub = {(n, m): {"raw": [], "jack": [], "pred": [], "converged": [], "total": 0} for n, m in configs(n_list)}
     errors, failed = [], 0
     t_detect = t_solve = 0.0
+    clean = views.detect_clean()
+    clean_bias = {n: mono.calibrate_full(views.obj, clean[:n], size, FREE).values - truth for n in n_list}
     for d in range(draws):
         t1 = time.perf_counter()
         obs, missed = views.draw(d)
@@ -79,14 +81,30 @@ def run(n_list=(10, 15, 20), draws=100, subset_draws=20, cap=128, progress=print
         t_solve += time.perf_counter() - t1
         if progress and (d + 1) % 10 == 0:
             progress(f"  draw {d + 1}/{draws} ({time.perf_counter() - t0:.0f} s)")
-    return summarise(truth, full, sub, np.stack(errors), failed, views, cap,
+    res = summarise(truth, full, sub, np.stack(errors), failed, views, cap,
                      {"render_s": t_render, "detect_s": t_detect, "solve_s": t_solve,
                       "total_s": time.perf_counter() - t0})
+    res["corner"]["clean_rms_px"] = float(np.sqrt(np.mean((clean - views.truth) ** 2)))
+    for n in n_list:
+        res["full"][n]["clean_bias"] = clean_bias[n]
+    return res
 
 
 def _neighbour_corr(e: np.ndarray) -> float:
     """Correlation of an error field (..., rows, cols, 2) between horizontally adjacent corners."""
     return float(np.corrcoef(e[..., :, :-1, :].ravel(), e[..., :, 1:, :].ravel())[0, 1])
+
+
+def _radial_profile(fixed: np.ndarray, truth: np.ndarray, centre: np.ndarray, bins: int = 5) -> dict:
+    """Mean radial component (outwards from the principal point) of the detector's fixed error, by radius."""
+    d = truth - centre
+    r = np.linalg.norm(d, axis=-1)
+    radial = np.sum(fixed * d, axis=-1) / np.maximum(r, 1e-9)
+    edges = np.quantile(r, np.linspace(0, 1, bins + 1))
+    which = np.clip(np.digitize(r, edges[1:-1]), 0, bins - 1)
+    return {"r_px": [float(np.mean(r[which == b])) for b in range(bins)],
+            "radial_px": [float(np.mean(radial[which == b])) for b in range(bins)],
+            "se_px": [float(np.std(radial[which == b]) / np.sqrt(np.sum(which == b))) for b in range(bins)]}
 
 
 def summarise(truth, full, sub, errors, failed, views, cap, timings) -> dict:
@@ -101,6 +119,7 @@ def summarise(truth, full, sub, errors, failed, views, cap, timings) -> dict:
         "fixed_neighbour_corr": _neighbour_corr(fixed.reshape(-1, rows, cols, 2)),
         "noise_neighbour_corr": _neighbour_corr(noise.reshape(-1, rows, cols, 2)),
         "mean_error_px": errors.mean(axis=(0, 1, 2)),
+        "radial": _radial_profile(fixed, views.truth, np.asarray(views.camera.k[2:4])),
     }
     out = {"truth": dict(zip(uc.INTRINSICS, truth)), "corner": corner, "timings": timings, "cap": cap,
            "full": {}, "subsets": {}}
@@ -136,14 +155,16 @@ def tables(res: dict) -> str:
     text = [f"Corner error of the detector vs the true projections ({c['draws']} draws, {c['failed_draws']} draws "
             f"with a missed board): total RMS {c['total_rms_px']:.4f} px per coordinate = fixed part (same in every "
             f"draw) {c['fixed_rms_px']:.4f} px + noise part {c['noise_rms_px']:.4f} px; neighbour correlation "
-            f"fixed {c['fixed_neighbour_corr']:.2f}, noise {c['noise_neighbour_corr']:.2f}.\n"]
-    header = ["N", "param", "truth", "bias", "bias / MC std", "MC std", "Jacobian std", "Jacobian / MC",
-              "coverage of +-1.96 sigma_J"]
+            f"fixed {c['fixed_neighbour_corr']:.2f}, noise {c['noise_neighbour_corr']:.2f}. Noise-free render: RMS "
+            f"{c['clean_rms_px']:.4f} px. Mean radial component of the fixed part by radius (px): "
+            + ", ".join(f"r {r:.0f}: {v:+.4f} +- {e:.4f}" for r, v, e in zip(*c["radial"].values())) + ".\n"]
+    header = ["N", "param", "truth", "bias", "bias / MC std", "bias of the noise-free solve", "MC std",
+              "Jacobian std", "Jacobian / MC", "coverage of +-1.96 sigma_J"]
     rows = []
     for n, f in res["full"].items():
         for i, p in enumerate(names):
             rows.append([n, p, float(res["truth"][p]), float(f["bias"][i]), float(f["bias"][i] / f["mc"][i]),
-                         float(f["mc"][i]), float(f["jacobian"][i]), float(f["jacobian"][i] / f["mc"][i]),
+                         float(f["clean_bias"][i]), float(f["mc"][i]), float(f["jacobian"][i]), float(f["jacobian"][i] / f["mc"][i]),
                          f"{100 * f['coverage95'][i]:.0f} %"])
     text.append(uc.md_table(header, rows))
     header = ["N", "m", "subsets (of C(N,m))", "param", "raw spread / MC", "jackknife / MC", "jackknife / Jacobian",
