@@ -14,6 +14,7 @@ COMMANDS = [
     ("recession", "recession", "recession"),
     ("optics", "optics", "optics"),
     ("demo", "demo", "demo"),
+    ("refine", "refine", "refine"),
 ]
 
 

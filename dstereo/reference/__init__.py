@@ -8,8 +8,10 @@ through the differentiable model; `metric_scale` gives an uncalibrated reconstru
 from dstereo.reference.correction import PARAM_NAMES, RigBase, corrected_calibration, rig_error
 from dstereo.reference.objects import Board, Distances, Mesh, Sphere, read_marks
 from dstereo.reference.refine import Refinement, board_metric_check, fit_sphere, refine_rig
+from dstereo.reference.scale import MetricScale, board_distances, metric_scale
 
 __all__ = [
-    "PARAM_NAMES", "Board", "Distances", "Mesh", "Refinement", "RigBase", "Sphere", "board_metric_check",
-    "corrected_calibration", "fit_sphere", "read_marks", "refine_rig", "rig_error",
+    "PARAM_NAMES", "Board", "Distances", "Mesh", "MetricScale", "Refinement", "RigBase", "Sphere",
+    "board_distances", "board_metric_check", "corrected_calibration", "fit_sphere", "metric_scale", "read_marks",
+    "refine_rig", "rig_error",
 ]

@@ -93,7 +93,7 @@ def corrected_calibration(calib: StereoCalibration, theta: np.ndarray) -> Stereo
     k_left, _, k_right, _, R, T = (np.asarray(v) for v in apply(RigBase.from_calibration(calib), jnp.asarray(theta)))
     K1, K2 = calib.K1.copy(), calib.K2.copy()
     K1[0, 0], K1[1, 1], K2[0, 0], K2[1, 1] = k_left[0], k_left[1], k_right[0], k_right[1]
-    return replace(calib, K1=K1, K2=K2, R=R, T=T, source=f"{calib.source} (refined)" if calib.source else "refined")
+    return replace(calib, K1=K1, K2=K2, R=R, T=T, source=calib.source if calib.source.endswith("(refined)") else f"{calib.source} (refined)".strip())
 
 
 def rig_error(calib: StereoCalibration, truth: StereoCalibration) -> dict:
@@ -107,3 +107,18 @@ def rig_error(calib: StereoCalibration, truth: StereoCalibration) -> dict:
     return {"rotation_deg": float(np.degrees(np.linalg.norm(dr))), "rotation_axes_deg": np.degrees(dr).tolist(),
             "baseline_rel": float(np.linalg.norm(c) / np.linalg.norm(c_true) - 1.0),
             "direction_deg": float(np.degrees(np.arccos(cosang)))}
+
+
+def theta_between(calib: StereoCalibration, other: StereoCalibration) -> np.ndarray:
+    """The correction vector (PARAM_NAMES) that takes `calib` to `other` (their distortion and principal points
+    being equal): inverts `apply`, so corrections found in several rounds add up to one."""
+    from scipy.spatial.transform import Rotation
+
+    base = RigBase.from_calibration(calib)
+    w = Rotation.from_matrix(np.asarray(other.R) @ np.asarray(calib.R).T).as_rotvec()
+    c0, c = np.asarray(base.C0), -np.asarray(other.R).T @ np.asarray(other.T).reshape(3)
+    d = c / np.linalg.norm(c)
+    along = d @ c0 / np.linalg.norm(c0)
+    focal = [other.K1[0, 0] / calib.K1[0, 0] - 1.0, other.K2[0, 0] / calib.K2[0, 0] - 1.0]
+    return np.r_[w, np.linalg.norm(c) / np.linalg.norm(c0) - 1.0, d @ np.asarray(base.e1) / along,
+                 d @ np.asarray(base.e2) / along, focal]

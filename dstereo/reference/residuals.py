@@ -76,11 +76,12 @@ def board_residuals(x, data, free: tuple[int, ...]):
 
 
 def sphere_residuals(x, data, free: tuple[int, ...]):
-    """Distance (mm) of each triangulated match to the sphere: data = (base, q_l, q_r, radius); x ends in the centre."""
-    base, q_l, q_r, radius = data
+    """Distance (mm) of each triangulated match to the sphere, times its weight (1, or 0 for a dropped match, so
+    shapes stay fixed): data = (base, q_l, q_r, radius, weight); x ends in the centre."""
+    base, q_l, q_r, radius, weight = data
     theta, centre = split(x, free)
     p = triangulate(*apply(base, theta), q_l, q_r)
-    return jnp.linalg.norm(p - centre, axis=1) - radius
+    return (jnp.linalg.norm(p - centre, axis=1) - radius) * weight
 
 
 def distance_residuals(x, data, free: tuple[int, ...]):

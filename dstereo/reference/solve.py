@@ -93,7 +93,7 @@ def solve(residual, x0: np.ndarray, data, free: tuple[int, ...], names: tuple[st
     x, steps, ok = levenberg_marquardt(lambda z: tuple(np.asarray(a) for a in lin(jnp.asarray(z), data)),
                                        np.asarray(x0), np.asarray(scale), max_steps)
     r, J = (np.asarray(a) for a in lin(jnp.asarray(x), data))
-    n, p = r.size, x.size
+    n, p = int(np.count_nonzero(np.any(J != 0, axis=1) | (r != 0))), x.size  # zero-weight residuals do not count
     dof = n - p
     sse = float(r @ r)
     if whitened and dof < MIN_DOF_FOR_POSTERIOR:
@@ -105,5 +105,5 @@ def solve(residual, x0: np.ndarray, data, free: tuple[int, ...], names: tuple[st
     cov = cov_full[:n_theta, :n_theta]
     a, b, d = normal[:n_theta, :n_theta], normal[:n_theta, n_theta:], normal[n_theta:, n_theta:]
     schur = a - b @ scaled_inverse(d) @ b.T if d.size else a  # normal equations with the nuisance eliminated
-    return Solution(np.asarray(x), cov, float(np.sqrt(np.mean(np.asarray(r0) ** 2))), float(np.sqrt(sse / n)),
+    return Solution(np.asarray(x), cov, float(np.sqrt(np.sum(np.asarray(r0) ** 2) / n)), float(np.sqrt(sse / n)),
                     float(np.sqrt(sigma2)), n, dof, int(steps), bool(ok), conditioning(schur, names))
