@@ -63,7 +63,7 @@ def recession_maps(result, path: Path, max_panels: int = 12) -> None:
         idx = idx[np.round(np.linspace(0, len(idx) - 1, max_panels)).astype(int)]
     cols = min(4, len(idx))
     rows = int(np.ceil(len(idx) / cols))
-    lo, hi = np.nanpercentile(result.recession[idx], [1, 99]) if np.isfinite(result.recession[idx]).any() else (0, 1)
+    lo, hi = np.nanpercentile(result.recession[idx], [0.5, 99.9]) if np.isfinite(result.recession[idx]).any() else (0, 1)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols + 1, 3.0 * rows), dpi=100, squeeze=False)
     im = None
     for ax, i in zip(axes.ravel(), idx):
