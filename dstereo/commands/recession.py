@@ -9,8 +9,9 @@ import typer
 
 
 def recession(
-    sequence: Path = typer.Argument(..., help="Sequence folder: left/ + right/ (or images_left/ + images_right/) "
-                                    "with one image per frame and camera, partners named alike (left_007 / right_007)."),
+    sequence: Path = typer.Argument(
+        ..., help="Sequence folder: left/ + right/ (or images_left/ + images_right/) with one image per frame and "
+        "camera, partners named alike (left_007 / right_007)."),
     calib: Path = typer.Option(..., "--calib", help="stereo.yml (or any calibration `dstereo reconstruct` reads)."),
     out: Path = typer.Option(..., "--out", help="Results folder (refused if it exists, unless --force)."),
     timestamps: Optional[Path] = typer.Option(

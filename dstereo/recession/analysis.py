@@ -171,6 +171,7 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
             current = ref if ref is not None else _Reference(points, config)
             heights, se, _ = _frame_heights(points, current, config)
             if ref is None:
+                _check_reference(heights, config)
                 ref, ref_index = current, i
         except DstereoError as exc:
             res.status, res.reason = "skipped", str(exc)
@@ -179,8 +180,17 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
         maps[i], ses[i] = heights, se
         report("frames", i + 1, len(frames))
     if ref is None:
-        raise DstereoError(f"no frame of the sequence could be reconstructed; first failure: {results[0].reason}")
+        raise DstereoError("no frame of the sequence gave a surface to measure from; first failure: "
+                           f"{results[0].reason}")
     return _assemble(results, ref, ref_index, maps, ses, config)
+
+
+def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: int = 20) -> None:
+    n = int(np.isfinite(heights).sum())
+    if n < min_cells:
+        raise DstereoError(f"only {n} grid cells of {config.grid_mm:g} mm hold {config.min_points_per_cell} or more "
+                           "points in the reference frame; use a coarser --grid (cells of ~4 x 4 pixels or more) or "
+                           "a lower --min-points")
 
 
 def _reconstructor(calib, recon_config, refine: bool):

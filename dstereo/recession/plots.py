@@ -34,7 +34,8 @@ def recession_vs_time(result, path: Path) -> None:
         tok = t[ok]
         resid = r[ok] - (fit.intercept + fit.rate * tok)
         s = np.sqrt(resid @ resid / (fit.n - 2))
-        band = stats.t.ppf(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (tt - tok.mean()) ** 2 / ((tok - tok.mean()) ** 2).sum())
+        sxx = ((tok - tok.mean()) ** 2).sum()
+        band = stats.t.ppf(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (tt - tok.mean()) ** 2 / sxx)
         ax.fill_between(tt, fit.intercept + fit.rate * tt - band, fit.intercept + fit.rate * tt + band, color="C1",
                         alpha=0.2, label="95% band of the line")
     for f in result.frames:
@@ -63,7 +64,8 @@ def recession_maps(result, path: Path, max_panels: int = 12) -> None:
         idx = idx[np.round(np.linspace(0, len(idx) - 1, max_panels)).astype(int)]
     cols = min(4, len(idx))
     rows = int(np.ceil(len(idx) / cols))
-    lo, hi = np.nanpercentile(result.recession[idx], [0.5, 99.9]) if np.isfinite(result.recession[idx]).any() else (0, 1)
+    finite = np.isfinite(result.recession[idx]).any()
+    lo, hi = np.nanpercentile(result.recession[idx], [0.5, 99.9]) if finite else (0.0, 1.0)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols + 1, 3.0 * rows), dpi=100, squeeze=False)
     im = None
     for ax, i in zip(axes.ravel(), idx):

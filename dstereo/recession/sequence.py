@@ -171,7 +171,8 @@ def discover(sequence: str | Path, timestamps: str | Path | None = None, fps: fl
                                    "name (e.g. left_t=12.5s.png)")
         frames.append(Frame(key, left, right, float(t)))
     if len(frames) < 2:
-        raise DstereoError(f"sequence {sequence}: {len(frames)} stereo pair(s) found; recession needs at least 2 frames")
+        raise DstereoError(f"sequence {sequence}: {len(frames)} stereo pair(s) found; recession needs at least 2 "
+                           "frames")
     for prev, cur in zip(frames, frames[1:]):
         if not cur.time_s > prev.time_s:
             what = "the same time as" if cur.time_s == prev.time_s else "an earlier time than"
@@ -209,5 +210,6 @@ def check_sizes(frames: list[Frame], calib_size: tuple[int, int] | None, calib_s
                 raise DstereoError(f"{path} is {size[0]}x{size[1]} but {first} is {expected[0]}x{expected[1]}; all "
                                    "images of a sequence must have one size (crop or resize them the same way)")
     if expected is None:
-        raise DstereoError(f"no image of the sequence ({frames[0].left.parent}) can be read; give PNG, JPEG or TIFF")
+        raise DstereoError(f"no image of the sequence ({frames[0].left.parent}) can be read; give PNG, JPEG or "
+                           "TIFF files")
     return expected
