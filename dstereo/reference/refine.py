@@ -9,13 +9,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration
 from dstereo.reference import residuals as res
-from dstereo.reference.correction import PARAM_NAMES, RigBase, corrected_calibration, free_indices
+from dstereo.reference.correction import PARAM_NAMES, RigBase, apply, corrected_calibration, free_indices
 from dstereo.reference.objects import Board, Distances, Mesh, Sphere
 from dstereo.reference.solve import Solution, solve
 
@@ -104,12 +105,22 @@ def _board_problem(calib, board: Board, q_left, q_right, base, free):
     return res.board_residuals, np.r_[np.zeros(len(free)), poses.ravel()], data, _scale_for(free, scale), "px"
 
 
-def _triangulated(calib, q_left, q_right) -> np.ndarray:
-    base = RigBase.from_calibration(calib)
-    from dstereo.reference.correction import apply
+@jax.jit
+def _triangulate_base(base: RigBase, matches) -> jax.Array:
+    return res.triangulate(*apply(base, jnp.zeros(len(PARAM_NAMES))), *matches, focal=False)
 
-    return np.asarray(res.triangulate(*apply(base, jnp.zeros(len(PARAM_NAMES))), jnp.asarray(q_left, float),
-                                      jnp.asarray(q_right, float)))
+
+def matches_with_rays(calib, q_left, q_right) -> tuple:
+    """(q_l, q_r, xy0_l, xy0_r) as the dense residuals take them: raw pixels and their undistorted normalised
+    coordinates under `calib` (the starts of `residuals.triangulate`'s rays)."""
+    q_l, q_r = jnp.asarray(q_left, float), jnp.asarray(q_right, float)
+    return (q_l, q_r, res.undistorted(jnp.asarray(calib.k1), jnp.asarray(calib.D1), q_l),
+            res.undistorted(jnp.asarray(calib.k2), jnp.asarray(calib.D2), q_r))
+
+
+def _triangulated(calib, q_left, q_right) -> np.ndarray:
+    """Midpoint triangulation of raw pixel pairs with `calib` (left camera frame, mm)."""
+    return np.asarray(_triangulate_base(RigBase.from_calibration(calib), matches_with_rays(calib, q_left, q_right)))
 
 
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -160,7 +171,7 @@ def _sphere_problem(calib, sphere: Sphere, q_left, q_right, base, free):
     # dropped matches stay in with weight 0 and the position of a kept one: one compiled residual per match count
     q_left, q_right = (np.where(keep[:, None], q, q[np.argmax(keep)]) for q in (np.asarray(q_left, float),
                                                                              np.asarray(q_right, float)))
-    data = (base, jnp.asarray(q_left), jnp.asarray(q_right), jnp.asarray(sphere.radius), jnp.asarray(keep, float))
+    data = (base, matches_with_rays(calib, q_left, q_right), jnp.asarray(sphere.radius), jnp.asarray(keep, float))
     scale = np.full(3, max(np.abs(centre).max(), 1.0))
     return res.sphere_residuals, np.r_[np.zeros(len(free)), centre], data, _scale_for(free, scale), "mm"
 
@@ -199,8 +210,8 @@ def refine_rig(calib: StereoCalibration, reference, q_left, q_right, focal: bool
     sol = solve(fn, x0, data, free, names, scale=scale, whitened=isinstance(reference, Distances))
     out = finish(calib, type(reference).__name__.lower(), free, sol, unit)
     if isinstance(reference, Sphere):
-        keep = np.asarray(data[4]) > 0
-        q_l, q_r = np.asarray(data[1])[keep], np.asarray(data[2])[keep]
+        keep = np.asarray(data[3]) > 0
+        q_l, q_r = np.asarray(data[1][0])[keep], np.asarray(data[1][1])[keep]
         out.checks["sphere"] = {"matches": int(np.shape(q_left)[0]), "inliers": int(keep.sum()),
                                 "free_fit_diameter_before_mm": 2 * fit_sphere(_triangulated(calib, q_l, q_r))[1],
                                 "free_fit_diameter_after_mm": 2 * fit_sphere(_triangulated(out.calibration, q_l,

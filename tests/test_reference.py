@@ -1,0 +1,265 @@
+"""Reference-object refinement of a stereo rig: synthetic truth, rendered images, OpenCV corners.
+
+Which observations: the acceptance case uses a rendered board pair (the project's renderer, 1 px lens blur,
+OpenCV corner detection: ~0.015 px RMS corner error against the render's truth); the noise-free case uses the
+render's true corners; the std-consistency case uses true corners plus 0.1 px Gaussian noise; the sphere case
+a rendered speckled sphere matched by SGBM; the distances case analytic projections plus noise.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from conftest import run_cli
+from dstereo.errors import DstereoError
+from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
+from dstereo.reference import Board, Distances, Sphere, metric_scale, refine_rig, rig_error
+from dstereo.reference import residuals as res
+from dstereo.reference.correction import RigBase, free_indices
+from dstereo.synth.reference_scenes import board_pair, reference_rig
+
+AXIS = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)  # an oblique rotation axis for the perturbation
+
+
+def perturbed(truth: StereoCalibration, rel=0.01, deg=0.2) -> StereoCalibration:
+    """The truth with the baseline longer by `rel` and the right camera turned by `deg` about AXIS (its frame)."""
+    d = Rotation.from_rotvec(np.radians(deg) * AXIS).as_matrix()
+    R = d @ truth.R
+    return dataclasses.replace(truth, R=R, T=-R @ (-truth.R.T @ truth.T * (1 + rel)), source="perturbed")
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return reference_rig()
+
+
+@pytest.fixture(scope="module")
+def truth(rig):
+    R, T = rig.rotation_translation()
+    return StereoCalibration(rig.left.matrix(), rig.left.coeffs(), rig.right.matrix(), rig.right.coeffs(), R, T,
+                             rig.left.image_size, source="truth")
+
+
+@pytest.fixture(scope="module")
+def board_view(rig):
+    from dstereo.reference.files import board_corners
+
+    bp = board_pair(rig)
+    ref = Board(bp.board.pattern, bp.board.square)
+    return bp, ref, board_corners(bp.left, ref, "left"), board_corners(bp.right, ref, "right")
+
+
+def _errors_in_sigma(out, truth):
+    """Actual error of rotation (per axis) and baseline, in units of the reported std."""
+    e = rig_error(out.calibration, truth)
+    z_rot = np.radians(e["rotation_axes_deg"]) / out.std[:3]
+    return e, np.r_[z_rot, e["baseline_rel"] / out.std[3]]
+
+
+def test_board_acceptance_on_rendered_pair(board_view, truth):
+    bp, ref, q_l, q_r = board_view
+    assert np.sqrt(np.mean((q_l - bp.corners_left) ** 2)) < 0.05  # the detector sees what was rendered
+    start = perturbed(truth)
+    assert rig_error(start, truth)["rotation_deg"] == pytest.approx(0.2)
+    out = refine_rig(start, ref, q_l, q_r)
+    e, z = _errors_in_sigma(out, truth)
+    assert e["rotation_deg"] < 0.01 and abs(e["baseline_rel"]) < 5e-4, e
+    assert np.all(np.abs(z) < 4), z
+    assert out.solution.converged and out.solution.conditioning.identifiable
+    assert out.solution.rms_after < 0.05 < out.solution.rms_before
+    m = out.checks["board_metric"]  # the triangulated board's squares come out at their known size
+    assert abs(m["after"]["spacing_error_mean_percent"]) < 0.02 < abs(m["before"]["spacing_error_mean_percent"])
+
+
+def test_board_noise_free_recovers_truth(board_view, truth):
+    bp, ref, _, _ = board_view
+    out = refine_rig(perturbed(truth), ref, bp.corners_left, bp.corners_right)
+    e = rig_error(out.calibration, truth)
+    assert np.radians(e["rotation_deg"]) < 1e-9 and abs(e["baseline_rel"]) < 1e-9, e
+    assert out.solution.rms_after < 1e-8
+
+
+def test_board_std_matches_actual_error_with_noise(board_view, truth):
+    """20 draws of 0.1 px noise: every error within 4 sigma, and the mean squared z near 1."""
+    bp, ref, _, _ = board_view
+    rng = np.random.default_rng(7)
+    start = perturbed(truth)
+    zs = []
+    for _ in range(20):
+        noisy = [c + rng.normal(0.0, 0.1, c.shape) for c in (bp.corners_left, bp.corners_right)]
+        out = refine_rig(start, ref, *noisy)
+        zs.append(_errors_in_sigma(out, truth)[1])
+        assert out.solution.sigma == pytest.approx(0.1, rel=0.2)
+    zs = np.array(zs)
+    assert np.all(np.abs(zs) < 4)
+    assert 0.4 < np.mean(zs**2) < 2.0, np.mean(zs**2, axis=0)
+
+
+def test_focal_lengths_free(board_view, truth):
+    bp, ref, _, _ = board_view
+    start = perturbed(truth)
+    K2 = start.K2.copy()
+    K2[0, 0] *= 1.002
+    K2[1, 1] *= 1.002
+    out = refine_rig(dataclasses.replace(start, K2=K2), ref, bp.corners_left, bp.corners_right, focal=True)
+    assert out.calibration.K2[0, 0] == pytest.approx(truth.K2[0, 0], rel=1e-9)
+    assert out.theta[7] == pytest.approx(1 / 1.002 - 1, rel=1e-6)
+    assert rig_error(out.calibration, truth)["rotation_deg"] < 1e-7
+
+
+def _fd_check(fn, x, data, free):
+    jac = np.asarray(jax.jit(jax.jacfwd(fn), static_argnums=2)(jnp.asarray(x), data, free))
+    h = 1e-6 * np.maximum(1.0, np.abs(x))
+    steps = np.diag(h)
+    # all central differences in one batched call: x + h e_i and x - h e_i for every i
+    values = jax.jit(jax.vmap(fn, in_axes=(0, None, None)), static_argnums=2)(
+        jnp.asarray(np.r_[x + steps, x - steps]), data, free)
+    values = np.asarray(values)
+    fd = ((values[: len(x)] - values[len(x):]) / (2 * h[:, None])).T
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-6 * np.abs(jac).max())
+
+
+def test_jacobians_match_central_differences(board_view, truth):
+    bp, ref, q_l, q_r = board_view
+    base = RigBase.from_calibration(perturbed(truth))
+    free = free_indices(focal=True)
+    rng = np.random.default_rng(1)
+    theta = rng.normal(0, 1e-3, len(free))
+    free_rig, theta_rig = free[:6], theta[:6]  # the dense and distance paths as run by default (no focal)
+    pose = np.r_[0.3, -0.2, 0.1, -20.0, -10.0, 400.0]
+    data = (base, jnp.asarray(ref.object_points()), jnp.asarray(q_l[None]), jnp.asarray(q_r[None]))
+    _fd_check(res.board_residuals, np.r_[theta, pose], data, free)
+    n = 40
+    from dstereo.reference.refine import matches_with_rays
+
+    sphere_data = (base, matches_with_rays(perturbed(truth), q_l[:n], q_r[:n]), jnp.asarray(60.0), jnp.ones(n))
+    _fd_check(res.sphere_residuals, np.r_[theta_rig, 1.0, -2.0, 400.0], sphere_data, free_rig)
+    pts = rng.normal(0, 20, (6, 3)) + [0, 0, 400]
+    dist_data = (base, jnp.asarray(q_l[:6]), jnp.asarray(q_r[:6]), jnp.array([[0, 1], [2, 3], [4, 5], [0, 5]]),
+                 jnp.array([10.0, 20.0, 30.0, 40.0]), 0.3, 0.01)
+    _fd_check(res.distance_residuals, np.r_[theta_rig, pts.ravel()], dist_data, free_rig)
+
+
+def _marks(rig, truth, points_world, noise, rng):
+    from dstereo.synth.poses import compose, pose_matrix
+
+    m = pose_matrix(rig.T_left_world)
+    p_left = points_world @ m[:3, :3].T + m[:3, 3]
+    proj = lambda cam, p: np.array([np.asarray(cam.project(jnp.asarray(x))) for x in p])  # noqa: E731
+    q_l = proj(rig.left, p_left) + rng.normal(0, noise, (len(p_left), 2))
+    q_r = proj(rig.right, p_left @ truth.R.T + truth.T) + rng.normal(0, noise, (len(p_left), 2))
+    return q_l, q_r
+
+
+def test_distances_path(rig, truth):
+    """Eight marks on a 120 mm cube's corners (analytic projections), all 28 distances known."""
+    cube = np.array([[x, y, z] for x in (-60, 60) for y in (-60, 60) for z in (340, 460)], float)
+    pairs = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])
+    lengths = np.linalg.norm(cube[pairs[:, 0]] - cube[pairs[:, 1]], axis=1)
+    ref = Distances(jnp.asarray(pairs), jnp.asarray(lengths), sigma_px=0.2, sigma_mm=0.01)
+    start = perturbed(truth)
+    rng = np.random.default_rng(3)
+    exact = refine_rig(start, ref, *_marks(rig, truth, cube, 0.0, rng))
+    e = rig_error(exact.calibration, truth)
+    assert np.radians(e["rotation_deg"]) < 1e-9 and abs(e["baseline_rel"]) < 1e-9, e
+    noisy = refine_rig(start, ref, *_marks(rig, truth, cube, 0.2, rng))
+    e, z = _errors_in_sigma(noisy, truth)
+    assert abs(e["baseline_rel"]) < 0.002 and np.all(np.abs(z) < 4), (e, z)
+
+
+@pytest.fixture(scope="module")
+def sphere_view(rig):
+    from dstereo.synth import Sphere as SynthSphere
+    from dstereo.synth import object_pair
+
+    return object_pair(rig, SynthSphere(60.0), np.array([0, 0, 0, 0, 0, 400.0]), seed=3, speckle_mm=1.0)
+
+
+def test_sphere_recovers_baseline_scale(sphere_view, truth):
+    """Dense SGBM matches on a rendered 120 mm sphere: the baseline scale from +1 % to within 0.3 % (measured:
+    -0.18 % with the rotation exact; the rest of the rig is not determined by a sphere: see the second solve)."""
+    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.reference.dense import dense_matches, refine_dense
+
+    cfg = ReconstructionConfig(depth_range=(300.0, 420.0))
+    scale_only = ("w_x", "w_y", "w_z", "dir_a", "dir_b")
+    start = perturbed(truth, 0.01, 0.0)
+    out = refine_dense(start, sphere_view.left, sphere_view.right, Sphere(120.0), fixed=scale_only, config=cfg)
+    e = rig_error(out.calibration, truth)
+    assert abs(e["baseline_rel"]) < 0.003, e
+    assert out.std[3] < 0.001 and out.checks["sphere"]["inliers"] > 2000
+    q_l, q_r = dense_matches(truth, sphere_view.left, sphere_view.right, cfg)
+    everything = refine_rig(start, Sphere(120.0), q_l, q_r)
+    assert "w_x" in everything.report()["poorly_determined"]  # row-wise matching cannot see vertical misalignment
+
+
+def test_metric_scale_of_unscaled_points(sphere_view, truth, board_view):
+    from dstereo.reference.dense import dense_matches
+    from dstereo.reference.refine import _triangulated
+    from dstereo.reconstruction import ReconstructionConfig
+
+    q_l, q_r = dense_matches(truth, sphere_view.left, sphere_view.right, ReconstructionConfig(depth_range=(300, 420)))
+    unscaled = _triangulated(truth, q_l, q_r) / 37.0
+    s = metric_scale(unscaled, Sphere(120.0))
+    assert abs(s.factor / 37.0 - 1) < 0.005 and s.std < 0.005 * 37 and abs(s.factor - 37.0) < 5 * s.std + 0.1
+    bp, ref, _, _ = board_view
+    grid = np.full((480, 640, 3), np.nan)
+    corners = np.rint(bp.corners_left).astype(int)
+    grid[corners[:, 1], corners[:, 0]] = _triangulated(truth, bp.corners_left, bp.corners_right) / 5.0
+    b = metric_scale(grid, ref, corners)
+    assert b.factor == pytest.approx(5.0, rel=0.01) and b.std < 0.05
+
+
+def test_cli_end_to_end(tmp_path, board_view, truth):
+    import cv2
+
+    from dstereo.reference.files import write_calibration
+
+    bp, ref, _, _ = board_view
+    cv2.imwrite(str(tmp_path / "L.png"), bp.left)
+    cv2.imwrite(str(tmp_path / "R.png"), bp.right)
+    write_calibration(tmp_path / "stereo.yml", perturbed(truth), (640, 480))
+    args = ["refine", "--calib", tmp_path / "stereo.yml", "--left", tmp_path / "L.png", "--right", tmp_path / "R.png",
+            "--board", "13x10", "--square", repr(ref.square), "--out", tmp_path / "out"]
+    code, out, err = run_cli(*args)
+    assert code == 0, err
+    assert {p.name for p in (tmp_path / "out").iterdir()} == {"stereo.yml", "refine.json", "report.md"}
+    e = rig_error(read_stereo_calibration(tmp_path / "out" / "stereo.yml"), truth)
+    assert e["rotation_deg"] < 0.01 and abs(e["baseline_rel"]) < 5e-4
+    code, _, err = run_cli(*args)
+    assert code == 1 and "--force" in err
+    assert run_cli(*args, "--force")[0] == 0
+
+
+def test_bad_inputs(tmp_path, board_view, truth):
+    import cv2
+
+    from dstereo.reference.files import write_calibration
+
+    bp, _, _, _ = board_view
+    cv2.imwrite(str(tmp_path / "L.png"), bp.left)
+    cv2.imwrite(str(tmp_path / "R.png"), bp.right)
+    cv2.imwrite(str(tmp_path / "small.png"), bp.right[:400])
+    write_calibration(tmp_path / "stereo.yml", truth, (640, 480))
+    base = ["refine", "--calib", tmp_path / "stereo.yml", "--left", tmp_path / "L.png", "--out", tmp_path / "o"]
+    cases = [
+        (["--right", tmp_path / "nope.png", "--board", "13x10", "--square", "5"], "does not exist"),
+        (["--right", tmp_path / "R.png", "--board", "9x6", "--square", "5"], "no full 9x6 board"),
+        (["--right", tmp_path / "small.png", "--board", "13x10", "--square", "5"], "equal sizes"),
+        (["--right", tmp_path / "R.png", "--board", "13x10", "--square", "5", "--sphere-diameter", "50"], "exactly one"),
+        (["--right", tmp_path / "R.png", "--board", "13x10"], "--square"),
+        (["--right", tmp_path / "R.png", "--distances", tmp_path / "marks.csv"], "marks file"),
+    ]
+    for extra, text in cases:
+        code, _, err = run_cli(*base, *extra)
+        assert code == 1 and text in err and len(err.strip().splitlines()) == 1, (extra, err)
+        assert not (tmp_path / "o").exists()
+    (tmp_path / "marks.csv").write_text("point,a,1,2,3,4\ndistance,a,b,10\n")
+    with pytest.raises(DstereoError, match="unknown points"):
+        from dstereo.reference import read_marks
+
+        read_marks(tmp_path / "marks.csv")
