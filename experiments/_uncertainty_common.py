@@ -177,6 +177,20 @@ def sandwich_std(sol, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(s_inv @ meat @ s_inv), 0.0))
 
 
+def solve_subsets_safe(solver, *args, chunk: int | None = None):
+    """`solver(*args)` (mono.solve_subsets or stereo.solve_stereo_subsets) on one thread and, where the engine
+    version still takes it, with `chunk` subsets per call. jaxlib 0.10.2's CPU runtime deadlocked (0 % CPU for
+    minutes) on rig640 (25 views, m = 22) when the reworked mono solver ran two chunks on two threads, and with
+    the older solver at 32 subsets x 22-25 views per call; one thread, and 16 per call, ran through."""
+    import inspect
+
+    params = inspect.signature(solver).parameters
+    kw = {"chunk": chunk} if chunk and "chunk" in params else {}
+    if "threads" in params:
+        kw["threads"] = 1
+    return solver(*args, **kw)
+
+
 # --- pose-only solve for held-out views --------------------------------------------------------------------------
 
 def _pose_residual(pose, args):

@@ -52,7 +52,7 @@ def cross_validate(obj: np.ndarray, obs: np.ndarray, size, free: tuple[str, ...]
     full = mono.calibrate_full(obj, obs, size, free)
     plan = plan_subsets(n, n - 1, cap=n)
     held = np.array([np.setdiff1d(np.arange(n), row)[0] for row in plan.index])
-    sub = mono.solve_subsets(obj, obs, plan, full)
+    sub = uc.solve_subsets_safe(mono.solve_subsets, obj, obs, plan, full)
     coeffs = np.zeros((n, 8))
     if free:
         coeffs[:, [COEFF_NAMES.index(c) for c in free]] = sub.values[:, 4:]
@@ -133,25 +133,29 @@ def figure(sets: list[dict]) -> None:
     rows = -(-len(sets) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.2 * rows), squeeze=False)
     for ax, s in zip(axes.ravel(), sets):
-        names = list(s["models"])
+        names = list(s["models"])[1:]  # "none" is off the scale everywhere; its RMS goes into the title
         x = np.arange(len(names))
-        tr = [s["models"][k]["train_rms"] for k in names]
-        ho = [s["models"][k]["heldout_rms"] for k in names]
+        m = s["models"]
+        best = m[s["best"]]["heldout_rms"]
+        tr = [m[k]["train_rms"] for k in names]
+        ho = [m[k]["heldout_rms"] for k in names]
+        se = [m[k]["diff_se"] / (2 * best) for k in names]  # 1 SE of the paired MSE difference, in RMS px
         ax.plot(x, tr, "o-", label="training RMS")
-        ax.plot(x, ho, "s-", label="held-out RMS")
+        ax.errorbar(x, ho, yerr=se, fmt="s-", capsize=3, label="held-out RMS (+-1 SE vs best)")
         for i, k in enumerate(names):
-            if not s["models"][k]["identifiable"]:
-                ax.plot(i, ho[i], "rx", ms=10)
+            if not m[k]["identifiable"]:
+                ax.plot(i, ho[i], "rx", ms=10, mew=2)
         c = names.index(s["chosen"])
         ax.plot(c, ho[c], "o", mfc="none", mec="g", ms=14, mew=2)
         ax.set_xticks(x, names, rotation=40, fontsize=7)
-        ax.set_yscale("log")
-        ax.set_title(s["label"], fontsize=9)
+        lo = min(tr + ho)
+        ax.set_ylim(lo * 0.97, min(max(ho), 1.25 * lo) * 1.02)
+        ax.set_title(f"{s['label']} (none: {m['none']['heldout_rms']:.2f} px)", fontsize=8)
     for ax in axes.ravel()[len(sets):]:
         ax.axis("off")
     axes[0, 0].set_ylabel("RMS px")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle("Leave-one-view-out: green ring = chosen model, red x = not identifiable", fontsize=10)
+    axes[0, 0].legend(fontsize=6)
+    fig.suptitle("Leave-one-view-out: green ring = chosen model (1-SE rule), red x = not identifiable", fontsize=10)
     fig.tight_layout()
     uc.FIGURES.mkdir(parents=True, exist_ok=True)
     fig.savefig(uc.FIGURES / "model_choice.png", dpi=110)
@@ -161,7 +165,13 @@ def figure(sets: list[dict]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="opencv_stereo left and one synthetic set only")
+    parser.add_argument("--replot", action="store_true", help="only redraw the figure from the saved JSON")
     args = parser.parse_args()
+    if args.replot:
+        import json
+
+        figure(json.loads((uc.FIGURES / "model_choice.json").read_text())["sets"])
+        return
     t0 = time.perf_counter()
     sets = []
     real = [("opencv_stereo", "left")] if args.quick else [("opencv_stereo", "left"), ("opencv_stereo", "right"),

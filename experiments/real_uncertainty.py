@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 
 FREE = ("k1", "k2", "p1", "p2", "k3")
 SETS = ("opencv_stereo", "rig640")
+CHUNK = 16  # subsets per compiled call where the engine takes it (see `uc.solve_subsets_safe`)
 RIG_COLUMNS = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz", "|rv|", "|T|")
 
 
@@ -44,13 +45,13 @@ def mono_study(obj, obs, size, cap: int, boot: int) -> dict:
     m = n - 3
     full = mono.calibrate_full(obj, obs, size, FREE)
     plan = plan_subsets(n, m, cap=cap, seed=0)
-    sub = mono.solve_subsets(obj, obs, plan, full)
+    sub = uc.solve_subsets_safe(mono.solve_subsets, obj, obs, plan, full, chunk=CHUNK)
     ok = sub.converged
     table = np.column_stack([sub.rms, sub.values])
     filt = run_steps(table, ("re",) + full.names, thesis_steps(), usable=ok)
     kept = filt.survivors
     bplan = uc.bootstrap_plan(n, boot, seed=0)
-    bsub = mono.solve_subsets(obj, obs, bplan, full)
+    bsub = uc.solve_subsets_safe(mono.solve_subsets, obj, obs, bplan, full, chunk=CHUNK)
     bok = bsub.converged
     raw = uc.spread(sub.values[ok])
     return {
@@ -85,8 +86,9 @@ def stereo_study(det, mode: str, cap: int, boot: int) -> dict:
             for obs, d in ((obs_l, det.left), (obs_r, det.right))]
     full = st.calibrate_stereo(obj, obs_l, obs_r, cams[0], cams[1], mode)
     plan = plan_subsets(n, m, cap=cap, seed=0)
-    sub = st.solve_stereo_subsets(obj, obs_l, obs_r, plan, full)
-    bsub = st.solve_stereo_subsets(obj, obs_l, obs_r, uc.bootstrap_plan(n, boot, seed=0), full)
+    sub = uc.solve_subsets_safe(st.solve_stereo_subsets, obj, obs_l, obs_r, plan, full, chunk=CHUNK)
+    bsub = uc.solve_subsets_safe(st.solve_stereo_subsets, obj, obs_l, obs_r, uc.bootstrap_plan(n, boot, seed=0),
+                                    full, chunk=CHUNK)
     ok, bok = sub.converged, bsub.converged
     raw = uc.spread(_rig_columns(sub.values[ok]))
     jac = np.concatenate([full.std[:6], [full.angle_std, full.baseline_std]])

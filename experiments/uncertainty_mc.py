@@ -68,7 +68,7 @@ def run(n_list=(10, 15, 20), draws=100, subset_draws=20, cap=128, progress=print
                 continue
             for m in (n // 2, n - 3):
                 plan = plan_subsets(n, m, cap=cap, seed=d)
-                s = mono.solve_subsets(views.obj, obs[:n], plan, sol)
+                s = uc.solve_subsets_safe(mono.solve_subsets, views.obj, obs[:n], plan, sol)
                 ok = s.converged
                 raw = uc.spread(s.values[ok])
                 rec = sub[(n, m)]

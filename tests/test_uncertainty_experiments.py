@@ -31,7 +31,7 @@ def ratios():
     for seed in range(DRAWS):
         obj, obs = uc.iid_views(cam, N, noise_px=0.05, seed=seed)
         full = mono.calibrate_full(obj, obs, cam.image_size, ("k1", "k2"))
-        sub = mono.solve_subsets(obj, obs, plan, full)
+        sub = uc.solve_subsets_safe(mono.solve_subsets, obj, obs, plan, full)
         assert full.converged and sub.converged.all()
         raw = uc.spread(sub.values)
         raw2.append(raw ** 2)
