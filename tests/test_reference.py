@@ -155,6 +155,14 @@ def _marks(rig, truth, points_world, noise, rng):
     return q_l, q_r
 
 
+def _cube_marks(rig, truth):
+    """Eight marks on a 120 mm cube's corners (analytic projections + 0.2 px noise), all 28 distances known."""
+    cube = np.array([[x, y, z] for x in (-60, 60) for y in (-60, 60) for z in (340, 460)], float)
+    pairs = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)])
+    lengths = np.linalg.norm(cube[pairs[:, 0]] - cube[pairs[:, 1]], axis=1)
+    return _marks(rig, truth, cube, 0.2, np.random.default_rng(5)), pairs, lengths
+
+
 def test_distances_path(rig, truth):
     """Eight marks on a 120 mm cube's corners (analytic projections), all 28 distances known."""
     cube = np.array([[x, y, z] for x in (-60, 60) for y in (-60, 60) for z in (340, 460)], float)
@@ -169,6 +177,26 @@ def test_distances_path(rig, truth):
     noisy = refine_rig(start, ref, *_marks(rig, truth, cube, 0.2, rng))
     e, z = _errors_in_sigma(noisy, truth)
     assert abs(e["baseline_rel"]) < 0.002 and np.all(np.abs(z) < 4), (e, z)
+
+
+def test_distances_cli(tmp_path, rig, truth, board_view):
+    """The same marks through `dstereo refine --distances marks.csv` (images only fix the size here)."""
+    import cv2
+
+    from dstereo.reference.files import write_calibration
+
+    (q_l, q_r), pairs, lengths = _cube_marks(rig, truth)
+    start = perturbed(truth)
+    rows = [f"point,p{i},{a[0]:.17g},{a[1]:.17g},{b[0]:.17g},{b[1]:.17g}" for i, (a, b) in enumerate(zip(q_l, q_r))]
+    rows += [f"distance,p{i},p{j},{d:.17g}" for (i, j), d in zip(pairs, lengths)]
+    (tmp_path / "marks.csv").write_text("# marks\n" + "\n".join(rows) + "\n")
+    cv2.imwrite(str(tmp_path / "L.png"), board_view[0].left)
+    write_calibration(tmp_path / "stereo.yml", start, (640, 480))
+    code, _, err = run_cli("refine", "--calib", tmp_path / "stereo.yml", "--left", tmp_path / "L.png", "--right",
+                           tmp_path / "L.png", "--distances", tmp_path / "marks.csv", "--out", tmp_path / "out")
+    assert code == 0, err
+    got = rig_error(read_stereo_calibration(tmp_path / "out" / "stereo.yml"), truth)
+    assert abs(got["baseline_rel"]) < 0.002
 
 
 @pytest.fixture(scope="module")
@@ -282,7 +310,8 @@ def test_bad_inputs(tmp_path, board_view, truth):
         (["--right", tmp_path / "nope.png", "--board", "13x10", "--square", "5"], "does not exist"),
         (["--right", tmp_path / "R.png", "--board", "9x6", "--square", "5"], "no full 9x6 board"),
         (["--right", tmp_path / "small.png", "--board", "13x10", "--square", "5"], "equal sizes"),
-        (["--right", tmp_path / "R.png", "--board", "13x10", "--square", "5", "--sphere-diameter", "50"], "exactly one"),
+        (["--right", tmp_path / "R.png", "--board", "13x10", "--square", "5", "--sphere-diameter", "50"],
+         "exactly one"),
         (["--right", tmp_path / "R.png", "--board", "13x10"], "--square"),
         (["--right", tmp_path / "R.png", "--distances", tmp_path / "marks.csv"], "marks file"),
     ]

@@ -63,8 +63,10 @@ def refine(
                             config=config)
     r = result.report()
     b, rot = r["baseline"], r["rotation_right_camera_deg"]
-    typer.echo(f"baseline {b['percent']:+.4f} % +- {b['std_percent']:.4f} % ({b['mm']:+.4f} mm); rotation (deg) "
-               + ", ".join(f"{ax} {rot[ax]['value']:+.5f} +- {rot[ax]['std']:.5f}" for ax in "xyz"))
+    rotation = ", ".join(f"{ax} {rot[ax]['value']:+.5f} +- {rot[ax]['std']:.5f}" for ax in "xyz"
+                         if rot[ax]["std"] == rot[ax]["std"])  # NaN: held
+    typer.echo(f"baseline {b['percent']:+.4f} % +- {b['std_percent']:.4f} % ({b['mm']:+.4f} mm)"
+               + (f"; rotation (deg) {rotation}" if rotation else "; rotation held"))
     typer.echo(f"residual RMS {r['residual_rms']['before']:.4g} -> {r['residual_rms']['after']:.4g} "
                f"{r['residual_rms']['unit']}; {r['conditioning']['message']}")
     if r["poorly_determined"]:

@@ -93,7 +93,8 @@ def corrected_calibration(calib: StereoCalibration, theta: np.ndarray) -> Stereo
     k_left, _, k_right, _, R, T = (np.asarray(v) for v in apply(RigBase.from_calibration(calib), jnp.asarray(theta)))
     K1, K2 = calib.K1.copy(), calib.K2.copy()
     K1[0, 0], K1[1, 1], K2[0, 0], K2[1, 1] = k_left[0], k_left[1], k_right[0], k_right[1]
-    return replace(calib, K1=K1, K2=K2, R=R, T=T, source=calib.source if calib.source.endswith("(refined)") else f"{calib.source} (refined)".strip())
+    source = calib.source if calib.source.endswith("(refined)") else f"{calib.source} (refined)".strip()
+    return replace(calib, K1=K1, K2=K2, R=R, T=T, source=source)
 
 
 def rig_error(calib: StereoCalibration, truth: StereoCalibration) -> dict:

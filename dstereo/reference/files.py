@@ -32,8 +32,9 @@ def board_corners(image: np.ndarray, board: Board, name: str) -> np.ndarray:
     return corners
 
 
-def observe_and_refine(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, reference, names=("left", "right"),
-                       focal: bool = False, fixed: tuple[str, ...] = (), marks=None, config=None) -> Refinement:
+def observe_and_refine(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, reference,
+                       names=("left", "right"), focal: bool = False, fixed: tuple[str, ...] = (), marks=None,
+                       config=None) -> Refinement:
     """Observations of `reference` in the pair (corners, dense matches or the given marks), then the refinement."""
     from dstereo.reference.dense import refine_dense
     from dstereo.reference.refine import refine_rig
@@ -87,6 +88,10 @@ def write_calibration(path: Path, calib: StereoCalibration, image_size: tuple[in
                      calib.image_size or image_size)
 
 
+def _std(value, fmt: str, unit: str) -> str:
+    return "held" if value is None or not np.isfinite(value) else f"{format(value, fmt)} {unit}"
+
+
 def report_markdown(r: dict) -> str:
     rot, b = r["rotation_right_camera_deg"], r["baseline"]
     res = r["residual_rms"]
@@ -94,11 +99,12 @@ def report_markdown(r: dict) -> str:
         f"# Rig refinement from a {r['reference']}", "",
         f"Free parameters: {', '.join(r['free_parameters'])}. Corrections with one standard deviation "
         "(from the Jacobian at the solution).", "",
-        "| correction | value | std |", "|---|---|---|",
-        *(f"| rotation of the right camera about its {ax} axis | {rot[ax]['value']:.5f} deg | {rot[ax]['std']:.5f} deg |"
-          for ax in "xyz"),
-        f"| baseline | {b['percent']:+.4f} % ({b['mm']:+.4f} mm) | {b['std_percent']:.4f} % ({b['std_mm']:.4f} mm) |",
-        *(f"| baseline direction {n} | {d['value']:.5f} deg | {d['std']:.5f} deg |"
+        "| correction | value | std |", "|---|---|---|",  # "held": not estimated, kept as calibrated
+        *(f"| rotation of the right camera about its {ax} axis | {rot[ax]['value']:.5f} deg "
+          f"| {_std(rot[ax]['std'], '.5f', 'deg')} |" for ax in "xyz"),
+        f"| baseline | {b['percent']:+.4f} % ({b['mm']:+.4f} mm) | {_std(b['std_percent'], '.4f', '%')} "
+        f"({_std(b['std_mm'], '.4f', 'mm')}) |",
+        *(f"| baseline direction {n} | {d['value']:.5f} deg | {_std(d['std'], '.5f', 'deg')} |"
           for n, d in r["baseline_direction_deg"].items()),
         *(f"| focal length {side} | {f['percent']:+.4f} % ({f['px']:+.3f} px) | {f['std_percent']:.4f} % |"
           for side, f in r.get("focal", {}).items()),
@@ -110,16 +116,18 @@ def report_markdown(r: dict) -> str:
         f"Conditioning: {r['conditioning']['message']}.",
     ]
     if r["poorly_determined"]:
-        lines.append(f"**Not determined by this reference** (std > 0.1 deg or 0.5 %): {', '.join(r['poorly_determined'])}"
-                     "; hold them fixed (`--scale-only`) or add observations.")
+        lines.append("**Not determined by this reference** (std > 0.1 deg or 0.5 %): "
+                     f"{', '.join(r['poorly_determined'])}; hold them fixed (`--scale-only`) or add observations.")
     if "board_metric" in r["checks"]:
         m = r["checks"]["board_metric"]
-        lines.append(f"Triangulated board, neighbour spacing vs square size: {m['before']['spacing_error_mean_percent']:+.4f} % "
-                     f"before, {m['after']['spacing_error_mean_percent']:+.4f} % after (spread "
-                     f"{m['after']['spacing_error_std_percent']:.4f} %); planarity RMS {m['after']['planarity_rms_mm']:.4f} mm.")
+        before, after = m["before"], m["after"]
+        lines.append("Triangulated board, neighbour spacing vs square size: "
+                     f"{before['spacing_error_mean_percent']:+.4f} % before, "
+                     f"{after['spacing_error_mean_percent']:+.4f} % after (spread "
+                     f"{after['spacing_error_std_percent']:.4f} %); planarity RMS {after['planarity_rms_mm']:.4f} mm.")
     if "sphere" in r["checks"]:
         s = r["checks"]["sphere"]
         lines.append(f"Sphere: {s['inliers']} of {s['matches']} matches used; free-fit diameter "
-                     f"{s['free_fit_diameter_before_mm']:.3f} mm before, {s['free_fit_diameter_after_mm']:.3f} mm after "
-                     f"(known {s['known_diameter_mm']:.3f} mm).")
+                     f"{s['free_fit_diameter_before_mm']:.3f} mm before, "
+                     f"{s['free_fit_diameter_after_mm']:.3f} mm after (known {s['known_diameter_mm']:.3f} mm).")
     return "\n".join(lines) + "\n"

@@ -109,8 +109,8 @@ def read_marks(path: str | Path) -> tuple[np.ndarray, np.ndarray, Distances]:
             raise DstereoError(f"{path}:{i}: write 'point,NAME,xl,yl,xr,yr' or 'distance,NAME_A,NAME_B,MM', got {row}")
     unknown = sorted({n for a, b, _ in dist for n in (a, b)} - set(names))
     if unknown or not dist:
-        raise DstereoError(f"{path}: {'distances name unknown points ' + str(unknown) if unknown else 'no distance rows'};"
-                           " every distance needs two 'point' rows naming its ends")
+        problem = f"distances name unknown points {unknown}" if unknown else "no distance rows"
+        raise DstereoError(f"{path}: {problem}; every distance needs two 'point' rows naming its ends")
     if any(d <= 0 for *_, d in dist):
         raise DstereoError(f"{path}: distances must be positive (mm)")
     index = {n: j for j, n in enumerate(names)}

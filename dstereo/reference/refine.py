@@ -44,7 +44,8 @@ class Refinement:
 
     def report(self) -> dict:
         """JSON-ready summary: the correction in deg / % / mm / px with standard deviations, residuals, flags."""
-        th, sd = self.theta, self.std
+        th = self.theta
+        sd = np.where(np.isin(PARAM_NAMES, self.free), self.std, np.nan)  # NaN -> null: held, not estimated
         s, baseline_mm = self.solution, self.baseline_before_mm
         k_l, k_r = self.calibration.k1, self.calibration.k2
         out = {
@@ -166,7 +167,8 @@ def _sphere_problem(calib, sphere: Sphere, q_left, q_right, base, free):
     centre, _ = fit_sphere(points[keep])
     keep &= facing(points, centre, [np.zeros(3), -calib.R.T @ calib.T], LIMB_DEG)
     if keep.sum() < 20:
-        raise DstereoError(f"sphere: only {keep.sum()} matched points lie on a sphere; check the images and the matching")
+        raise DstereoError(f"sphere: only {keep.sum()} matched points lie on a sphere; check the images, the matching "
+                           "and the depth range")
     centre, _ = fit_sphere(points[keep])
     # dropped matches stay in with weight 0 and the position of a kept one: one compiled residual per match count
     q_left, q_right = (np.where(keep[:, None], q, q[np.argmax(keep)]) for q in (np.asarray(q_left, float),
