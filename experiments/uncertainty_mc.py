@@ -164,7 +164,8 @@ def tables(res: dict) -> str:
     for n, f in res["full"].items():
         for i, p in enumerate(names):
             rows.append([n, p, float(res["truth"][p]), float(f["bias"][i]), float(f["bias"][i] / f["mc"][i]),
-                         float(f["clean_bias"][i]), float(f["mc"][i]), float(f["jacobian"][i]), float(f["jacobian"][i] / f["mc"][i]),
+                         float(f["clean_bias"][i]), float(f["mc"][i]), float(f["jacobian"][i]),
+                         float(f["jacobian"][i] / f["mc"][i]),
                          f"{100 * f['coverage95'][i]:.0f} %"])
     text.append(uc.md_table(header, rows))
     header = ["N", "m", "subsets (of C(N,m))", "param", "raw spread / MC", "jackknife / MC", "jackknife / Jacobian",
