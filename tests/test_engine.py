@@ -11,7 +11,7 @@ import pytest
 from conftest import require_data
 from dstereo.calib import mono
 from dstereo.calib.init_zhang import initial_guess
-from dstereo.calib.subsets import plan_subsets
+from dstereo.calib.subsets import SubsetPlan, plan_subsets
 from dstereo.errors import DstereoError
 from dstereo.io.corners import board_points, detect_folder
 from dstereo.models.distortion import PRESETS
@@ -80,6 +80,26 @@ def test_subsets_match_cv2_per_subset():
         rms_cv, k_cv, _ = _cv_calibrate(obj, obs[idx], size, FIVE)
         np.testing.assert_allclose(subs.values[row, :4], k_cv, rtol=1e-6)
         assert abs(subs.rms[row] - rms_cv) <= 1e-6
+
+
+def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
+    """Subsets under half the set take the gathered path (their own compiled shape); a weight-2 view equals
+    the view given twice. Both must reach each subset's own optimum, as a fresh full solve of it does."""
+    obj, obs, size = _load("opencv_stereo", "left")
+    full = mono.calibrate_full(obj, obs, size, FIVE)
+    plan = plan_subsets(len(obs), 5, cap=40, seed=3)
+    subs = mono.solve_subsets(obj, obs, plan, full)  # 5 of 13: gathered
+    assert subs.converged.all()
+    for row in (0, 39):
+        ref = mono.calibrate_full(obj, obs[plan.index[row]], size, FIVE)
+        np.testing.assert_allclose(subs.values[row, :4], ref.values[:4], rtol=1e-7)
+    # bootstrap-style row: views 0..11 with view 0 twice (weights), against the same 13 views listed explicitly
+    boot = SubsetPlan(np.array([[0, 0, *range(1, 12)]], dtype=np.int32), 1, False, 0)
+    weighted = mono.solve_subsets(obj, obs, boot, full)
+    twice = mono.calibrate_full(obj, obs[[0, 0, *range(1, 12)]], size, FIVE)
+    np.testing.assert_allclose(weighted.values[0, :4], twice.values[:4], rtol=1e-7)
+    np.testing.assert_allclose(weighted.values[0, 4:], twice.values[4:], rtol=1e-5)  # k2, k3 correlate: 1e-6
+    assert abs(weighted.rms[0] - twice.rms) < 1e-9
 
 
 def test_structured_solver_agrees_with_optimistix():

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dstereo.models import distort, project_view, rodrigues, undistort
+from dstereo.models.camera import project, project_jacobian
 from dstereo.models.pose import log_rotation
 
 
@@ -74,3 +75,16 @@ def test_undistort_inverts_distort_and_agrees_with_cv2():
     cv = cv2.undistortPoints(np.asarray(xd)[:, None], np.eye(3), coeffs, None, None,
                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15))[:, 0]
     np.testing.assert_allclose(back, cv, atol=1e-8)
+
+
+@pytest.mark.parametrize("strength", [0.0, 0.3, 1.0])
+def test_hand_written_projection_jacobian_matches_autodiff(strength):
+    rng = np.random.default_rng(11)
+    k, coeffs = _random_camera(rng, strength)
+    for _ in range(10):
+        p = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), rng.uniform(0.8, 2.0)])
+        q, dk, dc, dp = project_jacobian(jnp.asarray(k), jnp.asarray(coeffs), jnp.asarray(p))
+        ak, ac, ap = jax.jacfwd(project, argnums=(0, 1, 2))(jnp.asarray(k), jnp.asarray(coeffs), jnp.asarray(p))
+        np.testing.assert_allclose(q, project(k, coeffs, p), rtol=0, atol=1e-12)
+        for ours, ref in ((dk, ak), (dc, ac), (dp, ap)):
+            np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-9)

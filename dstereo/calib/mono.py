@@ -8,7 +8,9 @@ test suite or a CLI run compiles each once.
 from __future__ import annotations
 
 import functools
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import jax
@@ -19,7 +21,7 @@ from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subsets import SubsetPlan
 from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
-from dstereo.models.camera import INTRINSIC_NAMES, project
+from dstereo.models.camera import INTRINSIC_NAMES, project, project_jacobian
 from dstereo.models.pose import rodrigues
 from dstereo.models.distortion import COEFF_NAMES
 from dstereo.solver.lm import STATUS_TEXT, LMOptions, solve_structured
@@ -43,48 +45,64 @@ def view_residual_for(free: tuple[str, ...]):
 
 @functools.lru_cache(maxsize=None)
 def view_linearize_for(free: tuple[str, ...]):
-    """Residuals and Jacobian of one view by the chain rule: per point, reverse-mode d q / d(k, coeffs,
-    p_cam) (2 outputs, so two backward passes), then d p_cam / d pose formed once per view. Several times
-    faster than forward-mode through the whole view; `tests/test_engine.py` checks they agree."""
+    """Residuals and Jacobian of one view by the chain rule: per point the hand-written d q / d(k, coeffs,
+    p_cam) (`camera.project_jacobian`), and d R / d rvec once per view. Faster to run and several times faster
+    to compile than autodiff through the view; `tests/test_engine.py` checks they agree."""
     free_idx = jnp.array([COEFF_NAMES.index(n) for n in free], dtype=int)
 
     def linearize(g, pose, obs_v, shared):
         obj, base_coeffs = shared
         coeffs = base_coeffs.at[free_idx].set(g[4:]) if free else base_coeffs
-        rot_obj = lambda rvec: obj @ rodrigues(rvec).T  # noqa: E731
-        p_cam = rot_obj(pose[:3]) + pose[3:6]
-        d_rot = jax.jacfwd(rot_obj)(pose[:3])  # (n, 3, 3): d p_cam / d rvec
-        q, (dk, dc, dp) = jax.vmap(_value_and_jacrev, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
-        d_pose = jnp.concatenate([jnp.einsum("nij,njk->nik", dp, d_rot), dp], axis=2)  # (n, 2, 6)
-        jac = jnp.concatenate([dk, dc[:, :, free_idx], d_pose], axis=2) if free else jnp.concatenate([dk, d_pose], 2)
-        n = obj.shape[0]
-        return (q - obs_v).ravel(), jac.reshape(2 * n, -1)
+        d_rot = jax.jacfwd(rodrigues)(pose[:3])  # (3, 3, 3): d R_ij / d rvec_k
+        p_cam = obj @ rodrigues(pose[:3]).T + pose[3:6]
+        q, dk, dc, dp = jax.vmap(project_jacobian, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
+        dp_drot = jnp.einsum("nij,jlk,nl->nik", dp, d_rot, obj)  # (n, 2, 3)
+        jac = jnp.concatenate([dk, dc[:, :, free_idx], dp_drot, dp], axis=2)
+        return (q - obs_v).ravel(), jac.reshape(2 * obj.shape[0], -1)
 
     return linearize
 
 
-def _value_and_jacrev(k, coeffs, p_cam):
-    q, vjp = jax.vjp(project, k, coeffs, p_cam)
-    rows = jax.vmap(vjp)(jnp.eye(2))  # two backward passes: (2, 4), (2, 8), (2, 3)
-    return q, rows
+# Problems per compiled call: as many as fit CALL_POINTS corner observations, at most MAX_CHUNK. Measured on
+# jaxlib 0.10.2 (CPU): two calls running at once hang (0 % CPU, never return) from about 32 x 20 views x 54
+# corners per call, and once did from a single 64 x 17 x 54 call; 16-24 x 20 x 54 ran in every trial. The
+# budget stays below that with margin; DSTEREO_THREADS=1 runs one call at a time.
+CALL_POINTS = 16 * 20 * 54
+MAX_CHUNK = 32
+
+
+def chunk_rows(n_views: int, n_points: int) -> int:
+    """Problems per compiled call for views of `n_points` corners (fixed per shape, so one compile)."""
+    return int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_views * n_points))))
+
+
+def _threads(requested: int | None) -> int:
+    env = os.environ.get("DSTEREO_THREADS")
+    n = requested or (int(env) if env and env.isdigit() else None) or os.cpu_count() or 1
+    return max(1, min(n, 2))  # measured: no gain past 2 concurrent calls, and the hang above needs care
 
 
 @functools.lru_cache(maxsize=None)
-def _residuals_fn(free: tuple[str, ...]):
-    return jax.jit(jax.vmap(view_residual_for(free), in_axes=(None, 0, 0, None)))
-
-
-@functools.lru_cache(maxsize=None)
-def _full_solver(free: tuple[str, ...], options: LMOptions):
+def _solver(free: tuple[str, ...], options: LMOptions):
+    """The one compiled program behind the full set and every subset: CHUNK problems of V views, each with
+    its own start, view weights (0 = left out) and initial damping. The full set and subsets of the same
+    images share its shape, so a calibration with subsets compiles once (compile time dominates a cold run)."""
     res, lin = view_residual_for(free), view_linearize_for(free)
-    return jax.jit(lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin))
+
+    def one(g0, p0, obs, weight, lambda0, shared):
+        return solve_structured(res, g0, p0, obs, shared, options, lin, weight, lambda0)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None)))
 
 
-@functools.lru_cache(maxsize=None)
-def _batch_solver(free: tuple[str, ...], options: LMOptions):
-    res, lin = view_residual_for(free), view_linearize_for(free)
-    one = lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin)  # noqa: E731
-    return jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None)))
+def _run(free, options, g0, p0, obs, weight, lambda0, shared):
+    """Call the compiled solver on one chunk given as per-problem numpy arrays (leading axis <= chunk_rows)."""
+    n, rows = len(g0), chunk_rows(np.shape(obs)[1], np.shape(obs)[2])
+    pad = lambda a: np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a  # noqa: E731
+    key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
+    out = _solver(tuple(free), key)(*(jnp.asarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0)),
+                                    shared)
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
 @dataclass
@@ -148,8 +166,9 @@ def calibrate_full(
     k0, p0 = initial_guess(obj, obs, image_size)
     g0 = np.concatenate([k0, np.zeros(len(free))])
     shared = (jnp.asarray(obj), jnp.zeros(8))
-    out = _full_solver(tuple(free), options)(jnp.asarray(g0), jnp.asarray(p0), jnp.asarray(obs), shared)
-    out = jax.tree_util.tree_map(np.asarray, out)
+    out = _run(free, options, g0[None], p0[None], obs[None], np.ones((1, len(obs))), np.array([options.lambda0]),
+               shared)
+    out = jax.tree_util.tree_map(lambda a: a[0], out)
     sol = _solution_from(out, obj, obs, tuple(free), image_size)
     sol.timings["solve_s"] = time.perf_counter() - t0
     if not np.isfinite(sol.rms):
@@ -167,8 +186,7 @@ def _solution_from(out, obj, obs, free, image_size) -> CameraSolution:
     coeffs[[COEFF_NAMES.index(n) for n in free]] = g[4:]
     n_params = len(g) + out.p.size
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
-    resid = np.asarray(_residuals_fn(tuple(free))(jnp.asarray(g), jnp.asarray(out.p), jnp.asarray(obs), (jnp.asarray(obj), jnp.zeros(8))))
-    resid = resid.reshape(obs.shape)
+    resid = np.asarray(out.residuals).reshape(obs.shape)
     n_points = obs.shape[0] * obs.shape[1]
     return CameraSolution(
         names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, coeffs=coeffs, poses=out.p,
@@ -202,34 +220,51 @@ def solve_subsets(
     obs: np.ndarray,
     plan: SubsetPlan,
     start: CameraSolution,
-    chunk: int = 32,  # jaxlib 0.10.2 CPU deadlocks on this while-loop at 64 x 17 views (README)
     options: LMOptions = LMOptions(lambda0=1e-6),
     progress=None,
+    threads: int | None = None,
 ) -> SubsetSolutions:
     """Refine every subset of `plan` in fixed-size vmapped chunks, starting from the full-set solution.
 
     Starting at the full-set optimum puts every subset a few iterations from its own optimum; each subset
     still converges to its own least-squares solution (tests check this against cv2.calibrateCamera).
+    A subset is the full set with the other views weighted 0, so it reuses the full set's compiled solver,
+    unless subsets are less than half the set: then carrying the unused views would cost more than a second
+    compile, and the subsets' views are gathered instead. Chunks run on `threads` threads (default: one per
+    core, at most 2, or DSTEREO_THREADS); XLA runs one chunk's loop mostly on one core.
     """
     free = start.free
-    index = plan.index
+    index = np.asarray(plan.index)
     n_sub, m = index.shape
-    n_pad = (-n_sub) % chunk
-    padded = np.concatenate([index, np.repeat(index[:1], n_pad, axis=0)]) if n_pad else index
-    solver = _batch_solver(tuple(free), options)
+    n_views = len(obs)
+    obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
     shared = (jnp.asarray(obj, float), jnp.zeros(8))
-    obs_j, poses_j, g0 = jnp.asarray(obs, float), jnp.asarray(start.poses), jnp.asarray(start.values)
-    outs = []
+    gathered = 2 * m < n_views
+
+    def chunk_args(rows):
+        c = len(rows)
+        g0 = np.broadcast_to(start.values, (c, len(start.values)))
+        lam = np.full(c, options.lambda0)
+        if gathered:
+            return g0, poses[rows], obs[rows], np.ones((c, m)), lam
+        weight = np.zeros((c, n_views))
+        np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat views
+        return g0, np.broadcast_to(poses, (c, *poses.shape)), np.broadcast_to(obs, (c, *obs.shape)), weight, lam
+
     t0 = time.perf_counter()
-    for c in range(0, len(padded), chunk):
-        idx = jnp.asarray(padded[c: c + chunk])
-        out = solver(g0, poses_j[idx], obs_j[idx], shared)
-        outs.append(jax.tree_util.tree_map(np.asarray, out))
-        if progress is not None:
-            progress(min(c + chunk, n_sub), n_sub)
-    out = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n_sub], *outs)
+    rows = chunk_rows(m if gathered else n_views, obs.shape[1])
+    chunks = [index[c: c + rows] for c in range(0, n_sub, rows)]
+    workers = min(_threads(threads), len(chunks))
+    outs, done = [], 0
+    with ThreadPoolExecutor(workers) as pool:
+        for out in pool.map(lambda rows: _run(free, options, *chunk_args(rows), shared), chunks):
+            outs.append(out)
+            done += len(out.status)
+            if progress is not None:
+                progress(done, n_sub)
+    out = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
     n_points = m * obj.shape[0]
-    n_params = len(g0) + 6 * m
+    n_params = len(start.values) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)
     cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)
     return SubsetSolutions(

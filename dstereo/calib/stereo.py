@@ -31,7 +31,7 @@ from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, sc
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files
-from dstereo.models.camera import INTRINSIC_NAMES, Camera, project
+from dstereo.models.camera import INTRINSIC_NAMES, Camera, project_jacobian
 from dstereo.models.distortion import COEFF_NAMES, PRESETS, undistort
 from dstereo.models.pose import rodrigues
 from dstereo.models.rig import essential_matrix, fundamental_matrix, pair_residual
@@ -82,15 +82,10 @@ def view_residual_for(spec: _Spec):
     return view_residual
 
 
-def _value_and_jacrev(k, coeffs, p_cam):
-    q, vjp = jax.vjp(project, k, coeffs, p_cam)
-    return q, jax.vmap(vjp)(jnp.eye(2))  # (2,), ((2, 4), (2, 8), (2, 3))
-
-
 @functools.lru_cache(maxsize=None)
 def view_linearize_for(spec: _Spec):
     """Residuals and Jacobian [d/dg, d/dpose] of one pair by the chain rule (as `mono.view_linearize_for`):
-    per point d q / d(k, coeffs, p_cam) by two backward passes, the frame changes' derivatives once per view."""
+    per point the hand-written d q / d(k, coeffs, p_cam), the frame changes' derivatives once per view."""
     idx_l = [COEFF_NAMES.index(n) for n in spec.free_left]
     idx_r = [COEFF_NAMES.index(n) for n in spec.free_right]
 
@@ -105,8 +100,8 @@ def view_linearize_for(spec: _Spec):
         p_r = rig_rot(g[:3]) + g[3:6]
         d_rig_r = jnp.concatenate([jax.jacfwd(rig_rot)(g[:3]), eye], axis=2)  # (n, 3, 6)
         d_pose_r = jnp.einsum("ij,njk->nik", rodrigues(g[:3]), d_pose_l)
-        q_l, (dk_l, dc_l, dp_l) = jax.vmap(_value_and_jacrev, in_axes=(None, None, 0))(k_l, c_l, p_l)
-        q_r, (dk_r, dc_r, dp_r) = jax.vmap(_value_and_jacrev, in_axes=(None, None, 0))(k_r, c_r, p_r)
+        q_l, dk_l, dc_l, dp_l = jax.vmap(project_jacobian, in_axes=(None, None, 0))(k_l, c_l, p_l)
+        q_r, dk_r, dc_r, dp_r = jax.vmap(project_jacobian, in_axes=(None, None, 0))(k_r, c_r, p_r)
         mul = lambda a, b: jnp.einsum("nij,njk->nik", a, b)  # noqa: E731
         zeros = lambda cols: jnp.zeros((n, 2, cols))  # noqa: E731
         left = [zeros(6)]

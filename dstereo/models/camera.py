@@ -65,6 +65,52 @@ def project(k: Float[Array, "4"], coeffs: Float[Array, "8"], p_cam: Float[Array,
     return k[:2] * xd + k[2:4]
 
 
+def project_jacobian(
+    k: Float[Array, "4"], coeffs: Float[Array, "8"], p_cam: Float[Array, "3"]
+) -> tuple[Float[Array, "2"], Float[Array, "2 4"], Float[Array, "2 8"], Float[Array, "2 3"]]:
+    """`project` and its derivatives d q / d k, d q / d coeffs (OpenCV order), d q / d p_cam, one point.
+
+    Written out by hand rather than by autodiff: the expressions are short, evaluate in one fused loop, and
+    XLA compiles them several times faster than the autodiff graph, which matters because every calibration
+    solver is compiled around this function (tests compare it with `jax.jacfwd(project)`).
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6 = coeffs
+    fx, fy = k[0], k[1]
+    iz = 1.0 / p_cam[2]
+    x, y = p_cam[0] * iz, p_cam[1] * iz
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    num = 1.0 + k1 * r2 + k2 * r4 + k3 * r6
+    iden = 1.0 / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
+    rad = num * iden
+    xd = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    q = jnp.stack([fx * xd + k[2], fy * yd + k[3]])
+    zero, one = jnp.zeros_like(x), jnp.ones_like(x)
+    dk = jnp.array([[xd, zero, one, zero], [zero, yd, zero, one]])
+    # d rad / d (k1, k2, k3) = r^2n / den; d rad / d (k4, k5, k6) = -rad r^2n / den
+    up, down = jnp.stack([r2, r4, r6]) * iden, -rad * jnp.stack([r2, r4, r6]) * iden
+    dxd_c = jnp.stack([x * up[0], x * up[1], 2.0 * x * y, r2 + 2.0 * x * x, x * up[2], x * down[0], x * down[1],
+                       x * down[2]])
+    dyd_c = jnp.stack([y * up[0], y * up[1], r2 + 2.0 * y * y, 2.0 * x * y, y * up[2], y * down[0], y * down[1],
+                       y * down[2]])
+    dc = jnp.stack([fx * dxd_c, fy * dyd_c])
+    # d rad / d r2, then the 2 x 2 Jacobian of (xd, yd) w.r.t. (x, y)
+    drad = ((k1 + 2.0 * k2 * r2 + 3.0 * k3 * r4) - rad * (k4 + 2.0 * k5 * r2 + 3.0 * k6 * r4)) * iden
+    a = 2.0 * drad
+    dxd_dx = rad + a * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = a * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dx = a * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = rad + a * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+    # (x, y) = (X / Z, Y / Z)
+    dp = jnp.array([
+        [fx * dxd_dx * iz, fx * dxd_dy * iz, -fx * (dxd_dx * x + dxd_dy * y) * iz],
+        [fy * dyd_dx * iz, fy * dyd_dy * iz, -fy * (dyd_dx * x + dyd_dy * y) * iz],
+    ])
+    return q, dk, dc, dp
+
+
 def project_view(
     k: Float[Array, "4"], coeffs: Float[Array, "8"], pose: Float[Array, "6"], p_world: Float[Array, "3"]
 ) -> Float[Array, "2"]:
