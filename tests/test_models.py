@@ -88,3 +88,13 @@ def test_hand_written_projection_jacobian_matches_autodiff(strength):
         np.testing.assert_allclose(q, project(k, coeffs, p), rtol=0, atol=1e-12)
         for ours, ref in ((dk, ak), (dc, ac), (dp, ap)):
             np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-9)
+
+
+def test_start_rotation_vector_matches_cv2_up_to_180_degrees():
+    from dstereo.calib.init_zhang import rotvec_from_matrix
+
+    rng = np.random.default_rng(5)
+    for angle in [*rng.uniform(0, np.pi, 50), 0.0, 1e-9, np.pi - 1e-7, np.pi]:
+        axis = rng.normal(size=3)
+        R = cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0]
+        np.testing.assert_allclose(cv2.Rodrigues(rotvec_from_matrix(R))[0], R, atol=1e-12)

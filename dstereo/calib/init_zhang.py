@@ -27,7 +27,7 @@ def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     zeros, ones = np.zeros(len(s)), np.ones(len(s))
     ax = np.column_stack([-s[:, 0], -s[:, 1], -ones, zeros, zeros, zeros, d[:, 0] * s[:, 0], d[:, 0] * s[:, 1], d[:, 0]])
     ay = np.column_stack([zeros, zeros, zeros, -s[:, 0], -s[:, 1], -ones, d[:, 1] * s[:, 0], d[:, 1] * s[:, 1], d[:, 1]])
-    _, _, vt = np.linalg.svd(np.vstack([ax, ay]))
+    _, _, vt = np.linalg.svd(np.vstack([ax, ay]), full_matrices=False)  # U of 2n x 2n is not needed
     h = vt[-1].reshape(3, 3)
     h = np.linalg.inv(td) @ h @ ts
     return h / h[2, 2]
@@ -58,8 +58,6 @@ def focal_lengths(homographies: list[np.ndarray], cx: float, cy: float) -> tuple
 
 def pose_from_homography(h: np.ndarray, kmat: np.ndarray) -> np.ndarray:
     """(6,) rvec, tvec of T_cam_board from H = K [r1 r2 t], rotation projected onto SO(3)."""
-    import scipy.spatial.transform as sst
-
     m = np.linalg.solve(kmat, h)
     lam = 1.0 / np.linalg.norm(m[:, 0])
     if m[2, 2] * lam < 0:  # the board must lie in front of the camera
@@ -67,7 +65,29 @@ def pose_from_homography(h: np.ndarray, kmat: np.ndarray) -> np.ndarray:
     r1, r2, t = lam * m[:, 0], lam * m[:, 1], lam * m[:, 2]
     u, _, vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return np.concatenate([sst.Rotation.from_matrix(rot).as_rotvec(), t])
+    return np.concatenate([rotvec_from_matrix(rot), t])
+
+
+def rotvec_from_matrix(rot: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix via its unit quaternion (Shepperd: divide by the largest
+    component, so it stays accurate up to and at 180 degrees)."""
+    tr = np.trace(rot)
+    d = np.array([tr, rot[0, 0], rot[1, 1], rot[2, 2]])
+    i = int(np.argmax(d))
+    if i == 0:
+        w = 0.5 * np.sqrt(1.0 + tr)
+        v = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / (4.0 * w)
+    else:
+        a, b, c = i - 1, i % 3, (i + 1) % 3
+        v = np.zeros(3)
+        v[a] = 0.5 * np.sqrt(max(1.0 + 2.0 * rot[a, a] - tr, 0.0))
+        v[b] = (rot[b, a] + rot[a, b]) / (4.0 * v[a])
+        v[c] = (rot[c, a] + rot[a, c]) / (4.0 * v[a])
+        w = (rot[c, b] - rot[b, c]) / (4.0 * v[a])
+    if w < 0:
+        w, v = -w, -v
+    s = np.linalg.norm(v)
+    return v * (2.0 * np.arctan2(s, w) / s) if s > 1e-300 else 2.0 * v
 
 
 def initial_guess(obj: np.ndarray, obs: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
