@@ -53,6 +53,10 @@ class ReconstructionConfig:
     baseline_mm: float | None = None
     ratio: float = 0.75
     f_threshold: float = 1.0
+    # point uncertainty (calibrated path): disparity_sigma None = estimated from a left-right check
+    uncertainty: bool = True
+    disparity_sigma: float | None = None
+    full_covariance: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -72,6 +76,7 @@ class PairResult:
     matrices: dict[str, np.ndarray]
     summary: dict
     warnings: list[str] = field(default_factory=list)
+    uncertainty: object | None = None  # point_uncertainty.PointUncertainty (calibrated path)
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -221,8 +226,52 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     summary = {"mode": "calibrated", "calibration": calib.source, "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity}
-    return _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
-                   timings, [])
+    result = _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
+                     timings, [])
+    if config.uncertainty:
+        add_uncertainty(result, calib, config, params)
+    return result
+
+
+def _right_disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:
+    """The right image's disparity in the left map's sign convention (d = u_left - u_right), for the LR check."""
+    a, b = (left, right) if color else (_grey(left), _grey(right))
+    params = params.with_overrides({"lr_check": None})
+    if Q[3, 2] >= 0:
+        return compute_disparity(np.ascontiguousarray(b[:, ::-1]), np.ascontiguousarray(a[:, ::-1]), params)[:, ::-1]
+    return -compute_disparity(b, a, params)
+
+
+def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
+                    params: SGBMParams | None = None) -> PairResult:
+    """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.point_uncertainty`): disparity noise
+    from `config.disparity_sigma`, else from a left-right check of SGBM's two disparity maps."""
+    from dstereo.point_uncertainty import DEFAULT_SIGMA_D, disparity_noise_from_lr, point_covariances
+
+    t0 = time.perf_counter()
+    if config.disparity_sigma is not None:
+        sigma_d, source = float(config.disparity_sigma), "configured (--disparity-sigma)"
+    else:
+        Q = result.matrices["Q"]
+        d_right = _right_disparity(result.left_rect, result.right_rect, params or config.sgbm, Q,
+                                   config.color_matching)
+        sigma_d, used = disparity_noise_from_lr(result.disparity, d_right)
+        if sigma_d is None or sigma_d == 0:
+            result.warnings.append(
+                f"{result.name}: the left-right check gave no disparity noise estimate ({used} matched pixels); "
+                f"assumed sigma_d = {DEFAULT_SIGMA_D} px; set --disparity-sigma")
+            sigma_d, source = DEFAULT_SIGMA_D, f"default (left-right check unusable: {used} pixels)"
+        else:
+            source = (f"left-right check: robust std(d_L - d_R) / sqrt(2) over {used} pixels (a lower bound: "
+                      "errors both matchings share cancel)")
+    result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
+                                           sigma_d_source=source)
+    result.summary["uncertainty"] = result.uncertainty.summary()
+    result.summary.setdefault("timings_s", {})["uncertainty_s"] = time.perf_counter() - t0
+    if not result.uncertainty.calibration_included:
+        result.warnings.append(f"{result.name}: calibration uncertainty not included ({calib.source} has no "
+                               "covariance); the point sigmas cover disparity noise only")
+    return result
 
 
 def uncalibrated_q(f_px: float, size, baseline: float, d_sparse: np.ndarray, z_sparse: np.ndarray) -> np.ndarray:
@@ -298,7 +347,9 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
     summary = {"mode": "uncalibrated", "units": "mm" if scaled else "unscaled (baseline = 1)", "scaled": scaled,
                "frame": "homography-rectified left image (approximately the left camera; distortion ignored)",
                "matches": int(len(matches.left)), "inliers": int(fit.inliers.sum()), "f_sampson_rms_px": fit.rms,
-               "focal_px": f, "sgbm": params.as_dict()}
+               "focal_px": f, "sgbm": params.as_dict(),
+               "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
+                               "propagate; point uncertainties need --calib"}}
     return _finish(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
                    warnings)
 
@@ -351,7 +402,19 @@ def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig = 
     np.save(folder / "depth.npy", result.depth.astype(np.float32))
     write_pfm(folder / "depth.pfm", result.depth.astype(np.float32))
     np.save(folder / "points.npy", result.points.astype(np.float32))
-    n_points = write_ply_points(folder / "points.ply", result.points, result.colors)
+    unc = result.uncertainty
+    scalars = None
+    if unc is not None:
+        np.save(folder / "sigma_z.npy", unc.sigma_z.astype(np.float32))
+        np.save(folder / "sigma_xyz.npy", unc.sigma_xyz.astype(np.float32))
+        if unc.cov is not None:
+            np.save(folder / "cov_xyz.npy", unc.cov.astype(np.float32))
+        from dstereo.io.sigma_maps import sigma_z_png
+
+        sigma_z_png(folder / "sigma_z.png", unc.sigma_z, f"{result.name}: depth std (sigma_d {unc.sigma_d:.3g} px"
+                    + ("" if unc.calibration_included else ", calibration uncertainty not included") + ")")
+        scalars = {f"sigma_{a}": unc.sigma_xyz[..., i] for i, a in enumerate("xyz")}
+    n_points = write_ply_points(folder / "points.ply", result.points, result.colors, scalars=scalars)
     n_vertices, n_faces = write_mesh_ply(folder / "mesh.ply", result.points, result.colors, config.max_jump)
     np.savez(folder / "matrices.npz", **result.matrices)
     summary = dict(result.summary)

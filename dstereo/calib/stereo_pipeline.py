@@ -222,6 +222,32 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     )
 
 
+FIXED_STRUCTURE = ("block-diagonal (left, right, rig): each camera's intrinsics from its individual (mono) "
+                   "full-set solve, the rig from the stereo solve with the intrinsics held fixed; correlations "
+                   "between the blocks are not included. Values in this file are the final ones; the covariance is "
+                   "that of the full-set solves")
+JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-set)"
+
+
+def rig_covariance(job: StereoCalibrationJob) -> tuple[tuple[str, ...], np.ndarray, str]:
+    """(names, covariance, structure) of every parameter stereo.yml carries: left.fx.., right.fx.., RVx..Tz.
+
+    Mode "fixed" (the thesis's path): the intrinsics come from the individual calibrations, so the covariance
+    is block-diagonal (left, right, rig); mode "joint": the joint solve's covariance, reordered.
+    """
+    s = job.full
+    if s.mode == "joint":
+        names = tuple(n for n in s.names if not n.startswith(("left.", "right.")))
+        order = [i for i, n in enumerate(s.names) if n.startswith("left.")] + \
+            [i for i, n in enumerate(s.names) if n.startswith("right.")] + [s.names.index(n) for n in names]
+        return tuple(s.names[i] for i in order), s.cov[np.ix_(order, order)], JOINT_STRUCTURE
+    from scipy.linalg import block_diag
+
+    names = (tuple(f"left.{n}" for n in job.left.full.names) + tuple(f"right.{n}" for n in job.right.full.names)
+             + tuple(s.names))
+    return names, block_diag(job.left.full.cov, job.right.full.cov, s.cov), FIXED_STRUCTURE
+
+
 def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     """Console text of a finished job (the CLI prints it)."""
     s, pm = job.full, (lambda v, e: f"{v:.6g} +- {e:.3g}" if e == e else f"{v:.6g}")  # noqa: E731
@@ -238,6 +264,7 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     for k in STEP_COLUMNS:
         lines.append(f"{k:>9}  {pm(full_vals[k], full_std[k]):>28}  {pm(job.final[k], job.spread[k])}")
     lines.append(f"baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (full set, Jacobian)")
+    lines.append("stereo.yml carries the calibration covariance: " + rig_covariance(job)[2].split(":")[0])
     if job.filtering is not None:
         lines += [f"  stereo {st.message}" for st in job.filtering.steps]
     lines.append("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in job.timings.items()))

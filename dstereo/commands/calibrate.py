@@ -38,6 +38,9 @@ def calibrate(
     left: Optional[Path] = typer.Option(
         None, "--left", help="Stereo: left camera's images, a folder or a pattern such as DIR/left*.jpg."),
     right: Optional[Path] = typer.Option(None, "--right", help="Stereo: right camera's images (pairs by name order)."),
+    projection_range: Optional[float] = typer.Option(
+        None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
+        "(plots/projection_uncertainty.png); default: the mean board distance."),
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
@@ -46,6 +49,8 @@ def calibrate(
     from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
+    if projection_range is not None and not projection_range > 0:
+        raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     cfg = load_config(config_path) if config_path is not None else Config()
     cfg = cfg.with_overrides(
@@ -58,7 +63,8 @@ def calibrate(
     cfg = validate(cfg)
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
-        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started)
+        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
+                    projection_range)
         return
     if cfg.mode != "individual":
         raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
@@ -69,7 +75,7 @@ def calibrate(
             raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
         images = base / cfg.images
     out = _results_folder(out, project, force, cfg)
-    _run(images, cfg, out, force, quiet, not no_cache, started)
+    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range)
 
 
 def _results_folder(out, project, force: bool, cfg):
@@ -93,7 +99,8 @@ def _stereo_layout(images: Path) -> bool:
     return has_stereo_layout(images)
 
 
-def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started) -> None:
+def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started,
+                projection_range=None) -> None:
     """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
     from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
     from dstereo.io.stereo_files import write_stereo_results
@@ -102,7 +109,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     out = _results_folder(out, project, force, cfg)
     with _progress(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
-        write_stereo_results(out, job, force)
+        write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -118,7 +125,8 @@ def _model(spec: Optional[str]):
     return parse_model(spec)
 
 
-def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float) -> None:
+def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,
+         projection_range: float | None = None) -> None:
     from dstereo.calib.pipeline import calibrate_camera
     from dstereo.io.results import write_camera_results
 
@@ -127,7 +135,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
-        write_camera_results(out, cal, force)
+        write_camera_results(out, cal, force, projection_range=projection_range)
         if progress is not None:
             progress("writing results", 1, 1)
     cal.timings["write_s"] = time.perf_counter() - t0

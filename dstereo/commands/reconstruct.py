@@ -36,6 +36,12 @@ def reconstruct(
     focal_px: Optional[float] = typer.Option(None, "--focal-px", help="Uncalibrated: focal length in px."),
     baseline_mm: Optional[float] = typer.Option(
         None, "--baseline-mm", help="Uncalibrated: baseline, mm (without it the output is unscaled)."),
+    disparity_sigma: Optional[str] = typer.Option(
+        None, "--disparity-sigma", help="Disparity noise in rectified px for the point uncertainties, or 'auto' "
+        "(default: from a left-right check of the two disparity maps)."),
+    no_uncertainty: bool = typer.Option(False, "--no-uncertainty", help="Skip the point uncertainties (sigma_*)."),
+    full_covariance: bool = typer.Option(
+        False, "--full-covariance", help="Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
@@ -81,6 +87,19 @@ def reconstruct(
         except ValueError:
             raise DstereoError(f"--roi {roi!r}: write x,y,w,h in pixels, e.g. --roi 100,50,400,300") from None
         changes["roi"] = (x, y, w, h)
+    if no_uncertainty:
+        changes["uncertainty"] = False
+    if full_covariance:
+        changes["full_covariance"] = True
+    if disparity_sigma is not None and disparity_sigma.strip().lower() != "auto":
+        try:
+            changes["disparity_sigma"] = float(disparity_sigma)
+        except ValueError:
+            raise DstereoError(f"--disparity-sigma {disparity_sigma!r}: give a number of px (e.g. 0.2) or 'auto'") from None
+        if not changes["disparity_sigma"] >= 0:
+            raise DstereoError(f"--disparity-sigma {disparity_sigma}: must be >= 0 px")
+    elif disparity_sigma is not None:
+        changes["disparity_sigma"] = None
     cfg = replace(cfg, sgbm=sgbm_params, **changes)
 
     results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
@@ -89,6 +108,14 @@ def reconstruct(
         depth = s.get("depth_mm") or {}
         typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
                    f"{depth.get('max', float('nan')):.1f} {s['units']}")
+        unc = s.get("uncertainty") or {}
+        if unc.get("sigma_z_mm"):
+            split = unc["median_point"]
+            typer.echo(f"  depth std sigma_z: median {unc['sigma_z_mm']['median']:.3g} mm, p95 "
+                       f"{unc['sigma_z_mm']['p95']:.3g} mm (sigma_d {unc['sigma_d_px']:.3g} px, {unc['sigma_d_source']}); "
+                       f"at the median point calibration {split['calibration_mm']:.3g} mm, disparity "
+                       f"{split['disparity_mm']:.3g} mm" + ("" if unc["calibration_included"] else
+                                                            "; calibration uncertainty not included"))
         for w in r.warnings:
             typer.echo(f"dstereo: warning: {w}", err=True)
     typer.echo(f"wrote {out}")

@@ -162,6 +162,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     return StereoCalibration(
+        extras=_covariance_extras(data, path),
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
         D1=_coeffs8(_pick(data, "D1"), f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
@@ -171,6 +172,23 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
         image_size=_image_size(data),
         source=str(path),
     )
+
+
+def _covariance_extras(data: dict, path: Path) -> dict:
+    """{'cov', 'cov_names', 'cov_structure'} when the file carries a calibration covariance (dstereo's stereo.yml),
+    else {} (OpenCV's own files): the point uncertainties then cover disparity noise only."""
+    cov, names = data.get("cov"), data.get("cov_names")
+    if cov is None and names is None:
+        return {}
+    if cov is None or not isinstance(names, str):
+        raise DstereoError(f"{path}: has {'cov' if cov is not None else 'cov_names'} without "
+                           f"{'cov_names' if cov is not None else 'cov'}; give both or remove both")
+    names = tuple(n.strip() for n in names.split(",") if n.strip())
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (len(names), len(names)):
+        raise DstereoError(f"{path}: cov is {cov.shape[0]}x{cov.shape[1] if cov.ndim > 1 else 1} but cov_names lists "
+                           f"{len(names)} parameters; rewrite the file or remove cov and cov_names")
+    return {"cov": cov, "cov_names": names, "cov_structure": str(data.get("cov_structure", ""))}
 
 
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"

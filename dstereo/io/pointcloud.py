@@ -19,15 +19,22 @@ def _flat(points: np.ndarray, colors: np.ndarray | None):
     return pts[ok], cols
 
 
-def write_ply_points(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> int:
-    """Binary little-endian PLY of the finite points (float32 x y z, uint8 r g b); returns the point count."""
+def write_ply_points(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None,
+                     scalars: dict[str, np.ndarray] | None = None) -> int:
+    """Binary little-endian PLY of the finite points (float32 x y z, uint8 r g b, then one float32 property per
+    entry of `scalars`, each shaped like the cloud without its last axis, e.g. sigma_z); returns the point count."""
     pts, cols = _flat(points, colors)
+    ok = np.all(np.isfinite(np.asarray(points, dtype=np.float64).reshape(-1, 3)), axis=1)
+    extra = {k: np.asarray(v, dtype=np.float32).reshape(-1)[ok] for k, v in (scalars or {}).items()}
     props = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")] + ([] if cols is None else [("red", "u1"), ("green", "u1"),
                                                                                 ("blue", "u1")])
+    props += [(k, "<f4") for k in extra]
     rec = np.empty(len(pts), dtype=props)
     rec["x"], rec["y"], rec["z"] = pts.T
     if cols is not None:
         rec["red"], rec["green"], rec["blue"] = cols.T
+    for k, v in extra.items():
+        rec[k] = v
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(pts)}"]
     header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in props] + ["end_header"]
     with Path(path).open("wb") as f:

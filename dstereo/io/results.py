@@ -11,6 +11,8 @@ Layout of `write_camera_results(out, cal)`:
     stats/parameter_P.txt  one parameter through the steps, as the thesis prints f_x
     plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
     plots/coverage.png, per_image_rms.png, residuals.png
+    plots/projection_uncertainty.png, projection_uncertainty.npz   std (px) of the projection of a point at a
+                         given range (default the mean board distance) under the intrinsics covariance
     undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
 partial folder, and an existing folder is replaced only with `force`.
@@ -257,16 +259,37 @@ def summary_dict(cal) -> dict:
     return summary
 
 
-def write_camera_results(out: str | Path, cal, force: bool = False) -> Path:
+def write_camera_results(out: str | Path, cal, force: bool = False, projection_range: float | None = None) -> Path:
     """Write the whole results folder of one camera's `CameraCalibration` (see the module docstring)."""
     out = Path(out)
     with atomic_folder(out, force) as tmp:
-        fill_camera_folder(tmp, cal)
+        fill_camera_folder(tmp, cal, projection_range=projection_range)
     return out
 
 
-def fill_camera_folder(folder: Path, cal) -> dict:
-    """Everything of the results folder into an existing (temporary) folder; returns the summary."""
+def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None) -> dict:
+    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov) of the full-set solve's
+    intrinsics covariance at `projection_range` (default: the mean board distance); returns the summary entry."""
+    from dstereo.io.sigma_maps import projection_uncertainty_png
+    from dstereo.projection_uncertainty import mean_board_distance, projection_uncertainty_map
+
+    full, det = cal.full, cal.detection
+    source = "given" if projection_range is not None else "mean board distance of the full-set solve"
+    if projection_range is None:
+        projection_range = mean_board_distance(full.poses, det.object_points)
+    pmap = projection_uncertainty_map(full.values[:4], full.coeffs, full.names, full.cov, det.image_size,
+                                      projection_range)
+    np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
+             range=pmap.range_)
+    projection_uncertainty_png(folder / "plots" / "projection_uncertainty.png", pmap, det.image_size,
+                               "projection uncertainty (full-set intrinsics covariance)", cal.config.unit)
+    return {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
+            "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
+
+
+def fill_camera_folder(folder: Path, cal, projection_range: float | None = None) -> dict:
+    """Everything of the results folder into an existing (temporary) folder; returns the summary.
+    `projection_range`: distance of the projection-uncertainty map (default: the mean board distance)."""
     from dstereo.io import plots
 
     full, det = cal.full, cal.detection
@@ -297,6 +320,7 @@ def fill_camera_folder(folder: Path, cal) -> dict:
     plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
     plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
+    summary["projection_uncertainty"] = write_projection_uncertainty(folder, cal, projection_range)
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
         ["summary.json", "report.md"]
     write_json(folder / "summary.json", summary)
@@ -373,6 +397,13 @@ def report_markdown(cal, summary: dict) -> str:
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]
     lines += ["", "![coverage](plots/coverage.png)", ""]
     lines += [f"- warning: {w}" for w in cov.warnings] + ([""] if cov.warnings else [])
+    pu = summary.get("projection_uncertainty")
+    if pu is not None:
+        lines += ["## Projection uncertainty", "",
+                  f"Std of the projected pixel (worst direction) of a point {pu['range']:.4g} {pu['unit']} along each "
+                  f"pixel's ray ({pu['range_source']}) under the full-set intrinsics covariance: median "
+                  f"{pu['std_px']['median']:.3g} px, max {pu['std_px']['max']:.3g} px. {pu['note']}.", "",
+                  "![projection uncertainty](plots/projection_uncertainty.png)", ""]
     lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
               "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:

@@ -114,9 +114,21 @@ def _replace_atomically(path: Path, write) -> Path:
 
 
 def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, int],
-                     image_size_right: tuple[int, int] | None = None, rms: float | None = None) -> Path:
-    """OpenCV YAML with M1 D1 M2 D2 R T E F imageSize (+ imageSize2, rms). D as 1x8 rows in OpenCV's order."""
+                     image_size_right: tuple[int, int] | None = None, rms: float | None = None, *,
+                     cov: np.ndarray | None = None, cov_names: tuple[str, ...] | None = None,
+                     cov_structure: str | None = None) -> Path:
+    """OpenCV YAML with M1 D1 M2 D2 R T E F imageSize (+ imageSize2, rms). D as 1x8 rows in OpenCV's order.
+
+    With `cov`: the calibration covariance as `cov` (G x G matrix), `cov_names` (one string, comma separated:
+    left.fx .. left.<free coefficients>, right.*, RVx RVy RVz Tx Ty Tz; RV is the axis-angle vector of R) and
+    `cov_structure` (how it was obtained), read back into `StereoCalibration.extras` by `read_stereo_calibration`.
+    """
     import cv2
+
+    if cov is not None:
+        cov = np.asarray(cov, dtype=float)
+        if cov_names is None or cov.shape != (len(cov_names), len(cov_names)):
+            raise DstereoError(f"{path}: covariance {cov.shape} needs one name per row ({cov_names})")
 
     def write(tmp: Path) -> None:
         fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
@@ -131,6 +143,10 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
                 fs.write("imageSize2", np.array(image_size_right, dtype=np.int32).reshape(1, 2))
             if rms is not None:
                 fs.write("rms", float(rms))
+            if cov is not None:
+                fs.write("cov_names", ",".join(cov_names))
+                fs.write("cov", cov)
+                fs.write("cov_structure", cov_structure or "")
         finally:
             fs.release()
 
@@ -177,10 +193,11 @@ STEREO_TITLE = "STEREO PARAMETERS"
 STEREO_UNITS = {"stereo_re": "px", "RVnorm": "rad", "RVx": "rad", "RVy": "rad", "RVz": "rad"}
 
 
-def write_stereo_results(out, job, force: bool = False) -> Path:
+def write_stereo_results(out, job, force: bool = False, projection_range: float | None = None) -> Path:
     """The results folder of a `stereo_pipeline.StereoCalibrationJob`, filled under a temporary name:
         left/, right/            each camera's folder, as `dstereo calibrate` writes for one camera
-        stereo.yml, stereo.json  M1 D1 M2 D2 R T E F imageSize (final values) / everything, with std
+        stereo.yml, stereo.json  M1 D1 M2 D2 R T E F imageSize (final values) / everything, with std; both
+                                 carry the calibration covariance (cov, cov_names, cov_structure)
         corners.npz              left/<file>, right/<file> of the stereo pairs, object_points
         stereo_pairs.csv         each pair's RMS reprojection error (both cameras, left, right), full-set solve
         stereo_subsets.csv, stereo_stats/   per subset and per step (with images per set)
@@ -193,7 +210,7 @@ def write_stereo_results(out, job, force: bool = False) -> Path:
     with atomic_folder(out, force) as tmp:
         for side, cal in (("left", job.left), ("right", job.right)):
             (tmp / side).mkdir()
-            fill_camera_folder(tmp / side, cal)
+            fill_camera_folder(tmp / side, cal, projection_range=projection_range)
         _fill_stereo_folder(tmp, job)
     return out
 
@@ -245,9 +262,15 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     from dstereo.io.results import write_stats_files, write_subsets_csv
 
     s, det = job.full, job.detection
+    from dstereo.calib.stereo_pipeline import rig_covariance
+
+    cov_names, cov, cov_structure = rig_covariance(job)
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
-                     job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms)
+                     job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
+                     cov_names=cov_names, cov_structure=cov_structure)
     summary = stereo_summary(job)
+    summary["calibration_covariance"] = {"names": list(cov_names), "cov": cov, "structure": cov_structure,
+                                         "std": dict(zip(cov_names, np.sqrt(np.maximum(np.diag(cov), 0.0))))}
     write_json(folder / "stereo.json", summary)
     write_stereo_corners(folder / "corners.npz", det)
     rms_l = np.sqrt(np.mean(np.sum(s.residuals[:, 0] ** 2, axis=2), axis=1))
@@ -384,7 +407,9 @@ def report_markdown(job, summary: dict) -> str:
              f"[right](right/report.md) RMS {job.right.full.rms:.4f} px",
              f"- stereo pairs: {len(det.pairs)} used, {len(det.dropped)} dropped; intrinsics fixed at each camera's "
              "final values", f"- full-set solve: RMS {s.rms:.4f} px, stereo_re {s.stereo_re:.4f} px, {s.status_text}",
-             f"- baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (Jacobian)", ""]
+             f"- baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (Jacobian)",
+             f"- calibration covariance in stereo.yml (for `dstereo reconstruct`'s point uncertainties): "
+             f"{summary.get('calibration_covariance', {}).get('structure', 'none')}", ""]
     lines += ["| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
     full_vals, std = s.columns(), summary["full_set"]["std"]
     for k in job.columns:
