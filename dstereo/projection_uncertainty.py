@@ -99,6 +99,7 @@ def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:
     """Mean distance from the camera to the board centre over the views (poses (V, 6) T_cam_board)."""
     from scipy.spatial.transform import Rotation
 
+    poses = np.array(poses, dtype=float)  # a writable copy (scipy refuses read-only views of JAX arrays)
     centre = np.asarray(object_points, float).mean(axis=0)
     centres = Rotation.from_rotvec(poses[:, :3]).apply(centre) + poses[:, 3:6]
     return float(np.mean(np.linalg.norm(centres, axis=1)))

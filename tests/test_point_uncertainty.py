@@ -46,8 +46,7 @@ def _pipeline(params, q_left, q_right):
     parameters, both ORIGINAL pixels rectified (exact undistortion), disparity along the row, Q, back to the
     original left frame. Independent of `point_from_pixels`' plane construction."""
     k_l, c_l, k_r, c_r, rv, t = params[0:4], params[4:12], params[12:16], params[16:24], params[24:27], params[27:30]
-    r = stereo_rectify(k_l, c_l, k_r, c_r, SIZE, rodrigues(rv), t, zero_disparity=False, vertical=False,
-                       undistort="exact")
+    r = stereo_rectify(k_l, c_l, k_r, c_r, SIZE, rodrigues(rv), t, zero_disparity=False, vertical=False)
 
     def rectified(k, c, q, rot, P):
         ray = rot @ jnp.append(undistort(c, (q - k[2:]) / k[:2], iterations=30), 1.0)
@@ -176,7 +175,7 @@ def mc():
     cal, dis = (np.asarray(a) for a in predict(jnp.asarray(np.array(params)), jnp.asarray(covs),
                                                 jnp.asarray(np.array(uvd)), rect))
     return SimpleNamespace(err=np.array(found) - pts[None], cal=cal, dis=dis, values=values, covs=covs,
-                           names=names, truth=truth, left=left, poses=poses, obj=obj)
+                           names=names, truth=truth, left=left, right=right, poses=poses, obj=obj, data=data)
 
 
 def test_monte_carlo_point_std_and_95_percent_coverage(mc):
@@ -272,20 +271,42 @@ def test_stereo_yml_carries_the_covariance_and_old_files_still_read(mc, tmp_path
         pu.theta_index(("left.fx", "left.skew"))
 
 
-def test_fixed_mode_covariance_is_block_diagonal():
+def test_fixed_mode_covariance_carries_the_intrinsics_errors_into_the_rig(mc):
+    """Fixed mode: A = d rig / d intrinsics against central differences of re-solved fixed-mode rigs, and the
+    covariance assembled from it (block-diagonal only on request)."""
     from scipy.linalg import block_diag
 
-    from dstereo.calib.stereo_pipeline import FIXED_STRUCTURE, rig_covariance
+    from dstereo.calib.stereo_pipeline import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
 
-    mono = lambda n, s: SimpleNamespace(full=SimpleNamespace(names=("fx", "fy", "cx", "cy", "k1")[:n],  # noqa: E731
-                                                             cov=np.diag(np.arange(1.0, n + 1) * s)))
-    job = SimpleNamespace(left=mono(5, 1.0), right=mono(4, 10.0),
-                          full=SimpleNamespace(mode="fixed", names=st.RIG_NAMES, cov=np.eye(6) * 0.5))
+    ql, qr = mc.data[:, 0], mc.data[:, 1]
+    fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")
+    a = rig_sensitivity(mc.obj, ql, qr, fixed)
+    n_l = len(mc.left.free_vector())
+    for j, h in ((2, 0.5), (n_l + 4, 1e-3)):  # left.cx, right.k1
+        rigs = []
+        for sign in (1.0, -1.0):
+            cams = [mc.left, mc.right]
+            side, k = (0, j) if j < n_l else (1, j - n_l)
+            cams[side] = cams[side].with_free_vector(cams[side].free_vector().at[k].add(sign * h))
+            rigs.append(st.calibrate_stereo(mc.obj, ql, qr, *cams, "fixed").values)
+        fd = (rigs[0] - rigs[1]) / (2 * h)
+        np.testing.assert_allclose(a[:, j], fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+    assert np.abs(a[1, 2]) > 1e-4  # a principal point shift turns the rig (RVy): the compensation that matters
+    mono = lambda cam, s: SimpleNamespace(full=SimpleNamespace(  # noqa: E731
+        names=cam.free_names(), cov=np.diag(np.linspace(1.0, 2.0, len(cam.free_names())) * s)))
+    job = SimpleNamespace(left=mono(mc.left, 0.1), right=mono(mc.right, 0.2), full=fixed,
+                          detection=SimpleNamespace(object_points=mc.obj, observations=lambda: (ql, qr)))
     names, cov, structure = rig_covariance(job)
-    assert names[:5] == ("left.fx", "left.fy", "left.cx", "left.cy", "left.k1") and names[5] == "right.fx"
-    assert names[-6:] == st.RIG_NAMES and structure == FIXED_STRUCTURE and "block-diagonal" in structure
-    np.testing.assert_array_equal(cov, block_diag(np.diag([1.0, 2, 3, 4, 5]), np.diag([10.0, 20, 30, 40]),
-                                                  np.eye(6) * 0.5))
+    c_k = block_diag(job.left.full.cov, job.right.full.cov)
+    assert names[:4] == ("left.fx", "left.fy", "left.cx", "left.cy") and names[-6:] == st.RIG_NAMES
+    assert structure == FIXED_STRUCTURE and "propagated" in structure
+    np.testing.assert_allclose(cov[:len(c_k), :len(c_k)], c_k)
+    np.testing.assert_allclose(cov[len(c_k):, :len(c_k)], a @ c_k, rtol=1e-12)
+    np.testing.assert_allclose(cov[len(c_k):, len(c_k):], fixed.cov + a @ c_k @ a.T, rtol=1e-12)
+    assert np.all(np.linalg.eigvalsh(cov) > -1e-12 * np.abs(cov).max())
+    names_b, cov_b, structure_b = rig_covariance(job, propagate=False)
+    assert names_b == names and structure_b == BLOCK_STRUCTURE
+    np.testing.assert_array_equal(cov_b, block_diag(c_k, fixed.cov))
     pu.theta_index(names)  # every name is a rig parameter
 
 
