@@ -23,7 +23,7 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES
-from dstereo.point_uncertainty import newton_step
+from dstereo.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 NOTE = ("intrinsics only: a point at the given range on each pixel's ray is held fixed in the camera frame; "

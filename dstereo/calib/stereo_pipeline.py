@@ -224,7 +224,8 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
 
 FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance from its individual (mono) full-set "
                    "solve (left and right independent), and the rig's as the fixed-intrinsics stereo solve's plus the "
-                   "intrinsics errors carried into the rig (A C_k A^T, A = d rig / d intrinsics at the stereo optimum), "
+                   "intrinsics errors carried into the rig (A C_k A^T, A = d rig / d intrinsics at the stereo "
+                   "optimum), "
                    "with the cross terms A C_k; assumes the stereo corners' noise independent of the individual "
                    "solves'. Values in this file are the final ones; the covariance is that of the full-set solves")
 BLOCK_STRUCTURE = ("block-diagonal (left, right, rig): each camera's intrinsics from its individual (mono) full-set "

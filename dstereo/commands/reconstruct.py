@@ -95,7 +95,8 @@ def reconstruct(
         try:
             changes["disparity_sigma"] = float(disparity_sigma)
         except ValueError:
-            raise DstereoError(f"--disparity-sigma {disparity_sigma!r}: give a number of px (e.g. 0.2) or 'auto'") from None
+            raise DstereoError(f"--disparity-sigma {disparity_sigma!r}: give a number of px (e.g. 0.2) or "
+                               "'auto'") from None
         if not changes["disparity_sigma"] >= 0:
             raise DstereoError(f"--disparity-sigma {disparity_sigma}: must be >= 0 px")
     elif disparity_sigma is not None:
@@ -112,7 +113,8 @@ def reconstruct(
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]
             typer.echo(f"  depth std sigma_z: median {unc['sigma_z_mm']['median']:.3g} mm, p95 "
-                       f"{unc['sigma_z_mm']['p95']:.3g} mm (sigma_d {unc['sigma_d_px']:.3g} px, {unc['sigma_d_source']}); "
+                       f"{unc['sigma_z_mm']['p95']:.3g} mm (sigma_d {unc['sigma_d_px']:.3g} px, "
+                       f"{unc['sigma_d_source']}); "
                        f"at the median point calibration {split['calibration_mm']:.3g} mm, disparity "
                        f"{split['disparity_mm']:.3g} mm" + ("" if unc["calibration_included"] else
                                                             "; calibration uncertainty not included"))
