@@ -18,20 +18,22 @@ def _pyplot():
 
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
     """Depth standard deviation per pixel, colour bar in `unit`, pixels without a point black; the colour
-    scale stops at the 99th percentile so a few far points do not wash the map out."""
+    scale stops at the 95th percentile (arrow on the bar) so a few far, badly matched points do not wash the
+    map out."""
     import matplotlib
 
     plt = _pyplot()
     h, w = sigma_z.shape
     finite = sigma_z[np.isfinite(sigma_z)]
-    top = float(np.percentile(finite, 99)) if finite.size else 1.0
+    top = float(np.percentile(finite, 95)) if finite.size else 1.0
     fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
     cmap = matplotlib.colormaps["magma"].with_extremes(bad="black")
     im = ax.imshow(np.ma.masked_invalid(sigma_z), cmap=cmap, vmin=0.0, vmax=top if top > 0 else None,
                    interpolation="nearest")
     ax.set_title(title)
     ax.set_axis_off()
-    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}]", fraction=0.046, pad=0.04)
+    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}] (scale to the 95th percentile)", fraction=0.046,
+                 pad=0.04, extend="max")
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
 
