@@ -91,8 +91,11 @@ def undistort(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: in
 
     def step(xy, _):
         f = distort(coeffs, xy) - xy_d
-        jac = jax.jacfwd(distort, argnums=1)(coeffs, xy)
-        return xy - jnp.linalg.solve(jac, f), None
+        (a, b), (c, d) = jax.jacfwd(distort, argnums=1)(coeffs, xy)
+        # Closed-form 2 x 2 solve: vmapped over many points, jnp.linalg.solve's LAPACK call was seen to hang
+        # jaxlib 0.10.2's CPU runtime (and it compiles to far more code).
+        det = a * d - b * c
+        return xy - jnp.stack([d * f[0] - b * f[1], a * f[1] - c * f[0]]) / det, None
 
     xy, _ = jax.lax.scan(step, xy_d, None, length=iterations)
     return xy
