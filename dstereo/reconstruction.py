@@ -1,8 +1,10 @@
 """The reconstruction pipeline: rectify, match (SGBM), triangulate, and write a results folder atomically.
 
 Calibrated path: Bouguet rectification in JAX (`dstereo.rectify`), images resampled by `cv2.remap` on maps
-computed in JAX, SGBM disparity, points from Q in the original left camera frame (mm). A Middlebury-style
-calibration of an already rectified pair skips the resampling.
+computed in JAX, SGBM disparity, optionally refined to sub-pixel accuracy (`dstereo.subpixel`: the originals resampled again
+by cubic B-spline at the exact map positions, Lucas-Kanade along the rows; `refine`), points from Q in the
+original left camera frame (mm). A Middlebury-style calibration of an already rectified pair skips the
+resampling.
 Uncalibrated path (thesis 4.2.2.4): SIFT matches, robust F, Hartley homographies; Q from the user's focal
 length and baseline (baseline 1: unscaled), its disparity offset fitted to the sparse matches triangulated
 from E = K^T F K. Library functions return results and warnings; they never print.
@@ -32,7 +34,11 @@ class ReconstructionConfig:
     depth_range (mm) overrides the SGBM search range; alpha / zero_disparity are stereoRectify's (the default
     zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
     (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
-    statistical outlier removal; max_jump is the relative depth step that breaks the mesh.
+    statistical outlier removal; max_jump is the relative depth step that breaks the mesh. refine: SGBM's
+    pixel-locked sub-pixel disparity is refined (`dstereo.subpixel`); a pixel the refinement cannot refine
+    is dropped (NaN), not kept at SGBM's value. Off by default: on rendered speckle it cuts the surface error
+    2.6x, but on Middlebury 2014 (slanted, occluding, real images) it drops 4-10 % of the pixels and does not
+    improve the good ones (experiments/results/middlebury.md).
     """
 
     sgbm: SGBMParams = PRESETS["default"]
@@ -45,6 +51,7 @@ class ReconstructionConfig:
     outlier_neighbours: int = 0
     outlier_std: float = 2.0
     max_jump: float = 0.05
+    refine: bool = False
     # uncalibrated path
     focal_mm: float | None = None
     pixel_size_mm: float | None = None
@@ -77,6 +84,7 @@ class PairResult:
     summary: dict
     warnings: list[str] = field(default_factory=list)
     uncertainty: object | None = None  # point_uncertainty.PointUncertainty (calibrated path)
+    exact_rect: tuple[np.ndarray, np.ndarray] | None = None  # grey float64 rectified pair the refinement used
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -129,6 +137,21 @@ def _disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> n
         return compute_disparity(a, b, params)
     mirrored = compute_disparity(np.ascontiguousarray(a[:, ::-1]), np.ascontiguousarray(b[:, ::-1]), params)
     return -mirrored[:, ::-1]
+
+
+def _refine(left, right, maps, disparity: np.ndarray, summary: dict, timings: dict):
+    """Refined disparity and the exact rectified grey pair (`dstereo.subpixel`); summary['refine'] says how
+    many of SGBM's pixels it dropped."""
+    from dstereo.subpixel import dropped_fraction, exact_pair, refine_disparity
+
+    t0 = time.perf_counter()
+    exact = exact_pair(left, right, maps)
+    refined = refine_disparity(*exact, disparity)
+    timings["refine_s"] = time.perf_counter() - t0
+    summary["refine"] = {"enabled": True, "dropped_fraction": dropped_fraction(disparity, refined),
+                         "method": "cubic B-spline re-rectification + Lucas-Kanade along rows (dstereo.subpixel); "
+                                   "dropped_fraction: share of SGBM's pixels the refinement could not refine (NaN)"}
+    return refined, exact
 
 
 def _finish(name, left_rect, right_rect, disparity, Q, R1, config: ReconstructionConfig, matrices, summary,
@@ -199,6 +222,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
         rect = rectified_from_projections(*calib.projections(), size)
         left_rect, right_rect = left, right
         outside = np.zeros(left.shape[:2], bool)
+        exact_maps = None
     else:
         rect = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, size, calib.R, calib.T, alpha=config.alpha,
                               zero_disparity=config.zero_disparity, undistort=config.undistort)
@@ -207,13 +231,12 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                 f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
                 "images (and the calibration) by 90 degrees"
             )
-        maps = []
-        for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2)):
-            mx, my = rectify_map(k, d, R, P, rect.size)
-            maps.append((np.asarray(mx, np.float32), np.asarray(my, np.float32)))
-        left_rect, right_rect = (cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                                 for img, (mx, my) in zip((left, right), maps))
-        mx, my = maps[0]
+        exact_maps = [tuple(np.asarray(m, np.float64) for m in rectify_map(k, d, R, P, rect.size))
+                      for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2))]
+        left_rect, right_rect = (cv2.remap(img, mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_CONSTANT)
+                                 for img, (mx, my) in zip((left, right), exact_maps))
+        mx, my = exact_maps[0]
         outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
     timings["rectify_s"] = time.perf_counter() - t0
     Q = np.asarray(rect.Q)
@@ -225,9 +248,14 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
     summary = {"mode": "calibrated", "calibration": calib.source, "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
-               "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity}
+               "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity,
+               "refine": {"enabled": False}}
+    exact = None
+    if config.refine:
+        disparity, exact = _refine(left, right, exact_maps, disparity, summary, timings)
     result = _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
                      timings, [])
+    result.exact_rect = exact
     if config.uncertainty:
         add_uncertainty(result, calib, config, params)
     return result
@@ -245,7 +273,9 @@ def _right_disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
                     params: SGBMParams | None = None) -> PairResult:
     """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.point_uncertainty`): disparity noise
-    from `config.disparity_sigma`, else from a left-right check of SGBM's two disparity maps."""
+    from `config.disparity_sigma`, else from a left-right check of the two disparity maps. When the result's
+    disparity was refined (`result.exact_rect`), SGBM's right map is refined the same way first, so the check
+    describes the refined disparity that the points come from."""
     from dstereo.point_uncertainty import DEFAULT_SIGMA_D, disparity_noise_from_lr, point_covariances
 
     t0 = time.perf_counter()
@@ -255,6 +285,11 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
         Q = result.matrices["Q"]
         d_right = _right_disparity(result.left_rect, result.right_rect, params or config.sgbm, Q,
                                    config.color_matching)
+        refined = result.exact_rect is not None
+        if refined:
+            from dstereo.subpixel import refine_right_disparity
+
+            d_right = refine_right_disparity(*result.exact_rect, d_right)
         sigma_d, used = disparity_noise_from_lr(result.disparity, d_right)
         if sigma_d is None or sigma_d == 0:
             result.warnings.append(
@@ -262,8 +297,8 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
                 f"assumed sigma_d = {DEFAULT_SIGMA_D} px; set --disparity-sigma")
             sigma_d, source = DEFAULT_SIGMA_D, f"default (left-right check unusable: {used} pixels)"
         else:
-            source = (f"left-right check: robust std(d_L - d_R) / sqrt(2) over {used} pixels (a lower bound: "
-                      "errors both matchings share cancel)")
+            source = (f"left-right check{' of the refined maps' if refined else ''}: robust std(d_L - d_R) / "
+                      f"sqrt(2) over {used} pixels (a lower bound: errors both matchings share cancel)")
     result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
                                            sigma_d_source=source)
     result.summary["uncertainty"] = result.uncertainty.summary()
@@ -295,6 +330,7 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
 
     from dstereo.features import match_sift, ransac_fundamental, relative_pose
     from dstereo.rectify import focal_px, rectify_uncalibrated
+    from dstereo.subpixel import homography_maps
     from dstereo.triangulate import triangulate_rays
 
     check_pair(left, right, None)
@@ -314,6 +350,7 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
     fit = ransac_fundamental(matches.left, matches.right, threshold=config.f_threshold)
     m1, m2 = matches.left[fit.inliers], matches.right[fit.inliers]
     H1, H2 = rectify_uncalibrated(m1, m2, fit.F, size, threshold=0)
+    exact_maps = (homography_maps(H1, size), homography_maps(H2, size))
     left_rect = cv2.warpPerspective(left, H1, size, flags=cv2.INTER_LINEAR)
     right_rect = cv2.warpPerspective(right, H2, size, flags=cv2.INTER_LINEAR)
     K = np.array([[f, 0.0, (size[0] - 1) / 2.0], [0.0, f, (size[1] - 1) / 2.0], [0.0, 0.0, 1.0]])
@@ -349,7 +386,9 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                "matches": int(len(matches.left)), "inliers": int(fit.inliers.sum()), "f_sampson_rms_px": fit.rms,
                "focal_px": f, "sgbm": params.as_dict(),
                "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
-                               "propagate; point uncertainties need --calib"}}
+                               "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
+    if config.refine:
+        disparity, _ = _refine(left, right, exact_maps, disparity, summary, timings)
     return _finish(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
                    warnings)
 

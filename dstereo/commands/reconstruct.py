@@ -30,6 +30,10 @@ def reconstruct(
     outliers: Optional[int] = typer.Option(None, "--outliers", help="Statistical outlier removal: neighbours (0 off)."),
     outlier_std: Optional[float] = typer.Option(None, "--outlier-std", help="Outlier threshold in std devs."),
     max_jump: Optional[float] = typer.Option(None, "--max-jump", help="Relative depth step that breaks the mesh."),
+    refine: Optional[bool] = typer.Option(
+        None, "--refine/--no-refine", help="Refine SGBM's pixel-locked sub-pixel disparity (cubic re-rectification + "
+        "Lucas-Kanade); pixels it cannot refine are dropped. Default off: it helps on well-textured, smooth "
+        "surfaces (speckle), not on scenes with many slanted or occluding edges."),
     focal_mm: Optional[float] = typer.Option(None, "--focal-mm", help="Uncalibrated: lens focal length, mm."),
     pixel_size_mm: Optional[float] = typer.Option(None, "--pixel-size-mm", help="Uncalibrated: pixel pitch, mm."),
     crop_factor: Optional[float] = typer.Option(None, "--crop-factor", help="Uncalibrated: crop factor (36 mm)."),
@@ -74,7 +78,7 @@ def reconstruct(
     if lr_check is not None:
         sgbm_params = sgbm_params.with_overrides({"lr_check": lr_check})
     changes = {k: v for k, v in dict(
-        alpha=alpha, zero_disparity=zero_disparity, outlier_neighbours=outliers, outlier_std=outlier_std,
+        alpha=alpha, zero_disparity=zero_disparity, refine=refine, outlier_neighbours=outliers, outlier_std=outlier_std,
         max_jump=max_jump, focal_mm=focal_mm, pixel_size_mm=pixel_size_mm, crop_factor=crop_factor,
         focal_px=focal_px, baseline_mm=baseline_mm).items() if v is not None}
     if (z_min is None) != (z_max is None):
@@ -109,6 +113,8 @@ def reconstruct(
         depth = s.get("depth_mm") or {}
         typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
                    f"{depth.get('max', float('nan')):.1f} {s['units']}")
+        if s.get("refine", {}).get("enabled"):
+            typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
         unc = s.get("uncertainty") or {}
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]

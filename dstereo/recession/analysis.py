@@ -25,7 +25,8 @@ class RecessionConfig:
     camera frame (None: estimated from the reference frame; a given axis without a point keeps the estimated
     face centre). `slab_mm` (in front, behind): points this far in front of the reference face or behind it are
     not the face. A frame whose valid cells fall below `min_face_fraction` of the reference's fails.
-    `refine_subpixel`: refine SGBM's pixel-locked disparity (`recession.subpixel`) before triangulating."""
+    `refine_subpixel`: refine SGBM's pixel-locked disparity (`dstereo.subpixel`) before triangulating
+    (sets the reconstruction's `refine`)."""
 
     grid_mm: float = 0.5
     stagnation_radius_mm: float = 2.0
@@ -194,16 +195,16 @@ def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: in
 
 
 def _reconstructor(calib, recon_config, refine: bool):
-    from dstereo.reconstruction import read_image, reconstruct_calibrated
-    from dstereo.recession.subpixel import Refiner
+    from dataclasses import replace
 
-    refiner = Refiner(calib)
+    from dstereo.reconstruction import read_image, reconstruct_calibrated
+
+    recon_config = replace(recon_config, refine=refine)
 
     def run(frame: Frame) -> np.ndarray:
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            result = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
-            return refiner.points(result, left, right) if refine else result.points
+            return reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left)).points
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
