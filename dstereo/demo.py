@@ -5,7 +5,8 @@ One run, all under `out/` (filled under a temporary name and renamed at the end)
     scenes/sample/         the cork sample seen by both cameras, with each camera's true depth map
     calibration/           the `dstereo calibrate` stereo results folder (the thesis's path, below)
     calibration_joint/     stereo.yml / stereo.json of the joint refinement (below)
-    reconstruction/        the `dstereo reconstruct` results folder of the sample pair (joint calibration)
+    reconstruction/        the `dstereo reconstruct` results folder of the sample pair (joint calibration,
+                           sub-pixel refinement on, point sigmas from the joint covariance)
     comparison.json / .md  every estimate against its truth, with the bound it is held to
 
 Calibration, the thesis's path (`calib.stereo_pipeline`, as `dstereo calibrate` runs it): each camera alone
@@ -16,7 +17,10 @@ sees 80 x 60 mm at 600 mm, a 7.6 deg field in which perspective barely shows on 
 pins its focal length to ~0.1 % and its principal point to ~10 px, while the two cameras together (the board's
 distance triangulated by the rig) reach ~0.02 % and a few px. The joint refinement is the one held to the
 bounds (`BOUNDS`: fixed, or 3 Jacobian standard deviations for the principal points and the rotation) and the
-one the reconstruction uses; the thesis's path is shown beside it. Library code: nothing here prints.
+one the reconstruction uses; the thesis's path is shown beside it. The reconstruction refines SGBM's disparity
+(`dstereo.subpixel`); the surface error without the refinement is reported beside it, and the median predicted
+depth std (joint covariance + left-right disparity noise) beside the measured error. Library code: nothing here
+prints.
 """
 
 from __future__ import annotations
@@ -141,6 +145,7 @@ def calibrate_joint(job, folder: Path, report):
     """Refine both cameras and the rig together on the job's pairs, from its cameras; write stereo.yml and
     stereo.json (with `joint_covariance`'s standard deviations). Returns the solution and that covariance."""
     from dstereo.calib.stereo import calibrate_stereo
+    from dstereo.calib.stereo_pipeline import JOINT_STRUCTURE
     from dstereo.io.results import atomic_folder, write_json
     from dstereo.io.stereo_files import write_stereo_yml
 
@@ -151,7 +156,8 @@ def calibrate_joint(job, folder: Path, report):
     cov = joint_covariance(s, obj, obs_l, obs_r)
     with atomic_folder(folder, False) as tmp:
         write_stereo_yml(tmp / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
-                         s.R, s.T, s.E, s.F, s.left.image_size, s.right.image_size, rms=s.rms)
+                         s.R, s.T, s.E, s.F, s.left.image_size, s.right.image_size, rms=s.rms, cov=cov,
+                         cov_names=tuple(s.names), cov_structure=JOINT_STRUCTURE + "; demo.joint_covariance")
         write_json(tmp / "stereo.json", {
             "mode": s.mode, "status": s.status_text, "names": s.names, "values": s.values,
             "std": np.sqrt(np.diag(cov)), "covariance": cov, "R": s.R, "T": s.T, "E": s.E, "F": s.F,
@@ -196,13 +202,16 @@ def joint_covariance(s, obj: np.ndarray, obs_left: np.ndarray, obs_right: np.nda
 
 def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> dict:
     """Reconstruct the sample pair with the joint calibration (written to out/reconstruction), and with the
-    thesis's and the true calibrations (the latter: matching alone); errors of each against the true surface."""
+    thesis's and the true calibrations (the latter: matching alone), all with the sub-pixel refinement; errors of
+    each against the true surface, the joint and true ones also without the refinement (`*_sgbm`), and the joint
+    reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
     from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated, write_atomically
     from dstereo.reconstruction import write_pair
 
     d = settings.distance_mm
-    config = ReconstructionConfig(depth_range=(d - 50.0, d + 50.0))
+    config = ReconstructionConfig(depth_range=(d - 50.0, d + 50.0), refine=True)
+    sgbm_only = replace(config, refine=False, uncertainty=False)
     left = read_image(out / "scenes" / "sample" / "images_left" / "left_000.png")
     right = read_image(out / "scenes" / "sample" / "images_right" / "right_000.png")
     r, t = rig.rotation_translation()
@@ -214,11 +223,21 @@ def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> 
     surface = {"rms_slope": rms_slope(depth, float(rig.left.k[0]))}
     for i, (key, calib) in enumerate(calibs.items()):
         report("reconstruct", i, len(calibs))
-        result = reconstruct_calibrated(calib, left, right, config, name=f"sample ({key})")
+        result = reconstruct_calibrated(calib, left, right, replace(config, uncertainty=key == "joint"),
+                                        name=f"sample ({key})")
         if key == "joint":
             write_atomically(out / "reconstruction", False, lambda tmp, result=result: write_pair(tmp, result, config))
             surface["valid_fraction"] = result.summary["valid_fraction"]
+            surface["refine_dropped_fraction"] = result.summary["refine"]["dropped_fraction"]
+            unc = result.summary["uncertainty"]
+            surface["sigma_z_mm"] = {"median": unc["sigma_z_mm"]["median"], "p95": unc["sigma_z_mm"]["p95"],
+                                     "calibration_at_median_mm": unc["median_point"]["calibration_mm"],
+                                     "disparity_at_median_mm": unc["median_point"]["disparity_mm"],
+                                     "sigma_d_px": unc["sigma_d_px"], "calibration_included": unc["calibration_included"]}
         surface[key] = surface_errors(result.points, rig.left, depth)
+        if key != "thesis":
+            plain = reconstruct_calibrated(calib, left, right, sgbm_only, name=f"sample ({key}, SGBM only)")
+            surface[f"{key}_sgbm"] = surface_errors(plain.points, rig.left, depth)
     report("reconstruct", len(calibs), len(calibs))
     return surface
 
@@ -451,6 +470,24 @@ def notes(comparison: dict) -> list[str]:
     ]
 
 
+def surface_lines(comparison: dict) -> list[str]:
+    """Surface RMS before/after the sub-pixel refinement, and the predicted depth std beside the measured error."""
+    s = comparison["surface"]
+    sz = s["sigma_z_mm"]
+    return [
+        f"surface RMS vs truth, SGBM -> refined: joint calibration {s['joint_sgbm']['rms_mm']:.4f} -> "
+        f"{s['joint']['rms_mm']:.4f} mm, true calibration {s['true_calibration_sgbm']['rms_mm']:.4f} -> "
+        f"{s['true_calibration']['rms_mm']:.4f} mm (mean {s['true_calibration_sgbm']['mean_mm']:+.4f} -> "
+        f"{s['true_calibration']['mean_mm']:+.4f} mm); the refinement dropped "
+        f"{100 * s['refine_dropped_fraction']:.2f} % of SGBM's pixels.",
+        f"predicted depth std (joint covariance + left-right disparity noise {sz['sigma_d_px']:.3g} px): median "
+        f"sigma_z {sz['median']:.4f} mm (calibration {sz['calibration_at_median_mm']:.4f}, disparity "
+        f"{sz['disparity_at_median_mm']:.4f} mm at the median point) against the measured surface RMS "
+        f"{s['joint']['rms_mm']:.4f} mm (true calibration, matching alone: {s['true_calibration']['rms_mm']:.4f} mm)."
+        + ("" if sz["calibration_included"] else " Calibration uncertainty NOT included."),
+    ]
+
+
 def markdown(comparison: dict) -> str:
     """comparison.md: the table, the subset steps, the surface statistics and where everything is."""
     lines = ["# dstereo demo: estimates against the truth", "",
@@ -461,8 +498,9 @@ def markdown(comparison: dict) -> str:
     lines += ["", f"## Stereo subsets, thesis path ({sub['plan']}, m = {sub['per_set']})", ""]
     lines += [f"- {m}" for m in sub["steps"]]
     lines += [f"- after the steps: {k} = {v['mean']:.6g} +- {v['std']:.3g}" for k, v in sub["after_steps"].items()]
-    for key in ("joint", "thesis", "true_calibration"):
-        lines += ["", f"## Surface ({key.replace('_', ' ')})", ""]
+    lines += ["", "## Sub-pixel refinement and predicted error", ""] + [f"- {n}" for n in surface_lines(comparison)]
+    for key in ("joint", "thesis", "true_calibration", "joint_sgbm", "true_calibration_sgbm"):
+        lines += ["", f"## Surface ({key.replace('_', ' ').replace('sgbm', 'SGBM only, no refinement')})", ""]
         lines += [f"- {k}: {_num(v) if isinstance(v, float) else v}" for k, v in comparison["surface"][key].items()]
     lines += ["", "## Files", ""] + [f"- {k}: `{v}`" for k, v in comparison["paths"].items()]
     if comparison["warnings"] or comparison["calibration_warnings"]:

@@ -139,11 +139,22 @@ def _disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> n
     return -mirrored[:, ::-1]
 
 
-def _refine(left, right, maps, disparity: np.ndarray, summary: dict, timings: dict):
+def _require_disparity(name: str, disparity: np.ndarray, summary: dict) -> None:
+    if not np.isfinite(disparity).any():
+        raise DstereoError(
+            f"{name}: SGBM found no valid disparity (range {summary['sgbm']['min_disparity']}.."
+            f"{summary['sgbm']['min_disparity'] + summary['sgbm']['num_disparities'] - 1} px). The images may lack "
+            "texture, or the range misses the scene: set --z-min/--z-max to the object's depth range or widen "
+            "--sgbm num_disparities; check that --left and --right are not swapped"
+        )
+
+
+def _refine(name: str, left, right, maps, disparity: np.ndarray, summary: dict, timings: dict, warnings: list):
     """Refined disparity and the exact rectified grey pair (`dstereo.subpixel`); summary['refine'] says how
-    many of SGBM's pixels it dropped."""
+    many of SGBM's pixels it dropped (a warning when more than half)."""
     from dstereo.subpixel import dropped_fraction, exact_pair, refine_disparity
 
+    _require_disparity(name, disparity, summary)
     t0 = time.perf_counter()
     exact = exact_pair(left, right, maps)
     refined = refine_disparity(*exact, disparity)
@@ -151,6 +162,10 @@ def _refine(left, right, maps, disparity: np.ndarray, summary: dict, timings: di
     summary["refine"] = {"enabled": True, "dropped_fraction": dropped_fraction(disparity, refined),
                          "method": "cubic B-spline re-rectification + Lucas-Kanade along rows (dstereo.subpixel); "
                                    "dropped_fraction: share of SGBM's pixels the refinement could not refine (NaN)"}
+    if summary["refine"]["dropped_fraction"] > 0.5:
+        warnings.append(f"{name}: the sub-pixel refinement dropped {100 * summary['refine']['dropped_fraction']:.0f}% "
+                        "of SGBM's pixels (little texture, or surfaces slanted or broken within a few pixels); "
+                        "check disparity.png, or run with --no-refine")
     return refined, exact
 
 
@@ -161,14 +176,8 @@ def _finish(name, left_rect, right_rect, disparity, Q, R1, config: Reconstructio
     from dstereo.triangulate import reproject_disparity, to_original_left
 
     t0 = time.perf_counter()
-    finite = np.isfinite(disparity)
-    if not finite.any():
-        raise DstereoError(
-            f"{name}: SGBM found no valid disparity (range {summary['sgbm']['min_disparity']}.."
-            f"{summary['sgbm']['min_disparity'] + summary['sgbm']['num_disparities'] - 1} px). The images may lack "
-            "texture, or the range misses the scene: set --z-min/--z-max to the object's depth range or widen "
-            "--sgbm num_disparities; check that --left and --right are not swapped"
-        )
+    if not summary["refine"]["enabled"]:  # refined: checked on SGBM's map before the refinement
+        _require_disparity(name, disparity, summary)
     points = np.array(to_original_left(reproject_disparity(disparity.astype(np.float64), Q), R1))  # writable
     if config.roi is not None:
         x, y, w, h = config.roi
@@ -250,11 +259,11 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity,
                "refine": {"enabled": False}}
-    exact = None
+    exact, warnings = None, []
     if config.refine:
-        disparity, exact = _refine(left, right, exact_maps, disparity, summary, timings)
+        disparity, exact = _refine(name, left, right, exact_maps, disparity, summary, timings, warnings)
     result = _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
-                     timings, [])
+                     timings, warnings)
     result.exact_rect = exact
     if config.uncertainty:
         add_uncertainty(result, calib, config, params)
@@ -388,7 +397,7 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
                                "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
     if config.refine:
-        disparity, _ = _refine(left, right, exact_maps, disparity, summary, timings)
+        disparity, _ = _refine(name, left, right, exact_maps, disparity, summary, timings, warnings)
     return _finish(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
                    warnings)
 

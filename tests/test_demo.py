@@ -167,3 +167,18 @@ def test_rigid_fit_and_rotation_error():
     np.testing.assert_allclose(r_fit, r, atol=1e-12)
     np.testing.assert_allclose(t_fit, [1.0, 2.0, 3.0], atol=1e-12)
     assert demo.rotation_error_deg(r, np.eye(3)) == pytest.approx(3.0)
+
+
+def test_refinement_and_calibration_sigma_in_the_demo_reconstruction(run):
+    """The refined surface beats SGBM's against the truth (true calibration: matching alone; measured 0.094 ->
+    0.036 mm), the joint stereo.yml carries its covariance, and the reconstruction's predicted sigma_z includes
+    it and is of the measured error's size (measured: median 0.125 mm against an RMS of 0.107 mm)."""
+    out, c = run
+    s = c["surface"]
+    assert s["true_calibration"]["rms_mm"] < 0.6 * s["true_calibration_sgbm"]["rms_mm"]
+    assert s["joint"]["rms_mm"] < s["joint_sgbm"]["rms_mm"] and s["refine_dropped_fraction"] < 0.01
+    calib = read_stereo_calibration(out / c["paths"]["joint_yml"])
+    assert calib.extras["cov"].shape == (len(calib.extras["cov_names"]),) * 2
+    summary = json.loads((out / "reconstruction" / "summary.json").read_text())
+    assert summary["refine"]["enabled"] and summary["uncertainty"]["calibration_included"]
+    assert 0.5 < s["sigma_z_mm"]["median"] / s["joint"]["rms_mm"] < 2.0

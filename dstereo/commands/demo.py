@@ -41,7 +41,7 @@ class _StageLines:
 
 
 def _print(comparison: dict, out: Path, elapsed: float) -> None:
-    from dstereo.demo import TABLE_HEADER, notes, table_rows
+    from dstereo.demo import TABLE_HEADER, notes, surface_lines, table_rows
 
     rows = [TABLE_HEADER] + table_rows(comparison)
     widths = [max(len(r[j]) for r in rows) for j in range(len(TABLE_HEADER))]
@@ -68,6 +68,8 @@ def _print(comparison: dict, out: Path, elapsed: float) -> None:
     typer.echo(f"Surface (joint): {surf['on_sample']} points on the sample ({100 * surf['coverage']:.1f} % of its "
                f"pixels), {surf['off_sample']} off it; median |error| {surf['median_abs_mm']:.3f} mm, mean "
                f"{surf['mean_mm']:+.3f} mm.")
+    for text in surface_lines(comparison):
+        typer.echo(text)
     for warning in comparison["calibration_warnings"]:
         typer.echo(f"dstereo: warning: calibration: {warning}", err=True)
     for warning in comparison["warnings"]:
