@@ -53,10 +53,13 @@ def view_linearize_for(free: tuple[str, ...]):
     def linearize(g, pose, obs_v, shared):
         obj, base_coeffs = shared
         coeffs = base_coeffs.at[free_idx].set(g[4:]) if free else base_coeffs
-        d_rot = jax.jacfwd(rodrigues)(pose[:3])  # (3, 3, 3): d R_ij / d rvec_k
-        p_cam = obj @ rodrigues(pose[:3]).T + pose[3:6]
+        rot, d_rot = rodrigues(pose[:3]), jax.jacfwd(rodrigues)(pose[:3])  # (3, 3), (3, 3, 3): d R_ij / d rvec_k
+        # Products over 3-vectors written as sums of broadcasts, not einsum/matmul: XLA's CPU dot emitter
+        # compiles tiny dots into far more code than these fused loops (compile time dominates a cold run).
+        p_cam = sum(obj[:, j, None] * rot[None, :, j] for j in range(3)) + pose[3:6]
+        dpc_drot = sum(obj[:, j, None, None] * d_rot[None, :, j, :] for j in range(3))  # (n, 3, 3)
         q, dk, dc, dp = jax.vmap(project_jacobian, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
-        dp_drot = jnp.einsum("nij,jlk,nl->nik", dp, d_rot, obj)  # (n, 2, 3)
+        dp_drot = sum(dp[:, :, i, None] * dpc_drot[:, None, i, :] for i in range(3))  # (n, 2, 3)
         jac = jnp.concatenate([dk, dc[:, :, free_idx], dp_drot, dp], axis=2)
         return (q - obs_v).ravel(), jac.reshape(2 * obj.shape[0], -1)
 
