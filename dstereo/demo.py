@@ -206,8 +206,8 @@ def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> 
     each against the true surface, the joint and true ones also without the refinement (`*_sgbm`), and the joint
     reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
-    from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated, write_atomically
-    from dstereo.reconstruction import write_pair
+    from dstereo.io.reconstruction_files import write_atomically, write_pair
+    from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated
 
     d = settings.distance_mm
     config = ReconstructionConfig(depth_range=(d - 50.0, d + 50.0), refine=True)

@@ -21,7 +21,7 @@ import numpy as np
 
 from dstereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.errors import DstereoError
-from dstereo.io.results import atomic_folder, check_output
+from dstereo.io.results import check_output
 from dstereo.io.calib_files import StereoCalibration
 
 LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
@@ -402,92 +402,6 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                    warnings)
 
 
-# --- writing ----------------------------------------------------------------------------------------------
-
-
-def _epipolar_image(left: np.ndarray, right: np.ndarray, step: int = 32) -> np.ndarray:
-    import cv2
-
-    pair = np.concatenate([left, right], axis=1)
-    pair = pair if pair.ndim == 3 else cv2.cvtColor(pair, cv2.COLOR_GRAY2BGR)
-    pair = np.ascontiguousarray(pair)
-    for i, y in enumerate(range(step // 2, pair.shape[0], step)):
-        cv2.line(pair, (0, y), (pair.shape[1] - 1, y), (0, 255, 0) if i % 2 else (0, 0, 255), 1)
-    return pair
-
-
-def _disparity_png(path: Path, disparity: np.ndarray, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    h, w = disparity.shape
-    fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
-    cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
-    im = ax.imshow(np.ma.masked_invalid(disparity), cmap=cmap, interpolation="nearest")
-    ax.set_title(title)
-    ax.set_axis_off()
-    fig.colorbar(im, ax=ax, label="disparity [px]", fraction=0.046, pad=0.04)
-    fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
-
-
-def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig = ReconstructionConfig()) -> None:
-    """All outputs of one pair into `folder` (which exists)."""
-    import cv2
-
-    from dstereo.io.calib_files import write_pfm
-    from dstereo.io.pointcloud import write_mesh_ply, write_ply_points
-
-    t0 = time.perf_counter()
-    cv2.imwrite(str(folder / "rectified_left.png"), result.left_rect)
-    cv2.imwrite(str(folder / "rectified_right.png"), result.right_rect)
-    cv2.imwrite(str(folder / "epipolar.png"), _epipolar_image(result.left_rect, result.right_rect))
-    np.save(folder / "disparity.npy", result.disparity)
-    write_pfm(folder / "disparity.pfm", result.disparity)
-    _disparity_png(folder / "disparity.png", result.disparity, f"{result.name}: disparity")
-    np.save(folder / "depth.npy", result.depth.astype(np.float32))
-    write_pfm(folder / "depth.pfm", result.depth.astype(np.float32))
-    np.save(folder / "points.npy", result.points.astype(np.float32))
-    unc = result.uncertainty
-    scalars = None
-    if unc is not None:
-        np.save(folder / "sigma_z.npy", unc.sigma_z.astype(np.float32))
-        np.save(folder / "sigma_xyz.npy", unc.sigma_xyz.astype(np.float32))
-        if unc.cov is not None:
-            np.save(folder / "cov_xyz.npy", unc.cov.astype(np.float32))
-        from dstereo.io.sigma_maps import sigma_z_png
-
-        sigma_z_png(folder / "sigma_z.png", unc.sigma_z, f"{result.name}: depth std (sigma_d {unc.sigma_d:.3g} px"
-                    + ("" if unc.calibration_included else ", calibration uncertainty not included") + ")")
-        scalars = {f"sigma_{a}": unc.sigma_xyz[..., i] for i, a in enumerate("xyz")}
-    n_points = write_ply_points(folder / "points.ply", result.points, result.colors, scalars=scalars)
-    n_vertices, n_faces = write_mesh_ply(folder / "mesh.ply", result.points, result.colors, config.max_jump)
-    np.savez(folder / "matrices.npz", **result.matrices)
-    summary = dict(result.summary)
-    summary["ply_points"] = n_points
-    summary["mesh"] = {"vertices": n_vertices, "faces": n_faces, "max_jump": config.max_jump}
-    summary["config"] = config.as_dict()
-    summary["timings_s"] = {**summary.get("timings_s", {}), "write_s": time.perf_counter() - t0}
-    (folder / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value)}")
-
-
-def write_atomically(out: str | Path, force: bool, fill) -> Path:
-    """Call fill(tmp_folder), then rename the folder to `out`; nothing is left half-written on failure."""
-    with atomic_folder(out, force) as tmp:
-        fill(tmp)
-    return Path(out)
-
-
 def run_reconstruction(
     pairs: list[tuple[str | Path, str | Path]],
     out: str | Path,
@@ -497,6 +411,7 @@ def run_reconstruction(
 ) -> list[PairResult]:
     """Reconstruct every (left, right) pair and write the results folder (one sub-folder per pair if several)."""
     from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.io.reconstruction_files import json_default, write_atomically, write_pair
 
     check_output(out, force)
     if not pairs:
@@ -524,7 +439,7 @@ def run_reconstruction(
             (tmp / r.name).mkdir()
             write_pair(tmp / r.name, r, config)
         index = {"pairs": [r.summary for r in results], "config": config.as_dict()}
-        (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=_json_default))
+        (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=json_default))
 
     write_atomically(out, force, fill)
     return results

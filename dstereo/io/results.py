@@ -69,7 +69,8 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
         raise
 
 
-def _json_default(value):
+def json_default(value):
+    """`json.dumps(default=...)` for numpy arrays and scalars and paths."""
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
@@ -91,7 +92,7 @@ def _finite(value):
 
 
 def write_json(path: Path, data) -> None:
-    text = json.dumps(data, indent=2, default=_json_default)
+    text = json.dumps(data, indent=2, default=json_default)
     path.write_text(json.dumps(_finite(json.loads(text)), indent=2, allow_nan=False) + "\n")
 
 
