@@ -199,7 +199,8 @@ def _reconstructor(calib, recon_config, refine: bool):
 
     from dstereo.reconstruction import read_image, reconstruct_calibrated
 
-    recon_config = replace(recon_config, refine=refine)
+    # Only the points are used: per-point sigmas (and the extra right-map matching they need) would be wasted.
+    recon_config = replace(recon_config, refine=refine, uncertainty=False)
 
     def run(frame: Frame) -> np.ndarray:
         left, right = read_image(frame.left), read_image(frame.right)
