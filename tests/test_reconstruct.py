@@ -387,3 +387,24 @@ def test_roi_keeps_points_inside_only():
     assert result.summary["valid_fraction"] == pytest.approx(valid.mean())
     with pytest.raises(DstereoError, match="outside"):
         reconstruct_calibrated(calib, left, right, ReconstructionConfig(sgbm=MIDDLEBURY_SGBM, roi=(900, 0, 10, 10)))
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "recession"])
+@pytest.mark.parametrize("bad, message", [
+    (("--preset", "nonsense"), "--preset 'nonsense'"),
+    (("--z-min", "500"), "give both --z-min and --z-max"),
+    (("--roi", "1,2,3"), "--roi '1,2,3'"),
+])
+def test_matching_options_give_the_same_one_line_errors(tmp_path, command, bad, message):
+    """`reconstruct` and `recession` share their matching options (commands/matching_options.py)."""
+    from conftest import run_cli
+
+    calib = tmp_path / "stereo.yml"
+    calib.write_text("%YAML:1.0\n")
+    if command == "reconstruct":
+        args = ["reconstruct", "--calib", calib, "--left", tmp_path / "l.png", "--right", tmp_path / "r.png"]
+    else:
+        args = ["recession", tmp_path, "--calib", calib]
+    code, _, err = run_cli(*args, "--out", tmp_path / "out", *bad)
+    assert code == 1 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()

@@ -41,7 +41,7 @@ def recession(
     from dataclasses import replace
 
     from dstereo.commands.calibrate import _progress
-    from dstereo.disparity import PRESETS, parse_overrides
+    from dstereo.commands.matching_options import matching_changes
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
@@ -55,22 +55,7 @@ def recession(
     cfg = RecessionConfig(grid_mm=grid, stagnation_radius_mm=stagnation_radius, stagnation_model=stagnation_fit,
                           axis=_vector(axis, "--axis"), point=_vector(point, "--point"), min_points_per_cell=min_points,
                           refine_subpixel=refine)
-    sgbm_params = ReconstructionConfig().sgbm
-    if preset is not None:
-        if preset not in PRESETS:
-            raise DstereoError(f"--preset {preset!r}: use one of {sorted(PRESETS)}")
-        sgbm_params = PRESETS[preset]
-    changes = {"sgbm": sgbm_params.with_overrides(parse_overrides(sgbm))}
-    if (z_min is None) != (z_max is None):
-        raise DstereoError("give both --z-min and --z-max (mm), or neither")
-    if z_min is not None:
-        changes["depth_range"] = (z_min, z_max)
-    if roi is not None:
-        try:
-            x, y, w, h = (int(v) for v in roi.split(","))
-        except ValueError:
-            raise DstereoError(f"--roi {roi!r}: write x,y,w,h in pixels, e.g. --roi 100,50,400,300") from None
-        changes["roi"] = (x, y, w, h)
+    changes = matching_changes(ReconstructionConfig().sgbm, preset, sgbm, z_min, z_max, roi)
     recon = replace(ReconstructionConfig(), **changes)
 
     calibration = read_stereo_calibration(calib)

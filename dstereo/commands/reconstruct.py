@@ -51,7 +51,7 @@ def reconstruct(
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
     from dataclasses import replace
 
-    from dstereo.disparity import PRESETS, parse_overrides
+    from dstereo.commands.matching_options import matching_changes
     from dstereo.errors import DstereoError
     from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
 
@@ -69,28 +69,13 @@ def reconstruct(
             cfg = load_config(found, cfg)
     if config is not None:
         cfg = load_config(config, cfg)
-    sgbm_params = cfg.sgbm
-    if preset is not None:
-        if preset not in PRESETS:
-            raise DstereoError(f"--preset {preset!r}: use one of {sorted(PRESETS)}")
-        sgbm_params = PRESETS[preset]
-    sgbm_params = sgbm_params.with_overrides(parse_overrides(sgbm))
+    changes = matching_changes(cfg.sgbm, preset, sgbm, z_min, z_max, roi)
     if lr_check is not None:
-        sgbm_params = sgbm_params.with_overrides({"lr_check": lr_check})
-    changes = {k: v for k, v in dict(
+        changes["sgbm"] = changes["sgbm"].with_overrides({"lr_check": lr_check})
+    changes |= {k: v for k, v in dict(
         alpha=alpha, zero_disparity=zero_disparity, refine=refine, outlier_neighbours=outliers, outlier_std=outlier_std,
         max_jump=max_jump, focal_mm=focal_mm, pixel_size_mm=pixel_size_mm, crop_factor=crop_factor,
         focal_px=focal_px, baseline_mm=baseline_mm).items() if v is not None}
-    if (z_min is None) != (z_max is None):
-        raise DstereoError("give both --z-min and --z-max (mm), or neither")
-    if z_min is not None:
-        changes["depth_range"] = (z_min, z_max)
-    if roi is not None:
-        try:
-            x, y, w, h = (int(v) for v in roi.split(","))
-        except ValueError:
-            raise DstereoError(f"--roi {roi!r}: write x,y,w,h in pixels, e.g. --roi 100,50,400,300") from None
-        changes["roi"] = (x, y, w, h)
     if no_uncertainty:
         changes["uncertainty"] = False
     if full_covariance:
@@ -105,7 +90,7 @@ def reconstruct(
             raise DstereoError(f"--disparity-sigma {disparity_sigma}: must be >= 0 px")
     elif disparity_sigma is not None:
         changes["disparity_sigma"] = None
-    cfg = replace(cfg, sgbm=sgbm_params, **changes)
+    cfg = replace(cfg, **changes)
 
     results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
     for r in results:
