@@ -114,8 +114,11 @@ def test_subset_values_match_opencv(thesis_run):
         ref.update(zip(("k1", "k2", "p1", "p2", "k3"), D.ravel()))
         assert float(row["rms"]) == pytest.approx(rms, rel=1e-9)
         for name in PARAMS:
-            # worst here: k2, k3 at ~7e-7 (they share a flat valley, correlation ~ -0.98); intrinsics ~1e-9
-            assert float(row[name]) == pytest.approx(ref[name], rel=1e-6), (row["subset"], name)
+            # Intrinsics agree to ~1e-9. k2 and k3 share a flat valley (correlation ~ -0.98): ours stops (ftol
+            # 1e-12) within ~7e-7 of the tight optimum, and OpenCV's own k2 moves by up to 4e-7 between
+            # identical runs (measured on subset 143), so those two are held to 2e-6.
+            rel = 2e-6 if name in ("k2", "k3") else 1e-6
+            assert float(row[name]) == pytest.approx(ref[name], rel=rel), (row["subset"], name)
 
 
 def test_results_folder_is_complete_and_well_formed(thesis_run):

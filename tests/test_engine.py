@@ -102,6 +102,33 @@ def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
     assert abs(weighted.rms[0] - twice.rms) < 1e-9
 
 
+def test_subsets_reusing_the_full_sets_linearisation_equal_fresh_starts():
+    """Subsets start from the full set's per-view normal equations (one pass fewer); starting them from
+    scratch must give the same solutions, one more pass each, and the batched loop must equal one problem
+    solved alone."""
+    import dataclasses
+
+    from dstereo.solver.lm import LMOptions, solve_structured
+
+    obj, obs, size = _load("opencv_stereo", "left")
+    full = mono.calibrate_full(obj, obs, size, FIVE)
+    plan = plan_subsets(len(obs), 10, cap=16, seed=5)
+    reused = mono.solve_subsets(obj, obs, plan, full)
+    fresh = mono.solve_subsets(obj, obs, plan, dataclasses.replace(full, normal=None))
+    assert reused.converged.all() and fresh.converged.all()
+    np.testing.assert_allclose(reused.values[:, :4], fresh.values[:, :4], rtol=1e-9)
+    np.testing.assert_allclose(reused.rms, fresh.rms, rtol=1e-10)
+    np.testing.assert_array_equal(reused.iterations, fresh.iterations)  # steps; fresh adds pass 0 only
+    weight = np.zeros(len(obs))
+    weight[plan.index[3]] = 1.0
+    one = jax.jit(lambda w: solve_structured(mono.view_residual_for(FIVE), jnp.asarray(full.values),
+                                             jnp.asarray(full.poses), jnp.asarray(obs),
+                                             (jnp.asarray(obj), jnp.zeros(8)), LMOptions(lambda0=1e-6),
+                                             mono.view_linearize_for(FIVE), w))(jnp.asarray(weight))
+    np.testing.assert_allclose(np.asarray(one.g)[:4], reused.values[3, :4], rtol=1e-12)
+    assert int(one.iterations) == reused.iterations[3]
+
+
 def test_structured_solver_agrees_with_optimistix():
     obj, obs, size = _load("opencv_stereo", "right")
     full = mono.calibrate_full(obj, obs, size, FIVE)
@@ -129,13 +156,13 @@ def test_chain_rule_linearisation_matches_autodiff_and_finite_differences(free):
     x = np.r_[g, pose]
     res = jax.jit(mono.view_residual_for(free))
     f = lambda v: np.asarray(res(jnp.asarray(v[: len(g)]), jnp.asarray(v[len(g):]), jnp.asarray(obs), shared))  # noqa: E731
-    num = np.zeros_like(np.asarray(j_fast))
+    num = np.zeros_like(np.asarray(j_fast).T)
     for i in range(len(x)):
         h = 1e-6 * max(1.0, abs(x[i]))
         e = np.zeros_like(x)
         e[i] = h
         num[:, i] = (f(x + e) - f(x - e)) / (2 * h)
-    np.testing.assert_allclose(j_fast, num, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(j_fast).T, num, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("seed", [11, 12, 13])

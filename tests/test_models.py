@@ -8,7 +8,8 @@ import pytest
 
 from dstereo.models import distort, project_view, rodrigues, undistort
 from dstereo.models.camera import project, project_jacobian
-from dstereo.models.pose import log_rotation
+from dstereo.models.distortion import COEFF_NAMES, with_free
+from dstereo.models.pose import log_rotation, rodrigues_jacobian
 
 
 def _random_camera(rng, strength):
@@ -43,6 +44,29 @@ def test_rodrigues_matches_cv2_and_is_smooth_at_zero():
     np.testing.assert_allclose(jac0[:, :, 0], np.array([[0, 0, 0], [0, 0, -1], [0, 1, 0]]), atol=1e-12)
     g = jax.grad(lambda r: jnp.sum(rodrigues(r) @ jnp.ones(3)))(jnp.zeros(3))
     assert np.all(np.isfinite(g))
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-4, 3e-3, 0.5, 3.0])
+def test_hand_written_rotation_jacobian_matches_autodiff_and_differences(scale):
+    """`rodrigues_jacobian` (used by every calibration's linearisation) against `jax.jacfwd(rodrigues)` and
+    central differences of cv2.Rodrigues, from zero rotation through the series/closed-form switch to ~pi."""
+    rng = np.random.default_rng(7)
+    for r in rng.standard_normal((4, 3)) * scale:
+        rot, d_rot = rodrigues_jacobian(jnp.asarray(r))
+        np.testing.assert_allclose(rot, cv2.Rodrigues(r)[0], atol=1e-12)
+        np.testing.assert_allclose(d_rot, jax.jacfwd(rodrigues)(jnp.asarray(r)), atol=1e-10)
+        h = 1e-6
+        num = np.stack([(cv2.Rodrigues(r + h * e)[0] - cv2.Rodrigues(r - h * e)[0]) / (2 * h) for e in np.eye(3)],
+                       axis=-1)
+        np.testing.assert_allclose(d_rot, num, atol=1e-8)
+
+
+def test_with_free_places_coefficients_like_an_indexed_update():
+    base = jnp.arange(8.0) / 10
+    for free in [(), ("k1",), ("k1", "k2", "p1", "p2", "k3"), ("k2", "k6"), COEFF_NAMES]:
+        values = jnp.arange(len(free)) + 100.0
+        idx = jnp.array([COEFF_NAMES.index(n) for n in free], dtype=int)
+        np.testing.assert_array_equal(with_free(base, free, values), base.at[idx].set(values))
 
 
 def test_projection_jacobian_matches_central_differences():

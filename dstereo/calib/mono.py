@@ -22,19 +22,18 @@ from dstereo.calib.subsets import SubsetPlan
 from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project, project_jacobian
-from dstereo.models.pose import rodrigues
-from dstereo.models.distortion import COEFF_NAMES
-from dstereo.solver.lm import STATUS_TEXT, LMOptions, solve_structured
+from dstereo.models.distortion import COEFF_NAMES, with_free
+from dstereo.models.pose import rodrigues, rodrigues_jacobian
+from dstereo.solver.lm import COMPILE_OPTIONS, STATUS_TEXT, LMOptions, solve_structured_batch
 
 
 @functools.lru_cache(maxsize=None)
 def view_residual_for(free: tuple[str, ...]):
     """Residual of one view (2n,) for a given free distortion set; cached so jit sees one function."""
-    free_idx = jnp.array([COEFF_NAMES.index(n) for n in free], dtype=int)
 
     def view_residual(g, pose, obs_v, shared):
         obj, base_coeffs = shared
-        coeffs = base_coeffs.at[free_idx].set(g[4:]) if free else base_coeffs
+        coeffs = with_free(base_coeffs, free, g[4:])
         # One rotation per view, not per point: the pose Jacobian is then formed once, too.
         p_cam = obj @ rodrigues(pose[:3]).T + pose[3:6]
         q = jax.vmap(project, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
@@ -45,23 +44,31 @@ def view_residual_for(free: tuple[str, ...]):
 
 @functools.lru_cache(maxsize=None)
 def view_linearize_for(free: tuple[str, ...]):
-    """Residuals and Jacobian of one view by the chain rule: per point the hand-written d q / d(k, coeffs,
-    p_cam) (`camera.project_jacobian`), and d R / d rvec once per view. Faster to run and several times faster
-    to compile than autodiff through the view; `tests/test_engine.py` checks they agree."""
-    free_idx = jnp.array([COEFF_NAMES.index(n) for n in free], dtype=int)
+    """Residuals and transposed Jacobian of one view by the chain rule: per point the hand-written d q /
+    d(k, coeffs, p_cam) (`camera.project_jacobian`), and d R / d rvec once per view (`pose.rodrigues_jacobian`).
+
+    Written on whole coordinate arrays (3, n) rather than vmapped per point, with the free coefficients
+    picked by static slices: the view is then a few elementwise loops, which traces and compiles about
+    twice as fast as per-point vmaps and autodiff (compile time dominates a cold calibration);
+    `tests/test_engine.py` checks it against autodiff and finite differences.
+    """
+    cols = [COEFF_NAMES.index(n) for n in free]
 
     def linearize(g, pose, obs_v, shared):
         obj, base_coeffs = shared
-        coeffs = base_coeffs.at[free_idx].set(g[4:]) if free else base_coeffs
-        rot, d_rot = rodrigues(pose[:3]), jax.jacfwd(rodrigues)(pose[:3])  # (3, 3), (3, 3, 3): d R_ij / d rvec_k
-        # Products over 3-vectors written as sums of broadcasts, not einsum/matmul: XLA's CPU dot emitter
-        # compiles tiny dots into far more code than these fused loops (compile time dominates a cold run).
-        p_cam = sum(obj[:, j, None] * rot[None, :, j] for j in range(3)) + pose[3:6]
-        dpc_drot = sum(obj[:, j, None, None] * d_rot[None, :, j, :] for j in range(3))  # (n, 3, 3)
-        q, dk, dc, dp = jax.vmap(project_jacobian, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
-        dp_drot = sum(dp[:, :, i, None] * dpc_drot[:, None, i, :] for i in range(3))  # (n, 2, 3)
-        jac = jnp.concatenate([dk, dc[:, :, free_idx], dp_drot, dp], axis=2)
-        return (q - obs_v).ravel(), jac.reshape(2 * obj.shape[0], -1)
+        coeffs = with_free(base_coeffs, free, g[4:])
+        rot, d_rot = rodrigues_jacobian(pose[:3])  # (3, 3), (3, 3, 3): d R_ij / d rvec_k
+        o = obj.T  # (3, n)
+        # Products over 3-vectors as sums of broadcasts: XLA's CPU dot emitter compiles tiny dots into far
+        # more code than these fused loops.
+        p_cam = sum(rot[:, j, None] * o[j] for j in range(3)) + pose[3:6, None]  # (3, n)
+        dpc_drot = sum(d_rot[:, j, :, None] * o[j] for j in range(3))  # (3 i, 3 k, n): d p_cam_i / d rvec_k
+        q, dk, dc, dp = project_jacobian(g[:4], coeffs, p_cam)  # (2, n), (2, 4, n), (2, 8, n), (2, 3, n)
+        dp_drot = sum(dp[:, i, None, :] * dpc_drot[None, i] for i in range(3))  # (2, 3, n)
+        rows = jnp.concatenate([dk, *(dc[:, c:c + 1] for c in cols), dp_drot, dp, (q - obs_v.T)[:, None]], axis=1)
+        # (2, G + 7, n) -> one row per parameter and the residuals last, in the model's order (n, 2)
+        rows = jnp.transpose(rows, (1, 2, 0)).reshape(rows.shape[1], -1)
+        return rows[-1], rows[:-1]
 
     return linearize
 
@@ -92,19 +99,28 @@ def _solver(free: tuple[str, ...], options: LMOptions):
     images share its shape, so a calibration with subsets compiles once (compile time dominates a cold run)."""
     res, lin = view_residual_for(free), view_linearize_for(free)
 
-    def one(g0, p0, obs, weight, lambda0, shared):
-        return solve_structured(res, g0, p0, obs, shared, options, lin, weight, lambda0)
+    def batch(g0, p0, obs, weight, lambda0, normal0, shared):
+        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0)
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None)))
+    return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
 
 
-def _run(free, options, g0, p0, obs, weight, lambda0, shared):
-    """Call the compiled solver on one chunk given as per-problem numpy arrays (leading axis <= chunk_rows)."""
-    n, rows = len(g0), chunk_rows(np.shape(obs)[1], np.shape(obs)[2])
+def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None):
+    """Call the compiled solver on one chunk given as per-problem numpy arrays (leading axis <= chunk_rows).
+
+    `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
+    and `.normal`); the solver then skips linearising the start. Without it, the same compiled program
+    linearises the start itself (a traced flag, not a second compile)."""
+    n, (n_views, n_pts) = len(g0), np.shape(obs)[1:3]
+    rows = chunk_rows(n_views, n_pts)
     pad = lambda a: np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a  # noqa: E731
+    n_p1 = np.shape(g0)[1] + 7
+    given = normal0 is not None
+    if not given:
+        normal0 = (np.zeros((n, n_views, 2 * n_pts)), np.zeros((n, n_views, n_p1, n_p1)))
     key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
-    out = _solver(tuple(free), key)(*(jnp.asarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0)),
-                                    shared)
+    args = [jnp.asarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0, *normal0)]
+    out = _solver(tuple(free), key)(*args[:5], (*args[5:], jnp.full(rows, given)), shared)
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
@@ -127,6 +143,7 @@ class CameraSolution:
     free: tuple[str, ...]
     image_size: tuple[int, int]
     timings: dict = field(default_factory=dict)
+    normal: np.ndarray | None = None  # (V, P+1, P+1) per view [J r]'[J r] at the solution: subsets start from it
 
     @property
     def converged(self) -> bool:
@@ -195,7 +212,7 @@ def _solution_from(out, obj, obs, free, image_size) -> CameraSolution:
         names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, coeffs=coeffs, poses=out.p,
         rms=float(np.sqrt(out.sse / n_points)),
         per_view_rms=np.sqrt(np.mean(np.sum(resid ** 2, axis=2), axis=1)),
-        residuals=resid, iterations=int(out.iterations), status=int(out.status),
+        residuals=resid, iterations=int(out.iterations), status=int(out.status), normal=np.asarray(out.normal),
         conditioning=conditioning(out.schur, names), free=free, image_size=tuple(image_size),
     )
 
@@ -244,15 +261,26 @@ def solve_subsets(
     shared = (jnp.asarray(obj, float), jnp.zeros(8))
     gathered = 2 * m < n_views
 
+    # The full set's linearisation at its solution (the subsets' start), per view and unweighted: every
+    # subset reuses it instead of linearising its start again (one pass of about six saved).
+    normal = None if start.normal is None else (start.residuals.reshape(n_views, -1), start.normal)
+
     def chunk_args(rows):
         c = len(rows)
         g0 = np.broadcast_to(start.values, (c, len(start.values)))
         lam = np.full(c, options.lambda0)
         if gathered:
-            return g0, poses[rows], obs[rows], np.ones((c, m)), lam
+            start_ne = None if normal is None else tuple(a[rows] for a in normal)
+            return (g0, poses[rows], obs[rows], np.ones((c, m)), lam), start_ne
         weight = np.zeros((c, n_views))
         np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat views
-        return g0, np.broadcast_to(poses, (c, *poses.shape)), np.broadcast_to(obs, (c, *obs.shape)), weight, lam
+        start_ne = None if normal is None else tuple(np.broadcast_to(a, (c, *a.shape)) for a in normal)
+        args = (g0, np.broadcast_to(poses, (c, *poses.shape)), np.broadcast_to(obs, (c, *obs.shape)), weight, lam)
+        return args, start_ne
+
+    def run(rows):
+        args, start_ne = chunk_args(rows)
+        return _run(free, options, *args, shared, start_ne)
 
     t0 = time.perf_counter()
     rows = chunk_rows(m if gathered else n_views, obs.shape[1])
@@ -260,7 +288,7 @@ def solve_subsets(
     workers = min(_threads(threads), len(chunks))
     outs, done = [], 0
     with ThreadPoolExecutor(workers) as pool:
-        for out in pool.map(lambda rows: _run(free, options, *chunk_args(rows), shared), chunks):
+        for out in pool.map(run, chunks):
             outs.append(out)
             done += len(out.status)
             if progress is not None:

@@ -32,10 +32,10 @@ from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files
 from dstereo.models.camera import INTRINSIC_NAMES, Camera, project_jacobian
-from dstereo.models.distortion import COEFF_NAMES, PRESETS, undistort
+from dstereo.models.distortion import COEFF_NAMES, PRESETS, undistort, with_free
 from dstereo.models.pose import rodrigues
 from dstereo.models.rig import essential_matrix, fundamental_matrix, pair_residual
-from dstereo.solver.lm import STATUS_TEXT, LMOptions, solve_structured
+from dstereo.solver.lm import COMPILE_OPTIONS, STATUS_TEXT, LMOptions, solve_structured, solve_structured_batch
 
 RIG_NAMES: tuple[str, ...] = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
 # Thesis Figure 5.14's stereo step parameters, the named columns of a subset table.
@@ -62,13 +62,9 @@ class _Spec(NamedTuple):
         if self.joint:
             n_l = len(self.free_left)
             k_l, k_r = g[6:10], g[10 + n_l:14 + n_l]
-            c_l = _set_free(c_l, self.free_left, g[10:10 + n_l])
-            c_r = _set_free(c_r, self.free_right, g[14 + n_l:])
+            c_l = with_free(c_l, self.free_left, g[10:10 + n_l])
+            c_r = with_free(c_r, self.free_right, g[14 + n_l:])
         return obj, k_l, c_l, k_r, c_r
-
-
-def _set_free(coeffs, free, values):
-    return coeffs.at[jnp.array([COEFF_NAMES.index(n) for n in free], dtype=int)].set(values) if free else coeffs
 
 
 @functools.lru_cache(maxsize=None)
@@ -115,7 +111,7 @@ def view_linearize_for(spec: _Spec):
         right.append(mul(dp_r, d_pose_r))
         jac = jnp.concatenate([jnp.concatenate(left, axis=2), jnp.concatenate(right, axis=2)], axis=0)
         r = jnp.concatenate([(q_l - obs_v[0]).ravel(), (q_r - obs_v[1]).ravel()])
-        return r, jac.reshape(4 * n, -1)
+        return r, jac.reshape(4 * n, -1).T  # the solver takes the Jacobian transposed
 
     return linearize
 
@@ -123,14 +119,19 @@ def view_linearize_for(spec: _Spec):
 @functools.lru_cache(maxsize=None)
 def _full_solver(spec: _Spec, options: LMOptions):
     res, lin = view_residual_for(spec), view_linearize_for(spec)
-    return jax.jit(lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin))
+    return jax.jit(lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin),
+                   compiler_options=COMPILE_OPTIONS)
 
 
 @functools.lru_cache(maxsize=None)
 def _batch_solver(spec: _Spec, options: LMOptions):
     res, lin = view_residual_for(spec), view_linearize_for(spec)
-    one = lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin)  # noqa: E731
-    return jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None)))
+
+    def batch(g0, p0, obs, shared):  # one start g0 for every problem
+        return solve_structured_batch(res, jnp.broadcast_to(g0, (p0.shape[0], *g0.shape)), p0, obs, shared, options,
+                                      lin)
+
+    return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
 
 
 @functools.lru_cache(maxsize=None)

@@ -46,6 +46,18 @@ def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
     return tuple(n for n in COEFF_NAMES if n in names)
 
 
+def with_free(coeffs: Float[Array, "8"], free: tuple[str, ...], values: Float[Array, " f"]) -> Float[Array, "8"]:
+    """`coeffs` with the `free` entries replaced by `values` (in `free` order, which is OpenCV order).
+
+    Built from static slices rather than an indexed update: inside a compiled solver an `.at[].set` becomes
+    a scatter loop, which costs compile time for nothing when the positions are known at trace time.
+    """
+    parts = []
+    for i, name in enumerate(COEFF_NAMES):
+        parts.append(values[free.index(name)][None] if name in free else coeffs[i:i + 1])
+    return jnp.concatenate(parts) if free else coeffs
+
+
 class Distortion(eqx.Module):
     """Rational + tangential distortion. `coeffs` (8,) in OpenCV order; `free` names the solvable ones."""
 

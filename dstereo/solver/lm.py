@@ -30,6 +30,12 @@ STATUS_TEXT = {
 }
 
 
+# XLA options for the compiled solvers. The CPU backend's newer fusion emitters make this loop about 15 %
+# faster per pass but take twice as long to compile it (measured, jaxlib 0.10.2: 1.9 s against 1.0 s for a
+# mono calibration), and a calibration compiles once and then runs for seconds: compile time wins.
+COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
 class LMOptions(NamedTuple):
     max_iter: int = 200
     ftol: float = 1e-12
@@ -47,6 +53,7 @@ class LMResult(NamedTuple):
     schur: Float[Array, "G G"]  # undamped U - sum W V^-1 W' at the solution: inverse = cov(g) / sigma^2
     n_residuals: Int[Array, ""]  # residuals of the views taking part, counted with their weights
     residuals: Float[Array, "V R"]  # at the solution, times sqrt(weight): zero for views left out
+    normal: Float[Array, "V P1 P1"]  # per view [J r]'[J r] at the solution, unweighted (P1 = G + B + 1)
 
 
 # view_residual(g, p_v, data_v, shared) -> (R,) residuals of one view
@@ -54,7 +61,16 @@ ViewResidual = Callable[..., Float[Array, " R"]]
 
 
 class _Normal(NamedTuple):
+    """A linearisation, per view and unweighted: weights enter only when the blocks are summed, so the
+    blocks at one point serve every weighting of the views (the full set and each of its subsets)."""
+
     r: Float[Array, "V R"]
+    m: Float[Array, "V P1 P1"]  # [J r]'[J r]: J'J, J'r and r'r of the view in one product
+
+
+class _Blocks(NamedTuple):
+    """The weighted normal equations as an arrow matrix [[U, W], [W', blockdiag(V_v)]] and gradient."""
+
     sse: Float[Array, ""]
     u: Float[Array, "G G"]
     w: Float[Array, "V G B"]
@@ -64,34 +80,41 @@ class _Normal(NamedTuple):
 
 
 def jacfwd_linearize(view_residual: ViewResidual):
-    """Default linearisation of a view: residuals and [dr/dg, dr/dp] by forward-mode autodiff."""
+    """Default linearisation of a view: residuals (R,) and the transposed Jacobian [dr/dg, dr/dp]' (G+B, R)
+    by forward-mode autodiff."""
 
     def linearize(g, p_v, data_v, shared):
         r = view_residual(g, p_v, data_v, shared)
         jg, jp = jax.jacfwd(view_residual, argnums=(0, 1))(g, p_v, data_v, shared)
-        return r, jnp.concatenate([jg, jp], axis=1)
+        return r, jnp.concatenate([jg, jp], axis=1).T
 
     return linearize
 
 
-def _normal_equations(linearize, g, p, data, shared, active) -> _Normal:
-    r, jac = jax.vmap(linearize, in_axes=(None, 0, 0, None))(g, p, data, shared)  # (V, R), (V, R, G+B)
-    w = jnp.sqrt(active)  # a view's weight multiplies its squared residuals (0: left out, 2: counted twice)
-    r, jac = r * w[:, None], jac * w[:, None, None]
-    n_g = g.shape[0]
-    # One batched J'J per view (a flat dot_general is several times faster on CPU than block einsums).
-    jtj = jax.lax.dot_general(jac, jac, (((1,), (1,)), ((0,), (0,))))  # (V, G+B, G+B)
-    jtr = jnp.einsum("vrk,vr->vk", jac, r)
-    eye = jnp.eye(p.shape[1])
-    return _Normal(
-        r=r,
-        sse=jnp.sum(r * r),
-        u=jnp.sum(jtj[:, :n_g, :n_g], axis=0),
-        w=jtj[:, :n_g, n_g:],
-        # A left-out view's block is the identity: invertible, and with zero coupling its step is zero.
-        v=jtj[:, n_g:, n_g:] + (active <= 0)[:, None, None] * eye,
-        bg=-jnp.sum(jtr[:, :n_g], axis=0),
-        bp=-jtr[:, n_g:],
+def _normal_equations(linearize, g, p, data, shared) -> _Normal:
+    r, jt = jax.vmap(linearize, in_axes=(None, 0, 0, None))(g, p, data, shared)  # (V, R), (V, G+B, R)
+    # One batched product per view gives J'J, J'r and r'r together (a flat dot_general is several times
+    # faster on CPU than block einsums); the Jacobian is stored transposed so that both operands contract
+    # over their last, contiguous axis.
+    # The barrier makes XLA write [J' r'] out before the product: fused into the product's operand, the
+    # model would be re-evaluated for every Jacobian entry it feeds (measured: 40 % slower per pass).
+    a = jax.lax.optimization_barrier(jnp.concatenate([jt, r[:, None, :]], axis=1))
+    return _Normal(r, jax.lax.dot_general(a, a, (((2,), (2,)), ((0,), (0,)))))
+
+
+def _blocks(ne: _Normal, active, n_g: int) -> _Blocks:
+    """Sum the views' blocks with their weights (0: left out, 2: counted twice)."""
+    m, a = ne.m, active[:, None, None]
+    n_p = m.shape[1] - 1
+    # A left-out view's block is the identity: invertible, and with zero coupling its step is zero.
+    eye = jnp.eye(n_p - n_g)
+    return _Blocks(
+        sse=jnp.sum(active * m[:, n_p, n_p]),
+        u=jnp.sum(a * m[:, :n_g, :n_g], axis=0),
+        w=a * m[:, :n_g, n_g:n_p],
+        v=a * m[:, n_g:n_p, n_g:n_p] + (active <= 0)[:, None, None] * eye,
+        bg=-jnp.sum(active[:, None] * m[:, :n_g, n_p], axis=0),
+        bp=-active[:, None] * m[:, n_g:n_p, n_p],
     )
 
 
@@ -110,7 +133,7 @@ def _scaled_solve(a, b):
     return x_s * (d if b.ndim == d.ndim else d[..., None])
 
 
-def _damped_step(ne: _Normal, lam):
+def _damped_step(ne: _Blocks, lam):
     """Solve (A + lam diag(A)) dx = -J'r by eliminating the per-view blocks."""
     bg, bp = ne.bg, ne.bp
     du = jnp.diag(ne.u)
@@ -130,22 +153,91 @@ def _damped_step(ne: _Normal, lam):
     return dg, dp, pred
 
 
-def schur_complement(ne: _Normal) -> Float[Array, "G G"]:
+def schur_complement(ne: _Blocks) -> Float[Array, "G G"]:
     v_inv_wt = _scaled_solve(ne.v, jnp.swapaxes(ne.w, 1, 2))
     return ne.u - jnp.einsum("vgb,vbh->gh", ne.w, v_inv_wt)
 
 
 class _State(NamedTuple):
-    g: Array  # current (accepted) point and its normal equations
+    g: Array  # current (accepted) point and its linearisation
     p: Array
     ne: _Normal
-    g_t: Array  # trial point, linearised at the start of the next pass
-    p_t: Array
-    pred: Array  # predicted decrease of 0.5 sse for the trial step
     lam: Array
     nu: Array
-    it: Array  # passes; pass 0 linearises the start, so steps = it - 1
+    it: Array  # passes; pass 0 linearises the start (unless given), so steps = it - 1
     status: Array
+
+
+def _start(g0, p0, r_shape, normal0, lambda0) -> _State:
+    """Pass 0 linearises the start unless `normal0 = (r, m, given)` holds its linearisation (given = True)."""
+    n_p = g0.shape[0] + p0.shape[1] + 1
+    if normal0 is None:
+        normal0 = (jnp.zeros(r_shape), jnp.zeros((p0.shape[0], n_p, n_p)), jnp.asarray(False))
+    r, m, given = normal0
+    return _State(g0, p0, _Normal(r, m), lambda0, jnp.asarray(2.0), jnp.asarray(given).astype(int), jnp.asarray(0))
+
+
+def _pass(linearize, data, shared, options: LMOptions, active, s: _State) -> _State:
+    """One LM pass of one problem: solve for a damped step, linearise the trial point there, accept or
+    reject it, and test convergence. The model is evaluated once per pass, so the compiled loop holds one
+    copy of it. Pass 0 (no linearisation given) takes a zero step: it linearises the start."""
+    first = s.it == 0
+    done = s.status != 0  # in a batch, a finished problem keeps its point, status and count (never accepts)
+    used = (active > 0)[:, None]
+    cur = _blocks(s.ne, active, s.g.shape[0])
+    # Largest cosine between the residual vector and a Jacobian column at the current point (MINPACK's gtol
+    # test). Shared and per-view parts are reduced apart: a max over their concatenation compiles into a
+    # slow tree reduction.
+    cosine = lambda b, d: jnp.max(jnp.abs(b) / jnp.sqrt(jnp.maximum(d * cur.sse, 1e-300)))  # noqa: E731
+    grad_cos = jnp.maximum(cosine(cur.bg, jnp.diag(cur.u)),
+                           cosine(cur.bp, jnp.diagonal(cur.v, axis1=1, axis2=2) * used))
+    g_conv = ~first & (grad_cos <= options.gtol)  # the current point is a solution: the trial is not taken
+    dg, dp, pred = _damped_step(cur, s.lam)
+    dg, dp, pred = jnp.where(first, 0.0, dg), jnp.where(first | ~used, 0.0, dp), jnp.where(first, 0.0, pred)
+    g_t, p_t = s.g + dg, s.p + dp
+    ne_t = _normal_equations(linearize, g_t, p_t, data, shared)
+    sse_t = jnp.sum(active * ne_t.m[:, -1, -1])
+    sse = jnp.where(first, jnp.inf, cur.sse)
+    actual = 0.5 * (sse - sse_t)
+    finite = jnp.isfinite(sse_t) & jnp.all(jnp.isfinite(g_t)) & jnp.all(jnp.isfinite(p_t))
+    accept = ~done & ~g_conv & (first | (finite & (actual > 0)))
+    rho = actual / jnp.where(pred > 0, pred, 1.0)
+    lam = jnp.where(first, s.lam,
+                    jnp.where(accept, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu))
+    nu = jnp.where(first | accept, 2.0, s.nu * 2.0)
+    x_norm = jnp.sqrt(jnp.sum(s.g ** 2) + jnp.sum((s.p * used) ** 2))
+    step_norm = jnp.sqrt(jnp.sum(dg ** 2) + jnp.sum(dp ** 2))
+    # Cost change within ftol: on an accepted step, or on a rejected one whose predicted gain is also
+    # below ftol (at the minimum to rounding, where steps can no longer lower the cost).
+    small = options.ftol * 0.5 * sse
+    f_conv = ~first & ((accept & (actual <= small))
+                       | (finite & ~accept & (jnp.abs(actual) <= small) & (pred <= small) & (s.lam < 1.0)))
+    x_conv = ~first & accept & (step_norm <= options.xtol * (x_norm + options.xtol))
+    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
+    # Damping that has grown this large means no step reduces the cost: at the minimum to rounding
+    # when the gradient is negligible (converged), otherwise stuck (not converged). A rejected step is
+    # never taken as convergence by itself: a huge damping makes any step small.
+    stuck = lam > 1e16
+    status = jnp.select(
+        [first & ~finite, g_conv, f_conv, x_conv, stuck & (grad_cos <= 1e-8), stuck, s.it >= options.max_iter],
+        [-2, 3, 1, 2, 3, -2, -1],
+        0,
+    )
+    return _State(keep(g_t, s.g), keep(p_t, s.p), keep(ne_t, s.ne), lam, nu, s.it + ~done,
+                  jnp.where(done, s.status, status))
+
+
+def _result(s: _State, active) -> LMResult:
+    n_res = jnp.round(jnp.sum(active)).astype(int) * s.ne.r.shape[1]  # weighted count
+    b = _blocks(s.ne, active, s.g.shape[0])
+    return LMResult(s.g, s.p, b.sse, s.it - 1, s.status, schur_complement(b), n_res,
+                    s.ne.r * jnp.sqrt(active)[:, None], s.ne.m)
+
+
+def _prepare(view_residual, g0, p0, data, shared, linearize):
+    linearize = jacfwd_linearize(view_residual) if linearize is None else linearize
+    r_shape = jax.eval_shape(lambda: jax.vmap(lambda p_v, d_v: view_residual(g0, p_v, d_v, shared))(p0, data))
+    return linearize, r_shape.shape
 
 
 def solve_structured(
@@ -158,67 +250,51 @@ def solve_structured(
     linearize=None,
     active: Float[Array, " V"] | None = None,
     lambda0: Float[Array, ""] | None = None,
+    normal0: tuple | None = None,
 ) -> LMResult:
-    """Minimise sum_v active_v |view_residual(g, p_v, data_v, shared)|^2 over g and all p_v. Vmap it for batches.
+    """Minimise sum_v active_v |view_residual(g, p_v, data_v, shared)|^2 over g and all p_v, one problem.
 
-    `linearize(g, p_v, data_v, shared) -> (r, [dr/dg, dr/dp_v])` may be given where a problem knows a
-    faster Jacobian than forward-mode over the whole view; tests compare the two.
+    `linearize(g, p_v, data_v, shared) -> (r, [dr/dg, dr/dp_v]')` (the Jacobian transposed) may be given
+    where a problem knows a faster Jacobian than forward-mode over the whole view; tests compare the two.
     `active` (a weight per view, default all 1) lets one compiled solver serve the full set and every subset
     of it: views of weight 0 are carried but take no part; integer weights count a view several times
-    (bootstrap resamples). `lambda0` overrides `options.lambda0` as a traced
-    value (a start far from or next to the optimum, without a second compile).
+    (bootstrap resamples). `lambda0` overrides `options.lambda0` as a traced value (a start far from or
+    next to the optimum, without a second compile). `normal0 = (residuals, normal, given)`, from an
+    `LMResult` whose solution is this start (the full set's, for its subsets), saves linearising the start
+    again where `given` is True; a traced flag, so one compiled solver serves both kinds of start.
+    For a batch use `solve_structured_batch`, not `jax.vmap` of this function (same result, traces faster).
     """
-    linearize = jacfwd_linearize(view_residual) if linearize is None else linearize
+    linearize, r_shape = _prepare(view_residual, g0, p0, data, shared, linearize)
     active = jnp.ones(p0.shape[0]) if active is None else jnp.asarray(active, float)
     lam0 = jnp.asarray(options.lambda0 if lambda0 is None else lambda0, float)
+    end = jax.lax.while_loop(lambda s: s.status == 0, lambda s: _pass(linearize, data, shared, options, active, s),
+                             _start(g0, p0, r_shape, normal0, lam0))
+    return _result(end, active)
 
-    def gradient_small(ne, tol=options.gtol):
-        # Cosine between the residual vector and each Jacobian column (MINPACK's gtol test).
-        diag = jnp.concatenate([jnp.diag(ne.u), (jnp.diagonal(ne.v, axis1=1, axis2=2) * (active > 0)[:, None]).ravel()])
-        grad = jnp.concatenate([ne.bg, ne.bp.ravel()])
-        return jnp.max(jnp.abs(grad) / jnp.sqrt(jnp.maximum(diag * ne.sse, 1e-300))) <= tol
 
-    def body(s: _State) -> _State:
-        # One linearisation per pass (at the trial point), so the compiled loop holds one copy of the model.
-        ne_t = _normal_equations(linearize, s.g_t, s.p_t, data, shared, active)
-        first = s.it == 0
-        actual = 0.5 * (s.ne.sse - ne_t.sse)
-        finite = jnp.isfinite(ne_t.sse) & jnp.all(jnp.isfinite(s.g_t)) & jnp.all(jnp.isfinite(s.p_t))
-        accept = first | (finite & (actual > 0))
-        rho = actual / jnp.where(s.pred > 0, s.pred, 1.0)
-        lam = jnp.where(first, s.lam,
-                        jnp.where(accept, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu))
-        nu = jnp.where(first | accept, 2.0, s.nu * 2.0)
-        used = (active > 0)[:, None]
-        dg, dp = s.g_t - s.g, (s.p_t - s.p) * used
-        x_norm = jnp.sqrt(jnp.sum(s.g ** 2) + jnp.sum((s.p * used) ** 2))
-        step_norm = jnp.sqrt(jnp.sum(dg ** 2) + jnp.sum(dp ** 2))
-        # Cost change within ftol: on an accepted step, or on a rejected one whose predicted gain is also
-        # below ftol (at the minimum to rounding, where steps can no longer lower the cost).
-        small = options.ftol * 0.5 * s.ne.sse
-        f_conv = ~first & ((accept & (actual <= small))
-                           | (finite & ~accept & (jnp.abs(actual) <= small) & (s.pred <= small) & (s.lam < 1.0)))
-        x_conv = ~first & accept & (step_norm <= options.xtol * (x_norm + options.xtol))
-        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
-        g, p, ne = keep(s.g_t, s.g), keep(s.p_t, s.p), keep(ne_t, s.ne)
-        # Damping that has grown this large means no step reduces the cost: at the minimum to rounding
-        # when the gradient is negligible (converged), otherwise stuck (not converged). A rejected step is
-        # never taken as convergence by itself: a huge damping makes any step small.
-        stuck = lam > 1e16
-        status = jnp.select(
-            [~jnp.isfinite(ne.sse), f_conv, x_conv, gradient_small(ne), stuck & gradient_small(ne, 1e-8), stuck,
-             s.it >= options.max_iter],
-            [-2, 1, 2, 3, 3, -2, -1],
-            0,
-        )
-        dg, dp, pred = _damped_step(ne, lam)
-        return _State(g, p, ne, g + dg, p + dp, pred, lam, nu, s.it + 1, status)
+def solve_structured_batch(
+    view_residual: ViewResidual,
+    g0: Float[Array, "N G"],
+    p0: Float[Array, "N V B"],
+    data,
+    shared=None,
+    options: LMOptions = LMOptions(),
+    linearize=None,
+    active: Float[Array, "N V"] | None = None,
+    lambda0: Float[Array, " N"] | None = None,
+    normal0: tuple | None = None,
+) -> LMResult:
+    """`solve_structured` for N problems at once (every argument but `shared` has a leading axis N).
 
-    r_shape = jax.eval_shape(lambda: jax.vmap(lambda p_v, d_v: view_residual(g0, p_v, d_v, shared))(p0, data))
-    n_g, (n_v, n_b) = g0.shape[0], p0.shape
-    blank = _Normal(jnp.zeros(r_shape.shape), jnp.asarray(jnp.inf), jnp.zeros((n_g, n_g)), jnp.zeros((n_v, n_g, n_b)),
-                    jnp.zeros((n_v, n_b, n_b)), jnp.zeros(n_g), jnp.zeros((n_v, n_b)))
-    start = _State(g0, p0, blank, g0, p0, jnp.asarray(0.0), lam0, jnp.asarray(2.0), jnp.asarray(0), jnp.asarray(0))
-    end = jax.lax.while_loop(lambda s: s.status == 0, body, start)
-    n_res = jnp.round(jnp.sum(active)).astype(int) * r_shape.shape[1]  # weighted count
-    return LMResult(end.g, end.p, end.ne.sse, end.it - 1, end.status, schur_complement(end.ne), n_res, end.ne.r)
+    The loop is written around the batch (one while loop whose pass is vmapped; finished problems idle)
+    rather than as `jax.vmap` of the one-problem loop: the result is the same, but JAX traces the pass once
+    instead of tracing it and then batching the traced loop."""
+    n = g0.shape[0]
+    one = lambda a: jax.tree_util.tree_map(lambda x: x[0], a)  # noqa: E731
+    linearize, r_shape = _prepare(view_residual, g0[0], p0[0], one(data), shared, linearize)
+    active = jnp.ones(p0.shape[:2]) if active is None else jnp.asarray(active, float)
+    lam0 = jnp.full(n, options.lambda0) if lambda0 is None else jnp.asarray(lambda0, float)
+    start = jax.vmap(lambda g, p, l, ne: _start(g, p, r_shape, ne, l))(g0, p0, lam0, normal0)
+    step = jax.vmap(lambda s, d, a: _pass(linearize, d, shared, options, a, s))
+    end = jax.lax.while_loop(lambda s: jnp.any(s.status == 0), lambda s: step(s, data, active), start)
+    return jax.vmap(_result)(end, active)
