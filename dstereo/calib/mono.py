@@ -119,8 +119,9 @@ def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None):
     if not given:
         normal0 = (np.zeros((n, n_views, 2 * n_pts)), np.zeros((n, n_views, n_p1, n_p1)))
     key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
-    args = [jnp.asarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0, *normal0)]
-    out = _solver(tuple(free), key)(*args[:5], (*args[5:], jnp.full(rows, given)), shared)
+    # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
+    args = [np.ascontiguousarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0, *normal0)]
+    out = _solver(tuple(free), key)(*args[:5], (*args[5:], np.full(rows, given)), shared)
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
@@ -185,7 +186,7 @@ def calibrate_full(
     t0 = time.perf_counter()
     k0, p0 = initial_guess(obj, obs, image_size)
     g0 = np.concatenate([k0, np.zeros(len(free))])
-    shared = (jnp.asarray(obj), jnp.zeros(8))
+    shared = (np.asarray(obj, float), np.zeros(8))  # numpy: no eager JAX op (each compiles on first use)
     out = _run(free, options, g0[None], p0[None], obs[None], np.ones((1, len(obs))), np.array([options.lambda0]),
                shared)
     out = jax.tree_util.tree_map(lambda a: a[0], out)
@@ -258,7 +259,7 @@ def solve_subsets(
     n_sub, m = index.shape
     n_views = len(obs)
     obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
-    shared = (jnp.asarray(obj, float), jnp.zeros(8))
+    shared = (np.asarray(obj, float), np.zeros(8))
     gathered = 2 * m < n_views
 
     # The full set's linearisation at its solution (the subsets' start), per view and unweighted: every
@@ -280,7 +281,8 @@ def solve_subsets(
 
     def run(rows):
         args, start_ne = chunk_args(rows)
-        return _run(free, options, *args, shared, start_ne)
+        # Per-view linearisations and residuals are not kept per subset (C=5000: ~400 MB).
+        return _run(free, options, *args, shared, start_ne)._replace(normal=None, residuals=None)
 
     t0 = time.perf_counter()
     rows = chunk_rows(m if gathered else n_views, obs.shape[1])
