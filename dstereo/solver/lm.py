@@ -241,8 +241,10 @@ def _result(s: _State, active) -> LMResult:
                     s.ne.r * jnp.sqrt(active)[:, None], s.ne.m)
 
 
-def _prepare(view_residual, g0, p0, data, shared, linearize):
+def _prepare(view_residual, g0, p0, data, shared, linearize, normal0):
     linearize = jacfwd_linearize(view_residual) if linearize is None else linearize
+    if normal0 is not None:  # its residuals give the shape: no extra trace of the model
+        return linearize, normal0[0].shape[-2:]
     r_shape = jax.eval_shape(lambda: jax.vmap(lambda p_v, d_v: view_residual(g0, p_v, d_v, shared))(p0, data))
     return linearize, r_shape.shape
 
@@ -271,7 +273,7 @@ def solve_structured(
     again where `given` is True; a traced flag, so one compiled solver serves both kinds of start.
     For a batch use `solve_structured_batch`, not `jax.vmap` of this function (same result, traces faster).
     """
-    linearize, r_shape = _prepare(view_residual, g0, p0, data, shared, linearize)
+    linearize, r_shape = _prepare(view_residual, g0, p0, data, shared, linearize, normal0)
     active = jnp.ones(p0.shape[0]) if active is None else jnp.asarray(active, float)
     lam0 = jnp.asarray(options.lambda0 if lambda0 is None else lambda0, float)
     end = jax.lax.while_loop(lambda s: s.status == 0, lambda s: _pass(linearize, data, shared, options, active, s),
@@ -298,7 +300,7 @@ def solve_structured_batch(
     instead of tracing it and then batching the traced loop."""
     n = g0.shape[0]
     one = lambda a: jax.tree_util.tree_map(lambda x: x[0], a)  # noqa: E731
-    linearize, r_shape = _prepare(view_residual, g0[0], p0[0], one(data), shared, linearize)
+    linearize, r_shape = _prepare(view_residual, g0[0], p0[0], one(data), shared, linearize, normal0)
     active = jnp.ones(p0.shape[:2]) if active is None else jnp.asarray(active, float)
     lam0 = jnp.full(n, options.lambda0) if lambda0 is None else jnp.asarray(lambda0, float)
     start = jax.vmap(lambda g, p, l, ne: _start(g, p, r_shape, ne, l))(g0, p0, lam0, normal0)
