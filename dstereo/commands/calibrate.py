@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from dstereo.commands.progress import progress_bars
+
 
 def calibrate(
     project: Optional[Path] = typer.Argument(
@@ -107,7 +109,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
 
     sources = stereo_sources(images, cfg, left, right)
     out = _results_folder(out, project, force, cfg)
-    with _progress(quiet) as progress:
+    with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
         write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
@@ -130,7 +132,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
     from dstereo.calib.pipeline import calibrate_camera
     from dstereo.io.results import write_camera_results
 
-    with _progress(quiet) as progress:
+    with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
         t0 = time.perf_counter()
         if progress is not None:
@@ -145,43 +147,6 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
             typer.echo(f"dstereo: warning: {warning}", err=True)
     if not quiet:
         _render(cal, out)
-
-
-class _progress:
-    """Context manager giving a progress(stage, done, total) callback: rich bars on stderr, else plain lines."""
-
-    def __init__(self, quiet: bool):
-        self.quiet, self.bars, self.tasks, self.plain = quiet, None, {}, None
-
-    def __enter__(self):
-        if self.quiet:
-            return None
-        try:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-        except ImportError:
-            return self._plain
-        console = Console(stderr=True)
-        if not console.is_terminal:
-            return self._plain
-        self.bars = Progress(TextColumn("{task.description:<16}"), BarColumn(), MofNCompleteColumn(),
-                             TimeElapsedColumn(), console=console, transient=False)
-        self.bars.__enter__()
-        return self._rich
-
-    def _rich(self, stage: str, done: int, total: int) -> None:
-        if stage not in self.tasks:
-            self.tasks[stage] = self.bars.add_task(stage, total=total)
-        self.bars.update(self.tasks[stage], completed=done, total=total)
-
-    def _plain(self, stage: str, done: int, total: int) -> None:
-        if done == total and total:
-            typer.echo(f"{stage}: {done}/{total} done", err=True)
-
-    def __exit__(self, *exc):
-        if self.bars is not None:
-            self.bars.__exit__(*exc)
-        return False
 
 
 def _pm(value: float, spread: float) -> str:

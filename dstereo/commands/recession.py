@@ -40,7 +40,7 @@ def recession(
     on a grid over the face, at the stagnation point and as maps, and recession rates with 95 % intervals."""
     from dataclasses import replace
 
-    from dstereo.commands.calibrate import _progress
+    from dstereo.commands.progress import progress_bars
     from dstereo.commands.matching_options import matching_changes
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
@@ -64,7 +64,7 @@ def recession(
                            "sample axis; give the stereo.yml of the rig")
     frames = discover(sequence, timestamps, fps)
     check_sizes(frames, calibration.image_size, str(calib))
-    with _progress(quiet) as progress:
+    with progress_bars(quiet) as progress:
         result = run_recession(frames, calibration, cfg, recon, progress=progress)
         summary = write_results(out, result, calib, sequence, force)
     for f in result.frames:
