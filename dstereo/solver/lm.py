@@ -4,12 +4,13 @@ Calibration has G shared parameters (intrinsics, distortion; or a rig's R, T) an
 parameters each (B = 6); every residual touches the shared vector and exactly one view. The normal
 equations are therefore an arrow matrix [[U, W], [W', blockdiag(V_v)]]; eliminating the view blocks
 (Schur complement) leaves a G x G system, so one iteration costs O(V (B^3 + G^2 B)) instead of a dense
-(G + V B)^3 solve. The solver is written for one problem; `jax.vmap` over it solves a batch of subsets,
-each with its own damping, iteration count and convergence status.
+(G + V B)^3 solve. `solve_structured` solves one problem; `solve_structured_batch` a batch of subsets in one
+while loop over a vmapped pass, each with its own damping, iteration count and convergence status.
 
 Convergence (MINPACK's tests, any one ends the solve): relative cost decrease <= ftol on an accepted step,
-step <= xtol relative to the parameters, or scaled gradient <= gtol. A solve that hits `max_iter`, or whose
-cost becomes non-finite, is marked as not converged; callers must not report it as a solution.
+step <= xtol relative to the parameters, or scaled gradient <= gtol; and status 4 where the model's remaining
+predicted gain is below the cost's rounding noise (near-singular models). A solve that hits `max_iter`, gets
+stuck, or whose cost becomes non-finite, is marked as not converged; callers must not report it as a solution.
 """
 
 from __future__ import annotations
