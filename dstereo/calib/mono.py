@@ -110,17 +110,25 @@ def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None):
 
     `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
     and `.normal`); the solver then skips linearising the start. Without it, the same compiled program
-    linearises the start itself (a traced flag, not a second compile)."""
-    n, (n_views, n_pts) = len(g0), np.shape(obs)[1:3]
+    linearises the start itself (a traced flag, not a second compile). An argument that is already a device
+    array is taken as it is, at the chunk's full size: subsets pass what all their chunks share once.
+    `weight` is always per chunk and gives the number of problems."""
+    n, (n_views, n_pts) = len(weight), np.shape(obs)[1:3]
     rows = chunk_rows(n_views, n_pts)
-    pad = lambda a: np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a  # noqa: E731
-    n_p1 = np.shape(g0)[1] + 7
+
+    def prep(a):
+        if isinstance(a, jax.Array):
+            return a
+        a = np.asarray(a, float)
+        # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
+        return np.ascontiguousarray(np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a)
+
+    n_p1 = np.shape(g0)[1] + 7  # shared parameters + 6 pose parameters + the residual column
     given = normal0 is not None
     if not given:
         normal0 = (np.zeros((n, n_views, 2 * n_pts)), np.zeros((n, n_views, n_p1, n_p1)))
     key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
-    # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
-    args = [np.ascontiguousarray(pad(np.asarray(a, float))) for a in (g0, p0, obs, weight, lambda0, *normal0)]
+    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0)]
     out = _solver(tuple(free), key)(*args[:5], (*args[5:], np.full(rows, given)), shared)
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
@@ -266,18 +274,24 @@ def solve_subsets(
     # subset reuses it instead of linearising its start again (one pass of about six saved).
     normal = None if start.normal is None else (start.residuals.reshape(n_views, -1), start.normal)
 
+    if not gathered:
+        # Every chunk of a masked plan shares the start, views and linearisation; only the weights differ.
+        # Put them on the device once, at the full chunk size, instead of copying them for every chunk.
+        full_rows = chunk_rows(n_views, obs.shape[1])
+        put = lambda a: jax.device_put(np.ascontiguousarray(np.broadcast_to(a, (full_rows, *np.shape(a)))))  # noqa: E731
+        common = (put(start.values), put(poses), put(obs))
+        lam_all = put(np.float64(options.lambda0))
+        normal_all = None if normal is None else tuple(put(a) for a in normal)
+
     def chunk_args(rows):
         c = len(rows)
-        g0 = np.broadcast_to(start.values, (c, len(start.values)))
-        lam = np.full(c, options.lambda0)
         if gathered:
+            g0 = np.broadcast_to(start.values, (c, len(start.values)))
             start_ne = None if normal is None else tuple(a[rows] for a in normal)
-            return (g0, poses[rows], obs[rows], np.ones((c, m)), lam), start_ne
+            return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne
         weight = np.zeros((c, n_views))
         np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat views
-        start_ne = None if normal is None else tuple(np.broadcast_to(a, (c, *a.shape)) for a in normal)
-        args = (g0, np.broadcast_to(poses, (c, *poses.shape)), np.broadcast_to(obs, (c, *obs.shape)), weight, lam)
-        return args, start_ne
+        return (*common, weight, lam_all), normal_all
 
     def run(rows):
         args, start_ne = chunk_args(rows)

@@ -76,9 +76,7 @@ class Distortion(eqx.Module):
         return self.coeffs[jnp.array(self.free_index, dtype=int)] if self.free else jnp.zeros(0)
 
     def with_free_values(self, values: Float[Array, " nfree"]) -> "Distortion":
-        if not self.free:
-            return self
-        return Distortion(self.coeffs.at[jnp.array(self.free_index, dtype=int)].set(values), self.free)
+        return Distortion(with_free(self.coeffs, self.free, values), self.free) if self.free else self
 
 
 def distort(coeffs: Float[Array, "8"], xy: Float[Array, "2"]) -> Float[Array, "2"]:

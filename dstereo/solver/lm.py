@@ -272,14 +272,12 @@ def solve_structured(
     next to the optimum, without a second compile). `normal0 = (residuals, normal, given)`, from an
     `LMResult` whose solution is this start (the full set's, for its subsets), saves linearising the start
     again where `given` is True; a traced flag, so one compiled solver serves both kinds of start.
-    For a batch use `solve_structured_batch`, not `jax.vmap` of this function (same result, traces faster).
+    It is `solve_structured_batch` with a batch of one; for a batch use that, not `jax.vmap` of this function.
     """
-    linearize, r_shape = _prepare(view_residual, g0, p0, data, shared, linearize, normal0)
-    active = jnp.ones(p0.shape[0]) if active is None else jnp.asarray(active, float)
-    lam0 = jnp.asarray(options.lambda0 if lambda0 is None else lambda0, float)
-    end = jax.lax.while_loop(lambda s: s.status == 0, lambda s: _pass(linearize, data, shared, options, active, s),
-                             _start(g0, p0, r_shape, normal0, lam0))
-    return _result(end, active)
+    add = lambda a: None if a is None else jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], a)  # noqa: E731
+    out = solve_structured_batch(view_residual, add(g0), add(p0), add(data), shared, options, linearize, add(active),
+                                 add(lambda0), add(normal0))
+    return jax.tree_util.tree_map(lambda x: x[0], out)
 
 
 def solve_structured_batch(
