@@ -24,6 +24,7 @@ from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project, project_jacobian
 from dstereo.models.distortion import COEFF_NAMES, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
+from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
 from dstereo.solver.lm import COMPILE_OPTIONS, STATUS_TEXT, LMOptions, solve_structured_batch
 
 
@@ -73,12 +74,8 @@ def view_linearize_for(free: tuple[str, ...]):
     return linearize
 
 
-# Problems per compiled call: as many as fit CALL_POINTS corner observations, at most MAX_CHUNK. Measured on
-# jaxlib 0.10.2 (CPU): two calls running at once hang (0 % CPU, never return) from about 32 x 20 views x 54
-# corners per call, and once did from a single 64 x 17 x 54 call; 16-24 x 20 x 54 ran in every trial. The
-# budget stays below that with margin; DSTEREO_THREADS=1 runs one call at a time.
-CALL_POINTS = 16 * 20 * 54
-MAX_CHUNK = 32
+# Problems per compiled call: as many as fit CALL_POINTS corner observations, at most MAX_CHUNK, at most
+# MAX_CONCURRENT_CALLS at once (a jaxlib CPU-runtime hang; see dstereo/jax_workarounds.py).
 
 
 def chunk_rows(n_views: int, n_points: int) -> int:
@@ -89,7 +86,7 @@ def chunk_rows(n_views: int, n_points: int) -> int:
 def _threads(requested: int | None) -> int:
     env = os.environ.get("DSTEREO_THREADS")
     n = requested or (int(env) if env and env.isdigit() else None) or os.cpu_count() or 1
-    return max(1, min(n, 2))  # measured: no gain past 2 concurrent calls, and the hang above needs care
+    return max(1, min(n, MAX_CONCURRENT_CALLS))
 
 
 @functools.lru_cache(maxsize=None)

@@ -21,6 +21,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+# XLA options for the compiled solvers (re-exported): measured on one jaxlib, kept with the other workarounds.
+from dstereo.jax_workarounds import COMPILE_OPTIONS
+
 STATUS_TEXT = {
     1: "converged: relative cost change below ftol",
     2: "converged: step below xtol",
@@ -30,12 +33,6 @@ STATUS_TEXT = {
     -1: "not converged: iteration limit reached",
     -2: "not converged: cost not finite, or no step reduces it away from a minimum",
 }
-
-
-# XLA options for the compiled solvers. The CPU backend's newer fusion emitters make this loop about 15 %
-# faster per pass but take twice as long to compile it (measured, jaxlib 0.10.2: 1.9 s against 1.0 s for a
-# mono calibration), and a calibration compiles once and then runs for seconds: compile time wins.
-COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
 class LMOptions(NamedTuple):

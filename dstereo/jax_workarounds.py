@@ -1,0 +1,44 @@
+"""Behaviour of jaxlib's CPU runtime that the code works around, in one place, with the version it was measured on.
+
+Each entry below was measured on the version in `MEASURED_ON` (the one `requirements.lock` pins). After an
+upgrade (`make lock`), re-measure each: `tests/test_jax_workarounds.py` fails until `MEASURED_ON` names the
+installed jaxlib, so an upgrade cannot pass silently.
+
+Settings (used by the code through the names below):
+- `COMPILE_OPTIONS`: the CPU backend's newer fusion emitters make the solver loop about 15 % faster per pass
+  but take twice as long to compile it (1.9 s against 1.0 s for a mono calibration); a calibration compiles
+  once and runs for seconds, so compile time wins. Set per jit, so the user's other JAX programs are untouched.
+- `CALL_POINTS`, `MAX_CHUNK`, `MAX_CONCURRENT_CALLS`: two compiled calls running at once hung (0 % CPU, never
+  returned) from about 32 problems x 20 views x 54 corners per call, and once from a single 64 x 17 x 54 call;
+  16-24 x 20 x 54 ran in every trial. Calls stay below that with margin, at most two at once (no gain past two
+  on the 2-core machines measured; `DSTEREO_THREADS=1` runs one call at a time).
+
+Closed forms written instead of a LAPACK call (code where they are used; listed here so they are re-checked):
+- `models/distortion.py` undistortion: a 2 x 2 Newton step solved in closed form; `jnp.linalg.solve` vmapped
+  over many points hung the CPU runtime (and compiled to far more code).
+- `point_jacobians.py`: the small per-point solves in closed form; the LAPACK call vmapped over large chunks
+  deadlocked intermittently.
+"""
+
+MEASURED_ON = "0.10.2"
+
+COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+CALL_POINTS = 16 * 20 * 54
+MAX_CHUNK = 32
+MAX_CONCURRENT_CALLS = 2
+
+
+def installed_jaxlib() -> str:
+    import jaxlib
+
+    return jaxlib.__version__
+
+
+def version_mismatch() -> str | None:
+    """A sentence saying the workarounds were measured on another jaxlib, or None when they match."""
+    have = installed_jaxlib()
+    if have == MEASURED_ON:
+        return None
+    return (f"jaxlib {have} is installed but the CPU-runtime workarounds in dstereo/jax_workarounds.py were "
+            f"measured on {MEASURED_ON}; re-measure them (see that module) and update MEASURED_ON")
