@@ -1,0 +1,318 @@
+"""Per-pixel disparity noise (rectified px) and a check of it against the scatter of the data themselves.
+
+Model (`disparity_sigma_map`). The sub-pixel refinement (`dstereo.subpixel`) estimates d by weighted least
+squares over a Gaussian window w: delta = -sum(w e g) / sum(w g^2), e = L(x) - R(x - d) on images normalised
+by their local std s, g = dR/dx. Image noise n enters the residual from BOTH images, e = n_L / s_L - n_R / s_R,
+so var(e) = sigma_L^2 / s_L^2 + sigma_R^2 / s_R^2 (twice one image's variance), and the estimate's variance is
+the weighted least-squares sandwich
+
+    sigma_d^2 = sum(w^2 g^2 var(e)) / (sum(w g^2))^2
+
+(not sigma^2 / sum(w g^2): that holds for unit weights only). g itself carries the right image's noise,
+which inflates sum(w g^2) by c_g var(n_R / s_R) (c_g: the gain of the cubic-spline derivative on white noise,
+computed once); it is subtracted, so low-contrast texture is not credited with the noise's own gradients.
+The image noise sigma_I (grey levels, per pixel: a noise-level function of the local brightness, as shot noise
+grows with it) is estimated from each ORIGINAL image by Immerkaer's method: the 3 x 3 second-difference
+operator N (sum N^2 = 36) nearly cancels smooth image content, so N * I / 6 is the noise; its robust std
+(1.4826 MAD) over the flatter half of the image (lowest gradient; no saturated pixels) in brightness bins.
+SGBM without refinement: the same formula over SGBM's block (a box of block_size, on the rectified 8-bit
+pair), times a gain, plus in quadrature a floor for SGBM's pixel-locked parabola fit and its 1/16 px steps;
+both constants are measured on renders (experiments/disparity_noise.py, README).
+
+Check (`plane_check`). Over tiles of the disparity map where the surface is smooth (a quadratic in (u, v) fits,
+which is exact for a plane: its disparity is affine on a rectified pair), the robust std of the residuals is
+compared with the predicted sigma_d on the same pixels. The fit absorbs part of the noise, the more so the
+more correlated it is (neighbouring pixels share the matching window), so the prediction is multiplied by the
+fraction kappa that survives the same fit on a simulated field with the model's correlation. Tiles with
+missing pixels or more than 10 % outliers (edges, occlusions) are not used. The median ratio observed /
+predicted is reported; far from 1 (outside CHECK_BAND) the map is scaled by it, with a warning (relief of the
+surface within a tile counts as scatter: a rough surface reads as noise).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+MAD_TO_STD = 1.4826
+CHECK_BAND = (0.67, 1.5)  # ratio observed / predicted accepted without scaling
+# SGBM without refinement (measured, experiments/disparity_noise.py): the noise term's gain over the box-window
+# formula and the floor of the parabola fit's pixel locking with SGBM's 1/16 px steps (rectified px).
+SGBM_GAIN = 1.0
+SGBM_FLOOR_PX = 0.06
+QUANT_PX = (1.0 / 16.0) / np.sqrt(12.0)  # SGBM's 1/16 px steps, uniform
+TILE = 32
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    x = np.asarray(image, np.float64)
+    return x if x.ndim == 2 else x[..., :3] @ np.array([0.114, 0.587, 0.299])  # BGR
+
+
+# --- image noise ------------------------------------------------------------------------------------------------
+
+
+def image_noise(image: np.ndarray, bins: int = 6, min_pixels: int = 400) -> tuple[np.ndarray, np.ndarray]:
+    """(brightness levels, noise std per level) in grey levels of an image (Immerkaer's estimator, module
+    docstring): bin centres by local brightness and the noise there; one level when the image is small."""
+    from scipy.ndimage import convolve, maximum_filter, minimum_filter, sobel, uniform_filter
+
+    grey = _grey(image)
+    kernel = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
+    resp = convolve(grey, kernel, mode="reflect") / 6.0
+    grad = np.hypot(sobel(grey, 0), sobel(grey, 1))
+    hi, lo = maximum_filter(grey, 3), minimum_filter(grey, 3)
+    top = 255.0 if grey.max() <= 255 else float(grey.max())
+    ok = (hi < top) & (lo > 0)  # saturated pixels have no noise
+    ok[[0, -1], :] = ok[:, [0, -1]] = False
+    if ok.sum() < min_pixels:
+        ok[1:-1, 1:-1] = True
+    flat = ok & (grad <= np.percentile(grad[ok], 50))
+    level = uniform_filter(grey, 3)[flat]
+    r = resp[flat]
+    nb = int(np.clip(len(r) // (4 * min_pixels), 1, bins))
+    edges = np.quantile(level, np.linspace(0, 1, nb + 1))
+    idx = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, nb - 1)
+    centres, sigmas = [], []
+    for b in range(nb):
+        rb = r[idx == b]
+        if len(rb) >= min_pixels // 2:
+            centres.append(float(np.median(level[idx == b])))
+            sigmas.append(MAD_TO_STD * float(np.median(np.abs(rb - np.median(rb)))))
+    floor = 1.0 / np.sqrt(12.0)  # 8-bit quantisation is noise of at least this
+    return np.array(centres), np.maximum(np.array(sigmas), floor)
+
+
+def noise_map(image: np.ndarray, levels: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """(h, w) noise std (grey levels) of every pixel of `image` (any grid), from its local brightness."""
+    from scipy.ndimage import uniform_filter
+
+    grey = np.nan_to_num(_grey(image), nan=float(np.nanmean(_grey(image))))
+    return np.interp(uniform_filter(grey, 3), levels, sigmas)
+
+
+# --- the sandwich over a window ---------------------------------------------------------------------------------
+
+
+def _gauss_kernel(sigma: float) -> np.ndarray:
+    radius = int(4.0 * sigma + 0.5)  # scipy.ndimage.gaussian_filter's truncate=4
+    x = np.arange(-radius, radius + 1, dtype=float)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def _window_sums(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import correlate1d
+
+    return correlate1d(correlate1d(x, kernel, axis=0, mode="reflect"), kernel, axis=1, mode="reflect")
+
+
+@functools.lru_cache(maxsize=None)
+def spline_derivative_gain() -> float:
+    """Variance of the cubic-spline derivative (`subpixel._row_spline`) of unit white noise, averaged over
+    sub-pixel positions (the c_g of the module docstring)."""
+    from scipy.ndimage import spline_filter1d
+
+    from dstereo.subpixel import _row_spline
+
+    rng = np.random.default_rng(0)
+    noise = rng.normal(size=(64, 512))
+    coeffs = spline_filter1d(noise, order=3, axis=1, mode="mirror")
+    x = np.arange(512, dtype=float)[None, :] + rng.uniform(0, 1, (64, 512))
+    _, g = _row_spline(coeffs, np.clip(x, 8, 503))
+    return float(np.var(g[:, 16:-16]))
+
+
+@functools.lru_cache(maxsize=None)
+def iterated_kernel(window_sigma: float, iterations: int) -> np.ndarray:
+    """2-D kernel F = I - (I - W)^K of K Jacobi-like Gauss-Newton passes. Each pixel's step averages the
+    residuals its neighbours have at THEIR disparities, so the passes solve W (g^2 delta + g n) = 0 for the
+    error field delta step by step: one pass gives delta = -W (g n) / g^2 (the textbook window average), K
+    passes give -F (g n) / g^2, which keeps more of the noise's fine detail (sum F^2 > sum W^2)."""
+    from scipy.ndimage import gaussian_filter
+
+    r = 4 * int(4.0 * window_sigma + 0.5)
+    delta = np.zeros((2 * r + 1, 2 * r + 1))
+    delta[r, r] = 1.0
+    rest = delta.copy()  # (I - W)^k applied to the impulse
+    for _ in range(iterations):
+        rest = rest - gaussian_filter(rest, window_sigma, mode="constant")
+    return delta - rest
+
+
+def sandwich_sigma(g: np.ndarray, var_e: np.ndarray, var_g: np.ndarray, kernel: np.ndarray,
+                   spread: np.ndarray | None = None) -> np.ndarray:
+    """sqrt(sum(F^2 g^2 var_e)) / sum(w g^2), w the window (1-D separable `kernel`), F the 2-D kernel that
+    spreads the noise into the estimate (`spread`, default w), with the noise's share of g^2 (var_g) removed
+    from both sums (at most down to 10 % of them: a window whose gradient is mostly noise gets a large but
+    finite sigma)."""
+    from scipy.ndimage import correlate
+
+    a_obs = _window_sums(g * g, kernel)
+    a = np.maximum(a_obs - _window_sums(var_g, kernel), 0.1 * a_obs)
+    if spread is None:
+        b_obs = _window_sums(g * g * var_e, kernel ** 2)
+        b_noise = _window_sums(var_g * var_e, kernel ** 2)
+    else:
+        b_obs = correlate(g * g * var_e, spread ** 2, mode="reflect")
+        b_noise = correlate(var_g * var_e, spread ** 2, mode="reflect")
+    b = np.maximum(b_obs - b_noise, 0.1 * b_obs)
+    return np.sqrt(b) / np.maximum(a, 1e-12)
+
+
+def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
+                  noise_right: np.ndarray, window_sigma: float = 2.0, iterations: int = 6) -> np.ndarray:
+    """sigma_d (h, w) px of `subpixel.refine_disparity`'s result on the rectified grey pair; noise_* (h, w) the
+    image noise (grey levels) on each rectified grid."""
+    from dstereo.subpixel import refinement_terms
+
+    g, s_l, s_r = refinement_terms(left, right, disparity, window_sigma)
+    h, w = disparity.shape
+    cols = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.int64)
+    v_r = (noise_right[np.arange(h)[:, None], cols] / s_r) ** 2
+    var_e = (noise_left / s_l) ** 2 + v_r
+    return sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, _gauss_kernel(window_sigma),
+                          iterated_kernel(window_sigma, iterations))
+
+
+def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
+               noise_right: np.ndarray, block_size: int) -> np.ndarray:
+    """sigma_d (h, w) px of SGBM's own sub-pixel disparity: the sandwich over SGBM's block (box window) on the
+    rectified pair, times SGBM_GAIN, with SGBM_FLOOR_PX in quadrature (module docstring)."""
+    from dstereo.subpixel import refinement_terms
+
+    # normalised images as the refinement's: the local-std scale cancels in sigma_d (it divides e and g alike)
+    g, s_l, s_r = refinement_terms(left, right, disparity, 2.0)
+    h, w = disparity.shape
+    cols = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.int64)
+    v_r = (noise_right[np.arange(h)[:, None], cols] / s_r) ** 2
+    var_e = (noise_left / s_l) ** 2 + v_r
+    box = np.full(block_size, 1.0 / block_size)
+    noise = sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, box)
+    return np.sqrt((SGBM_GAIN * noise) ** 2 + SGBM_FLOOR_PX ** 2)
+
+
+# --- the check on the data --------------------------------------------------------------------------------------
+
+
+def _tile_fit(d: np.ndarray, tile: int):
+    """Robust quadratic fit over one tile: (residual robust std, kept mask) or None for a tile with edges."""
+    ok = np.isfinite(d)
+    if ok.mean() < 0.8:
+        return None
+    v, u = np.nonzero(ok)
+    x, y = (u - tile / 2) / tile, (v - tile / 2) / tile
+    a = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    z = d[ok].astype(float)
+    keep = np.ones(len(z), bool)
+    for _ in range(2):
+        coef, *_ = np.linalg.lstsq(a[keep], z[keep], rcond=None)
+        r = z - a @ coef
+        s = MAD_TO_STD * np.median(np.abs(r[keep] - np.median(r[keep])))
+        keep = np.abs(r) <= max(4.0 * s, 1e-9)
+    if keep.mean() < 0.9:
+        return None
+    mask = np.zeros_like(ok)
+    mask[v[keep], u[keep]] = True
+    return MAD_TO_STD * float(np.median(np.abs(r[keep] - np.median(r[keep])))), mask
+
+
+@functools.lru_cache(maxsize=None)
+def fit_survival(kind: str, scale: float, tile: int = TILE) -> float:
+    """kappa: the robust std of the tile-fit residuals of a unit-std noise field correlated like the model's
+    (`kind` 'gauss' sigma = scale px, or 'box' of scale px), i.e. the part of the noise the fit leaves."""
+    from scipy.ndimage import gaussian_filter, uniform_filter
+
+    rng = np.random.default_rng(1)
+    n = 8 * tile
+    white = rng.normal(size=(n + 64, n + 64))
+    field = gaussian_filter(white, scale) if kind == "gauss" else uniform_filter(white, int(scale))
+    field = field[32:-32, 32:-32]
+    field /= field.std()
+    out = [_tile_fit(field[i:i + tile, j:j + tile], tile) for i in range(0, n, tile) for j in range(0, n, tile)]
+    return float(np.median([o[0] for o in out if o is not None]))
+
+
+def plane_check(disparity: np.ndarray, sigma_d: np.ndarray, kind: str, scale: float, tile: int = TILE,
+                min_tiles: int = 6) -> dict:
+    """Observed scatter about local quadratic fits vs the predicted sigma_d on the same pixels (module
+    docstring): {'ratio': median observed / predicted, 'tiles', 'pixels', 'observed_px', 'predicted_px', ...};
+    ratio None when fewer than `min_tiles` smooth tiles were found."""
+    kappa = fit_survival(kind, scale, tile)
+    h, w = disparity.shape
+    ratios, obs, pred, pixels = [], [], [], 0
+    for i in range(0, h - tile + 1, tile):
+        for j in range(0, w - tile + 1, tile):
+            d = disparity[i:i + tile, j:j + tile]
+            s = sigma_d[i:i + tile, j:j + tile]
+            fit = _tile_fit(np.where(np.isfinite(s), d, np.nan), tile)
+            if fit is None:
+                continue
+            std, mask = fit
+            p = kappa * float(np.sqrt(np.mean(s[mask] ** 2)))
+            if p > 0:
+                ratios.append(std / p)
+                obs.append(std / kappa)
+                pred.append(p / kappa)
+                pixels += int(mask.sum())
+    out = {"tiles": len(ratios), "pixels": pixels, "tile_px": tile, "fit_survival_kappa": kappa,
+           "band": list(CHECK_BAND), "method": "robust std of residuals about quadratic fits of d(u, v) over "
+           f"{tile} x {tile} px tiles without edges, / (kappa x RMS predicted sigma_d there); median over tiles"}
+    if len(ratios) < min_tiles:
+        return out | {"ratio": None, "note": f"only {len(ratios)} smooth tiles (need {min_tiles}): not checked"}
+    r = np.array(ratios)
+    return out | {"ratio": float(np.median(r)), "ratio_p25_p75": [float(np.percentile(r, 25)),
+                                                                   float(np.percentile(r, 75))],
+                  "observed_px": float(np.median(obs)), "predicted_px": float(np.median(pred))}
+
+
+# --- the whole map for a reconstruction --------------------------------------------------------------------------
+
+
+def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bool, block_size: int,
+                        configured: float | None = None, name: str = "pair"):
+    """(sigma_d (h, w) px, NaN where disparity is; info dict for summary.json; warnings) of one pair.
+
+    originals: the two input images (the image noise is measured on them, before resampling smooths it);
+    rectified: the grey float rectified pair the disparity was measured on (the exact cubic pair when
+    `refined`); configured: a user's --disparity-sigma (a constant map, still checked)."""
+    levels = [image_noise(img) for img in originals]
+    noise = [noise_map(img, *lv) for img, lv in zip(rectified, levels)]
+    valid = np.isfinite(disparity)
+    if configured is not None:
+        sigma = np.full(disparity.shape, float(configured))
+        basis = "configured (--disparity-sigma), constant"
+    elif refined:
+        sigma = refined_sigma(*rectified, disparity, *noise)
+        basis = ("per pixel: weighted least-squares sandwich of the sub-pixel refinement's Gauss-Newton step "
+                 "(Gaussian window sigma 2 px) with the image noise of both images (dstereo.disparity_noise)")
+    else:
+        sigma = sgbm_sigma(*rectified, disparity, *noise, block_size)
+        basis = (f"per pixel: least-squares sandwich over SGBM's {block_size} x {block_size} block with the image "
+                 f"noise of both images, gain {SGBM_GAIN:g}, and SGBM's sub-pixel floor {SGBM_FLOOR_PX:g} px in "
+                 "quadrature (measured on renders; dstereo.disparity_noise)")
+    sigma = np.where(valid, sigma, np.nan)
+    kind, scale = ("gauss", 2.0) if refined else ("box", float(block_size))
+    check = plane_check(disparity, sigma, kind, scale)
+    warnings, scaled = [], 1.0
+    ratio = check.get("ratio")
+    if ratio is not None and not CHECK_BAND[0] <= ratio <= CHECK_BAND[1]:
+        scaled = ratio
+        sigma = sigma * ratio
+        warnings.append(
+            f"{name}: the disparity noise model is off on this scene: the scatter about local surface fits "
+            f"({check['tiles']} smooth {TILE} x {TILE} px tiles, {check['observed_px']:.3g} px) is {ratio:.2f}x "
+            f"the predicted {check['predicted_px']:.3g} px; the per-point sigmas are scaled by {ratio:.2f} "
+            "(the surface's own relief within a tile counts as noise)")
+    elif ratio is None:
+        warnings.append(f"{name}: the disparity noise could not be checked on the data ({check['note']}); the "
+                        "per-point sigmas are the model's, unverified")
+    ok = sigma[valid]
+    info = {"basis": basis, "configured_px": configured, "scaled_by": scaled,
+            "image_noise_dn": [{"brightness": lv[0].round(2).tolist(), "sigma": lv[1].round(4).tolist()}
+                               for lv in levels],
+            "sigma_d_px": {"median": float(np.median(ok)), "p05": float(np.percentile(ok, 5)),
+                           "p95": float(np.percentile(ok, 95))} if ok.size else None,
+            "plane_check": check}
+    return sigma, info, warnings
