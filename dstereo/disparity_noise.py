@@ -37,10 +37,7 @@ import numpy as np
 
 MAD_TO_STD = 1.4826
 CHECK_BAND = (0.67, 1.5)  # ratio observed / predicted accepted without scaling
-# SGBM without refinement (measured, experiments/disparity_noise.py): the noise term's gain over the box-window
-# formula and the floor of the parabola fit's pixel locking with SGBM's 1/16 px steps (rectified px).
-SGBM_GAIN = 1.0
-SGBM_FLOOR_PX = 0.06
+SGBM_FLOOR_PX = 0.1  # SGBM's error where no refinement reference exists at all (renders: 0.1-0.13 px)
 QUANT_PX = (1.0 / 16.0) / np.sqrt(12.0)  # SGBM's 1/16 px steps, uniform
 TILE = 32
 
@@ -53,33 +50,48 @@ def _grey(image: np.ndarray) -> np.ndarray:
 # --- image noise ------------------------------------------------------------------------------------------------
 
 
-def image_noise(image: np.ndarray, bins: int = 6, min_pixels: int = 400) -> tuple[np.ndarray, np.ndarray]:
-    """(brightness levels, noise std per level) in grey levels of an image (Immerkaer's estimator, module
-    docstring): bin centres by local brightness and the noise there; one level when the image is small."""
-    from scipy.ndimage import convolve, maximum_filter, minimum_filter, sobel, uniform_filter
+def _block_rms(grey: np.ndarray, block: int = 8):
+    """Immerkaer's noise response N * I / 6 as RMS per block x block tile, the tiles' mean brightness, and
+    whether the tile is free of saturated pixels."""
+    from scipy.ndimage import convolve, maximum_filter, minimum_filter
 
-    grey = _grey(image)
     kernel = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
     resp = convolve(grey, kernel, mode="reflect") / 6.0
-    grad = np.hypot(sobel(grey, 0), sobel(grey, 1))
-    hi, lo = maximum_filter(grey, 3), minimum_filter(grey, 3)
     top = 255.0 if grey.max() <= 255 else float(grey.max())
-    ok = (hi < top) & (lo > 0)  # saturated pixels have no noise
+    ok = (maximum_filter(grey, 3) < top) & (minimum_filter(grey, 3) > 0)  # saturated pixels carry no noise
     ok[[0, -1], :] = ok[:, [0, -1]] = False
-    if ok.sum() < min_pixels:
-        ok[1:-1, 1:-1] = True
-    flat = ok & (grad <= np.percentile(grad[ok], 50))
-    level = uniform_filter(grey, 3)[flat]
-    r = resp[flat]
-    nb = int(np.clip(len(r) // (4 * min_pixels), 1, bins))
+    h, w = (grey.shape[0] // block) * block, (grey.shape[1] // block) * block
+
+    def tiles(x):
+        return x[:h, :w].reshape(h // block, block, w // block, block).swapaxes(1, 2).reshape(-1, block * block)
+
+    return (np.sqrt(np.mean(tiles(resp) ** 2, axis=1)), tiles(grey).mean(axis=1), tiles(ok).all(axis=1))
+
+
+@functools.lru_cache(maxsize=None)
+def _percentile_of_white(q: float) -> float:
+    """The q-th percentile of the tiles' RMS on unit white noise (the estimator's calibration)."""
+    rms, _, _ = _block_rms(np.random.default_rng(2).normal(128.0, 1.0, (512, 512)))
+    return float(np.percentile(rms, q))
+
+
+def image_noise(image: np.ndarray, bins: int = 6, q: float = 10.0, min_tiles: int = 40):
+    """(brightness levels, noise std per level) in grey levels of an image: Immerkaer's estimator (module
+    docstring) per 8 x 8 tile, and in each brightness bin the q-th percentile of the tiles over the same
+    percentile on pure white noise (the flattest tiles carry the least texture; texture everywhere makes this
+    an overestimate, which the residual term and the plane check bound)."""
+    rms, level, ok = _block_rms(_grey(image))
+    if ok.sum() < min_tiles:
+        ok[:] = True
+    rms, level = rms[ok], level[ok]
+    nb = int(np.clip(len(rms) // (2 * min_tiles), 1, bins))
     edges = np.quantile(level, np.linspace(0, 1, nb + 1))
     idx = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, nb - 1)
     centres, sigmas = [], []
     for b in range(nb):
-        rb = r[idx == b]
-        if len(rb) >= min_pixels // 2:
+        if (idx == b).sum() >= min_tiles // 2:
             centres.append(float(np.median(level[idx == b])))
-            sigmas.append(MAD_TO_STD * float(np.median(np.abs(rb - np.median(rb)))))
+            sigmas.append(float(np.percentile(rms[idx == b], q)) / _percentile_of_white(q))
     floor = 1.0 / np.sqrt(12.0)  # 8-bit quantisation is noise of at least this
     return np.array(centres), np.maximum(np.array(sigmas), floor)
 
@@ -161,36 +173,64 @@ def sandwich_sigma(g: np.ndarray, var_e: np.ndarray, var_g: np.ndarray, kernel: 
     return np.sqrt(b) / np.maximum(a, 1e-12)
 
 
+def _masked_smooth(x: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian average of x over the pixels `ok` (normalised convolution); NaN where none is near."""
+    from scipy.ndimage import gaussian_filter
+
+    num = gaussian_filter(np.where(ok, x, 0.0), sigma)
+    den = gaussian_filter(ok.astype(float), sigma)
+    return np.where(den > 1e-3, num / np.maximum(den, 1e-12), np.nan)
+
+
 def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
                   noise_right: np.ndarray, window_sigma: float = 2.0, iterations: int = 6) -> np.ndarray:
     """sigma_d (h, w) px of `subpixel.refine_disparity`'s result on the rectified grey pair; noise_* (h, w) the
-    image noise (grey levels) on each rectified grid."""
+    image noise (grey levels) on each rectified grid.
+
+    var(e) is the residuals' own local mean square after the fit (Gaussian of the window's size), divided by
+    the share of a pure-noise residual the fit leaves (1 - 2 F(0) + sum F^2), at least the 8-bit quantisation
+    of both images: what the two images do not share (noise, and interpolation of fine texture,
+    foreshortening on slants, camera differences, compression) scatters the estimate alike. The image noise
+    estimated from each image alone (`image_noise`) gives only the noise's part of it (and the variance of
+    the gradient's noise that is removed); on renders it overestimates the noise of fully textured images
+    (1.9 DN for 1 DN: fine texture passes Immerkaer's operator), so it is not used as a floor."""
     from dstereo.subpixel import refinement_terms
 
-    g, s_l, s_r = refinement_terms(left, right, disparity, window_sigma)
+    e, g, s_l, s_r = refinement_terms(left, right, disparity, window_sigma)
     h, w = disparity.shape
     cols = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.int64)
     v_r = (noise_right[np.arange(h)[:, None], cols] / s_r) ** 2
-    var_e = (noise_left / s_l) ** 2 + v_r
-    return sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, _gauss_kernel(window_sigma),
-                          iterated_kernel(window_sigma, iterations))
+    var_noise = (noise_left / s_l) ** 2 + v_r
+    spread = iterated_kernel(window_sigma, iterations)
+    c = spread.shape[0] // 2
+    left_share = 1.0 - 2.0 * spread[c, c] + float(np.sum(spread ** 2))
+    posterior = _masked_smooth(e * e, np.isfinite(disparity), window_sigma) / left_share
+    quantisation = (1.0 / 12.0) * (1.0 / s_l ** 2 + 1.0 / s_r ** 2)  # 8-bit steps of both images
+    var_e = np.fmax(posterior, quantisation)
+    return sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, _gauss_kernel(window_sigma), spread)
 
 
 def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
                noise_right: np.ndarray, block_size: int) -> np.ndarray:
-    """sigma_d (h, w) px of SGBM's own sub-pixel disparity: the sandwich over SGBM's block (box window) on the
-    rectified pair, times SGBM_GAIN, with SGBM_FLOOR_PX in quadrature (module docstring)."""
-    from dstereo.subpixel import refinement_terms
+    """sigma_d (h, w) px of SGBM's own sub-pixel disparity. SGBM's error is measured against the sub-pixel
+    refinement run on the same pair as a reference (it is 2-3x more accurate on textured surfaces, and its own
+    sigma is `refined_sigma`): sigma^2 = local mean of (d_SGBM - d_refined)^2 - sigma_refined^2 (independent
+    errors; SGBM's smoothness penalties keep it apart from the refinement's noise on weak texture), the local
+    mean over a Gaussian of `block_size` px, at least SGBM's 1/16 px steps. Where the refinement drops pixels, the mean comes from the
+    neighbours, else the map's median deviation is used (with the refined model's sigma at SGBM's d)."""
+    from dstereo.subpixel import refine_disparity
 
-    # normalised images as the refinement's: the local-std scale cancels in sigma_d (it divides e and g alike)
-    g, s_l, s_r = refinement_terms(left, right, disparity, 2.0)
-    h, w = disparity.shape
-    cols = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.int64)
-    v_r = (noise_right[np.arange(h)[:, None], cols] / s_r) ** 2
-    var_e = (noise_left / s_l) ** 2 + v_r
-    box = np.full(block_size, 1.0 / block_size)
-    noise = sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, box)
-    return np.sqrt((SGBM_GAIN * noise) ** 2 + SGBM_FLOOR_PX ** 2)
+    refined = refine_disparity(left, right, disparity)
+    ok = np.isfinite(refined) & np.isfinite(disparity)
+    dev2 = (disparity - refined) ** 2
+    local = _masked_smooth(dev2, ok, float(block_size))
+    if ok.any():
+        local = np.where(np.isfinite(local), local, float(np.median(dev2[ok])))
+    else:
+        local = np.full(disparity.shape, SGBM_FLOOR_PX ** 2)
+    s_ref = refined_sigma(left, right, np.where(ok, refined, disparity), noise_left, noise_right)
+    # d_SGBM - d_ref = e_SGBM - e_ref: with independent errors its mean square is var_SGBM + var_ref
+    return np.sqrt(np.maximum(local - s_ref ** 2, QUANT_PX ** 2))
 
 
 # --- the check on the data --------------------------------------------------------------------------------------
@@ -227,7 +267,12 @@ def fit_survival(kind: str, scale: float, tile: int = TILE) -> float:
     rng = np.random.default_rng(1)
     n = 8 * tile
     white = rng.normal(size=(n + 64, n + 64))
-    field = gaussian_filter(white, scale) if kind == "gauss" else uniform_filter(white, int(scale))
+    if kind == "iterated":  # the refinement's K passes (`iterated_kernel`) of a Gaussian window of `scale` px
+        from scipy.ndimage import correlate
+
+        field = correlate(white, iterated_kernel(scale, 6), mode="reflect")
+    else:
+        field = gaussian_filter(white, scale) if kind == "gauss" else uniform_filter(white, int(scale))
     field = field[32:-32, 32:-32]
     field /= field.std()
     out = [_tile_fit(field[i:i + tile, j:j + tile], tile) for i in range(0, n, tile) for j in range(0, n, tile)]
@@ -289,11 +334,10 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
                  "(Gaussian window sigma 2 px) with the image noise of both images (dstereo.disparity_noise)")
     else:
         sigma = sgbm_sigma(*rectified, disparity, *noise, block_size)
-        basis = (f"per pixel: least-squares sandwich over SGBM's {block_size} x {block_size} block with the image "
-                 f"noise of both images, gain {SGBM_GAIN:g}, and SGBM's sub-pixel floor {SGBM_FLOOR_PX:g} px in "
-                 "quadrature (measured on renders; dstereo.disparity_noise)")
+        basis = ("per pixel: SGBM's local RMS deviation from the sub-pixel refinement run as a reference, with "
+                 "the refinement's own sandwich sigma in quadrature (dstereo.disparity_noise)")
     sigma = np.where(valid, sigma, np.nan)
-    kind, scale = ("gauss", 2.0) if refined else ("box", float(block_size))
+    kind, scale = ("iterated", 2.0) if refined else ("box", float(block_size))
     check = plane_check(disparity, sigma, kind, scale)
     warnings, scaled = [], 1.0
     ratio = check.get("ratio")
