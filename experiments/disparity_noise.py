@@ -143,14 +143,14 @@ def board_rows(calib_dir: Path, sets=("opencv_stereo", "rig640"), pairs_per_set:
                 continue
             obj = np.zeros((54, 3))
             obj[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * square
-            ok, rvec, tvec = cv2.solvePnP(obj, corners, calib.k1, np.ravel(calib.D1)[:8])
+            ok, rvec, tvec = cv2.solvePnP(obj, corners, calib.K1, np.ravel(calib.D1)[:8])
             z = (cv2.Rodrigues(rvec)[0] @ obj.T + tvec).T[:, 2]
             config = ReconstructionConfig(depth_range=(0.8 * z.min(), 1.2 * z.max()))
             for refine in (False, True):
                 res = reconstruct_calibrated(calib, left, right, replace(config, refine=refine), lp.stem)
                 # the board's region on the rectified left grid: corners through the rectification
                 R1, P1 = res.matrices["R1"], res.matrices["P1"]
-                rc = cv2.undistortPoints(corners, calib.k1, np.ravel(calib.D1)[:8], R=R1, P=P1).reshape(-1, 2)
+                rc = cv2.undistortPoints(corners, calib.K1, np.ravel(calib.D1)[:8], R=R1, P=P1).reshape(-1, 2)
                 hull = cv2.convexHull(rc.astype(np.float32)).reshape(-1, 2)
                 centre = hull.mean(axis=0)
                 hull = centre + 0.85 * (hull - centre)  # shrink: stay off the board's border
