@@ -13,12 +13,11 @@ deconvolve step by step and F = I - (I - w)^K (`iterated_kernel`; sum F^2 is 3.6
 the measured scatter on a pure-noise shift follows it: 0.018 px predicted 0.019). var(e) is measured where
 the matcher sees it: the local mean square of the converged residuals (corrected for the share of a pure
 noise residual the fit leaves), at least both images' 8-bit quantisation, so interpolation of fine texture,
-foreshortening, camera differences and compression count as well as sensor noise. g carries the right
-image's noise, which inflates sum(w g^2) by c_g var(n_R) (c_g: the cubic-spline derivative's gain on white
-noise); it is subtracted. The image noise alone (grey levels, per brightness: shot noise grows with it) is
+foreshortening, camera differences and compression count as well as sensor noise. g is the measured
+gradient, noise and all (`sandwich_sigma`; subtracting the noise's share of g^2 overpredicted a
+low-contrast texture 1.5x). The image noise alone (grey levels, per brightness: shot noise grows with it) is
 estimated from each ORIGINAL image by Immerkaer's method (the 3 x 3 operator N, sum N^2 = 36, cancels
-smooth content: N * I / 6 is the noise) over the flattest 8 x 8 tiles, reported and used for that
-subtraction.
+smooth content: N * I / 6 is the noise) over the flattest 8 x 8 tiles, and reported (summary.json).
 SGBM without refinement: SGBM's pixel-locked parabola fit and its smoothness penalties do not follow a
 window formula; its error is measured against the refinement run on the same pair (`sgbm_sigma`).
 
@@ -126,22 +125,6 @@ def _window_sums(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def spline_derivative_gain() -> float:
-    """Variance of the cubic-spline derivative (`subpixel._row_spline`) of unit white noise, averaged over
-    sub-pixel positions (the c_g of the module docstring)."""
-    from scipy.ndimage import spline_filter1d
-
-    from dstereo.subpixel import _row_spline
-
-    rng = np.random.default_rng(0)
-    noise = rng.normal(size=(64, 512))
-    coeffs = spline_filter1d(noise, order=3, axis=1, mode="mirror")
-    x = np.arange(512, dtype=float)[None, :] + rng.uniform(0, 1, (64, 512))
-    _, g = _row_spline(coeffs, np.clip(x, 8, 503))
-    return float(np.var(g[:, 16:-16]))
-
-
-@functools.lru_cache(maxsize=None)
 def iterated_kernel(window_sigma: float, iterations: int) -> np.ndarray:
     """2-D kernel F = I - (I - W)^K of K Jacobi-like Gauss-Newton passes. Each pixel's step averages the
     residuals its neighbours have at THEIR disparities, so the passes solve W (g^2 delta + g n) = 0 for the
@@ -158,24 +141,19 @@ def iterated_kernel(window_sigma: float, iterations: int) -> np.ndarray:
     return delta - rest
 
 
-def sandwich_sigma(g: np.ndarray, var_e: np.ndarray, var_g: np.ndarray, kernel: np.ndarray,
-                   spread: np.ndarray | None = None) -> np.ndarray:
+def sandwich_sigma(g: np.ndarray, var_e: np.ndarray, kernel: np.ndarray, spread: np.ndarray | None = None):
     """sqrt(sum(F^2 g^2 var_e)) / sum(w g^2), w the window (1-D separable `kernel`), F the 2-D kernel that
-    spreads the noise into the estimate (`spread`, default w), with the noise's share of g^2 (var_g) removed
-    from both sums (at most down to 10 % of them: a window whose gradient is mostly noise gets a large but
-    finite sigma)."""
+    spreads the residuals into the estimate (`spread`, default w). g is the gradient as measured, noise and
+    all: at the fixed point sum(w e(d) g) = 0 the estimate's error is -sum(w e0 g) / sum(w g^2) with the
+    measured g in both sums (its noise is uncorrelated with e at the same position)."""
     from scipy.ndimage import correlate
 
-    a_obs = _window_sums(g * g, kernel)
-    a = np.maximum(a_obs - _window_sums(var_g, kernel), 0.1 * a_obs)
+    a = _window_sums(g * g, kernel)
     if spread is None:
-        b_obs = _window_sums(g * g * var_e, kernel ** 2)
-        b_noise = _window_sums(var_g * var_e, kernel ** 2)
+        b = _window_sums(g * g * var_e, kernel ** 2)
     else:
-        b_obs = correlate(g * g * var_e, spread ** 2, mode="reflect")
-        b_noise = correlate(var_g * var_e, spread ** 2, mode="reflect")
-    b = np.maximum(b_obs - b_noise, 0.1 * b_obs)
-    return np.sqrt(b) / np.maximum(a, 1e-12)
+        b = correlate(g * g * var_e, spread ** 2, mode="reflect")
+    return np.sqrt(np.maximum(b, 0.0)) / np.maximum(a, 1e-12)
 
 
 def _masked_smooth(x: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
@@ -187,10 +165,9 @@ def _masked_smooth(x: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(den > 1e-3, num / np.maximum(den, 1e-12), np.nan)
 
 
-def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
-                  noise_right: np.ndarray, window_sigma: float = 2.0, iterations: int = 6) -> np.ndarray:
-    """sigma_d (h, w) px of `subpixel.refine_disparity`'s result on the rectified grey pair; noise_* (h, w) the
-    image noise (grey levels) on each rectified grid.
+def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window_sigma: float = 2.0,
+                  iterations: int = 6) -> np.ndarray:
+    """sigma_d (h, w) px of `subpixel.refine_disparity`'s result on the rectified grey pair.
 
     var(e) is the residuals' own local mean square after the fit (Gaussian of the window's size), divided by
     the share of a pure-noise residual the fit leaves (1 - 2 F(0) + sum F^2), at least the 8-bit quantisation
@@ -202,21 +179,16 @@ def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, no
     from dstereo.subpixel import refinement_terms
 
     e, g, s_l, s_r = refinement_terms(left, right, disparity, window_sigma)
-    h, w = disparity.shape
-    cols = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.int64)
-    v_r = (noise_right[np.arange(h)[:, None], cols] / s_r) ** 2
-    var_noise = (noise_left / s_l) ** 2 + v_r
     spread = iterated_kernel(window_sigma, iterations)
     c = spread.shape[0] // 2
     left_share = 1.0 - 2.0 * spread[c, c] + float(np.sum(spread ** 2))
     posterior = _masked_smooth(e * e, np.isfinite(disparity), window_sigma) / left_share
     quantisation = (1.0 / 12.0) * (1.0 / s_l ** 2 + 1.0 / s_r ** 2)  # 8-bit steps of both images
     var_e = np.fmax(posterior, quantisation)
-    return sandwich_sigma(g, var_e, spline_derivative_gain() * v_r, _gauss_kernel(window_sigma), spread)
+    return sandwich_sigma(g, var_e, _gauss_kernel(window_sigma), spread)
 
 
-def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise_left: np.ndarray,
-               noise_right: np.ndarray, block_size: int) -> np.ndarray:
+def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block_size: int) -> np.ndarray:
     """sigma_d (h, w) px of SGBM's own sub-pixel disparity. SGBM's error is measured against the sub-pixel
     refinement run on the same pair as a reference (it is 2-3x more accurate on textured surfaces, and its own
     sigma is `refined_sigma`): sigma^2 = local mean of (d_SGBM - d_refined)^2 - sigma_refined^2 (independent
@@ -233,7 +205,7 @@ def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, noise
         local = np.where(np.isfinite(local), local, float(np.median(dev2[ok])))
     else:
         local = np.full(disparity.shape, SGBM_FLOOR_PX ** 2)
-    s_ref = refined_sigma(left, right, np.where(ok, refined, disparity), noise_left, noise_right)
+    s_ref = refined_sigma(left, right, np.where(ok, refined, disparity))
     # d_SGBM - d_ref = e_SGBM - e_ref: with independent errors its mean square is var_SGBM + var_ref
     return np.sqrt(np.maximum(local - s_ref ** 2, QUANT_PX ** 2))
 
@@ -327,18 +299,18 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
     originals: the two input images (the image noise is measured on them, before resampling smooths it);
     rectified: the grey float rectified pair the disparity was measured on (the exact cubic pair when
     `refined`); configured: a user's --disparity-sigma (a constant map, still checked)."""
-    levels = [image_noise(img) for img in originals]
-    noise = [noise_map(img, *lv) for img, lv in zip(rectified, levels)]
+    levels = [image_noise(img) for img in originals]  # reported: the sensor's share of what the matcher sees
     valid = np.isfinite(disparity)
     if configured is not None:
         sigma = np.full(disparity.shape, float(configured))
         basis = "configured (--disparity-sigma), constant"
     elif refined:
-        sigma = refined_sigma(*rectified, disparity, *noise)
+        sigma = refined_sigma(*rectified, disparity)
         basis = ("per pixel: weighted least-squares sandwich of the sub-pixel refinement's Gauss-Newton step "
-                 "(Gaussian window sigma 2 px) with the image noise of both images (dstereo.disparity_noise)")
+                 "(Gaussian window sigma 2 px, 6 passes) with the residual variance of both images "
+                 "(dstereo.disparity_noise)")
     else:
-        sigma = sgbm_sigma(*rectified, disparity, *noise, block_size)
+        sigma = sgbm_sigma(*rectified, disparity, block_size)
         basis = ("per pixel: SGBM's local RMS deviation from the sub-pixel refinement run as a reference, with "
                  "the refinement's own sandwich sigma in quadrature (dstereo.disparity_noise)")
     sigma = np.where(valid, sigma, np.nan)
