@@ -339,3 +339,11 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
                            "p95": float(np.percentile(ok, 95))} if ok.size else None,
             "plane_check": check}
     return sigma, info, warnings
+
+
+def point_sigma_vectors(points: np.ndarray, disparity: np.ndarray, Q: np.ndarray, sigma_d: np.ndarray) -> np.ndarray:
+    """(h, w, 3) the random displacement (1 sigma, mm) of every point along its ray, original left frame: the
+    Q reprojection scales a point by 1 / W, W = Q[3,2] d + Q[3,3], so dp/dd = -p Q[3,2] / W. Its component
+    along any direction a is that direction's random std (a recession height: a = the sample axis)."""
+    w = Q[3, 2] * np.asarray(disparity, float) + Q[3, 3]
+    return np.asarray(points, float) * (np.abs(Q[3, 2] / w) * np.asarray(sigma_d, float))[..., None]
