@@ -194,13 +194,16 @@ def markdown(render: list[dict], boards: list[dict]) -> str:
              "std / RMS predicted sigma_z on the same pixels; 'model' = before the plane check's scaling, 'after' "
              "= the sigma written to sigma_z_disparity.npy.", ""]
     if render:
-        lines += ["## Renders (true calibration, known read noise; tilted plane, speckle | low-contrast halves)", "",
+        lines += ["## Renders (320 x 240, true calibration, known read noise; plane tilted 10/25 deg at 400 mm, "
+                  "speckle | 0.3x-contrast halves)", "",
                   "| noise DN | refine | region | pixels | observed mm | bias mm | predicted mm | ratio model | "
-                  "check ratio | scaled by | image noise est. DN |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "check ratio | scaled by | ratio after | image noise est. DN (left, per brightness) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in render:
             lines.append(f"| {r['noise_dn']:g} | {r['refine']} | {r['region']} | {r['pixels']} | "
                          f"{r['observed_mm']:.4f} | {r['bias_mm']:+.4f} | {r['predicted_mm']:.4f} | "
                          f"{r['ratio_model']:.2f} | {_f(r['check_ratio'])} | {r['scaled_by']:.2f} | "
+                         f"{r['ratio_model'] / r['scaled_by']:.2f} | "
                          f"{', '.join(f'{s:.2f}' for s in r['image_noise_dn'])} |")
     if boards:
         lines += ["", "## Real boards (plane fitted to the board's points; region from the detected corners)", "",
@@ -227,8 +230,9 @@ def main():
     ap.add_argument("--real", action="store_true")
     ap.add_argument("--calib-dir", type=Path, default=Path("/tmp/noise/cal"))
     ap.add_argument("--pairs", type=int, default=4)
+    ap.add_argument("--table", action="store_true", help="only rewrite the .md from the stored .json")
     args = ap.parse_args()
-    both = not (args.renders or args.real)
+    both = not (args.renders or args.real or args.table)
     render = render_rows() if args.renders or both else []
     boards = board_rows(args.calib_dir, pairs_per_set=args.pairs) if args.real or both else []
     OUT.mkdir(parents=True, exist_ok=True)
