@@ -127,3 +127,28 @@ def test_reconstruct_flags_and_scales_a_wrong_configured_noise(tmp_path, refine)
     np.testing.assert_allclose(sigma_low[ok], 0.002 * ratio, rtol=1e-5)
     # the scaled constant lands at the level the data show, near the per-pixel model's median level
     assert 0.5 < np.median(sigma_low[ok]) / np.nanmedian(sigma_auto) < 2.0
+
+
+def test_point_sigma_vectors_and_the_recession_cells_random_sigma():
+    """The per-point random displacement is dp/dd sigma_d along the ray (checked against a finite difference of
+    the Q reprojection), and a recession cell's random sigma is the RMS of its points' component along the
+    sample axis."""
+    from dstereo.recession.analysis import RecessionConfig, _cell_random_sigma, _Reference
+    from dstereo.triangulate import reproject_disparity
+
+    f, b = 300.0, 60.0
+    Q = np.array([[1.0, 0, 0, -(W - 1) / 2], [0, 1.0, 0, -(H - 1) / 2], [0, 0, 0, f], [0, 0, 1 / b, 0]])
+    disparity = np.full((H, W), 36.0) + np.linspace(0, 2, W)[None, :]  # a slightly slanted face at ~500 mm
+    sigma_d = np.full((H, W), 0.05)
+    points = np.asarray(reproject_disparity(disparity, Q), float)
+    vec = dn.point_sigma_vectors(points, disparity, Q, sigma_d)
+    step = 1e-4  # px; the reprojection is smooth, so the central difference is exact to ~step^2
+    dp = (np.asarray(reproject_disparity(disparity + step, Q)) - np.asarray(reproject_disparity(disparity - step, Q)))
+    np.testing.assert_allclose(np.abs(vec), np.abs(dp / (2 * step)) * 0.05, rtol=1e-6)
+    config = RecessionConfig(grid_mm=10.0, stagnation_radius_mm=20.0)  # ~6 x 6 px per cell
+    ref = _Reference(points, config)
+    cells = _cell_random_sigma(points, vec, ref, config)
+    expect = np.abs(vec.reshape(-1, 3) @ ref.sample.axis)  # every point's std along the axis
+    assert np.isfinite(cells).sum() > 20
+    assert np.nanmin(cells) >= expect.min() * (1 - 1e-9) and np.nanmax(cells) <= expect.max() * (1 + 1e-9)
+    assert np.nanmedian(cells) == pytest.approx(np.median(expect), rel=0.05)
