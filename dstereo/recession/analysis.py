@@ -85,6 +85,7 @@ class RecessionResult:
     config: RecessionConfig
     warnings: list[str] = field(default_factory=list)
     random_sigma: np.ndarray | None = None  # (frames, ny, nx) RMS per-point random height std per cell, mm
+    random_se: np.ndarray | None = None  # (frames, ny, nx) the cell height's random standard error it implies
 
     @property
     def times(self) -> np.ndarray:
@@ -189,9 +190,10 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
                            f"{results[0].reason}")
     out = _assemble(results, ref, ref_index, maps, ses, config)
     if sigmas:
-        out.random_sigma = np.full(out.heights.shape, np.nan)
-        for i, m in sigmas.items():
+        out.random_sigma, out.random_se = np.full(out.heights.shape, np.nan), np.full(out.heights.shape, np.nan)
+        for i, (m, se) in sigmas.items():
             out.random_sigma[i] = np.where(np.isfinite(out.heights[i]), m, np.nan)
+            out.random_se[i] = np.where(np.isfinite(out.heights[i]), se, np.nan)
     return out
 
 
@@ -205,9 +207,10 @@ def _points_and_sigmas(out):
     return out if isinstance(out, tuple) else (out, None)
 
 
-def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config) -> np.ndarray:
-    """(ny, nx) RMS over each cell's points of the random height std (the displacement along the sample axis);
-    cells of the face slab only, as `_frame_heights`."""
+def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config):
+    """(ny, nx) RMS over each cell's points of the random height std (the displacement along the sample axis),
+    and the standard error of the cell's mean height it implies (count / CORRELATION_AREA_PX independent
+    errors); cells of the face slab only, as `_frame_heights`."""
     p = np.asarray(points, float).reshape(-1, 3)
     vec = np.asarray(vectors, float).reshape(-1, 3)
     ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vec), axis=1)
@@ -220,7 +223,8 @@ def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference
     total = np.bincount(idx[inside], weights=s_h[slab][inside] ** 2, minlength=n_cells)
     count = np.bincount(idx[inside], minlength=n_cells)
     rms = np.where(count >= config.min_points_per_cell, np.sqrt(total / np.maximum(count, 1)), np.nan)
-    return rms.reshape(ref.grid.shape)
+    se = rms / np.sqrt(np.maximum(count / CORRELATION_AREA_PX, 1.0))
+    return rms.reshape(ref.grid.shape), se.reshape(ref.grid.shape)
 
 
 def _random_summary(result) -> dict | None:
@@ -231,9 +235,11 @@ def _random_summary(result) -> dict | None:
     sig = result.random_sigma[np.isfinite(result.random_sigma)]
     return {"per_point_height_sigma_mm_median": float(np.median(sig)),
             "correlation_area_px": CORRELATION_AREA_PX,
+            "cell_random_se_mm_median": float(np.nanmedian(result.random_se)),
             "cell_fit_se_mm_median": float(np.nanmedian(result.height_se)),
             "note": "per-point random std along the sample axis from the per-pixel disparity noise "
-                    "(dstereo.disparity_noise, level checked on each frame); recession_maps.npz random_sigma_mm"}
+                    "(dstereo.disparity_noise, level checked on each frame); per cell: recession_maps.npz random_sigma_mm and "
+                    "random_se_mm (the cell height's random standard error), beside the fit's own height_se_mm"}
 
 
 def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: int = 20) -> None:

@@ -43,7 +43,8 @@ def write_npz(path: Path, result) -> None:
         rate_se_mm_s=result.rates["rate_se"], rate_ci95_half_mm_s=result.rates["ci95_half"],
         rate_frames=result.rates["frames"], axis=result.sample.axis, stagnation_point_mm=result.sample.point,
         axes=result.sample.axes,
-        **({} if result.random_sigma is None else {"random_sigma_mm": result.random_sigma}))
+        **({} if result.random_sigma is None else {"random_sigma_mm": result.random_sigma,
+                                                   "random_se_mm": result.random_se}))
 
 
 def write_results(out, result, calibration: str, sequence: str, force: bool = False, extra: dict | None = None) -> dict:
