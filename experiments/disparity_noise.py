@@ -11,7 +11,11 @@
    corners (the convex hull shrunk by a square), a plane fitted to its points (robust, twice trimmed at 4 sigma);
    observed robust scatter of the distances along z vs the predicted random sigma_z (RMS) on the same pixels.
 
-Run: .venv/bin/python experiments/disparity_noise.py [--renders] [--real] [--calib-dir /tmp/noise/cal]
+3. Middlebury 2014 (quarter size, `middlebury_rows`): the error against the ground-truth disparity.
+
+Run: .venv/bin/python experiments/disparity_noise.py [--renders] [--real] [--middlebury] [--calib-dir DIR]
+(calibrate first: dstereo calibrate --left 'DATA/SET/left*.jpg' --right 'DATA/SET/right*.jpg' --pattern 9x6
+--square 25 --out DIR/opencv (and DIR/rig640); no flag: all parts; --table: only rewrite the .md)
 Writes experiments/results/disparity_noise.md (and .json).
 """
 
@@ -188,7 +192,43 @@ def board_rows(calib_dir: Path, sets=("opencv_stereo", "rig640"), pairs_per_set:
     return rows
 
 
-def markdown(render: list[dict], boards: list[dict]) -> str:
+def middlebury_rows(scenes=("Adirondack", "Motorcycle", "Piano", "Pipes", "Teddy")) -> list[dict]:
+    """Middlebury 2014 (quarter size, ground-truth disparity): robust std of d - d_GT over non-occluded pixels
+    with |d - d_GT| < 2 px (gross mismatches are not noise) vs the RMS predicted sigma_d there, before and
+    after the plane check; and the same per quartile of the predicted sigma (does it track?)."""
+    import cv2
+
+    from dstereo.io.calib_files import read_pfm, read_stereo_calibration
+    from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated
+
+    rows = []
+    for scene in scenes:
+        folder = DATA / "middlebury2014q" / scene
+        calib = read_stereo_calibration(folder / "calib.txt")
+        gt = read_pfm(folder / "disp0GT.pfm")
+        nocc = cv2.imread(str(folder / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE) == 255
+        left, right = read_image(folder / "im0.png"), read_image(folder / "im1.png")
+        for refine in (False, True):
+            res = reconstruct_calibrated(calib, left, right, ReconstructionConfig(refine=refine), scene)
+            s = res.uncertainty.sigma_d_map
+            e = res.disparity - gt
+            ok = np.isfinite(e) & nocc & np.isfinite(s) & (np.abs(np.nan_to_num(e, nan=9.0)) < 2.0)
+            info = res.summary["disparity_noise"]
+            obs, pred = robust_std(e[ok]), float(np.sqrt(np.mean(s[ok] ** 2)))
+            q = np.quantile(s[ok], [0, 0.25, 0.5, 0.75, 1.0])
+            quart = []
+            for a, b in zip(q[:-1], q[1:]):
+                m = ok & (s >= a) & (s <= b)
+                quart.append([robust_std(e[m]), float(np.sqrt(np.mean(s[m] ** 2)))])
+            rows.append({"scene": scene, "refine": refine, "pixels": int(ok.sum()), "observed_px": obs,
+                         "predicted_after_px": pred, "predicted_model_px": pred / info["scaled_by"],
+                         "ratio_after": obs / pred, "ratio_model": obs * info["scaled_by"] / pred,
+                         "check_ratio": info["plane_check"].get("ratio"), "quartiles_obs_pred": quart})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def markdown(render: list[dict], boards: list[dict], middlebury: list[dict] = ()) -> str:
     lines = ["# Per-pixel disparity noise: predicted random sigma vs observed scatter", "",
              "Written by `experiments/disparity_noise.py` (module docstring: method). ratio = observed robust "
              "std / RMS predicted sigma_z on the same pixels; 'model' = before the plane check's scaling, 'after' "
@@ -217,6 +257,16 @@ def markdown(render: list[dict], boards: list[dict]) -> str:
                          f"{r['observed_mm']:.3f} | {r['predicted_model_mm']:.3f} | {r['ratio_model']:.2f} | "
                          f"{_f(r['check_ratio'])} ({r['check_tiles']}) | {r['scaled_by']:.2f} | "
                          f"{r['ratio_after_check']:.2f} |")
+    if middlebury:
+        lines += ["", "## Middlebury 2014 quarter size (ground-truth disparity; non-occluded, |error| < 2 px)", "",
+                  "| scene | refine | pixels | observed px | predicted model px | ratio model | check ratio | "
+                  "ratio after | per quartile of predicted: observed / predicted (after) |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in middlebury:
+            quart = "; ".join(f"{o:.3f}/{p:.3f}" for o, p in r["quartiles_obs_pred"])
+            lines.append(f"| {r['scene']} | {r['refine']} | {r['pixels']} | {r['observed_px']:.3f} | "
+                         f"{r['predicted_model_px']:.3f} | {r['ratio_model']:.2f} | {_f(r['check_ratio'])} | "
+                         f"{r['ratio_after']:.2f} | {quart} |")
     return "\n".join(lines) + "\n"
 
 
@@ -230,17 +280,20 @@ def main():
     ap.add_argument("--real", action="store_true")
     ap.add_argument("--calib-dir", type=Path, default=Path("/tmp/noise/cal"))
     ap.add_argument("--pairs", type=int, default=4)
+    ap.add_argument("--middlebury", action="store_true")
     ap.add_argument("--table", action="store_true", help="only rewrite the .md from the stored .json")
     args = ap.parse_args()
-    both = not (args.renders or args.real or args.table)
+    both = not (args.renders or args.real or args.middlebury or args.table)
     render = render_rows() if args.renders or both else []
     boards = board_rows(args.calib_dir, pairs_per_set=args.pairs) if args.real or both else []
+    middlebury = middlebury_rows() if args.middlebury or both else []
     OUT.mkdir(parents=True, exist_ok=True)
     stem = OUT / "disparity_noise"
     old = json.loads(stem.with_suffix(".json").read_text()) if stem.with_suffix(".json").exists() else {}
-    data = {"renders": render or old.get("renders", []), "boards": boards or old.get("boards", [])}
+    data = {"renders": render or old.get("renders", []), "boards": boards or old.get("boards", []),
+            "middlebury": middlebury or old.get("middlebury", [])}
     stem.with_suffix(".json").write_text(json.dumps(data, indent=1, default=float))
-    stem.with_suffix(".md").write_text(markdown(data["renders"], data["boards"]))
+    stem.with_suffix(".md").write_text(markdown(data["renders"], data["boards"], data["middlebury"]))
 
 
 if __name__ == "__main__":
