@@ -13,13 +13,17 @@ deconvolve step by step and F = I - (I - w)^K (`iterated_kernel`; sum F^2 is 3.6
 the measured scatter on a pure-noise shift follows it: 0.018 px predicted 0.019). var(e) is measured where
 the matcher sees it: the local mean square of the converged residuals (corrected for the share of a pure
 noise residual the fit leaves), at least both images' 8-bit quantisation, so interpolation of fine texture,
-foreshortening, camera differences and compression count as well as sensor noise. g is the measured
-gradient, noise and all (`sandwich_sigma`; subtracting the noise's share of g^2 overpredicted a
+foreshortening, camera differences and compression count as well as sensor noise; neighbouring residuals
+that are correlated (resampling, demosaicing, compression) multiply the variance by sum(rho_e rho_g) over
+lags (`correlation_gain`; 1 for white noise, and it halves the underprediction on JPEG boards). g is the
+measured gradient, noise and all (`sandwich_sigma`; subtracting the noise's share of g^2 overpredicted a
 low-contrast texture 1.5x). The image noise alone (grey levels, per brightness: shot noise grows with it) is
 estimated from each ORIGINAL image by Immerkaer's method (the 3 x 3 operator N, sum N^2 = 36, cancels
 smooth content: N * I / 6 is the noise) over the flattest 8 x 8 tiles, and reported (summary.json).
 SGBM without refinement: SGBM's pixel-locked parabola fit and its smoothness penalties do not follow a
 window formula; its error is measured against the refinement run on the same pair (`sgbm_sigma`).
+Measured (experiments/results/disparity_noise.md): the model alone is close on renders and on Middlebury's
+SGBM path, optimistic by 1.2-4x on real JPEG chessboards; the check below sets the level.
 
 Check (`plane_check`). Over tiles of the disparity map where the surface is smooth (a quadratic in (u, v) fits,
 which is exact for a plane: its disparity is affine on a rectified pair), the robust std of the residuals is
@@ -185,7 +189,32 @@ def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, wi
     posterior = _masked_smooth(e * e, np.isfinite(disparity), window_sigma) / left_share
     quantisation = (1.0 / 12.0) * (1.0 / s_l ** 2 + 1.0 / s_r ** 2)  # 8-bit steps of both images
     var_e = np.fmax(posterior, quantisation)
-    return sandwich_sigma(g, var_e, _gauss_kernel(window_sigma), spread)
+    sigma = sandwich_sigma(g, var_e, _gauss_kernel(window_sigma), spread)
+    return sigma * np.sqrt(correlation_gain(e, g, np.isfinite(disparity)))
+
+
+def _autocorrelation(x: np.ndarray, ok: np.ndarray, lags: int) -> np.ndarray:
+    """(2 lags + 1, 2 lags + 1) normalised autocorrelation of x over the pixels `ok` (mean removed)."""
+    x = np.where(ok, x - np.mean(x[ok]), 0.0)
+    h, w = x.shape
+    out = np.zeros((2 * lags + 1, 2 * lags + 1))
+    n = float(np.sum(x * x))
+    for a in range(-lags, lags + 1):
+        for b in range(-lags, lags + 1):
+            u = x[max(a, 0):h + min(a, 0), max(b, 0):w + min(b, 0)]
+            v = x[max(-a, 0):h + min(-a, 0), max(-b, 0):w + min(-b, 0)]
+            out[a + lags, b + lags] = float(np.sum(u * v)) / max(n, 1e-300)
+    return out
+
+
+def correlation_gain(e: np.ndarray, g: np.ndarray, ok: np.ndarray, lags: int = 3) -> float:
+    """The factor by which sum(F^2 g^2 var(e)) understates var(sum(F g e)) when neighbouring residuals are
+    correlated (resampled, demosaiced or compressed images; misfits spanning pixels): sum over lags of
+    rho_e rho_g, the residual's and the gradient's autocorrelations (1 for independent residuals).
+    Clipped to [1, 16]."""
+    if ok.sum() < 100:
+        return 1.0
+    return float(np.clip(np.sum(_autocorrelation(e, ok, lags) * _autocorrelation(g, ok, lags)), 1.0, 16.0))
 
 
 def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block_size: int) -> np.ndarray:
@@ -205,9 +234,9 @@ def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block
         local = np.where(np.isfinite(local), local, float(np.median(dev2[ok])))
     else:
         local = np.full(disparity.shape, SGBM_FLOOR_PX ** 2)
-    s_ref = refined_sigma(left, right, np.where(ok, refined, disparity))
-    # d_SGBM - d_ref = e_SGBM - e_ref: with independent errors its mean square is var_SGBM + var_ref
-    return np.sqrt(np.maximum(local - s_ref ** 2, QUANT_PX ** 2))
+    # d_SGBM - d_ref = e_SGBM - e_ref: var_SGBM + var_ref if the two errors were independent, var_SGBM - var_ref
+    # if SGBM's were the reference's plus its own; they see the same images, so the mean square itself
+    return np.sqrt(np.maximum(local, QUANT_PX ** 2))
 
 
 # --- the check on the data --------------------------------------------------------------------------------------
