@@ -86,6 +86,7 @@ class RecessionResult:
     warnings: list[str] = field(default_factory=list)
     random_sigma: np.ndarray | None = None  # (frames, ny, nx) RMS per-point random height std per cell, mm
     random_se: np.ndarray | None = None  # (frames, ny, nx) the cell height's random standard error it implies
+    noise_checks: dict = field(default_factory=dict)  # frame index -> summary['disparity_noise'] plane check
 
     @property
     def times(self) -> np.ndarray:
@@ -165,12 +166,12 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     report = progress or (lambda stage, done, total: None)
     reconstruct = reconstruct or _reconstructor(calib, recon_config, config.refine_subpixel)
     results = [FrameResult(i, f.key.strip("_-. ") or f.left.stem, f.time_s) for i, f in enumerate(frames)]
-    ref, ref_index, maps, ses, sigmas = None, -1, {}, {}, {}
+    ref, ref_index, maps, ses, sigmas, checks = None, -1, {}, {}, {}, {}
     report("frames", 0, len(frames))
     for i, frame in enumerate(frames):
         res = results[i]
         try:
-            points, sigma_vectors = _points_and_sigmas(reconstruct(frame))
+            points, sigma_vectors, check = _points_and_sigmas(reconstruct(frame))
             res.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
             current = ref if ref is not None else _Reference(points, config)
             heights, se, _ = _frame_heights(points, current, config)
@@ -184,11 +185,20 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
         maps[i], ses[i] = heights, se
         if sigma_vectors is not None:
             sigmas[i] = _cell_random_sigma(points, sigma_vectors, current, config)
+        if check is not None:
+            checks[i] = check
         report("frames", i + 1, len(frames))
     if ref is None:
         raise DstereoError("no frame of the sequence gave a surface to measure from; first failure: "
                            f"{results[0].reason}")
     out = _assemble(results, ref, ref_index, maps, ses, config)
+    out.noise_checks = checks
+    off = {results[i].name: c["ratio"] for i, c in checks.items()
+           if c.get("ratio") is not None and not 0.67 <= c["ratio"] <= 1.5}
+    if off:
+        out.warnings.append(f"the disparity noise model was off on {len(off)} frame(s) (observed / predicted scatter "
+                            + ", ".join(f"{k}: {v:.2f}" for k, v in list(off.items())[:5])
+                            + "); their per-point random sigmas are scaled to the observed level")
     if sigmas:
         out.random_sigma, out.random_se = np.full(out.heights.shape, np.nan), np.full(out.heights.shape, np.nan)
         for i, (m, se) in sigmas.items():
@@ -203,8 +213,11 @@ CORRELATION_AREA_PX = 14.0  # (sum F)^2 / sum F^2 of the refinement's iterated k
 
 
 def _points_and_sigmas(out):
-    """A reconstructor returns points (h, w, 3), or (points, per-point random displacement vectors (h, w, 3))."""
-    return out if isinstance(out, tuple) else (out, None)
+    """A reconstructor returns points (h, w, 3), or (points, per-point random displacement vectors (h, w, 3),
+    the frame's disparity-noise check (summary['disparity_noise']['plane_check']) or None)."""
+    if not isinstance(out, tuple):
+        return out, None, None
+    return (*out, None)[:3] if len(out) == 2 else out
 
 
 def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config):
@@ -233,7 +246,13 @@ def _random_summary(result) -> dict | None:
     if result.random_sigma is None or not np.isfinite(result.random_sigma).any():
         return None
     sig = result.random_sigma[np.isfinite(result.random_sigma)]
+    ratios = [c.get("ratio") for c in result.noise_checks.values()]
     return {"per_point_height_sigma_mm_median": float(np.median(sig)),
+            "noise_check_ratio_per_frame": {result.frames[i].name: c.get("ratio")
+                                            for i, c in sorted(result.noise_checks.items())},
+            "noise_check_ratio_range": [min(r for r in ratios if r is not None),
+                                        max(r for r in ratios if r is not None)] if any(
+                                            r is not None for r in ratios) else None,
             "correlation_area_px": CORRELATION_AREA_PX,
             "cell_random_se_mm_median": float(np.nanmedian(result.random_se)),
             "cell_fit_se_mm_median": float(np.nanmedian(result.height_se)),
@@ -267,7 +286,8 @@ def _reconstructor(calib, recon_config, refine: bool):
         try:
             r = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
             sigma_d, _ = disparity_sigma_hook(r, recon_config, originals=(left, right))
-            return r.points, point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
+            return (r.points, point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d),
+                    r.summary["disparity_noise"]["plane_check"])
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
