@@ -291,7 +291,7 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
 def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, params: SGBMParams | None = None,
                          originals=None):
     """(sigma_d (h, w) px, source) of the result's disparity: the per-pixel model of `dstereo.disparity_noise`
-    (or the configured constant), checked against the scatter on smooth parts of the map and scaled when off;
+    (or the configured constant), its level set by the scatter on smooth parts of the map (plane check);
     the check goes to summary['disparity_noise'], its warnings to the result's."""
     from dstereo.disparity_noise import disparity_sigma_map
 
