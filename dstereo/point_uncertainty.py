@@ -1,6 +1,7 @@
-"""Uncertainty of every point of a disparity map (`point_covariances`), the calibration covariance a stereo
-file carries (`calibration_covariance`), and the disparity noise of a left-right check
-(`disparity_noise_from_lr`). The per-point model and why it is right: `dstereo.point_jacobians`.
+"""Uncertainty of every point of a disparity map (`point_covariances`, with a per-pixel disparity noise map
+from `dstereo.disparity_noise`), the calibration covariance a stereo file carries (`calibration_covariance`),
+and the disparity noise of a left-right check (`disparity_noise_from_lr`: a lower bound, no longer used by the
+pipeline, kept as a diagnostic). The per-point model and why it is right: `dstereo.point_jacobians`.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ __all__ = ["PARAMETER_NAMES", "RIG_NAMES", "RectGeometry", "PointUncertainty", "
            "point_covariances", "point_from_pixels", "rays_of_rectified", "rect_geometry", "theta_index"]
 
 NOT_INCLUDED = "calibration uncertainty not included (the calibration file has no covariance): disparity noise only"
-DEFAULT_SIGMA_D = 0.25  # px, used only when the left-right check leaves too few pixels to estimate it
 MAD_TO_STD = 1.4826  # std of a normal distribution / its median absolute deviation
 
 
