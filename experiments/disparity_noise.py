@@ -114,6 +114,7 @@ def render_rows(noise_levels=(1.0, 3.0)) -> list[dict]:
                              "predicted_mm": float(np.sqrt(np.mean(sp[keep] ** 2))),
                              "ratio_model": robust_std(err[keep]) / float(np.sqrt(np.mean(sp[keep] ** 2))),
                              "check_ratio": info["plane_check"].get("ratio"), "scaled_by": info["scaled_by"],
+                             "check_p25_p75": info["plane_check"].get("ratio_p25_p75"),
                              "sigma_d_median_px": info["sigma_d_px"]["median"],
                              "image_noise_dn": info["image_noise_dn"][0]["sigma"],
                              "seconds": time.perf_counter() - t0})
@@ -186,6 +187,7 @@ def board_rows(calib_dir: Path, sets=("opencv_stereo", "rig640"), pairs_per_set:
                              "ratio_after_check": obs / float(np.sqrt(np.mean(pred_after ** 2))),
                              "check_ratio": info["plane_check"].get("ratio"),
                              "check_tiles": info["plane_check"]["tiles"], "scaled_by": info["scaled_by"],
+                             "check_p25_p75": info["plane_check"].get("ratio_p25_p75"),
                              "image_noise_dn": info["image_noise_dn"][0]["sigma"]})
                 print(rows[-1], flush=True)
             done += 1
@@ -223,7 +225,8 @@ def middlebury_rows(scenes=("Adirondack", "Motorcycle", "Piano", "Pipes", "Teddy
             rows.append({"scene": scene, "refine": refine, "pixels": int(ok.sum()), "observed_px": obs,
                          "predicted_after_px": pred, "predicted_model_px": pred / info["scaled_by"],
                          "ratio_after": obs / pred, "ratio_model": obs * info["scaled_by"] / pred,
-                         "check_ratio": info["plane_check"].get("ratio"), "quartiles_obs_pred": quart})
+                         "check_ratio": info["plane_check"].get("ratio"), "quartiles_obs_pred": quart,
+                         "check_p25_p75": info["plane_check"].get("ratio_p25_p75")})
             print(rows[-1], flush=True)
     return rows
 
