@@ -19,8 +19,9 @@ derivative is the implicit-function one (-J_distort^-1 d residual / d theta).
 `tests/test_point_uncertainty.py` checks J_theta against central differences of the actual pipeline (re-run
 `stereo_rectify` with theta, rectify the two pixels, reproject through Q).
 
-Disparity noise sigma_d (rectified px, along the row): the point moves along the left ray by dp/dd of the
-Q reprojection; cov = J_theta S J_theta^T + sigma_d^2 (dp/dd)(dp/dd)^T, per point, in the original left frame.
+Disparity noise sigma_d (rectified px, along the row; each point its own, `dstereo.disparity_noise`): the point
+moves along the left ray by dp/dd of the Q reprojection; cov = J_theta S J_theta^T + sigma_d^2 (dp/dd)(dp/dd)^T,
+per point, in the original left frame.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
-"""Uncertainty of every point of a disparity map (`point_covariances`), the calibration covariance a stereo
-file carries (`calibration_covariance`), and the disparity noise of a left-right check
-(`disparity_noise_from_lr`). The per-point model and why it is right: `dstereo.point_jacobians`.
+"""Uncertainty of every point of a disparity map (`point_covariances`, with a per-pixel disparity noise map
+from `dstereo.disparity_noise`), the calibration covariance a stereo file carries (`calibration_covariance`),
+and the disparity noise of a left-right check (`disparity_noise_from_lr`: a lower bound, no longer used by the
+pipeline, kept as a diagnostic). The per-point model and why it is right: `dstereo.point_jacobians`.
 """
 
 from __future__ import annotations
@@ -31,14 +32,13 @@ __all__ = ["PARAMETER_NAMES", "RIG_NAMES", "RectGeometry", "PointUncertainty", "
            "point_covariances", "point_from_pixels", "rays_of_rectified", "rect_geometry", "theta_index"]
 
 NOT_INCLUDED = "calibration uncertainty not included (the calibration file has no covariance): disparity noise only"
-DEFAULT_SIGMA_D = 0.25  # px, used only when the left-right check leaves too few pixels to estimate it
 MAD_TO_STD = 1.4826  # std of a normal distribution / its median absolute deviation
 
 
 @functools.lru_cache(maxsize=None)
 def _chunk_fn(index: tuple[int, ...]):
     one = lambda p, c, s, uvd, rect: point_covariance(p, index, c, s, uvd, rect)  # noqa: E731
-    return jax.jit(jax.vmap(one, in_axes=(None, None, None, 0, None)))
+    return jax.jit(jax.vmap(one, in_axes=(None, None, 0, 0, None)))  # sigma_d per point
 
 
 # --- the dense map ------------------------------------------------------------------------------------------
@@ -51,12 +51,13 @@ class PointUncertainty:
     sigma_xyz: np.ndarray  # (h, w, 3) per-axis std, original left camera frame
     sigma_z_calibration: np.ndarray  # (h, w) the calibration's share of the depth std
     sigma_z_disparity: np.ndarray  # (h, w) the disparity noise's share
-    sigma_d: float
+    sigma_d: float  # median of sigma_d_map over the points
     sigma_d_source: str
     calibration_included: bool
     note: str
     cov: np.ndarray | None = None  # (h, w, 3, 3) with full=True
     extras: dict = field(default_factory=dict)
+    sigma_d_map: np.ndarray | None = None  # (h, w) disparity noise px per pixel
 
     @property
     def sigma_z(self) -> np.ndarray:
@@ -99,10 +100,10 @@ def rect_geometry(matrices: dict) -> RectGeometry:
     return RectGeometry(*(jnp.asarray(matrices[k], float) for k in ("R1", "R2", "P1", "P2", "Q")))
 
 
-def point_covariances(calib, result_or_disparity, sigma_d: float, full: bool = False, *, matrices: dict | None = None,
+def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *, matrices: dict | None = None,
                       sigma_d_source: str = "given", chunk: int = 8192) -> PointUncertainty:
     """Covariance of every point of a disparity map from the calibration covariance (if the file has one) and
-    disparity noise `sigma_d` (rectified px).
+    disparity noise `sigma_d` (rectified px): one value, or an (h, w) map (`dstereo.disparity_noise`).
 
     `result_or_disparity`: a `reconstruction.PairResult` (its disparity, points' validity and rectification) or
     an (h, w) disparity on the rectified grid of `matrices` (R1 R2 P1 P2 Q; default: `stereo_rectify` of the
@@ -122,8 +123,11 @@ def point_covariances(calib, result_or_disparity, sigma_d: float, full: bool = F
         r = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, (disparity.shape[1], disparity.shape[0]), calib.R,
                            calib.T, zero_disparity=False)
         matrices = {k: getattr(r, k) for k in ("R1", "R2", "P1", "P2", "Q")}
-    if not np.isfinite(sigma_d) or sigma_d < 0:
-        raise DstereoError(f"disparity noise sigma_d={sigma_d} px: give a finite value >= 0 (or 'auto')")
+    sigma_map = np.broadcast_to(np.asarray(sigma_d, float), disparity.shape)
+    valid &= np.isfinite(sigma_map)
+    if np.any(sigma_map[valid] < 0) or (np.ndim(sigma_d) == 0 and not np.isfinite(sigma_d)):
+        raise DstereoError(f"disparity noise sigma_d={sigma_d if np.ndim(sigma_d) == 0 else 'map'} px: give a "
+                           "finite value >= 0 (or 'auto')")
     found = calibration_covariance(calib)
     params = jnp.asarray(parameter_vector(calib.K1, calib.D1, calib.K2, calib.D2, calib.R, calib.T))
     names, cov, structure = found if found is not None else ((), np.zeros((0, 0)), "")
@@ -131,14 +135,17 @@ def point_covariances(calib, result_or_disparity, sigma_d: float, full: bool = F
     rect = rect_geometry(matrices)
     v, u = np.nonzero(valid)
     uvd = np.stack([u, v, disparity[v, u]], axis=1).astype(float)
+    sig = sigma_map[v, u].astype(float)
     n = len(uvd)
     fn = _chunk_fn(index)
     cal_parts, dis_parts = [], []
     for start in range(0, n, chunk):
-        block = uvd[start:start + chunk]
+        block, sb = uvd[start:start + chunk], sig[start:start + chunk]
         pad = chunk - len(block)
-        block = np.concatenate([block, np.repeat(block[-1:], pad, axis=0)]) if pad else block
-        c, d = fn(params, jnp.asarray(cov), float(sigma_d), jnp.asarray(block), rect)
+        if pad:
+            block = np.concatenate([block, np.repeat(block[-1:], pad, axis=0)])
+            sb = np.concatenate([sb, np.repeat(sb[-1:], pad)])
+        c, d = fn(params, jnp.asarray(cov), jnp.asarray(sb), jnp.asarray(block), rect)
         cal_parts.append(np.asarray(c)[:chunk - pad])
         dis_parts.append(np.asarray(d)[:chunk - pad])
     cal = np.concatenate(cal_parts) if n else np.zeros((0, 3, 3))
@@ -156,8 +163,11 @@ def point_covariances(calib, result_or_disparity, sigma_d: float, full: bool = F
         full_cov[v, u] = total
     note = (f"calibration covariance of {len(names)} parameters ({structure or 'structure not stated'}) and "
             f"disparity noise, first order" if found is not None else NOT_INCLUDED)
-    return PointUncertainty(sigma, sz_cal, sz_dis, float(sigma_d), sigma_d_source, found is not None, note, full_cov,
-                            {"calibration_parameters": list(names), "covariance_structure": structure})
+    median_d = float(np.median(sig)) if n else float("nan")
+    smap = np.full((h, w), np.nan)
+    smap[v, u] = sig
+    return PointUncertainty(sigma, sz_cal, sz_dis, median_d, sigma_d_source, found is not None, note, full_cov,
+                            {"calibration_parameters": list(names), "covariance_structure": structure}, smap)
 
 
 # --- disparity noise from the left-right check ----------------------------------------------------------------

@@ -266,48 +266,18 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                      timings, warnings)
     result.exact_rect = exact
     if config.uncertainty:
-        add_uncertainty(result, calib, config, params)
+        add_uncertainty(result, calib, config, params, originals=(left, right))
     return result
 
 
-def _right_disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:
-    """The right image's disparity in the left map's sign convention (d = u_left - u_right), for the LR check."""
-    a, b = (left, right) if color else (_grey(left), _grey(right))
-    params = params.with_overrides({"lr_check": None})
-    if Q[3, 2] >= 0:
-        return compute_disparity(np.ascontiguousarray(b[:, ::-1]), np.ascontiguousarray(a[:, ::-1]), params)[:, ::-1]
-    return -compute_disparity(b, a, params)
-
-
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
-                    params: SGBMParams | None = None) -> PairResult:
-    """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.point_uncertainty`): disparity noise
-    from `config.disparity_sigma`, else from a left-right check of the two disparity maps. When the result's
-    disparity was refined (`result.exact_rect`), SGBM's right map is refined the same way first, so the check
-    describes the refined disparity that the points come from."""
-    from dstereo.point_uncertainty import DEFAULT_SIGMA_D, disparity_noise_from_lr, point_covariances
+                    params: SGBMParams | None = None, originals=None) -> PairResult:
+    """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.point_uncertainty`) with the
+    per-pixel disparity noise of `disparity_sigma_hook`."""
+    from dstereo.point_uncertainty import point_covariances
 
     t0 = time.perf_counter()
-    if config.disparity_sigma is not None:
-        sigma_d, source = float(config.disparity_sigma), "configured (--disparity-sigma)"
-    else:
-        Q = result.matrices["Q"]
-        d_right = _right_disparity(result.left_rect, result.right_rect, params or config.sgbm, Q,
-                                   config.color_matching)
-        refined = result.exact_rect is not None
-        if refined:
-            from dstereo.subpixel import refine_right_disparity
-
-            d_right = refine_right_disparity(*result.exact_rect, d_right)
-        sigma_d, used = disparity_noise_from_lr(result.disparity, d_right)
-        if sigma_d is None or sigma_d == 0:
-            result.warnings.append(
-                f"{result.name}: the left-right check gave no disparity noise estimate ({used} matched pixels); "
-                f"assumed sigma_d = {DEFAULT_SIGMA_D} px; set --disparity-sigma")
-            sigma_d, source = DEFAULT_SIGMA_D, f"default (left-right check unusable: {used} pixels)"
-        else:
-            source = (f"left-right check{' of the refined maps' if refined else ''}: robust std(d_L - d_R) / "
-                      f"sqrt(2) over {used} pixels (a lower bound: errors both matchings share cancel)")
+    sigma_d, source = disparity_sigma_hook(result, config, params, originals)
     result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
                                            sigma_d_source=source)
     result.summary["uncertainty"] = result.uncertainty.summary()
@@ -316,6 +286,26 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
         result.warnings.append(f"{result.name}: calibration uncertainty not included ({calib.source} has no "
                                "covariance); the point sigmas cover disparity noise only")
     return result
+
+
+def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, params: SGBMParams | None = None,
+                         originals=None):
+    """(sigma_d (h, w) px, source) of the result's disparity: the per-pixel model of `dstereo.disparity_noise`
+    (or the configured constant), its level set by the scatter on smooth parts of the map (plane check);
+    the check goes to summary['disparity_noise'], its warnings to the result's."""
+    from dstereo.disparity_noise import disparity_sigma_map
+
+    refined = result.exact_rect is not None
+    rectified = result.exact_rect if refined else tuple(_grey(x).astype(np.float64) for x in
+                                                        (result.left_rect, result.right_rect))
+    originals = originals if originals is not None else (result.left_rect, result.right_rect)
+    block = (params or config.sgbm).block_size
+    sigma, info, warnings = disparity_sigma_map(originals, rectified, result.disparity, refined, block,
+                                                config.disparity_sigma, result.name)
+    result.summary["disparity_noise"] = info
+    result.warnings.extend(warnings)
+    return sigma, info["basis"] + (f"; scaled by {info['scaled_by']:.3g} by the plane check"
+                                   if info["scaled_by"] != 1.0 else "")
 
 
 def uncalibrated_q(f_px: float, size, baseline: float, d_sparse: np.ndarray, z_sparse: np.ndarray) -> np.ndarray:

@@ -121,3 +121,26 @@ def dropped_fraction(before: np.ndarray, after: np.ndarray) -> float:
     """Fraction of the pixels with a disparity `before` that have none `after` the refinement."""
     had = np.isfinite(before)
     return float((had & ~np.isfinite(after)).sum() / max(int(had.sum()), 1))
+
+
+def refinement_terms(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window_sigma: float = 2.0):
+    """The per-pixel quantities of `refine_disparity`'s last Gauss-Newton step at `disparity`, for its noise
+    model (`dstereo.disparity_noise`): the residual e = L(x) - R(x - d) and the gradient g of the normalised
+    images at x - d, and the local standard deviations (grey levels) the left image and the warped right image
+    were divided by. NaN-free; where `disparity` is NaN the values are taken at d = 0 (the caller masks them)."""
+    from scipy.ndimage import gaussian_filter, spline_filter1d
+
+    def local_std(x):
+        x = np.nan_to_num(x, nan=float(np.nanmean(x)))
+        mean = gaussian_filter(x, 3 * window_sigma)
+        return np.sqrt(np.maximum(gaussian_filter(x * x, 3 * window_sigma) - mean * mean, 1.0))
+
+    norm_r = _normalised(right, 3 * window_sigma)
+    coeffs = spline_filter1d(norm_r, order=3, axis=1, mode="mirror")
+    w = disparity.shape[1]
+    xs = np.arange(w, dtype=float)[None, :] - np.nan_to_num(np.asarray(disparity, np.float64))
+    warped, g = _row_spline(coeffs, xs)
+    s_right = local_std(right)
+    cols = np.clip(np.rint(xs), 0, w - 1).astype(np.int64)
+    e = _normalised(left, 3 * window_sigma) - warped
+    return e, g, local_std(left), s_right[np.arange(disparity.shape[0])[:, None], cols]

@@ -42,7 +42,7 @@ def reconstruct(
         None, "--baseline-mm", help="Uncalibrated: baseline, mm (without it the output is unscaled)."),
     disparity_sigma: Optional[str] = typer.Option(
         None, "--disparity-sigma", help="Disparity noise in rectified px for the point uncertainties, or 'auto' "
-        "(default: from a left-right check of the two disparity maps)."),
+        "(default: per pixel from the image gradients and the image noise, checked on smooth parts of the map)."),
     no_uncertainty: bool = typer.Option(False, "--no-uncertainty", help="Skip the point uncertainties (sigma_*)."),
     full_covariance: bool = typer.Option(
         False, "--full-covariance", help="Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point."),
@@ -104,11 +104,16 @@ def reconstruct(
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]
             typer.echo(f"  depth std sigma_z: median {unc['sigma_z_mm']['median']:.3g} mm, p95 "
-                       f"{unc['sigma_z_mm']['p95']:.3g} mm (sigma_d {unc['sigma_d_px']:.3g} px, "
-                       f"{unc['sigma_d_source']}); "
+                       f"{unc['sigma_z_mm']['p95']:.3g} mm (sigma_d median {unc['sigma_d_px']:.3g} px); "
                        f"at the median point calibration {split['calibration_mm']:.3g} mm, disparity "
                        f"{split['disparity_mm']:.3g} mm" + ("" if unc["calibration_included"] else
                                                             "; calibration uncertainty not included"))
+        check = (s.get("disparity_noise") or {}).get("plane_check") or {}
+        if check.get("ratio") is not None:
+            typer.echo(f"  noise check: scatter about local surface fits {check['observed_px']:.3g} px = "
+                       f"{check['ratio']:.2f}x the predicted sigma_d ({check['tiles']} smooth tiles)"
+                       + (f"; sigmas scaled by {s['disparity_noise']['scaled_by']:.2f}"
+                          if s["disparity_noise"]["scaled_by"] != 1.0 else ""))
         for w in r.warnings:
             typer.echo(f"dstereo: warning: {w}", err=True)
     typer.echo(f"wrote {out}")

@@ -70,12 +70,17 @@ def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | 
     if unc is not None:
         np.save(folder / "sigma_z.npy", unc.sigma_z.astype(np.float32))
         np.save(folder / "sigma_xyz.npy", unc.sigma_xyz.astype(np.float32))
+        np.save(folder / "sigma_z_disparity.npy", unc.sigma_z_disparity.astype(np.float32))  # random part, mm
+        np.save(folder / "sigma_z_calibration.npy", unc.sigma_z_calibration.astype(np.float32))
+        if unc.sigma_d_map is not None:
+            np.save(folder / "sigma_d.npy", unc.sigma_d_map.astype(np.float32))  # disparity noise, px
         if unc.cov is not None:
             np.save(folder / "cov_xyz.npy", unc.cov.astype(np.float32))
         from dstereo.io.sigma_maps import sigma_z_png
 
-        sigma_z_png(folder / "sigma_z.png", unc.sigma_z, f"{result.name}: depth std (sigma_d {unc.sigma_d:.3g} px"
-                    + ("" if unc.calibration_included else ", calibration uncertainty not included") + ")")
+        sigma_z_png(folder / "sigma_z.png", unc.sigma_z, f"{result.name}: depth std (per-pixel sigma_d, median "
+                    f"{unc.sigma_d:.3g} px" + ("" if unc.calibration_included else
+                                                ", calibration uncertainty not included") + ")")
         scalars = {f"sigma_{a}": unc.sigma_xyz[..., i] for i, a in enumerate("xyz")}
     n_points = write_ply_points(folder / "points.ply", result.points, result.colors, scalars=scalars)
     n_vertices, n_faces = write_mesh_ply(folder / "mesh.ply", result.points, result.colors, config.max_jump)

@@ -84,6 +84,9 @@ class RecessionResult:
     rates: dict[str, np.ndarray]
     config: RecessionConfig
     warnings: list[str] = field(default_factory=list)
+    random_sigma: np.ndarray | None = None  # (frames, ny, nx) RMS per-point random height std per cell, mm
+    random_se: np.ndarray | None = None  # (frames, ny, nx) the cell height's random standard error it implies
+    noise_checks: dict = field(default_factory=dict)  # frame index -> summary['disparity_noise'] plane check
 
     @property
     def times(self) -> np.ndarray:
@@ -118,6 +121,7 @@ class RecessionResult:
                       f"{self.config.stagnation_radius_mm:g} mm; rate: least-squares line over time, 95 % "
                       "interval from Student's t on the fit residuals (n - 2 dof)",
             "warnings": list(self.warnings),
+            "random_uncertainty": _random_summary(self),
         }
 
 
@@ -162,12 +166,12 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     report = progress or (lambda stage, done, total: None)
     reconstruct = reconstruct or _reconstructor(calib, recon_config, config.refine_subpixel)
     results = [FrameResult(i, f.key.strip("_-. ") or f.left.stem, f.time_s) for i, f in enumerate(frames)]
-    ref, ref_index, maps, ses = None, -1, {}, {}
+    ref, ref_index, maps, ses, sigmas, checks = None, -1, {}, {}, {}, {}
     report("frames", 0, len(frames))
     for i, frame in enumerate(frames):
         res = results[i]
         try:
-            points = reconstruct(frame)
+            points, sigma_vectors, check = _points_and_sigmas(reconstruct(frame))
             res.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
             current = ref if ref is not None else _Reference(points, config)
             heights, se, _ = _frame_heights(points, current, config)
@@ -179,11 +183,82 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
             report("frames", i + 1, len(frames))
             continue
         maps[i], ses[i] = heights, se
+        if sigma_vectors is not None:
+            sigmas[i] = _cell_random_sigma(points, sigma_vectors, current, config)
+        if check is not None:
+            checks[i] = check
         report("frames", i + 1, len(frames))
     if ref is None:
         raise DstereoError("no frame of the sequence gave a surface to measure from; first failure: "
                            f"{results[0].reason}")
-    return _assemble(results, ref, ref_index, maps, ses, config)
+    out = _assemble(results, ref, ref_index, maps, ses, config)
+    out.noise_checks = checks
+    off = {results[i].name: c["ratio"] for i, c in checks.items()
+           if c.get("ratio") is not None and not 0.67 <= c["ratio"] <= 1.5}
+    if off:
+        out.warnings.append(f"the disparity noise model was off on {len(off)} frame(s) (observed / predicted scatter "
+                            + ", ".join(f"{k}: {v:.2f}" for k, v in list(off.items())[:5])
+                            + "); their per-point random sigmas are scaled to the observed level")
+    if sigmas:
+        out.random_sigma, out.random_se = np.full(out.heights.shape, np.nan), np.full(out.heights.shape, np.nan)
+        for i, (m, se) in sigmas.items():
+            out.random_sigma[i] = np.where(np.isfinite(out.heights[i]), m, np.nan)
+            out.random_se[i] = np.where(np.isfinite(out.heights[i]), se, np.nan)
+    return out
+
+
+# --- random (disparity-noise) uncertainty per cell, from the per-point sigmas (dstereo.disparity_noise) --------
+
+CORRELATION_AREA_PX = 14.0  # (sum F)^2 / sum F^2 of the refinement's iterated kernel: pixels per independent error
+
+
+def _points_and_sigmas(out):
+    """A reconstructor returns points (h, w, 3), or (points, per-point random displacement vectors (h, w, 3),
+    the frame's disparity-noise check (summary['disparity_noise']['plane_check']) or None)."""
+    if not isinstance(out, tuple):
+        return out, None, None
+    return (*out, None)[:3] if len(out) == 2 else out
+
+
+def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config):
+    """(ny, nx) RMS over each cell's points of the random height std (the displacement along the sample axis),
+    and the standard error of the cell's mean height it implies (count / CORRELATION_AREA_PX independent
+    errors); cells of the face slab only, as `_frame_heights`."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    vec = np.asarray(vectors, float).reshape(-1, 3)
+    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vec), axis=1)
+    uvh = ref.sample.coordinates(p[ok])
+    s_h = np.abs(vec[ok] @ ref.sample.axis)
+    slab = (uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])
+    idx = ref.grid.cell_index(uvh[slab, :2])
+    inside = idx >= 0
+    n_cells = ref.grid.shape[0] * ref.grid.shape[1]
+    total = np.bincount(idx[inside], weights=s_h[slab][inside] ** 2, minlength=n_cells)
+    count = np.bincount(idx[inside], minlength=n_cells)
+    rms = np.where(count >= config.min_points_per_cell, np.sqrt(total / np.maximum(count, 1)), np.nan)
+    se = rms / np.sqrt(np.maximum(count / CORRELATION_AREA_PX, 1.0))
+    return rms.reshape(ref.grid.shape), se.reshape(ref.grid.shape)
+
+
+def _random_summary(result) -> dict | None:
+    """Median per-point random height std and the standard error of a cell height it implies (neighbours
+    share errors over CORRELATION_AREA_PX pixels), beside the cells' own fit standard errors."""
+    if result.random_sigma is None or not np.isfinite(result.random_sigma).any():
+        return None
+    sig = result.random_sigma[np.isfinite(result.random_sigma)]
+    ratios = [c.get("ratio") for c in result.noise_checks.values()]
+    return {"per_point_height_sigma_mm_median": float(np.median(sig)),
+            "noise_check_ratio_per_frame": {result.frames[i].name: c.get("ratio")
+                                            for i, c in sorted(result.noise_checks.items())},
+            "noise_check_ratio_range": [min(r for r in ratios if r is not None),
+                                        max(r for r in ratios if r is not None)] if any(
+                                            r is not None for r in ratios) else None,
+            "correlation_area_px": CORRELATION_AREA_PX,
+            "cell_random_se_mm_median": float(np.nanmedian(result.random_se)),
+            "cell_fit_se_mm_median": float(np.nanmedian(result.height_se)),
+            "note": "per-point random std along the sample axis from the per-pixel disparity noise "
+                    "(dstereo.disparity_noise, level checked on each frame); per cell: recession_maps.npz random_sigma_mm and "
+                    "random_se_mm (the cell height's random standard error), beside the fit's own height_se_mm"}
 
 
 def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: int = 20) -> None:
@@ -199,13 +274,20 @@ def _reconstructor(calib, recon_config, refine: bool):
 
     from dstereo.reconstruction import read_image, reconstruct_calibrated
 
-    # Only the points are used: per-point sigmas (and the extra right-map matching they need) would be wasted.
+    # The points and their random (disparity-noise) sigmas: the calibration's share is common to all frames and
+    # cancels in a recession, so its propagation is skipped.
     recon_config = replace(recon_config, refine=refine, uncertainty=False)
 
-    def run(frame: Frame) -> np.ndarray:
+    def run(frame: Frame):
+        from dstereo.disparity_noise import point_sigma_vectors
+        from dstereo.reconstruction import disparity_sigma_hook
+
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            return reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left)).points
+            r = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
+            sigma_d, _ = disparity_sigma_hook(r, recon_config, originals=(left, right))
+            return (r.points, point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d),
+                    r.summary["disparity_noise"]["plane_check"])
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only

@@ -4,7 +4,8 @@
     summary.json          rate (with its 95 % interval), weighted rate, axis, stagnation point, grid, skipped
                           frames with reasons, configuration, units
     recession.csv         one row per frame: time, stagnation-point recession and its standard error, cells, status
-    recession_maps.npz    grid coordinates u, v (mm), per-frame heights / recession maps (frames, ny, nx), rate map
+    recession_maps.npz    grid coordinates u, v (mm), per-frame heights / recession maps (frames, ny, nx), rate map,
+                          random_sigma_mm: per cell the RMS random height std of its points (disparity noise)
     plots/recession_vs_time.png, recession_maps.png, rate_map.png, radial_profiles.png
 """
 
@@ -41,7 +42,9 @@ def write_npz(path: Path, result) -> None:
         height_se_mm=result.height_se, recession_mm=result.recession, rate_mm_s=result.rates["rate"],
         rate_se_mm_s=result.rates["rate_se"], rate_ci95_half_mm_s=result.rates["ci95_half"],
         rate_frames=result.rates["frames"], axis=result.sample.axis, stagnation_point_mm=result.sample.point,
-        axes=result.sample.axes)
+        axes=result.sample.axes,
+        **({} if result.random_sigma is None else {"random_sigma_mm": result.random_sigma,
+                                                   "random_se_mm": result.random_se}))
 
 
 def write_results(out, result, calibration: str, sequence: str, force: bool = False, extra: dict | None = None) -> dict:
@@ -90,6 +93,11 @@ def report_markdown(result, summary: dict) -> str:
         status = f.status + (f": {f.reason}" if f.reason else "")
         lines.append(f"| {f.name} | {f.time_s:g} | {_num(f.recession.value)} | {_num(f.recession.se)} | "
                      f"{f.valid_cells} | {status} |")
+    rnd = summary.get("random_uncertainty")
+    if rnd:
+        lines += ["", f"Random height std per point (per-pixel disparity noise, level checked on each frame): median "
+                      f"{rnd['per_point_height_sigma_mm_median']:.3g} mm; per cell in recession_maps.npz "
+                      "(random_sigma_mm)."]
     lines += ["", "Standard errors treat grid cells as independent (neighbours share the matching window), so "
               "they are lower bounds; the rate's interval comes from the scatter about the line.", "",
               "## Maps", "", "![maps](plots/recession_maps.png)", "", "![rate map](plots/rate_map.png)", "",
