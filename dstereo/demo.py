@@ -19,7 +19,7 @@ distance triangulated by the rig) reach ~0.02 % and a few px. The joint refineme
 bounds (`BOUNDS`: fixed, or 3 Jacobian standard deviations for the principal points and the rotation) and the
 one the reconstruction uses; the thesis's path is shown beside it. The reconstruction refines SGBM's disparity
 (`dstereo.subpixel`); the surface error without the refinement is reported beside it, and the median predicted
-depth std (joint covariance + left-right disparity noise) beside the measured error. Library code: nothing here
+depth std (joint covariance + per-pixel disparity noise) beside the measured error. Library code: nothing here
 prints.
 """
 
@@ -480,7 +480,7 @@ def surface_lines(comparison: dict) -> list[str]:
         f"{s['true_calibration']['rms_mm']:.4f} mm (mean {s['true_calibration_sgbm']['mean_mm']:+.4f} -> "
         f"{s['true_calibration']['mean_mm']:+.4f} mm); the refinement dropped "
         f"{100 * s['refine_dropped_fraction']:.2f} % of SGBM's pixels.",
-        f"predicted depth std (joint covariance + left-right disparity noise {sz['sigma_d_px']:.3g} px): median "
+        f"predicted depth std (joint covariance + per-pixel disparity noise, median {sz['sigma_d_px']:.3g} px): median "
         f"sigma_z {sz['median']:.4f} mm (calibration {sz['calibration_at_median_mm']:.4f}, disparity "
         f"{sz['disparity_at_median_mm']:.4f} mm at the median point) against the measured surface RMS "
         f"{s['joint']['rms_mm']:.4f} mm (true calibration, matching alone: {s['true_calibration']['rms_mm']:.4f} mm)."
