@@ -57,6 +57,10 @@ def reconstruct(
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
+    from dstereo.io.pairing import check_distinct_images
+
+    for a, b in zip(left, right):
+        check_distinct_images(a, b)
     cfg = ReconstructionConfig()
     if project is not None:
         if not project.is_dir():

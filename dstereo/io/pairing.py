@@ -113,3 +113,26 @@ def check_enough_pairs(pairing: NamePairing, where_left: str, where_right: str, 
         f"stereo images: only {n} of {n_l} left images ({where_left}) and {n_r} right images ({where_right}) pair up "
         f"by name{hint}; pairs are matched by name: {RULE}; rename the images so partners share their name"
         + (f" (a stereo calibration needs at least {minimum} pairs)" if n < minimum else ""))
+
+
+def check_distinct_images(left: str | Path, right: str | Path) -> None:
+    """Refuse a 'pair' that is one image twice: the same file, a byte-identical copy, or the same decoded pixels.
+    (Matching an image with itself gives zero disparity everywhere, a plausible-looking but meaningless cloud.)"""
+    left, right = Path(left), Path(right)
+    if not (left.is_file() and right.is_file()):
+        return  # a missing file is reported where the images are read
+    what = None
+    if left.resolve() == right.resolve():
+        what = "the same file"
+    elif left.stat().st_size == right.stat().st_size and left.read_bytes() == right.read_bytes():
+        what = "byte-identical copies"
+    else:
+        import cv2
+        import numpy as np
+
+        a, b = cv2.imread(str(left), cv2.IMREAD_UNCHANGED), cv2.imread(str(right), cv2.IMREAD_UNCHANGED)
+        if a is not None and b is not None and a.shape == b.shape and np.array_equal(a, b):
+            what = "the same image (identical pixels)"
+    if what is not None:
+        raise DstereoError(f"--left {left} and --right {right} are {what}; a stereo pair needs the left and the "
+                           "right camera's images taken at the same moment")
