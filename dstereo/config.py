@@ -326,9 +326,37 @@ _CALIBRATION_KEYS = {
 _STEP_SECTIONS = {"optimization": False, "stereo optimization": True}
 
 
+def _top_sections(text: str) -> list[str]:
+    """Names of the `[ Section ]` headers (one bracket), lower-cased, in file order."""
+    found = []
+    for raw in text.splitlines():
+        head = _HEADER.match(_strip_comment(raw).strip())
+        if head and len(head.group(1)) == 1:
+            found.append(" ".join(head.group(2).lower().split()))
+    return found
+
+
+def _missing_sections(sections: list[str], mode: str, where: str) -> list[str]:
+    """Warnings for a thesis file without the optimisation section its mode uses (it then runs no steps)."""
+    wanted = "optimization" if mode == "individual" else "stereo optimization"
+    if wanted in sections:
+        return []
+    title = "[ Optimization ]" if mode == "individual" else "[ Stereo Optimization ]"
+    others = [f"[ {s} ]" for s in sections if s not in ("calibration", wanted)]
+    return [f"{where}: no {title} section, so no optimisation step filters the subsets (thesis Figure "
+            f"{'5.5' if mode == 'individual' else '5.14'} has one)"
+            + (f"; found {', '.join(others)}: check its spelling" if others else "")]
+
+
 def config_from_thesis_ini(text: str, where: str) -> Config:
     """Config from the thesis's initialisation file (Figures 5.5 / 5.14), comments and trailing commas allowed."""
     entries = _parse_ini_tree(text, where)
+    sections = _top_sections(text)
+    if "calibration" not in sections:
+        found = ", ".join(f"[ {s} ]" for s in sections) or "no sections"
+        raise DstereoError(f"{where}: no [ Calibration ] section (found {found}); a thesis initialisation file "
+                           "starts with [ Calibration ] (Individual/Stereo calibration, mesh width, mesh height, "
+                           "square size, images per set); add it, or use a dstereo.toml (dstereo init writes one)")
     calib: dict[str, tuple[str, int]] = {}
     steps_meta: dict[bool, dict[str, tuple[str, int]]] = {False: {}, True: {}}
     step_blocks: dict[bool, dict[int, dict[str, tuple[str, int]]]] = {False: {}, True: {}}
@@ -415,7 +443,7 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         steps=_ini_steps(steps_meta[False], step_blocks[False], where, "[ Optimization ]", stereo=False),
         stereo_steps=_ini_steps(steps_meta[True], step_blocks[True], where, "[ Stereo Optimization ]", stereo=True),
         source=where,
-        warnings=tuple(warnings),
+        warnings=tuple(warnings + _missing_sections(sections, mode, where)),
     )
 
 

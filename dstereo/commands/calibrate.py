@@ -105,8 +105,12 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
                 projection_range=None) -> None:
     """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
     from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
+    from dstereo.errors import DstereoError
     from dstereo.io.stereo_files import write_stereo_results
 
+    if left is not None and right is not None and left.is_dir() and left.resolve() == Path(right).resolve():
+        raise DstereoError(f"--left and --right are the same folder {left}; give each camera's images, e.g. "
+                           f"--left '{left}/left*.jpg' --right '{left}/right*.jpg'")
     sources = stereo_sources(images, cfg, left, right)
     out = _results_folder(out, project, force, cfg)
     with progress_bars(quiet) as progress:
