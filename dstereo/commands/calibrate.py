@@ -30,7 +30,8 @@ def calibrate(
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the subset sample."),
     step: list[str] = typer.Option(
         [], "--step", help="An optimisation step NAME=MAX[,NAME=MAX...] (repeat, in order; replaces the file's "
-        "steps), e.g. --step re=0.5 --step p1=1.5,p2=1.5"),
+        "steps of that kind), e.g. --step re=0.5 --step p1=1.5,p2=1.5; stereo steps name stereo_re, Tnorm, Tx, Ty, "
+        "Tz, RVnorm, RVx, RVy, RVz, e.g. --step stereo_re=3 --step Tnorm=0.75"),
     min_subsets: Optional[int] = typer.Option(
         None, "--min-subsets", help="A step stops before it would leave fewer subsets."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
@@ -46,7 +47,7 @@ def calibrate(
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    from dstereo.config import Config, find_project_config, load_config, parse_step_flag, validate
+    from dstereo.config import Config, find_project_config, load_config, parse_step_flags, validate
     from dstereo.errors import DstereoError
     from dstereo.io.corners import parse_pattern
 
@@ -55,12 +56,13 @@ def calibrate(
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     cfg = load_config(config_path) if config_path is not None else Config()
+    mono_steps, stereo_steps = parse_step_flags(step)
     cfg = cfg.with_overrides(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
         image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
         seed=seed, min_subsets=min_subsets,
-        steps=tuple(parse_step_flag(s, k) for k, s in enumerate(step, 1)) if step else None,
+        steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
@@ -68,6 +70,9 @@ def calibrate(
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
+    if stereo_steps:
+        raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
+                           "stereo run; give --left DIR --right DIR (or images/images_left + images/images_right)")
     if cfg.mode != "individual":
         raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
                            "in images/images_left and images/images_right, or give --left DIR --right DIR")
