@@ -312,3 +312,76 @@ def test_init_template_carries_the_stereo_steps(tmp_path):
     assert "--step stereo_re=3" in text and "[[stereo.steps]]" in text
     thesis = config_from_thesis_ini(_seed_text("init-stereo.ini"), "init-stereo.ini")
     assert load_config(tmp_path / "p" / "dstereo.toml").stereo_steps == thesis.stereo_steps
+
+
+# --- 5. views that do not fit: outlying RMS, stray corners, corner order -------------------------------------------
+
+def _grid_image(pattern, angle_deg=10.0, shift=(100.0, 80.0), step=20.0):
+    """A pattern's corners in the image: rows of `cols` points, rotated by `angle_deg`, OpenCV's order."""
+    cols, rows = pattern
+    yy, xx = np.mgrid[0:rows, 0:cols]
+    pts = np.column_stack([xx.ravel(), yy.ravel()]) * step
+    a = np.radians(angle_deg)
+    return pts @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) + np.asarray(shift)
+
+
+def test_outlying_views_and_stray_corners_are_named():
+    from dstereo.calib.view_checks import outlying_views, stray_corners
+
+    rms = np.array([0.20, 0.22, 0.19, 0.21, 0.25, 1.3])
+    warnings = outlying_views([f"v{i}" for i in range(6)], rms)
+    assert len(warnings) == 1 and "v5" in warnings[0] and "1.3 px" in warnings[0]
+    assert outlying_views(["a", "b", "c", "d", "e"], [0.2, 0.21, 0.3, 0.25, 0.22]) == []  # a spread, no outlier
+    res = np.full((4, 54, 2), 0.1)
+    res[2, 7] = (5.0, 0.0)
+    warnings = stray_corners(["a", "b", "c", "d"], res, (6, 9))
+    assert len(warnings) == 1 and "view c: corner 7" in warnings[0] and "did you mean 9x6" in warnings[0]
+
+
+def test_corner_order_mirrored_and_turned():
+    from dstereo.calib.view_checks import align_order, mirrored_views
+
+    q = _grid_image((9, 6))
+    mirrored = q.reshape(6, 9, 2)[:, ::-1].reshape(-1, 2)  # columns numbered the other way: a mirror image
+    views = {"a": q, "b": q + 3.0, "c": q - 2.0, "d": mirrored}
+    warnings = mirrored_views(views, (9, 6))
+    assert len(warnings) == 1 and "(d)" in warnings[0]
+    assert mirrored_views({"a": q, "b": q + 1}, (9, 6)) == []
+    turned = q[::-1]  # numbered from the opposite corner: the grid turned by 180 degrees
+    aligned, turn = align_order(q + 5.0, turned, (9, 6))
+    assert turn == 180 and np.array_equal(aligned, q)
+    square = _grid_image((7, 7))
+    rot = np.rot90(square.reshape(7, 7, 2), 1).reshape(-1, 2)
+    aligned, turn = align_order(square, rot, (7, 7))
+    assert turn in (90, 270) and np.array_equal(aligned, square)
+    assert align_order(q, q + 1.0, (9, 6))[1] == 0
+
+
+def test_wrong_way_round_pattern_flags_the_bad_view(tmp_path):
+    """OpenCV's left01..09 with --pattern 6x9: left02 (known blurred board corner) is named with its RMS, and the
+    pattern hint, on stderr and in summary.json."""
+    import json
+
+    data = require_data("opencv_stereo")
+    out = tmp_path / "out"
+    code, _, err = run_cli("calibrate", "--images", data, "--glob", "left0*.jpg", "--pattern", "6x9", "--out", out,
+                           "--quiet")
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    flagged = [w for w in summary["warnings"] if w.startswith("view left02.jpg")]
+    assert flagged and all(w in err for w in flagged)
+    assert any("did you mean 9x6" in w for w in flagged)
+
+
+def test_stereo_pairs_numbered_from_opposite_corners_are_renumbered(tmp_path):
+    from dstereo.io.stereo_files import _align_right_order, detect_pairs
+
+    data = require_data("opencv_stereo")
+    det = detect_pairs([data / f"left0{i}.jpg" for i in (1, 3, 4)], [data / f"right0{i}.jpg" for i in (1, 3, 4)],
+                       (9, 6), 1.0)
+    assert det.warnings == []
+    truth = det.right.corners["right03.jpg"].copy()
+    det.right.corners["right03.jpg"] = truth[::-1].copy()  # as if OpenCV had started at the opposite corner
+    warnings = _align_right_order(det.left, det.right, det.pairs, (9, 6))
+    assert len(warnings) == 1 and "left03.jpg / right03.jpg (180 deg)" in warnings[0]
+    assert np.array_equal(det.right.corners["right03.jpg"], truth)

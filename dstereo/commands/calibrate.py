@@ -120,12 +120,32 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     out = _results_folder(out, project, force, cfg)
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
+        job.warnings += _stereo_view_warnings(job)  # before writing: summary.json keeps them
         write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
     if not quiet:
         typer.echo("\n".join(summary_lines(job, out)))
+
+
+def _view_warnings(cal) -> list[str]:
+    """Views far off the rest or in another corner order (dstereo.calib.view_checks), from the full-set solve."""
+    from dstereo.calib import view_checks
+
+    pattern = cal.config.pattern
+    return (view_checks.outlying_views(cal.used, cal.full.per_view_rms)
+            + view_checks.stray_corners(cal.used, cal.full.residuals, pattern)
+            + view_checks.mirrored_views({n: cal.detection.corners[n] for n in cal.used}, pattern))
+
+
+def _stereo_view_warnings(job) -> list[str]:
+    from dstereo.calib import view_checks
+
+    names = [f"{a} / {b}" for a, b in job.detection.pairs]
+    out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
+           for w in _view_warnings(cal)]
+    return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
 def _model(spec: Optional[str]):
@@ -143,6 +163,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
 
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
+        cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)

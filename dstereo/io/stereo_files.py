@@ -89,8 +89,28 @@ def detect_pairs(left, right, pattern: tuple[int, int], square: float, suffix: s
             f"in {sorted(det_l.corners) or 'none'}, right boards in {sorted(det_r.corners) or 'none'}); check that "
             "the left and right images are taken at the same moments and named alike"
         )
-    warning = named.warning()
-    return StereoDetection(det_l, det_r, pairs, dropped, [warning] if warning else [])
+    warnings = [named.warning()] if named.warning() else []
+    warnings += _align_right_order(det_l, det_r, pairs, pattern)
+    return StereoDetection(det_l, det_r, pairs, dropped, warnings)
+
+
+def _align_right_order(det_l: Detection, det_r: Detection, pairs: list[tuple[str, str]],
+                       pattern: tuple[int, int]) -> list[str]:
+    """Renumber a right image's corners that OpenCV numbered from another corner of the board than the left's
+    (`calib.view_checks.align_order`); otherwise the pair's corners would not correspond. Returns the warning."""
+    from dstereo.calib.view_checks import align_order
+
+    turned = []
+    for a, b in pairs:
+        aligned, turn = align_order(det_l.corners[a], det_r.corners[b], pattern)
+        if turn:
+            det_r.corners[b] = aligned
+            turned.append(f"{a} / {b} ({turn} deg)")
+    if not turned:
+        return []
+    return [f"{len(turned)} stereo pair(s) had their right corners numbered from another corner of the board than the "
+            f"left ({', '.join(turned[:6])}{' ...' if len(turned) > 6 else ''}); renumbered to match the left, as the "
+            f"{pattern[0]}x{pattern[1]} grid's symmetry allows"]
 
 
 def match_pairs(det_left: Detection, det_right: Detection, names_left: list[str],
