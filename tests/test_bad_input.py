@@ -385,3 +385,42 @@ def test_stereo_pairs_numbered_from_opposite_corners_are_renumbered(tmp_path):
     warnings = _align_right_order(det.left, det.right, det.pairs, (9, 6))
     assert len(warnings) == 1 and "left03.jpg / right03.jpg (180 deg)" in warnings[0]
     assert np.array_equal(det.right.corners["right03.jpg"], truth)
+
+
+# --- found walking the commands as a hostile user ----------------------------------------------------------------
+
+@pytest.mark.parametrize("flag, value", [("--focal-px", "-5"), ("--baseline-mm", "-3"), ("--outliers", "-3"),
+                                         ("--alpha", "5"), ("--lr-check", "-1"), ("--max-jump", "-1"),
+                                         ("--outlier-std", "0"), ("--sgbm", "min_disparity=-1000")])
+def test_reconstruct_refuses_numbers_it_cannot_use(tmp_path, pair, flag, value):
+    # before: --focal-px -5, --outliers -3, --alpha 5, --max-jump -1 and --outlier-std 0 ran and exited 0;
+    # min_disparity=-1000 was an OpenCV allocation traceback
+    out = tmp_path / "out"
+    args = ["reconstruct", "--left", pair[0], "--right", pair[1], "--out", out, flag, value]
+    if flag not in ("--focal-px", "--baseline-mm"):
+        args += ["--focal-px", "500"]
+    _refused(args, out, flag.split("=")[0] if flag != "--sgbm" else "min_disparity=-1000")
+
+
+def test_two_pairs_are_too_few_for_a_stereo_calibration(tmp_path):
+    left_dir, right_dir = tmp_path / "L", tmp_path / "R"
+    for i in range(2):
+        _image(left_dir / f"left{i}.png", i), _image(right_dir / f"right{i}.png", 10 + i)
+    out = tmp_path / "out"
+    _refused(("calibrate", "--left", left_dir, "--right", right_dir, "--pattern", "9x6", "--out", out), out,
+             "only 2 pair(s)", "at least 3")
+
+
+def test_opencv_and_file_system_failures_give_one_line(monkeypatch):
+    import cv2
+
+    def opencv_fails(*_):
+        raise cv2.error("OpenCV(5.0.0) alloc.cpp:73: error: (-4:Insufficient memory) Failed to allocate")
+
+    def disk_full(*_):
+        raise OSError(28, "No space left on device", "/data/out/plot.png")
+
+    args = ("optics", "--focus-distance", "1000", "--focal-length", "50", "--crop-factor", "1.5", "--f-number", "8")
+    for failure, needle in ((opencv_fails, "Insufficient memory"), (disk_full, "/data/out/plot.png")):
+        monkeypatch.setattr("dstereo.optics.compute_optics", failure)
+        _refused(args, None, needle)

@@ -41,7 +41,7 @@ def recession(
     from dataclasses import replace
 
     from dstereo.commands.progress import progress_bars
-    from dstereo.commands.matching_options import matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
@@ -57,6 +57,7 @@ def recession(
                           refine_subpixel=refine)
     changes = matching_changes(ReconstructionConfig().sgbm, preset, sgbm, z_min, z_max, roi)
     recon = replace(ReconstructionConfig(), **changes)
+    check_reconstruction_config(recon)
 
     calibration = read_stereo_calibration(calib)
     if calibration.rectified:

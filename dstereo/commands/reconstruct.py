@@ -51,7 +51,7 @@ def reconstruct(
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
     from dataclasses import replace
 
-    from dstereo.commands.matching_options import matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
     from dstereo.errors import DstereoError
     from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
 
@@ -95,6 +95,7 @@ def reconstruct(
     elif disparity_sigma is not None:
         changes["disparity_sigma"] = None
     cfg = replace(cfg, **changes)
+    check_reconstruction_config(cfg, _width(left[0]))
 
     results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
     for r in results:
@@ -116,3 +117,11 @@ def reconstruct(
         for w in r.warnings:
             typer.echo(f"dstereo: warning: {w}", err=True)
     typer.echo(f"wrote {out}")
+
+
+def _width(path: Path) -> int | None:
+    """The image's width from its header (None when unreadable: reading it later reports that)."""
+    from dstereo.recession.sequence import image_size
+
+    size = image_size(path)
+    return None if size is None else size[0]

@@ -107,6 +107,9 @@ def check_enough_pairs(pairing: NamePairing, where_left: str, where_right: str, 
     n_l, n_r = n + len(pairing.left_alone), n + len(pairing.right_alone)
     if n >= minimum and 2 * n >= n_l and 2 * n >= n_r:
         return
+    if not pairing.left_alone and not pairing.right_alone:
+        raise DstereoError(f"stereo images: only {n} pair(s) ({where_left}, {where_right}); a stereo calibration needs "
+                           f"at least {minimum}, better 10-20 at varied positions and tilts")
     example = pairing.left_alone[0] if pairing.left_alone else None
     hint = f" (e.g. {example.name} would pair with {partner_name(example)})" if example is not None else ""
     raise DstereoError(
