@@ -270,6 +270,7 @@ def make_config(settings: Mapping[str, Any]) -> OpticsConfig:
 def _check_geometry(config: OpticsConfig, explicit_dof: bool = True) -> OpticsConfig:
     """Refuse what no thin lens can do; where only the thesis's DoF convention fails, fall back to the lens's own
     focal length unless that convention was asked for by name (the notes then say so)."""
+    _check_units(config)
     s, f = config.focus_distance, config.focal_length
     if s <= f:
         raise DstereoError(
@@ -288,6 +289,23 @@ def _check_geometry(config: OpticsConfig, explicit_dof: bool = True) -> OpticsCo
         raise DstereoError(
             f"the stereo depth resolution needs the pixel size: pass {describe('pixel_size')} with the baseline")
     return config
+
+
+# Light dstereo's cameras see: 100 nm (UV) to 2 um (short-wave IR); a value outside is a unit slip (um for mm).
+WAVELENGTH_RANGE_MM = (1e-4, 2e-3)
+
+
+def _check_units(config: OpticsConfig) -> None:
+    """Values a unit slip produces (micrometres given as mm, a CoC or pixel as large as the sensor): refused."""
+    lo, hi = WAVELENGTH_RANGE_MM
+    if not lo <= config.wavelength <= hi:
+        raise DstereoError(f"wavelength ({describe('wavelength')}) {config.wavelength:g} mm is outside {lo:g}..{hi:g} "
+                           "mm (100 nm to 2 um); lengths are in mm: 550 nm is 0.00055")
+    sensor = sensor_of(config)[0]
+    for key, value in (("coc", config.coc), ("pixel_size", config.pixel_size)):
+        if value is not None and value >= min(sensor) / 10:
+            raise DstereoError(f"{key.replace('_', ' ')} ({describe(key)}) {value:g} mm is at least a tenth of the "
+                               f"{min(sensor):g} mm sensor side; lengths are in mm (a 5 um pixel is 0.005)")
 
 
 def image_distance(focus_distance: float, focal_length: float) -> float:

@@ -424,3 +424,10 @@ def test_opencv_and_file_system_failures_give_one_line(monkeypatch):
     for failure, needle in ((opencv_fails, "Insufficient memory"), (disk_full, "/data/out/plot.png")):
         monkeypatch.setattr("dstereo.optics.compute_optics", failure)
         _refused(args, None, needle)
+
+
+@pytest.mark.parametrize("flag, value", [("--coc", "100"), ("--wavelength", "0.55"), ("--pixel-size", "4")])
+def test_optics_refuses_unit_slips(flag, value):
+    # before: accepted (a 100 mm circle of confusion, a 0.55 mm wavelength, a 4 mm pixel) and exit 0
+    _refused(("optics", "--focus-distance", "1000", "--focal-length", "50", "--sensor", "22.5x16.9", "--f-number",
+              "16", flag, value), None, flag, "in mm")
