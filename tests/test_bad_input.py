@@ -431,3 +431,16 @@ def test_optics_refuses_unit_slips(flag, value):
     # before: accepted (a 100 mm circle of confusion, a 0.55 mm wavelength, a 4 mm pixel) and exit 0
     _refused(("optics", "--focus-distance", "1000", "--focal-length", "50", "--sensor", "22.5x16.9", "--f-number",
               "16", flag, value), None, flag, "in mm")
+
+
+def test_pairs_from_two_different_rigs_are_refused(tmp_path):
+    """left01..04 of OpenCV's sample with right01..04 of rig640: named alike, boards at unrelated poses. Before: exit
+    0 and a stereo.yml (rig RMS 39.7 px against 0.61 / 0.14 px for the cameras alone)."""
+    opencv, rig640 = require_data("opencv_stereo"), require_data("rig640")
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in range(1, 5):
+        (tmp_path / "L" / f"left{i:02d}.jpg").symlink_to(opencv / f"left{i:02d}.jpg")
+        (tmp_path / "R" / f"right{i:02d}.jpg").symlink_to(rig640 / f"right{i:02d}.jpg")
+    out = tmp_path / "out"
+    _refused(("calibrate", "--left", tmp_path / "L", "--right", tmp_path / "R", "--pattern", "9x6", "--out", out,
+              "--quiet"), out, "stereo: the rig fits the 4 pairs with RMS", "same moments")
