@@ -195,7 +195,7 @@ def test_reconstruct_refuses_one_image_as_both_cameras(tmp_path, pair, copy):
         cv2.imwrite(str(right), cv2.imread(str(left), cv2.IMREAD_UNCHANGED))
     out = tmp_path / "out"
     _refused(("reconstruct", "--left", left, "--right", right, "--focal-px", "500", "--out", out), out,
-             "--left", str(right))
+             "left image", str(right))
 
 
 # --- 6. thesis .ini files missing a section -----------------------------------------------------------------------
@@ -444,3 +444,15 @@ def test_pairs_from_two_different_rigs_are_refused(tmp_path):
     out = tmp_path / "out"
     _refused(("calibrate", "--left", tmp_path / "L", "--right", tmp_path / "R", "--pattern", "9x6", "--out", out,
               "--quiet"), out, "stereo: the rig fits the 4 pairs with RMS", "same moments")
+
+
+def test_recession_refuses_a_frame_whose_images_are_copies(tmp_path):
+    seq = tmp_path / "seq"
+    for t in (0, 1):
+        left = _image(seq / "left" / f"left_t={t}s.png", t)
+        (seq / "right").mkdir(exist_ok=True)
+        (seq / "right" / f"right_t={t}s.png").write_bytes(left.read_bytes())
+    calib = _write_storage(tmp_path / "stereo.yml", M1=K, D1=np.zeros(5), M2=K, D2=np.zeros(5), R=np.eye(3),
+                           T=[-100.0, 0, 0])
+    out = tmp_path / "out"
+    _refused(("recession", seq, "--calib", calib, "--out", out), out, "left_t=0s.png", "byte-identical")

@@ -64,6 +64,10 @@ def recession(
         raise DstereoError(f"calibration {calib}: a rectified (Middlebury) calibration has no camera frame for a "
                            "sample axis; give the stereo.yml of the rig")
     frames = discover(sequence, timestamps, fps)
+    from dstereo.io.pairing import check_distinct_images
+
+    for frame in frames:  # same file or byte copy (decoding every frame twice more would cost a long sequence)
+        check_distinct_images(frame.left, frame.right, decode=False)
     check_sizes(frames, calibration.image_size, str(calib))
     with progress_bars(quiet) as progress:
         result = run_recession(frames, calibration, cfg, recon, progress=progress)

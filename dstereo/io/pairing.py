@@ -118,9 +118,10 @@ def check_enough_pairs(pairing: NamePairing, where_left: str, where_right: str, 
         + (f" (a stereo calibration needs at least {minimum} pairs)" if n < minimum else ""))
 
 
-def check_distinct_images(left: str | Path, right: str | Path) -> None:
-    """Refuse a 'pair' that is one image twice: the same file, a byte-identical copy, or the same decoded pixels.
-    (Matching an image with itself gives zero disparity everywhere, a plausible-looking but meaningless cloud.)"""
+def check_distinct_images(left: str | Path, right: str | Path, decode: bool = True) -> None:
+    """Refuse a 'pair' that is one image twice: the same file, a byte-identical copy, or (with `decode`) the same
+    decoded pixels. (An image matched with itself gives zero disparity everywhere: a plausible-looking but
+    meaningless cloud.)"""
     left, right = Path(left), Path(right)
     if not (left.is_file() and right.is_file()):
         return  # a missing file is reported where the images are read
@@ -129,7 +130,7 @@ def check_distinct_images(left: str | Path, right: str | Path) -> None:
         what = "the same file"
     elif left.stat().st_size == right.stat().st_size and left.read_bytes() == right.read_bytes():
         what = "byte-identical copies"
-    else:
+    elif decode:
         import cv2
         import numpy as np
 
@@ -137,5 +138,5 @@ def check_distinct_images(left: str | Path, right: str | Path) -> None:
         if a is not None and b is not None and a.shape == b.shape and np.array_equal(a, b):
             what = "the same image (identical pixels)"
     if what is not None:
-        raise DstereoError(f"--left {left} and --right {right} are {what}; a stereo pair needs the left and the "
+        raise DstereoError(f"left image {left} and right image {right} are {what}; a stereo pair needs the left and the "
                            "right camera's images taken at the same moment")
