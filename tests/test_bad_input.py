@@ -456,3 +456,15 @@ def test_recession_refuses_a_frame_whose_images_are_copies(tmp_path):
                            T=[-100.0, 0, 0])
     out = tmp_path / "out"
     _refused(("recession", seq, "--calib", calib, "--out", out), out, "left_t=0s.png", "byte-identical")
+
+
+def test_a_results_folder_holding_the_inputs_is_refused(tmp_path, pair):
+    """`--out` = the images folder with --force used to replace the folder, deleting the images."""
+    folder = tmp_path / "imgs"
+    for i in range(3):
+        _image(folder / f"left{i}.png", i)
+    _refused(("calibrate", "--images", folder, "--pattern", "9x6", "--out", folder, "--force"), None,
+             "holds the input")
+    _refused(("reconstruct", "--left", pair[0], "--right", pair[1], "--focal-px", "500", "--out", tmp_path,
+              "--force"), None, "holds the input")
+    assert sorted(p.name for p in folder.iterdir()) == ["left0.png", "left1.png", "left2.png"]

@@ -81,19 +81,22 @@ def calibrate(
         if base is None:
             raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
         images = base / cfg.images
-    out = _results_folder(out, project, force, cfg)
+    out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
     _run(images, cfg, out, force, quiet, not no_cache, started, projection_range)
 
 
-def _results_folder(out, project, force: bool, cfg):
-    """--out, else PROJECT/results; refused before any work if it exists without --force. Prints config warnings."""
+def _results_folder(out, project, force: bool, cfg, inputs=()):
+    """--out, else PROJECT/results; refused before any work if it exists without --force, or if it holds an input
+    (images, configuration). Prints config warnings."""
     from dstereo.errors import DstereoError
+    from dstereo.io.output_location import check_not_inputs
     from dstereo.io.results import check_output
 
     if out is None:
         if project is None:
             raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
         out = project / "results"
+    check_not_inputs(out, inputs)
     check_output(out, force)
     for warning in cfg.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -117,7 +120,8 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
         raise DstereoError(f"--left and --right are the same folder {left}; give each camera's images, e.g. "
                            f"--left '{left}/left*.jpg' --right '{left}/right*.jpg'")
     sources = stereo_sources(images, cfg, left, right)
-    out = _results_folder(out, project, force, cfg)
+    out = _results_folder(out, project, force, cfg, inputs=[*sources.mono_left, *sources.mono_right,
+                                                             *sources.stereo_left, *sources.stereo_right])
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
         _check_rig_fits(job)

@@ -49,6 +49,9 @@ def recession(
     from dstereo.recession.results import write_results
     from dstereo.reconstruction import ReconstructionConfig
 
+    from dstereo.io.output_location import check_not_inputs
+
+    check_not_inputs(out, [sequence, calib, timestamps])
     check_output(out, force)
     if stagnation_fit not in ("quadratic", "mean"):
         raise DstereoError(f"--stagnation-fit {stagnation_fit!r}: use quadratic or mean")

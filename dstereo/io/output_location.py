@@ -29,3 +29,15 @@ def check_creatable(out: str | Path, flag: str = "--out") -> Path:
         raise DstereoError(f"{flag} {out}: {parent} is not writable, so the results folder cannot be made there; "
                            "choose another location")
     return out
+
+
+def check_not_inputs(out: str | Path, inputs, flag: str = "--out") -> None:
+    """Refuse a results folder that is, or holds, one of the inputs: replacing it (--force) would delete them."""
+    target = Path(out).absolute().resolve()
+    for item in inputs:
+        if item is None:
+            continue
+        path = Path(item).absolute().resolve()
+        if path == target or target in path.parents:
+            raise DstereoError(f"{flag} {out} holds the input {item}; replacing it would delete the input; "
+                               "choose a results folder outside the inputs")
