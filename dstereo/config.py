@@ -617,11 +617,12 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
                 "# and the quartiles recomputed until none is outside."]
     for step_list, table in ((cfg.steps, "steps"), (cfg.stereo_steps, "stereo.steps")):
         if comments and table == "stereo.steps":
-            out += ["", "# Stereo steps (thesis Figure 5.14), used when the project is a stereo rig (images/images_left +",
-                    "# images/images_right, or --left/--right); they filter the subsets of pairs after each camera's",
-                    "# own steps above. stereo_re: subsets whose stereo RMS reprojection error exceeds max_error (px)",
-                    "# are removed. Tnorm Tx Ty Tz (translation, its norm = the baseline) and RVnorm RVx RVy RVz",
-                    "# (rotation vector, rad): the IQR rule above with a = max_error. From the command line:",
+            out += ["", "# Stereo steps (thesis Figure 5.14), used when the project is a stereo rig",
+                    "# (images/images_left + images/images_right, or --left/--right); they filter the",
+                    "# subsets of pairs after each camera's own steps above. stereo_re: subsets whose stereo",
+                    "# RMS reprojection error exceeds max_error (px) are removed. Tnorm Tx Ty Tz (translation,",
+                    "# its norm = the baseline) and RVnorm RVx RVy RVz (rotation vector, rad): the IQR rule",
+                    "# above with a = max_error. From the command line:",
                     "#     --step stereo_re=3 --step Tnorm=0.75 --step RVnorm=0.75"]
             if not step_list:
                 out += ["# [[stereo.steps]]", '# parameters = ["stereo_re"]', "# max_error = [3.0]"]

@@ -390,7 +390,8 @@ def _notes(config: OpticsConfig, sensor_derived: bool, out: Mapping[str, Any]) -
     if v > 1.1 * config.focal_length:
         notes.append(f"close focus: the lens sits {v:.4g} mm from the sensor ({v / config.focal_length:.2f} x its "
                      "focal length, thin lens); field of view, footprint and depth resolution assume the principal "
-                     f"distance is the focal length and are off by that factor (magnification {v / config.focus_distance:.3g})")
+                     "distance is the focal length and are off by that factor "
+                     f"(magnification {v / config.focus_distance:.3g})")
     if out["far_is_infinite"]:
         notes.append("focus at or beyond the hyperfocal distance: everything from the near limit to infinity is sharp")
     if out["diffraction_limited"]:

@@ -40,7 +40,9 @@ def calibrate(
     no_cache: bool = typer.Option(False, "--no-cache", help="Detect corners again instead of using the cache."),
     left: Optional[Path] = typer.Option(
         None, "--left", help="Stereo: left camera's images, a folder or a pattern such as DIR/left*.jpg."),
-    right: Optional[Path] = typer.Option(None, "--right", help="Stereo: right camera's images; partners by name (left05 / right05, L_05 / R_05, im0 / im1)."),
+    right: Optional[Path] = typer.Option(
+        None, "--right", help="Stereo: right camera's images; partners by name (left05 / right05, L_05 / R_05, "
+        "im0 / im1)."),
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),

@@ -55,6 +55,7 @@ def check_reconstruction_config(cfg, image_width: int | None = None) -> None:
         raise DstereoError(f"--lr-check {lr}: the left-right tolerance is a distance in px, >= 0")
     lo, n = cfg.sgbm.min_disparity, cfg.sgbm.num_disparities
     if image_width is not None and (lo <= -image_width or lo + n > 2 * image_width):
-        raise DstereoError(f"--sgbm min_disparity={lo} with num_disparities={n} searches disparities {lo}..{lo + n - 1} "
+        raise DstereoError(f"--sgbm min_disparity={lo} with num_disparities={n} searches disparities "
+                           f"{lo}..{lo + n - 1} "
                            f"px, far outside the {image_width} px wide image; set the range from the scene's depth "
                            "with --z-min/--z-max")

@@ -138,5 +138,5 @@ def check_distinct_images(left: str | Path, right: str | Path, decode: bool = Tr
         if a is not None and b is not None and a.shape == b.shape and np.array_equal(a, b):
             what = "the same image (identical pixels)"
     if what is not None:
-        raise DstereoError(f"left image {left} and right image {right} are {what}; a stereo pair needs the left and the "
-                           "right camera's images taken at the same moment")
+        raise DstereoError(f"left image {left} and right image {right} are {what}; a stereo pair needs the left "
+                           "and the right camera's images taken at the same moment")
