@@ -468,3 +468,11 @@ def test_a_results_folder_holding_the_inputs_is_refused(tmp_path, pair):
     _refused(("reconstruct", "--left", pair[0], "--right", pair[1], "--focal-px", "500", "--out", tmp_path,
               "--force"), None, "holds the input")
     assert sorted(p.name for p in folder.iterdir()) == ["left0.png", "left1.png", "left2.png"]
+
+
+def test_reconstruct_pairs_given_against_their_names_are_refused(tmp_path):
+    images = [_image(tmp_path / f"{side}0{i}.png", 10 * k + i) for k, side in enumerate(("left", "right"))
+              for i in (1, 2)]
+    out = tmp_path / "out"
+    _refused(("reconstruct", "--left", images[0], "--left", images[1], "--right", images[3], "--right", images[2],
+              "--focal-px", "500", "--out", out), out, "left01.png", "right01.png")

@@ -58,10 +58,11 @@ def reconstruct(
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
     from dstereo.io.output_location import check_not_inputs
-    from dstereo.io.pairing import check_distinct_images
+    from dstereo.io.pairing import check_distinct_images, check_order_agrees_with_names
 
     check_not_inputs(out, [*left, *right, calib, config])
 
+    check_order_agrees_with_names(left, right)
     for a, b in zip(left, right):
         check_distinct_images(a, b)
     cfg = ReconstructionConfig()

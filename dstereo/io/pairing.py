@@ -140,3 +140,21 @@ def check_distinct_images(left: str | Path, right: str | Path, decode: bool = Tr
     if what is not None:
         raise DstereoError(f"left image {left} and right image {right} are {what}; a stereo pair needs the left "
                            "and the right camera's images taken at the same moment")
+
+
+def check_order_agrees_with_names(left: list[Path], right: list[Path]) -> None:
+    """Pairs given in order (reconstruct's repeated --left/--right) must not contradict the names: when every image
+    has a partner by name and the order pairs them otherwise, refuse naming the first disagreement."""
+    if len(left) < 2:
+        return
+    try:
+        named = pair_by_name([Path(p) for p in left], [Path(p) for p in right])
+    except DstereoError:
+        return  # names that do not identify partners: the order is all there is
+    if named.left_alone or named.right_alone:
+        return
+    by_name = {a: b for a, b in named.pairs}
+    for a, b in zip(map(Path, left), map(Path, right)):
+        if by_name[a] != b:
+            raise DstereoError(f"--left {a} is given with --right {b}, but by name its partner is {by_name[a]}; give "
+                               "the --right images in the order of the --left ones")
