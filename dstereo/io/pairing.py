@@ -158,3 +158,26 @@ def check_order_agrees_with_names(left: list[Path], right: list[Path]) -> None:
         if by_name[a] != b:
             raise DstereoError(f"--left {a} is given with --right {b}, but by name its partner is {by_name[a]}; give "
                                "the --right images in the order of the --left ones")
+
+
+def camera_side(path: str | Path) -> str | None:
+    """'left' or 'right' from the file name's first camera token (im0/cam0 count as left), None without one."""
+    m = CAMERA_TOKEN.search(Path(path).stem)
+    if m is None:
+        return None
+    word = m.group(0).lower()
+    return "left" if word in ("left", "l") or word.endswith("0") else "right"
+
+
+def check_one_camera(files: list[Path], where: str) -> None:
+    """Refuse a one-camera calibration whose images are named as both cameras' (left05 and right05 together)."""
+    sides: dict[str, list[Path]] = {}
+    for path in files:
+        side = camera_side(path)
+        if side is not None:
+            sides.setdefault(side, []).append(Path(path))
+    if len(sides) == 2:
+        raise DstereoError(
+            f"images: {where} holds both cameras' images ({len(sides['left'])} left, e.g. {sides['left'][0].name}; "
+            f"{len(sides['right'])} right, e.g. {sides['right'][0].name}); a calibration is of one camera: give "
+            "--glob (e.g. --glob 'left*.jpg'), or calibrate the rig with --left and --right")
