@@ -326,9 +326,37 @@ _CALIBRATION_KEYS = {
 _STEP_SECTIONS = {"optimization": False, "stereo optimization": True}
 
 
+def _top_sections(text: str) -> list[str]:
+    """Names of the `[ Section ]` headers (one bracket), lower-cased, in file order."""
+    found = []
+    for raw in text.splitlines():
+        head = _HEADER.match(_strip_comment(raw).strip())
+        if head and len(head.group(1)) == 1:
+            found.append(" ".join(head.group(2).lower().split()))
+    return found
+
+
+def _missing_sections(sections: list[str], mode: str, where: str) -> list[str]:
+    """Warnings for a thesis file without the optimisation section its mode uses (it then runs no steps)."""
+    wanted = "optimization" if mode == "individual" else "stereo optimization"
+    if wanted in sections:
+        return []
+    title = "[ Optimization ]" if mode == "individual" else "[ Stereo Optimization ]"
+    others = [f"[ {s} ]" for s in sections if s not in ("calibration", wanted)]
+    return [f"{where}: no {title} section, so no optimisation step filters the subsets (thesis Figure "
+            f"{'5.5' if mode == 'individual' else '5.14'} has one)"
+            + (f"; found {', '.join(others)}: check its spelling" if others else "")]
+
+
 def config_from_thesis_ini(text: str, where: str) -> Config:
     """Config from the thesis's initialisation file (Figures 5.5 / 5.14), comments and trailing commas allowed."""
     entries = _parse_ini_tree(text, where)
+    sections = _top_sections(text)
+    if "calibration" not in sections:
+        found = ", ".join(f"[ {s} ]" for s in sections) or "no sections"
+        raise DstereoError(f"{where}: no [ Calibration ] section (found {found}); a thesis initialisation file "
+                           "starts with [ Calibration ] (Individual/Stereo calibration, mesh width, mesh height, "
+                           "square size, images per set); add it, or use a dstereo.toml (dstereo init writes one)")
     calib: dict[str, tuple[str, int]] = {}
     steps_meta: dict[bool, dict[str, tuple[str, int]]] = {False: {}, True: {}}
     step_blocks: dict[bool, dict[int, dict[str, tuple[str, int]]]] = {False: {}, True: {}}
@@ -415,7 +443,7 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         steps=_ini_steps(steps_meta[False], step_blocks[False], where, "[ Optimization ]", stereo=False),
         stereo_steps=_ini_steps(steps_meta[True], step_blocks[True], where, "[ Stereo Optimization ]", stereo=True),
         source=where,
-        warnings=tuple(warnings),
+        warnings=tuple(warnings + _missing_sections(sections, mode, where)),
     )
 
 
@@ -484,9 +512,7 @@ def find_project_config(project: str | Path) -> Path | None:
     return found[0] if found else None
 
 
-def parse_step_flag(text: str, index: int) -> Step:
-    """'--step re=0.5' or '--step p1=1.5,p2=1.5' -> Step (one flag per step, in order)."""
-    where = f"--step {text!r} (step {index})"
+def _step_items(text: str, where: str) -> tuple[list[str], list[str]]:
     params, errors = [], []
     for item in (s for s in text.split(",") if s.strip()):
         if "=" not in item:
@@ -494,7 +520,45 @@ def parse_step_flag(text: str, index: int) -> Step:
         name, value = item.split("=", 1)
         params.append(name)
         errors.append(value.strip())
-    return make_step(params, errors, where)
+    return params, errors
+
+
+def parse_step_flag(text: str, index: int, stereo: bool = False) -> Step:
+    """'--step re=0.5' or '--step p1=1.5,p2=1.5' -> Step (one flag per step, in order); `stereo`: the names are
+    the stereo step parameters (stereo_re, Tnorm, ...)."""
+    where = f"--step {text!r} (step {index})"
+    params, errors = _step_items(text, where)
+    return make_step(params, errors, where, stereo)
+
+
+def _is_stereo_name(name: str) -> bool | None:
+    """True for a stereo step parameter, False for a one-camera one, None for neither."""
+    key = str(name).strip().lower().replace("_", "").replace(" ", "")
+    for stereo, allowed in ((False, MONO_PARAMETERS), (True, STEREO_PARAMETERS)):
+        if any(known.lower().replace("_", "") == key for known in allowed):
+            return stereo
+    return None
+
+
+def parse_step_flags(texts: list[str]) -> tuple[tuple[Step, ...] | None, tuple[Step, ...] | None]:
+    """Every --step flag -> (one-camera steps, stereo steps), each None when no flag gave that kind (the file's
+    steps of that kind then stay). A flag's kind follows its names: re, fx, ..., k6 are one-camera parameters,
+    stereo_re, Tnorm, Tx, Ty, Tz, RVnorm, RVx, RVy, RVz stereo ones; one flag holds one kind."""
+    mono, stereo = [], []
+    for index, text in enumerate(texts, 1):
+        where = f"--step {text!r} (step {index})"
+        params, _ = _step_items(text, where)
+        kinds = {_is_stereo_name(p) for p in params}
+        if None in kinds:
+            bad = next(p for p in params if _is_stereo_name(p) is None)
+            raise DstereoError(f"{where}: unknown parameter {bad!r}; one-camera steps use {', '.join(MONO_PARAMETERS)}"
+                               f"; stereo steps use {', '.join(STEREO_PARAMETERS)}")
+        if len(kinds) > 1:
+            raise DstereoError(f"{where}: mixes one-camera and stereo parameters; give them as separate --step flags "
+                               "(e.g. --step re=0.5 --step stereo_re=3)")
+        is_stereo = kinds == {True}
+        (stereo if is_stereo else mono).append(parse_step_flag(text, index, is_stereo))
+    return (tuple(mono) if mono else None), (tuple(stereo) if stereo else None)
 
 
 # --- writing ------------------------------------------------------------------------------------------------
@@ -552,6 +616,16 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
                 "# (fx fy cx cy k1..k6 p1 p2): subsets outside [Q1 - a IQR, Q3 + a IQR], a = max_error, are removed",
                 "# and the quartiles recomputed until none is outside."]
     for step_list, table in ((cfg.steps, "steps"), (cfg.stereo_steps, "stereo.steps")):
+        if comments and table == "stereo.steps":
+            out += ["", "# Stereo steps (thesis Figure 5.14), used when the project is a stereo rig",
+                    "# (images/images_left + images/images_right, or --left/--right); they filter the",
+                    "# subsets of pairs after each camera's own steps above. stereo_re: subsets whose stereo",
+                    "# RMS reprojection error exceeds max_error (px) are removed. Tnorm Tx Ty Tz (translation,",
+                    "# its norm = the baseline) and RVnorm RVx RVy RVz (rotation vector, rad): the IQR rule",
+                    "# above with a = max_error. From the command line:",
+                    "#     --step stereo_re=3 --step Tnorm=0.75 --step RVnorm=0.75"]
+            if not step_list:
+                out += ["# [[stereo.steps]]", '# parameters = ["stereo_re"]', "# max_error = [3.0]"]
         for step in step_list:
             out += ["", f"[[{table}]]", f"parameters = {_toml_list(step.parameters)}",
                     f"max_error = {_toml_list(step.max_error)}"]
@@ -561,10 +635,12 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
 
 
 def template() -> Config:
-    """The thesis's Figure 5.5 configuration (what `dstereo init` writes)."""
+    """The thesis's Figure 5.5 configuration with Figure 5.14's stereo steps (what `dstereo init` writes)."""
     steps = (Step(("re",), (0.5,)), Step(("p1", "p2"), (1.5, 1.5)), Step(("k1", "k2", "k3"), (1.5, 1.5, 1.5)),
              Step(("fx", "fy", "cx", "cy"), (1.0, 1.0, 1.0, 1.0)))
-    return Config(pattern=(9, 6), square=10.0, unit="mm", image_format="jpg", per_set=10, steps=steps)
+    stereo_steps = (Step(("stereo_re",), (3.0,)), Step(("Tnorm",), (0.75,)), Step(("RVnorm",), (0.75,)))
+    return Config(pattern=(9, 6), square=10.0, unit="mm", image_format="jpg", per_set=10, steps=steps,
+                  stereo_steps=stereo_steps)
 
 
 def as_dict(cfg: Config) -> dict:

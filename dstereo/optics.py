@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -264,20 +264,53 @@ def make_config(settings: Mapping[str, Any]) -> OpticsConfig:
     for key in set(values) - {"sensor", "dof_focal_length"}:
         values[key] = _positive(key, values[key])
     config = OpticsConfig(**values)
-    _check_geometry(config)
-    return config
+    return _check_geometry(config, explicit_dof="dof_focal_length" in values)
 
 
-def _check_geometry(config: OpticsConfig) -> None:
-    f_dof = dof_focal_length_mm(config)
-    if config.focus_distance <= max(f_dof, config.focal_length):
+def _check_geometry(config: OpticsConfig, explicit_dof: bool = True) -> OpticsConfig:
+    """Refuse what no thin lens can do; where only the thesis's DoF convention fails, fall back to the lens's own
+    focal length unless that convention was asked for by name (the notes then say so)."""
+    _check_units(config)
+    s, f = config.focus_distance, config.focal_length
+    if s <= f:
         raise DstereoError(
-            f"focus distance ({describe('focus_distance')}) {config.focus_distance:g} mm must exceed the focal "
-            f"length used ({max(f_dof, config.focal_length):g} mm); a thin lens cannot focus closer"
-        )
+            f"focus distance ({describe('focus_distance')}) {s:g} mm must exceed the lens focal length {f:g} mm; a "
+            "thin lens forms no real image of a subject at or inside its focal length")
+    f_dof = dof_focal_length_mm(config)
+    if s <= f_dof:
+        if explicit_dof:
+            raise DstereoError(
+                f"focus distance ({describe('focus_distance')}) {s:g} mm is possible with the {f:g} mm lens, but "
+                f"--dof-focal-length effective puts the 35 mm-equivalent focal length {f_dof:g} mm into the thin-lens "
+                f"DoF equations, which then need a focus distance above {f_dof:g} mm; pass --dof-focal-length lens "
+                "for the depth of field of the lens itself")
+        config = replace(config, dof_focal_length="lens")
     if config.baseline is not None and config.pixel_size is None:
         raise DstereoError(
             f"the stereo depth resolution needs the pixel size: pass {describe('pixel_size')} with the baseline")
+    return config
+
+
+# Light dstereo's cameras see: 100 nm (UV) to 2 um (short-wave IR); a value outside is a unit slip (um for mm).
+WAVELENGTH_RANGE_MM = (1e-4, 2e-3)
+
+
+def _check_units(config: OpticsConfig) -> None:
+    """Values a unit slip produces (micrometres given as mm, a CoC or pixel as large as the sensor): refused."""
+    lo, hi = WAVELENGTH_RANGE_MM
+    if not lo <= config.wavelength <= hi:
+        raise DstereoError(f"wavelength ({describe('wavelength')}) {config.wavelength:g} mm is outside {lo:g}..{hi:g} "
+                           "mm (100 nm to 2 um); lengths are in mm: 550 nm is 0.00055")
+    sensor = sensor_of(config)[0]
+    for key, value in (("coc", config.coc), ("pixel_size", config.pixel_size)):
+        if value is not None and value >= min(sensor) / 10:
+            raise DstereoError(f"{key.replace('_', ' ')} ({describe(key)}) {value:g} mm is at least a tenth of the "
+                               f"{min(sensor):g} mm sensor side; lengths are in mm (a 5 um pixel is 0.005)")
+
+
+def image_distance(focus_distance: float, focal_length: float) -> float:
+    """Thin-lens image distance v = 1 / (1/f - 1/s), mm: the principal distance when focused at s."""
+    return 1.0 / (1.0 / focal_length - 1.0 / focus_distance)
 
 
 # --- the whole calculation ---------------------------------------------------------------------------------
@@ -349,6 +382,16 @@ def _notes(config: OpticsConfig, sensor_derived: bool, out: Mapping[str, Any]) -
     if config.dof_focal_length == "effective":
         notes.append("depth of field uses the effective focal length with the sensor's CoC, as the thesis "
                      "does; --dof-focal-length lens gives the thin-lens value for the lens itself")
+    effective = effective_focal_length(config.focal_length, crop_factor_of(config))
+    if config.dof_focal_length == "lens" and config.focus_distance <= effective:
+        notes.append(f"the thesis's DoF convention (effective focal length {effective:.4g} mm) needs a focus distance "
+                     "beyond it; the depth of field uses the lens's own focal length")
+    v = image_distance(config.focus_distance, config.focal_length)
+    if v > 1.1 * config.focal_length:
+        notes.append(f"close focus: the lens sits {v:.4g} mm from the sensor ({v / config.focal_length:.2f} x its "
+                     "focal length, thin lens); field of view, footprint and depth resolution assume the principal "
+                     "distance is the focal length and are off by that factor "
+                     f"(magnification {v / config.focus_distance:.3g})")
     if out["far_is_infinite"]:
         notes.append("focus at or beyond the hyperfocal distance: everything from the near limit to infinity is sharp")
     if out["diffraction_limited"]:

@@ -48,7 +48,8 @@ def test_figure_5_14_file_keeps_stereo_steps_apart():
 def test_template_toml_is_figure_5_5():
     ini = load_config(_seed("init-individual.ini"))
     toml = config_from_toml(to_toml(template()), "template")
-    assert toml == replace(ini, image_format_left=None, image_format_right=None)
+    stereo = load_config(_seed("init-stereo.ini")).stereo_steps  # the template carries Figure 5.14's stereo steps
+    assert toml == replace(ini, image_format_left=None, image_format_right=None, stereo_steps=stereo)
 
 
 @pytest.mark.parametrize("cfg", [

@@ -182,7 +182,8 @@ def test_cli_rejects_non_positive_values(flag, value):
     (["--focus-distance", "1000", "--focal-length", "50", "--f-number", "16"], "--sensor"),
     ([*THESIS_FLAGS, "--crop-factor", "1.5"], "--crop-factor"),
     (["--focus-distance", "1000", "--sensor", "22.5x16.9", "--f-number", "16"], "--focal-length"),
-    ([*THESIS_FLAGS[:1], "60", *THESIS_FLAGS[2:]], "--focus-distance"),
+    ([*THESIS_FLAGS[:1], "40", *THESIS_FLAGS[2:]], "--focus-distance"),  # inside the 50 mm focal length
+    ([*THESIS_FLAGS[:1], "60", *THESIS_FLAGS[2:], "--dof-focal-length", "effective"], "--dof-focal-length lens"),
     ([*THESIS_FLAGS[:5], "0x16.9", *THESIS_FLAGS[6:]], "--sensor"),
     ([*THESIS_FLAGS[:5], "big", *THESIS_FLAGS[6:]], "--sensor"),
     ([*THESIS_FLAGS, "--baseline", "200"], "--pixel-size"),

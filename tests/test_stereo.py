@@ -306,15 +306,16 @@ def test_left_right_count_mismatch_is_an_error(tmp_path):
 
 
 def test_mixed_image_sizes_in_one_camera_is_an_error(tmp_path):
-    left = [_blank(tmp_path / "left0.png"), _blank(tmp_path / "left1.png", (80, 60))]
-    right = [_blank(tmp_path / f"right{i}.png") for i in range(2)]
+    left = [_blank(tmp_path / "left0.png"), _blank(tmp_path / "left1.png", (80, 60)), _blank(tmp_path / "left2.png")]
+    right = [_blank(tmp_path / f"right{i}.png") for i in range(3)]  # 3 pairs: fewer are refused before detection
     with pytest.raises(DstereoError, match="mixes image sizes"):
         st.calibrate_stereo_folders(left, right, PATTERN, 1.0)
 
 
 def test_no_common_board_view_is_an_error(tmp_path):
     data = require_data("rig640")
-    blank = [_blank(tmp_path / f"b{i}.png", (640, 512)) for i in range(4)]  # rig640's size, no board
+    # rig640's size, no board; named so that partners pair by name with a board on one side only
+    blank = [_blank(tmp_path / name, (640, 512)) for name in ("left03.png", "left04.png", "right01.png", "right02.png")]
     left = [data / "left01.jpg", data / "left02.jpg", blank[0], blank[1]]
     right = [blank[2], blank[3], data / "right03.jpg", data / "right04.jpg"]
     with pytest.raises(DstereoError, match="no pair shows the full 9x6 board in both cameras"):

@@ -506,7 +506,7 @@ def calibrate_stereo_folders(
     use_cache: bool = True,
     progress=None,
 ) -> StereoCalibrationResult:
-    """Stereo calibration from image folders (or image lists), pairs matched by name order.
+    """Stereo calibration from image folders (or image lists), pairs matched by name (`io.pairing`).
 
     The individual calibrations use `mono_left`/`mono_right` when given (the thesis's images_left/right), else
     every image of `left`/`right` that shows the board; `cameras` skips them and fixes the intrinsics to the

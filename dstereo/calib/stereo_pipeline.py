@@ -7,7 +7,7 @@ Where the images come from (`stereo_sources`):
   calibrations; `calibrate_left`/`calibrate_right` as in the thesis's template comment are accepted too) and,
   optionally, `images_stereo_left`, `images_stereo_right` (the pairs; without them the individual images are
   the pairs).
-Pairs are matched by name order; a pair missing the board on either side is dropped with the reason.
+Pairs are matched by name (`io.pairing`: left05 with right05); a pair missing the board on either side is dropped with the reason.
 
 The job: detect the pairs (errors about the pairs come before any long work), calibrate each camera with the
 one-camera pipeline and its own steps, fix the intrinsics at each camera's final values, solve the rig on all
@@ -162,7 +162,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     if progress is not None:
         progress("stereo pairs", 1, 1)
     timings["pairs_s"] = time.perf_counter() - t0
-    warnings += [f"stereo pair {d.left} / {d.right} dropped: {d.reason}" for d in det.dropped]
+    warnings += det.warnings + [f"stereo pair {d.left} / {d.right} dropped: {d.reason}" for d in det.dropped]
     cams = {}
     for side, files, fmt in (("left", sources.mono_left, config.image_format_left),
                              ("right", sources.mono_right, config.image_format_right)):

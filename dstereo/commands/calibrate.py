@@ -30,7 +30,8 @@ def calibrate(
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of the subset sample."),
     step: list[str] = typer.Option(
         [], "--step", help="An optimisation step NAME=MAX[,NAME=MAX...] (repeat, in order; replaces the file's "
-        "steps), e.g. --step re=0.5 --step p1=1.5,p2=1.5"),
+        "steps of that kind), e.g. --step re=0.5 --step p1=1.5,p2=1.5; stereo steps name stereo_re, Tnorm, Tx, Ty, "
+        "Tz, RVnorm, RVx, RVy, RVz, e.g. --step stereo_re=3 --step Tnorm=0.75"),
     min_subsets: Optional[int] = typer.Option(
         None, "--min-subsets", help="A step stops before it would leave fewer subsets."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
@@ -39,14 +40,16 @@ def calibrate(
     no_cache: bool = typer.Option(False, "--no-cache", help="Detect corners again instead of using the cache."),
     left: Optional[Path] = typer.Option(
         None, "--left", help="Stereo: left camera's images, a folder or a pattern such as DIR/left*.jpg."),
-    right: Optional[Path] = typer.Option(None, "--right", help="Stereo: right camera's images (pairs by name order)."),
+    right: Optional[Path] = typer.Option(
+        None, "--right", help="Stereo: right camera's images; partners by name (left05 / right05, L_05 / R_05, "
+        "im0 / im1)."),
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    from dstereo.config import Config, find_project_config, load_config, parse_step_flag, validate
+    from dstereo.config import Config, find_project_config, load_config, parse_step_flags, validate
     from dstereo.errors import DstereoError
     from dstereo.io.corners import parse_pattern
 
@@ -55,12 +58,13 @@ def calibrate(
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     cfg = load_config(config_path) if config_path is not None else Config()
+    mono_steps, stereo_steps = parse_step_flags(step)
     cfg = cfg.with_overrides(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
         image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
         seed=seed, min_subsets=min_subsets,
-        steps=tuple(parse_step_flag(s, k) for k, s in enumerate(step, 1)) if step else None,
+        steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
@@ -68,6 +72,9 @@ def calibrate(
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
+    if stereo_steps:
+        raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
+                           "stereo run; give --left DIR --right DIR (or images/images_left + images/images_right)")
     if cfg.mode != "individual":
         raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
                            "in images/images_left and images/images_right, or give --left DIR --right DIR")
@@ -76,19 +83,26 @@ def calibrate(
         if base is None:
             raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
         images = base / cfg.images
-    out = _results_folder(out, project, force, cfg)
+    from dstereo.calib.pipeline import list_camera_images
+    from dstereo.io.pairing import check_one_camera
+
+    check_one_camera(list_camera_images(images, cfg), str(images))
+    out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
     _run(images, cfg, out, force, quiet, not no_cache, started, projection_range)
 
 
-def _results_folder(out, project, force: bool, cfg):
-    """--out, else PROJECT/results; refused before any work if it exists without --force. Prints config warnings."""
+def _results_folder(out, project, force: bool, cfg, inputs=()):
+    """--out, else PROJECT/results; refused before any work if it exists without --force, or if it holds an input
+    (images, configuration). Prints config warnings."""
     from dstereo.errors import DstereoError
+    from dstereo.io.output_location import check_not_inputs
     from dstereo.io.results import check_output
 
     if out is None:
         if project is None:
             raise DstereoError("no results folder: give --out DIR (or a PROJECT folder, which gets PROJECT/results)")
         out = project / "results"
+    check_not_inputs(out, inputs)
     check_output(out, force)
     for warning in cfg.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -105,18 +119,63 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
                 projection_range=None) -> None:
     """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
     from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
+    from dstereo.errors import DstereoError
     from dstereo.io.stereo_files import write_stereo_results
 
+    if left is not None and right is not None and left.is_dir() and left.resolve() == Path(right).resolve():
+        raise DstereoError(f"--left and --right are the same folder {left}; give each camera's images, e.g. "
+                           f"--left '{left}/left*.jpg' --right '{left}/right*.jpg'")
     sources = stereo_sources(images, cfg, left, right)
-    out = _results_folder(out, project, force, cfg)
+    out = _results_folder(out, project, force, cfg, inputs=[*sources.mono_left, *sources.mono_right,
+                                                             *sources.stereo_left, *sources.stereo_right])
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
+        _check_rig_fits(job)
+        job.warnings += _stereo_view_warnings(job)  # before writing: summary.json keeps them
         write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
     if not quiet:
         typer.echo("\n".join(summary_lines(job, out)))
+
+
+def _view_warnings(cal) -> list[str]:
+    """Views far off the rest or in another corner order (dstereo.calib.view_checks), from the full-set solve."""
+    from dstereo.calib import view_checks
+
+    pattern = cal.config.pattern
+    return (view_checks.outlying_views(cal.used, cal.full.per_view_rms)
+            + view_checks.stray_corners(cal.used, cal.full.residuals, pattern)
+            + view_checks.mirrored_views({n: cal.detection.corners[n] for n in cal.used}, pattern))
+
+
+# A rig solve whose RMS exceeds this multiple of the worse camera's own RMS (and 1 px) cannot describe pairs of one
+# moment: measured 0.448 px vs 0.409 / 0.459 px (OpenCV's sample pairs), 39.7 px vs 0.61 / 0.14 px for images of
+# two different rigs named alike.
+RIG_RMS_FACTOR = 5.0
+
+
+def _check_rig_fits(job) -> None:
+    """Refuse to write a rig that does not fit its pairs (see RIG_RMS_FACTOR)."""
+    from dstereo.errors import DstereoError
+
+    rig, left, right = float(job.full.rms), float(job.left.full.rms), float(job.right.full.rms)
+    if rig > max(RIG_RMS_FACTOR * max(left, right), 1.0):
+        raise DstereoError(
+            f"stereo: the rig fits the {len(job.detection.pairs)} pairs with RMS {rig:.3g} px while the cameras alone "
+            f"fit their views with {left:.3g} / {right:.3g} px: the left and right images do not show the board at "
+            "the same moments (partners are matched by name; check the names, the cameras' synchronisation and that "
+            "both folders come from this rig); nothing written")
+
+
+def _stereo_view_warnings(job) -> list[str]:
+    from dstereo.calib import view_checks
+
+    names = [f"{a} / {b}" for a, b in job.detection.pairs]
+    out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
+           for w in _view_warnings(cal)]
+    return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
 def _model(spec: Optional[str]):
@@ -134,6 +193,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
 
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
+        cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)

@@ -92,7 +92,10 @@ def optics(
 ) -> None:
     """Depth of field, hyperfocal distance, diffraction check and stereo depth resolution for a capture set-up."""
     from dstereo import optics as lib
+    from dstereo.io.output_location import check_creatable
 
+    if plots is not None:
+        check_creatable(plots, "--plots")  # before any work: the figures come last
     flags = {
         "focus_distance": focus_distance, "focal_length": focal_length, "sensor": sensor,
         "crop_factor": crop_factor, "f_number": f_number, "coc": coc, "pixel_size": pixel_size,

@@ -41,7 +41,7 @@ def recession(
     from dataclasses import replace
 
     from dstereo.commands.progress import progress_bars
-    from dstereo.commands.matching_options import matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
@@ -49,6 +49,9 @@ def recession(
     from dstereo.recession.results import write_results
     from dstereo.reconstruction import ReconstructionConfig
 
+    from dstereo.io.output_location import check_not_inputs
+
+    check_not_inputs(out, [sequence, calib, timestamps])
     check_output(out, force)
     if stagnation_fit not in ("quadratic", "mean"):
         raise DstereoError(f"--stagnation-fit {stagnation_fit!r}: use quadratic or mean")
@@ -57,12 +60,17 @@ def recession(
                           refine_subpixel=refine)
     changes = matching_changes(ReconstructionConfig().sgbm, preset, sgbm, z_min, z_max, roi)
     recon = replace(ReconstructionConfig(), **changes)
+    check_reconstruction_config(recon)
 
     calibration = read_stereo_calibration(calib)
     if calibration.rectified:
         raise DstereoError(f"calibration {calib}: a rectified (Middlebury) calibration has no camera frame for a "
                            "sample axis; give the stereo.yml of the rig")
     frames = discover(sequence, timestamps, fps)
+    from dstereo.io.pairing import check_distinct_images
+
+    for frame in frames:  # same file or byte copy (decoding every frame twice more would cost a long sequence)
+        check_distinct_images(frame.left, frame.right, decode=False)
     check_sizes(frames, calibration.image_size, str(calib))
     with progress_bars(quiet) as progress:
         result = run_recession(frames, calibration, cfg, recon, progress=progress)

@@ -51,12 +51,20 @@ def reconstruct(
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
     from dataclasses import replace
 
-    from dstereo.commands.matching_options import matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
     from dstereo.errors import DstereoError
     from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
+    from dstereo.io.output_location import check_not_inputs
+    from dstereo.io.pairing import check_distinct_images, check_order_agrees_with_names
+
+    check_not_inputs(out, [*left, *right, calib, config])
+
+    check_order_agrees_with_names(left, right)
+    for a, b in zip(left, right):
+        check_distinct_images(a, b)
     cfg = ReconstructionConfig()
     if project is not None:
         if not project.is_dir():
@@ -91,6 +99,7 @@ def reconstruct(
     elif disparity_sigma is not None:
         changes["disparity_sigma"] = None
     cfg = replace(cfg, **changes)
+    check_reconstruction_config(cfg, _width(left[0]))
 
     results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
     for r in results:
@@ -117,3 +126,11 @@ def reconstruct(
         for w in r.warnings:
             typer.echo(f"dstereo: warning: {w}", err=True)
     typer.echo(f"wrote {out}")
+
+
+def _width(path: Path) -> int | None:
+    """The image's width from its header (None when unreadable: reading it later reports that)."""
+    from dstereo.recession.sequence import image_size
+
+    size = image_size(path)
+    return None if size is None else size[0]

@@ -38,6 +38,11 @@ def refine(
     if (z_min is None) != (z_max is None) or (z_min is not None and sphere_diameter is None):
         raise DstereoError("--z-min and --z-max go together, and only with --sphere-diameter")
 
+    from dstereo.io.output_location import check_not_inputs
+    from dstereo.io.pairing import check_distinct_images
+
+    check_not_inputs(out, [calib, left, right, distances])
+    check_distinct_images(left, right)
     from dstereo.reference import Board, Sphere, read_marks
     from dstereo.reference.correction import RIG_NAMES
     from dstereo.reference.files import run_refinement

@@ -27,6 +27,8 @@ ALIASES = {
     "R": ("R",),
     "T": ("T",),
 }
+# Keys of a one-camera file (dstereo calibrate's camera.yml, OpenCV's calibration samples).
+MONO_KEYS = ("camera_matrix", "cameraMatrix", "distortion_coefficients", "distCoeffs")
 
 
 @dataclass(frozen=True)
@@ -75,6 +77,8 @@ def _coeffs8(d: np.ndarray | None, where: str) -> np.ndarray:
     d = np.zeros(8) if d is None else np.asarray(d, dtype=float).ravel()
     if d.size not in (0, 4, 5, 8, 12, 14):
         raise DstereoError(f"{where}: {d.size} distortion coefficients; OpenCV uses 4, 5, 8, 12 or 14")
+    if not np.all(np.isfinite(d)):
+        raise DstereoError(f"{where}: non-finite distortion coefficients {d.tolist()}; fix the file")
     if d.size > 8 and np.any(d[8:] != 0):
         raise DstereoError(
             f"{where}: thin-prism/tilt coefficients (s1..s4, tauX, tauY) are not supported; recalibrate without them"
@@ -84,9 +88,15 @@ def _coeffs8(d: np.ndarray | None, where: str) -> np.ndarray:
     return out
 
 
+def _shape(a: np.ndarray) -> str:
+    return "x".join(map(str, np.shape(a))) or "a scalar"
+
+
 def _check_matrix(K: np.ndarray, where: str) -> np.ndarray:
     K = np.asarray(K, dtype=float)
-    if K.shape != (3, 3) or K[0, 0] <= 0 or K[1, 1] <= 0:
+    if K.shape != (3, 3):
+        raise DstereoError(f"{where}: camera matrix must be 3x3, got {_shape(K)}; fix the file")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise DstereoError(f"{where}: camera matrix must be 3x3 with positive focal lengths, got {K.tolist()}")
     if K[0, 1] != 0:
         raise DstereoError(f"{where}: camera matrix has skew {K[0, 1]}; dstereo's camera model has none")
@@ -96,10 +106,18 @@ def _check_matrix(K: np.ndarray, where: str) -> np.ndarray:
 def _read_storage(path: Path) -> dict:
     import cv2
 
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if path.stat().st_size == 0:
+        raise DstereoError(f"{path}: the file is empty; give a stereo calibration (stereo.yml from dstereo calibrate "
+                           "--left/--right, OpenCV YAML with M1 D1 M2 D2 R T, or calib.txt)")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # OpenCV raises SystemError wrapping cv2.error on a parse failure
+        cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
+        detail = " ".join(str(cause).split()).rsplit("error: ", 1)[-1]
+        raise DstereoError(f"{path}: not a readable OpenCV YAML/XML file ({detail}); fix or regenerate it") from None
     if not fs.isOpened():
         raise DstereoError(f"{path}: cannot be read as an OpenCV YAML/XML file")
-    out = {}
+    out = {"__file__": str(path)}
     try:
         root = fs.root()
         for key in root.keys():
@@ -121,11 +139,23 @@ def _read_storage(path: Path) -> dict:
 def _pick(data: dict, name: str):
     for alias in ALIASES[name]:
         if alias in data and data[alias] is not None:
-            return np.asarray(data[alias], dtype=float)
+            try:
+                return np.asarray(data[alias], dtype=float)
+            except (TypeError, ValueError):
+                raise DstereoError(f"{data.get('__file__', 'calibration file')}: {alias} = {data[alias]!r} is not a "
+                                   "matrix of numbers; fix the file") from None
     return None
 
 
 def _image_size(data: dict) -> tuple[int, int] | None:
+    try:
+        return _image_size_or_none(data)
+    except (TypeError, ValueError):
+        raise DstereoError(f"{data.get('__file__', 'calibration file')}: the image size (imageSize or width/height) "
+                           "is not a pair of whole numbers; fix or remove it") from None
+
+
+def _image_size_or_none(data: dict) -> tuple[int, int] | None:
     for key in ("imageSize", "image_size", "image_width"):
         if key in data and data[key] is not None:
             v = np.asarray(data[key]).ravel()
@@ -148,18 +178,32 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
         if other.is_file():
             data = {**_read_storage(other), **data}
     missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
+    if missing and any(k in data for k in MONO_KEYS):
+        raise DstereoError(
+            f"{path}: this is a one-camera file (camera_matrix, distortion_coefficients); a stereo calibration is "
+            "needed: dstereo calibrate --left LEFT_DIR --right RIGHT_DIR --pattern COLSxROWS --out DIR writes "
+            "DIR/stereo.yml")
     if missing:
         raise DstereoError(
             f"{path}: missing {missing}; a stereo calibration needs M1 D1 M2 D2 R T "
             "(or intrinsics.yml + extrinsics.yml side by side)"
         )
-    R = _pick(data, "R")
+    R, T = _pick(data, "R"), _pick(data, "T")
+    if R.size not in (3, 9):
+        raise DstereoError(f"{path}: R has {R.size} values ({_shape(R)}); give a 3x3 rotation matrix or a "
+                           "3-element rotation vector")
+    if T.size != 3:
+        raise DstereoError(f"{path}: T has {T.size} values ({_shape(T)}); T is the 3-element translation from "
+                           "the left to the right camera (x_right = R x_left + T)")
+    for name, value in (("R", R), ("T", T)):
+        if not np.all(np.isfinite(value)):
+            raise DstereoError(f"{path}: {name} holds non-finite values {value.ravel().tolist()}; fix the file")
     if R.size == 3:
         import cv2
 
         R = cv2.Rodrigues(R.reshape(3, 1))[0]
     R = R.reshape(3, 3)
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     return StereoCalibration(
         extras=_covariance_extras(data, path),
@@ -168,7 +212,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
         D2=_coeffs8(_pick(data, "D2"), f"{path}: D2"),
         R=R,
-        T=_pick(data, "T").reshape(3),
+        T=T.reshape(3),
         image_size=_image_size(data),
         source=str(path),
     )

@@ -40,13 +40,15 @@ N_UNDISTORTED = 3
 
 
 def check_output(out: str | Path, force: bool) -> Path:
-    """Refuse an existing results folder unless `force`; call before any long work."""
+    """Refuse an existing results folder unless `force`, or one that cannot be created; call before any long work."""
+    from dstereo.io.output_location import check_creatable
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DstereoError(f"results: {out} exists and is not a folder; choose another --out")
     if out.exists() and not force:
         raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
-    return out
+    return check_creatable(out)
 
 
 @contextmanager

@@ -1,7 +1,8 @@
 """Stereo pairs and stereo calibration files at the OpenCV edge.
 
-- `detect_pairs`: board corners in both cameras' images, pairs matched by name order; a pair where either
-  image lacks the full board is listed in `dropped` with the reason, never dropped silently.
+- `detect_pairs`: board corners in both cameras' images, pairs matched by name (`io.pairing`: left05 with
+  right05); a pair where either image lacks the full board is listed in `dropped` with the reason, never dropped
+  silently, and images without a partner are listed in `warnings`.
 - `write_stereo_yml`: OpenCV FileStorage YAML with the keys of OpenCV's stereo_calib sample (M1 D1 M2 D2 R T)
   plus E, F and `imageSize` [w, h] (`imageSize2` when the right camera's differs), readable by
   `dstereo.io.calib_files.read_stereo_calibration`.
@@ -19,6 +20,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder, list_images
+from dstereo.io.pairing import check_enough_pairs, pair_by_name
 
 @dataclass(frozen=True)
 class DroppedPair:
@@ -35,6 +37,7 @@ class StereoDetection:
     right: Detection
     pairs: list[tuple[str, str]]
     dropped: list[DroppedPair] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # images left out for want of a partner named like them
 
     @property
     def object_points(self) -> np.ndarray:
@@ -65,13 +68,18 @@ def _where(source, files: list[Path]) -> str:
 
 def detect_pairs(left, right, pattern: tuple[int, int], square: float, suffix: str | None = None,
                  use_cache: bool = True, progress=None) -> StereoDetection:
-    """Detect the board in `left` and `right` (folders or image lists) and pair the images by name order."""
+    """Detect the board in `left` and `right` (folders or image lists), the images paired by name
+    (`io.pairing`): images without a partner are left out with a warning; too few pairs are refused before any
+    detection."""
     files_l, files_r = image_files(left, suffix), image_files(right, suffix)
-    if len(files_l) != len(files_r):
-        raise DstereoError(
-            f"stereo images: {len(files_l)} left images in {_where(left, files_l)} but {len(files_r)} right images "
-            f"in {_where(right, files_r)}; pairs are matched by name order, so give both cameras the same number"
-        )
+    named = pair_by_name(files_l, files_r)
+    check_enough_pairs(named, _where(left, files_l), _where(right, files_r))
+    same = [a for a, b in named.pairs if a.resolve() == b.resolve()]
+    if same:
+        raise DstereoError(f"stereo images: {same[0]} is given as both the left and the right image"
+                           + (f" ({len(same) - 1} more)" if len(same) > 1 else "")
+                           + "; give each camera's own images (--left and --right point at different files)")
+    files_l, files_r = [a for a, _ in named.pairs], [b for _, b in named.pairs]
     det_l = detect_folder(files_l[0].parent, pattern, square, files=files_l, use_cache=use_cache, progress=progress)
     det_r = detect_folder(files_r[0].parent, pattern, square, files=files_r, use_cache=use_cache, progress=progress)
     pairs, dropped = match_pairs(det_l, det_r, [p.name for p in files_l], [p.name for p in files_r])
@@ -79,22 +87,47 @@ def detect_pairs(left, right, pattern: tuple[int, int], square: float, suffix: s
         raise DstereoError(
             f"stereo images: no pair shows the full {pattern[0]}x{pattern[1]} board in both cameras (left boards "
             f"in {sorted(det_l.corners) or 'none'}, right boards in {sorted(det_r.corners) or 'none'}); check that "
-            "the left and right images are taken at the same moments and sort in the same order"
+            "the left and right images are taken at the same moments and named alike"
         )
-    return StereoDetection(det_l, det_r, pairs, dropped)
+    warnings = [named.warning()] if named.warning() else []
+    warnings += _align_right_order(det_l, det_r, pairs, pattern)
+    return StereoDetection(det_l, det_r, pairs, dropped, warnings)
+
+
+def _align_right_order(det_l: Detection, det_r: Detection, pairs: list[tuple[str, str]],
+                       pattern: tuple[int, int]) -> list[str]:
+    """Renumber a right image's corners that OpenCV numbered from another corner of the board than the left's
+    (`calib.view_checks.align_order`); otherwise the pair's corners would not correspond. Returns the warning."""
+    from dstereo.calib.view_checks import align_order
+
+    turned = []
+    for a, b in pairs:
+        aligned, turn = align_order(det_l.corners[a], det_r.corners[b], pattern)
+        if turn:
+            det_r.corners[b] = aligned
+            turned.append(f"{a} / {b} ({turn} deg)")
+    if not turned:
+        return []
+    return [f"{len(turned)} stereo pair(s) had their right corners numbered from another corner of the board than the "
+            f"left ({', '.join(turned[:6])}{' ...' if len(turned) > 6 else ''}); renumbered to match the left, as the "
+            f"{pattern[0]}x{pattern[1]} grid's symmetry allows"]
 
 
 def match_pairs(det_left: Detection, det_right: Detection, names_left: list[str],
                 names_right: list[str]) -> tuple[list[tuple[str, str]], list[DroppedPair]]:
-    """Pair the i-th left with the i-th right image; pairs missing the board on either side are dropped."""
+    """Pair left and right images by name (`io.pairing`); pairs missing the board on either side are dropped with
+    the reason, and so is an image without a partner."""
+    named = pair_by_name([Path(n) for n in names_left], [Path(n) for n in names_right])
     pairs, dropped = [], []
-    for a, b in zip(names_left, names_right):
+    for a, b in ((str(a), str(b)) for a, b in named.pairs):
         reasons = [f"{side} {name}: {det.rejected.get(name, 'no board')}"
                    for side, name, det in (("left", a, det_left), ("right", b, det_right)) if name not in det.corners]
         if reasons:
             dropped.append(DroppedPair(a, b, "; ".join(reasons)))
         else:
             pairs.append((a, b))
+    dropped += [DroppedPair(str(a), "", "no right image named like it") for a in named.left_alone]
+    dropped += [DroppedPair("", str(b), "no left image named like it") for b in named.right_alone]
     return pairs, dropped
 
 

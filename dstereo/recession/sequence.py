@@ -5,8 +5,9 @@ Layout (SEQUENCE is a folder):
     SEQUENCE/left/*.png   and SEQUENCE/right/*.png      (or images_left/ + images_right/, the thesis layout)
     SEQUENCE/timestamps.csv                             optional: `name,time_s` (one row per frame)
 
-A left and a right image are partners when their names are equal once the side word is taken out: `left_007.png`
-pairs with `right_007.png`, `L_t=3.5s.png` with `R_t=3.5s.png`, `0003.png` with `0003.png`. That common rest of
+A left and a right image are partners when their names are equal once the camera token is taken out
+(`dstereo.io.pairing`, shared with the stereo calibration): `left_007.png` pairs with `right_007.png`,
+`L_t=3.5s.png` with `R_t=3.5s.png`, `0003.png` with `0003.png`. That common rest of
 the name is the frame's *key*. Frames are ordered by key (numbers in it compared as numbers).
 
 Timestamps, first found wins: `--timestamps CSV` (or SEQUENCE/timestamps.csv), whose `name` column holds the
@@ -24,10 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dstereo.errors import DstereoError
+from dstereo.io.pairing import by_key, natural_key, pair_key, partner_name  # noqa: F401 - pair_key re-exported
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 FOLDER_PAIRS = (("left", "right"), ("images_left", "images_right"), ("L", "R"))
-SIDE_WORDS = re.compile(r"(?i)(left|right|(?<![a-z])[lr](?![a-z]))")
 TIME_IN_NAME = re.compile(r"(?i)(?:^|[_\-\s.=])(?:t=?)?(\d+(?:\.\d*)?|\.\d+)(ms|s)(?=$|[_\-\s])")
 LAST_INTEGER = re.compile(r"(\d+)(?!.*\d)")
 
@@ -40,16 +41,6 @@ class Frame:
     left: Path
     right: Path
     time_s: float
-
-
-def natural_key(text: str) -> list:
-    """Sort key comparing digit runs as numbers: frame_2 before frame_10."""
-    return [(0, int(part), "") if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", text) if part]
-
-
-def pair_key(path: Path) -> str:
-    """The file's stem without its first side word (left/right, or a lone L/R)."""
-    return SIDE_WORDS.sub("", path.stem, count=1)
 
 
 def find_folders(sequence: Path) -> tuple[Path, Path]:
@@ -67,38 +58,16 @@ def _images(folder: Path) -> list[Path]:
     return [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
 
 
-def _by_key(folder: Path) -> dict[str, Path]:
-    out: dict[str, Path] = {}
-    for path in sorted(_images(folder)):
-        key = pair_key(path)
-        if key in out:
-            raise DstereoError(f"{path} and {out[key]} have the same frame name {key!r} once the side word is taken "
-                               "out; keep one image per frame and camera")
-        out[key] = path
-    return out
-
-
 def pair_images(left_dir: Path, right_dir: Path) -> list[tuple[str, Path, Path]]:
     """(key, left, right) for every frame, in natural key order; a missing partner is an error naming the file."""
-    left, right = _by_key(left_dir), _by_key(right_dir)
+    left, right = by_key(sorted(_images(left_dir))), by_key(sorted(_images(right_dir)))
     for mine, theirs, other in ((left, right, right_dir), (right, left, left_dir)):
         alone = sorted(set(mine) - set(theirs), key=natural_key)
         if alone:
             raise DstereoError(f"{mine[alone[0]]} has no partner in {other} (expected an image named like it with the "
-                               f"other side word, e.g. {_partner_name(mine[alone[0]])}); add it or remove this frame"
+                               f"other side word, e.g. {partner_name(mine[alone[0]])}); add it or remove this frame"
                                + (f" ({len(alone) - 1} more unpaired)" if len(alone) > 1 else ""))
     return [(k, left[k], right[k]) for k in sorted(left, key=natural_key)]
-
-
-def _partner_name(path: Path) -> str:
-    swap = {"left": "right", "right": "left", "l": "r", "r": "l"}
-
-    def repl(m: re.Match) -> str:
-        word = m.group(0)
-        new = swap[word.lower()]
-        return new.upper() if word.isupper() else (new.capitalize() if word[0].isupper() else new)
-
-    return SIDE_WORDS.sub(repl, path.stem, count=1) + path.suffix
 
 
 def time_from_name(key: str) -> float | None:
