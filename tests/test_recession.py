@@ -113,6 +113,26 @@ def test_line_fit_matches_scipy_linregress():
     np.testing.assert_allclose(m["ci95_half"][0], [half, 2 * half], rtol=1e-10)
 
 
+def test_weighted_line_fit_matches_numpy_polyfit_with_weights():
+    """Per-frame sigmas spread 20x: the weighted line is np.polyfit's with w = 1 / sigma (polyfit weights the
+    residuals, not their squares), its standard error polyfit's cov=True (scaled by chi^2 / (n - 2))."""
+    rng = np.random.default_rng(4)
+    t = np.linspace(0, 30, 11)
+    sigma = np.geomspace(0.01, 0.2, t.size)[rng.permutation(t.size)]
+    r = 0.04 * t + rng.normal(0, sigma)
+    r[np.argmax(sigma)] += 0.5  # a point the weights must discount
+    fit = line_fit(t, r, sigma)
+    (slope, intercept), cov = np.polyfit(t, r, 1, w=1 / sigma, cov=True)
+    # Two float64 solves of a 2-parameter problem (normal equations vs polyfit's scaled lstsq), condition
+    # ~1e4: rounding ~1e-12 relative; the unweighted slope is 6 % away (checked below).
+    assert fit.weighted and fit.rate == pytest.approx(slope, rel=1e-10)
+    assert fit.intercept == pytest.approx(intercept, rel=1e-10)
+    assert fit.rate_se == pytest.approx(np.sqrt(cov[0, 0]), rel=1e-10)
+    half = stats.t.ppf(0.975, t.size - 2) * np.sqrt(cov[0, 0])
+    assert fit.ci95 == pytest.approx((slope - half, slope + half), rel=1e-10)
+    assert abs(line_fit(t, r).rate / slope - 1) > 0.01  # the weights matter here
+
+
 def test_line_fit_interval_coverage():
     """Over 400 noisy data sets the 95 % interval holds the true rate about 95 % of the time."""
     rng = np.random.default_rng(7)
