@@ -41,22 +41,26 @@ def _cv_calibrate(obj, obs, size, free, criteria=TIGHT):
 SETS = [("opencv_stereo", "left"), ("opencv_stereo", "right"), ("rig640", "left"), ("rig640", "right")]
 
 
-@pytest.mark.parametrize("folder,prefix", SETS)
-@pytest.mark.parametrize("free", [FIVE, RATIONAL], ids=["k1k2p1p2k3", "rational"])
+def test_rational_model_without_an_optimum_is_flagged_and_unconverged():
+    """No optimum to agree on: on opencv_stereo/left's 13 views the rational model's cost is a flat, curved
+    valley in which every LM crawls (OpenCV's RMS still falls after 20,000 iterations). What must hold: the
+    problem is flagged as not identifiable, the solve is reported as unconverged, and at the same iteration
+    budget our RMS is no worse than OpenCV's (measured: 0.39894 vs 0.39956 px at 2000 iterations)."""
+    obj, obs, size = _load("opencv_stereo", "left")
+    sol = mono.calibrate_full(obj, obs, size, RATIONAL, LMOptions(max_iter=2000))
+    rms_cv, _, _ = _cv_calibrate(obj, obs, size, RATIONAL, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 2000, 1e-15))
+    assert not sol.conditioning.identifiable and "not identifiable" in sol.conditioning.message()
+    assert not sol.converged and "iteration limit" in sol.status_text
+    assert sol.rms <= rms_cv + 1e-6
+
+
+@pytest.mark.numerics
+@pytest.mark.parametrize("folder,prefix,free", [
+    pytest.param(f, p, m, id=f"{name}-{f}-{p}") for name, m in (("k1k2p1p2k3", FIVE), ("rational", RATIONAL))
+    for f, p in SETS if not (m == RATIONAL and (f, p) == ("opencv_stereo", "left"))])  # that one: above
 def test_full_set_matches_cv2_calibrate_camera(folder, prefix, free):
     obj, obs, size = _load(folder, prefix)
     sol = mono.calibrate_full(obj, obs, size, free)
-    if folder == "opencv_stereo" and prefix == "left" and free == RATIONAL:
-        # No optimum to agree on: on these 13 views the rational model's cost is a flat, curved valley in which
-        # every LM crawls (OpenCV's RMS still falls after 20,000 iterations). What must hold: the problem is
-        # flagged as not identifiable, the solve is reported as unconverged, and at the same iteration budget
-        # our RMS is no worse than OpenCV's (measured: 0.39894 vs 0.39956 px at 2000 iterations).
-        sol = mono.calibrate_full(obj, obs, size, free, LMOptions(max_iter=2000))
-        rms_cv, _, _ = _cv_calibrate(obj, obs, size, free, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 2000, 1e-15))
-        assert not sol.conditioning.identifiable and "not identifiable" in sol.conditioning.message()
-        assert not sol.converged and "iteration limit" in sol.status_text
-        assert sol.rms <= rms_cv + 1e-6
-        return
     rms_cv, k_cv, std_cv = _cv_calibrate(obj, obs, size, free)
     assert sol.status == 1, sol.status_text  # ended by ftol: lm_agreement applies
     # Same corners (float32 from the detector, exact in both), two solvers: OpenCV stops on a 1e-15 relative
@@ -74,6 +78,7 @@ def test_full_set_matches_cv2_calibrate_camera(folder, prefix, free):
         np.testing.assert_allclose(sol.std[:4], std_cv, rtol=10 * kappa * np.finfo(float).eps)
 
 
+@pytest.mark.numerics
 def test_subsets_match_cv2_per_subset():
     obj, obs, size = _load("opencv_stereo", "left")
     full = mono.calibrate_full(obj, obs, size, FIVE)
@@ -90,6 +95,7 @@ def test_subsets_match_cv2_per_subset():
         assert subs.rms[row] == pytest.approx(rms_cv, rel=LMOptions().ftol)
 
 
+@pytest.mark.numerics
 def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
     """Subsets under half the set take the gathered path (their own compiled shape); a weight-2 view equals
     the view given twice. Both must reach each subset's own optimum, as a fresh full solve of it does."""
@@ -114,6 +120,7 @@ def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
     assert weighted.rms[0] == pytest.approx(twice.rms, rel=LMOptions().ftol)  # SSE within ftol of the optimum's
 
 
+@pytest.mark.numerics
 def test_subsets_reusing_the_full_sets_linearisation_equal_fresh_starts():
     """Subsets start from the full set's per-view normal equations (one pass fewer); starting them from
     scratch must give the same solutions, one more pass each, and the batched loop must equal one problem
@@ -340,6 +347,7 @@ def _scaled_inv(a):
     return np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
 
 
+@pytest.mark.numerics
 def test_covariance_counts_every_free_parameter_on_a_linear_problem():
     """y = g0 x + g1 x^2 + c_v + e over 8 views of 5 points: 2 shared and 8 per-view parameters, 40 residuals.
     The noise e is drawn orthogonal to the design's columns and scaled to |e|^2 = (40 - 10) sigma^2, so the
@@ -383,6 +391,7 @@ def _full_normal_matrix(normal: np.ndarray, n_g: int) -> np.ndarray:
     return jtj
 
 
+@pytest.mark.numerics
 def test_mono_covariance_is_sigma2_times_the_inverse_normal_matrix_over_all_parameters():
     """The textbook covariance, built independently from the full J'J (intrinsics, distortion and 13 poses):
     sigma^2 = SSE / (residuals - all free parameters) times the intrinsic block of (J'J)^-1. Leaving the poses

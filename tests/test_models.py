@@ -20,6 +20,7 @@ def _random_camera(rng, strength):
     return k, coeffs
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("strength", [0.0, 0.3, 1.0])
 def test_projection_matches_cv2_project_points(strength):
     rng = np.random.default_rng(7)
@@ -46,6 +47,7 @@ def test_rodrigues_matches_cv2_and_is_smooth_at_zero():
     assert np.all(np.isfinite(g))
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-4, 3e-3, 0.5, 3.0])
 def test_hand_written_rotation_jacobian_matches_autodiff_and_differences(scale):
     """`rodrigues_jacobian` (used by every calibration's linearisation) against `jax.jacfwd(rodrigues)` and
@@ -89,6 +91,7 @@ def test_projection_jacobian_matches_central_differences():
     np.testing.assert_allclose(jac, num, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.numerics
 def test_undistort_inverts_distort_and_agrees_with_cv2():
     rng = np.random.default_rng(5)
     k, coeffs = _random_camera(rng, 1.0)
@@ -101,6 +104,7 @@ def test_undistort_inverts_distort_and_agrees_with_cv2():
     np.testing.assert_allclose(back, cv, atol=1e-8)
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("strength", [0.0, 0.3, 1.0])
 def test_hand_written_projection_jacobian_matches_autodiff(strength):
     rng = np.random.default_rng(11)

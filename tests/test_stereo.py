@@ -72,6 +72,7 @@ def _random_rig(seed, rvec_rig=None):
     return left, right, rig, pose
 
 
+@pytest.mark.numerics
 def test_pair_residual_matches_opencv_projection():
     left, right, rig, pose = _random_rig(1)
     obj = object_points(PATTERN, 15.0)
@@ -86,6 +87,7 @@ def test_pair_residual_matches_opencv_projection():
     np.testing.assert_allclose(np.asarray(model.project_pair(pose, obj[7])), [ql[7], qr[7]], atol=1e-8)
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("mode", ["fixed", "joint"])
 def test_linearize_matches_forward_autodiff(mode):
     """Chain-rule Jacobian = forward-mode autodiff, for a general rig and for the singular zero rotation."""
@@ -128,6 +130,7 @@ def test_essential_and_fundamental_satisfy_epipolar_constraint():
 # --- real pairs ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.numerics
 def test_fixed_intrinsics_matches_cv2_stereo_calibrate(real):
     name, result = real
     assert result.stereo.converged and len(result.pairs) == {"opencv_stereo": 13, "rig640": 25}[name]
@@ -250,6 +253,7 @@ def test_synthetic_rig_of_different_cameras_is_recovered(synthetic, noise_px):
     assert joint.left.image_size == (640, 480) and joint.right.image_size == (800, 600)
 
 
+@pytest.mark.numerics
 def test_stereo_covariance_counts_the_board_poses(synthetic):
     """Fixed mode on 13 noisy pairs: 6 rig parameters and 13 board poses (78) against 2808 residuals. The
     textbook covariance, from the full Jacobian of all residuals: sigma^2 = SSE / (residuals - 84) times the

@@ -26,6 +26,7 @@ def _rectification():
     return c, stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), c.R, c.T, alpha=0.0)
 
 
+@pytest.mark.numerics
 def test_reproject_disparity_matches_cv2_reproject_image_to_3d():
     _, r = _rectification()
     Q = np.asarray(r.Q)
@@ -87,6 +88,7 @@ def _two_cameras(seed=3):
     return k1, c1, k2, c2, R, T, X, q1, q2
 
 
+@pytest.mark.numerics
 def test_triangulate_dlt_matches_cv2_triangulate_points():
     k1, _, k2, _, R, T, X, q1, q2 = _two_cameras()
     K1 = np.array([[k1[0], 0, k1[2]], [0, k1[1], k1[3]], [0, 0, 1]])
