@@ -347,7 +347,6 @@ def _scaled_inv(a):
     return np.linalg.inv(a / np.outer(d, d)) / np.outer(d, d)
 
 
-@pytest.mark.numerics
 def test_covariance_counts_every_free_parameter_on_a_linear_problem():
     """y = g0 x + g1 x^2 + c_v + e over 8 views of 5 points: 2 shared and 8 per-view parameters, 40 residuals.
     The noise e is drawn orthogonal to the design's columns and scaled to |e|^2 = (40 - 10) sigma^2, so the

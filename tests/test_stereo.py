@@ -272,7 +272,6 @@ def test_synthetic_rig_of_different_cameras_is_recovered(synthetic, noise_px):
     assert joint.left.image_size == (640, 480) and joint.right.image_size == (800, 600)
 
 
-@pytest.mark.numerics
 def test_stereo_covariance_counts_the_board_poses(synthetic):
     """Fixed mode on 13 noisy pairs: 6 rig parameters and 13 board poses (78) against 2808 residuals. The
     textbook covariance, from the full Jacobian of all residuals: sigma^2 = SSE / (residuals - 84) times the
