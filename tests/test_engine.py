@@ -203,8 +203,9 @@ def test_chain_rule_linearisation_matches_autodiff_and_finite_differences(free):
     shared = (jnp.asarray(obj), jnp.zeros(8))
     r_fast, j_fast = mono.view_linearize_for(free)(jnp.asarray(g), jnp.asarray(pose), jnp.asarray(obs), shared)
     r_ad, j_ad = jacfwd_linearize(mono.view_residual_for(free))(jnp.asarray(g), jnp.asarray(pose), jnp.asarray(obs), shared)
-    np.testing.assert_allclose(r_fast, r_ad, atol=1e-12)
-    np.testing.assert_allclose(j_fast, j_ad, rtol=1e-9, atol=1e-9)
+    # Residuals: one formula in two programs, a few dozen roundings of the projected pixels (~1e3 px).
+    np.testing.assert_allclose(r_fast, r_ad, atol=64 * np.finfo(float).eps * 1e3)
+    np.testing.assert_allclose(j_fast, j_ad, rtol=1e-9, atol=1e-9)  # chain rule vs autodiff: rounding ~1e-13
     x = np.r_[g, pose]
     res = jax.jit(mono.view_residual_for(free))
     f = lambda v: np.asarray(res(jnp.asarray(v[: len(g)]), jnp.asarray(v[len(g):]), jnp.asarray(obs), shared))  # noqa: E731
