@@ -34,6 +34,7 @@ def test_reproject_disparity_matches_cv2_reproject_image_to_3d():
     disparity = rng.uniform(5.0, 60.0, (48, 64)).astype(np.float32)
     ref = cv2.reprojectImageTo3D(disparity, Q)
     ours = np.asarray(reproject_disparity(jnp.asarray(disparity), jnp.asarray(Q)))
+    # OpenCV computes and returns float32 (eps 6e-8): 1e-6 is ~16 float32 roundings.
     assert np.abs(ours - ref).max() / np.abs(ref).max() <= 1e-6
     assert np.all(np.abs(ours - ref) <= 1e-6 * np.abs(ref) + 1e-6)
 
@@ -99,6 +100,7 @@ def test_triangulate_dlt_matches_cv2_triangulate_points():
     h = cv2.triangulatePoints(P1, P2, n1.T, n2.T)
     ref = (h[:3] / h[3]).T
     ours = np.asarray(triangulate_dlt(jnp.asarray(P1), jnp.asarray(P2), jnp.asarray(n1), jnp.asarray(n2)))
+    # Both solve the 4x4 DLT system by SVD in float64: rounding ~ its condition number (~1e4 here) * eps.
     assert np.abs(ours - ref).max() / np.abs(ref).max() <= 1e-6
 
 
