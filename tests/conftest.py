@@ -31,10 +31,13 @@ def lm_agreement(std, n_residuals: int, n_params: int, ftol: float | None = None
     """How far apart two LM solves of one problem may end, per parameter (same units as `std`).
 
     Both stop once an accepted step lowers the SSE S by at most ftol * S (status 1). Next to the optimum a
-    (nearly undamped) step lands close to it, so its gain is the remaining excess d' J'J d <= ftol * S, and
+    nearly undamped step lands close to it, so its gain is the remaining excess d' J'J d <= ftol * S, and
     for each parameter d_i^2 <= (d' J'J d) [(J'J)^-1]_ii <= ftol * S [(J'J)^-1]_ii = ftol (n - p) std_i^2
     (std_i^2 = S / (n - p) [(J'J)^-1]_ii). Two solves within this of the optimum differ by at most twice it.
-    Use it between different programs (batched vs single, two ISAs), with both statuses checked to be 1.
+    "Nearly undamped": the damping, relative to diag(J'J), well below the smallest eigenvalue of the scaled J'J
+    (1 / its condition number, ~1e-5 for a camera); it falls 3x per good step from 1e-3 (1e-6 for subsets).
+    Use it between different programs (batched vs single, two ISAs), with both statuses checked to be 1;
+    measured agreement is ~30x inside it (batched vs single on AVX-512: 2e-6 std against 6e-5).
     """
     from dstereo.solver.lm import LMOptions
 
