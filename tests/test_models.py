@@ -20,6 +20,7 @@ def _random_camera(rng, strength):
     return k, coeffs
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("strength", [0.0, 0.3, 1.0])
 def test_projection_matches_cv2_project_points(strength):
     rng = np.random.default_rng(7)
@@ -30,7 +31,7 @@ def test_projection_matches_cv2_project_points(strength):
     cam_mtx = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1]])
     ref, _ = cv2.projectPoints(pts, rvec, tvec, cam_mtx, coeffs)
     ours = jax.vmap(project_view, in_axes=(None, None, None, 0))(k, coeffs, np.r_[rvec, tvec], pts)
-    assert np.max(np.abs(np.asarray(ours) - ref[:, 0])) <= 1e-9
+    assert np.max(np.abs(np.asarray(ours) - ref[:, 0])) <= 1e-9  # float64 both: rounding ~1e-13 px
 
 
 def test_rodrigues_matches_cv2_and_is_smooth_at_zero():
@@ -46,6 +47,7 @@ def test_rodrigues_matches_cv2_and_is_smooth_at_zero():
     assert np.all(np.isfinite(g))
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("scale", [0.0, 1e-7, 1e-4, 3e-3, 0.5, 3.0])
 def test_hand_written_rotation_jacobian_matches_autodiff_and_differences(scale):
     """`rodrigues_jacobian` (used by every calibration's linearisation) against `jax.jacfwd(rodrigues)` and
@@ -89,6 +91,7 @@ def test_projection_jacobian_matches_central_differences():
     np.testing.assert_allclose(jac, num, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.numerics
 def test_undistort_inverts_distort_and_agrees_with_cv2():
     rng = np.random.default_rng(5)
     k, coeffs = _random_camera(rng, 1.0)
@@ -101,6 +104,7 @@ def test_undistort_inverts_distort_and_agrees_with_cv2():
     np.testing.assert_allclose(back, cv, atol=1e-8)
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("strength", [0.0, 0.3, 1.0])
 def test_hand_written_projection_jacobian_matches_autodiff(strength):
     rng = np.random.default_rng(11)
@@ -109,7 +113,9 @@ def test_hand_written_projection_jacobian_matches_autodiff(strength):
         p = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), rng.uniform(0.8, 2.0)])
         q, dk, dc, dp = project_jacobian(jnp.asarray(k), jnp.asarray(coeffs), jnp.asarray(p))
         ak, ac, ap = jax.jacfwd(project, argnums=(0, 1, 2))(jnp.asarray(k), jnp.asarray(coeffs), jnp.asarray(p))
-        np.testing.assert_allclose(q, project(k, coeffs, p), rtol=0, atol=1e-12)
+        # The same formula in two programs (operation order and FMA contraction may differ by CPU): a few dozen
+        # roundings of the largest term, ~1e-11 px at 1000 px (was 1e-12: 4 ulps there).
+        np.testing.assert_allclose(q, project(k, coeffs, p), rtol=0, atol=64 * np.finfo(float).eps * np.abs(q).max())
         for ours, ref in ((dk, ak), (dc, ac), (dp, ap)):
             np.testing.assert_allclose(ours, ref, rtol=1e-10, atol=1e-9)
 

@@ -53,9 +53,11 @@ def test_stagnation_recession_and_rate_recovered(analysed):
     measured = np.array([float(r["recession_mm"]) for r in rows])
     true = np.array(truth["recession_stagnation_mm"])
     assert true[-1] == pytest.approx(2.0) and true[0] == 0.0
-    assert np.sqrt(np.mean((measured - true) ** 2)) <= 0.05
+    # The README's figures for this resolution (320x240; measured over seeds 0, 1, 2: RMS 0.015, 0.028, 0.026 mm,
+    # rate +0.15, -0.77, +0.26 %); this fixture is seed 0.
+    assert np.sqrt(np.mean((measured - true) ** 2)) <= 0.03
     rate, true_rate = summary["rate"]["rate"], truth["rate_stagnation_mm_s"]
-    assert abs(rate / true_rate - 1) <= 0.02
+    assert abs(rate / true_rate - 1) <= 0.008
     lo, hi = summary["rate"]["ci95"]
     assert lo <= true_rate <= hi
     assert summary["frames_used"] == N_FRAMES and summary["skipped"] == []
@@ -111,6 +113,26 @@ def test_line_fit_matches_scipy_linregress():
     m = rate_map(t, maps)
     np.testing.assert_allclose(m["rate"][0], [fit.rate, 2 * fit.rate], rtol=1e-12)
     np.testing.assert_allclose(m["ci95_half"][0], [half, 2 * half], rtol=1e-10)
+
+
+def test_weighted_line_fit_matches_numpy_polyfit_with_weights():
+    """Per-frame sigmas spread 20x: the weighted line is np.polyfit's with w = 1 / sigma (polyfit weights the
+    residuals, not their squares), its standard error polyfit's cov=True (scaled by chi^2 / (n - 2))."""
+    rng = np.random.default_rng(4)
+    t = np.linspace(0, 30, 11)
+    sigma = np.geomspace(0.01, 0.2, t.size)[rng.permutation(t.size)]
+    r = 0.04 * t + rng.normal(0, sigma)
+    r[np.argmax(sigma)] += 0.5  # a point the weights must discount
+    fit = line_fit(t, r, sigma)
+    (slope, intercept), cov = np.polyfit(t, r, 1, w=1 / sigma, cov=True)
+    # Two float64 solves of a 2-parameter problem (normal equations vs polyfit's scaled lstsq), condition
+    # ~1e4: rounding ~1e-12 relative; the unweighted slope is 6 % away (checked below).
+    assert fit.weighted and fit.rate == pytest.approx(slope, rel=1e-10)
+    assert fit.intercept == pytest.approx(intercept, rel=1e-10)
+    assert fit.rate_se == pytest.approx(np.sqrt(cov[0, 0]), rel=1e-10)
+    half = stats.t.ppf(0.975, t.size - 2) * np.sqrt(cov[0, 0])
+    assert fit.ci95 == pytest.approx((slope - half, slope + half), rel=1e-10)
+    assert abs(line_fit(t, r).rate / slope - 1) > 0.01  # the weights matter here
 
 
 def test_line_fit_interval_coverage():

@@ -77,6 +77,7 @@ RIGS = {
 }
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("new_size", [None, (800, 500)])
 @pytest.mark.parametrize("alpha", [-1.0, 0.0, 0.5, 1.0])
 @pytest.mark.parametrize("rig", sorted(RIGS))
@@ -89,6 +90,7 @@ def test_stereo_rectify_two_different_cameras(rig, alpha, new_size):
         assert ours.vertical == (rig == "vertical")
 
 
+@pytest.mark.numerics
 def test_fixed_point_undistortion_is_opencvs():
     """OpenCV's undistortPoints (5 fixed-point steps) reproduced bit for bit, strong rational lens included."""
     c = read_stereo_calibration(require_data("opencv_stereo") / "intrinsics.yml")

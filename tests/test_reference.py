@@ -213,14 +213,26 @@ SPHERE_POINTS = 2000  # matches per solve (the library default is 4000): halves 
 
 
 @pytest.fixture(scope="module")
-def sphere_matches(sphere_view, truth):
-    """Dense matches on the sphere pair, rectified with the calibration that is 1 % long in baseline."""
+def all_sphere_matches(sphere_view, truth):
+    """Every dense match on the sphere pair (~46,000), rectified with the calibration 1 % long in baseline."""
     from dstereo.reconstruction import ReconstructionConfig
     from dstereo.reference.dense import dense_matches
 
     start = perturbed(truth, 0.01, 0.0)
     cfg = ReconstructionConfig(depth_range=SPHERE_CONFIG_RANGE)
-    return start, dense_matches(start, sphere_view.left, sphere_view.right, cfg, max_points=SPHERE_POINTS)
+    return start, dense_matches(start, sphere_view.left, sphere_view.right, cfg, max_points=10**7)
+
+
+def _sampled(all_matches, seed: int):
+    """The SPHERE_POINTS matches `dense_matches(..., max_points=SPHERE_POINTS, seed=seed)` would return."""
+    start, (q_l, q_r) = all_matches
+    keep = np.sort(np.random.default_rng(seed).permutation(len(q_l))[:SPHERE_POINTS])
+    return start, (q_l[keep], q_r[keep])
+
+
+@pytest.fixture(scope="module")
+def sphere_matches(all_sphere_matches):
+    return _sampled(all_sphere_matches, 0)
 
 
 def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
@@ -239,24 +251,45 @@ def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
     assert "w_x" in everything.report()["poorly_determined"]  # row-wise matching cannot see vertical misalignment
 
 
-def test_mesh_reference_on_sphere_pair(sphere_matches, truth):
-    """The same sphere as a triangle mesh (icosphere) with a start pose 2.4 mm off: the baseline as the sphere."""
+def test_mesh_reference_on_sphere_pair(all_sphere_matches, truth):
+    """The same sphere as a triangle mesh (icosphere) with a start pose 2.4 mm off, over four samples of 2000 of
+    the ~46,000 matches: the baseline as the analytic sphere gives it, scattered as the reported std says.
+
+    Measured (seeds 0-5): mesh -0.19, -0.18, -0.05, -0.16, -0.13, -0.09 %, std 0.05-0.06 %; the analytic sphere on
+    the same matches within 0.03 %; all 46,295 matches: mesh -0.16 %, sphere -0.15 % (std 0.01 %). That common
+    -0.15 % is SGBM's systematic depth error on this render (no sample size removes it; the sphere test bounds it
+    at 0.3 %); the scatter about it is the sampling noise the std describes. Before the mesh dropped points seen
+    beyond 70 deg (as the sphere does), the errors were +0.03 .. -0.51 %, 13 times the std."""
     import trimesh
 
     from dstereo.reference import Mesh
     from dstereo.synth.poses import pose_matrix
     from dstereo.synth.reference_scenes import reference_rig
 
-    start, (q_l, q_r) = sphere_matches
     m = pose_matrix(reference_rig().T_left_world)
     centre = m[:3, :3] @ np.array([0.0, 0.0, 400.0]) + m[:3, 3]
     mesh = Mesh.from_trimesh(trimesh.creation.icosphere(5, 60.0), np.r_[0.0, 0.0, 0.0, centre + [1.0, -1.0, 2.0]])
-    out = refine_rig(start, mesh, q_l, q_r, fixed=SCALE_ONLY)
-    e = rig_error(out.calibration, truth)["baseline_rel"]
-    assert abs(e) < 0.004
-    # the mesh pose found the sphere's centre, at the depth the remaining scale error puts it
-    assert np.linalg.norm(out.nuisance[3:] - centre * (1 + e)) < 0.3
-    assert out.solution.rms_after < out.solution.rms_before
+    errors, stds = [], []
+    for seed in range(4):
+        start, (q_l, q_r) = _sampled(all_sphere_matches, seed)
+        out = refine_rig(start, mesh, q_l, q_r, fixed=SCALE_ONLY)
+        e = rig_error(out.calibration, truth)["baseline_rel"]
+        sphere = rig_error(refine_rig(start, Sphere(120.0), q_l, q_r, fixed=SCALE_ONLY).calibration, truth)
+        # Same matches, same surface: they differ by the facets' sagitta (0.014 mm of 60: 0.02 %) and the few
+        # points on either side of the 70 deg limit, a fraction of the sampling std (measured <= 0.6 std).
+        assert abs(e - sphere["baseline_rel"]) < out.std[3], (seed, e, sphere)
+        # the mesh pose found the sphere's centre, at the depth the remaining scale error puts it
+        assert np.linalg.norm(out.nuisance[3:] - centre * (1 + e)) < 0.3
+        assert out.solution.rms_after < out.solution.rms_before
+        errors.append(e)
+        stds.append(out.std[3])
+    errors, stds = np.array(errors), np.array(stds)
+    assert abs(errors.mean()) < 0.003, errors  # SGBM's systematic error, as in the sphere test
+    # Samples of 2000 of 46,000 matches are nearly independent: each within 4 std of their mean, and their
+    # spread as the std says (a sample std of 4 draws falls outside 0.3-2.5 times the true one with p = 3.5 %;
+    # measured 1.2).
+    assert np.all(np.abs(errors - errors.mean()) < 4 * stds), (errors, stds)
+    assert 0.3 < np.std(errors, ddof=1) / np.sqrt(np.mean(stds ** 2)) < 2.5, (errors, stds)
 
 
 def test_metric_scale_of_unscaled_points(sphere_matches, truth, board_view):

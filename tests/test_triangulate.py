@@ -26,6 +26,7 @@ def _rectification():
     return c, stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), c.R, c.T, alpha=0.0)
 
 
+@pytest.mark.numerics
 def test_reproject_disparity_matches_cv2_reproject_image_to_3d():
     _, r = _rectification()
     Q = np.asarray(r.Q)
@@ -33,6 +34,7 @@ def test_reproject_disparity_matches_cv2_reproject_image_to_3d():
     disparity = rng.uniform(5.0, 60.0, (48, 64)).astype(np.float32)
     ref = cv2.reprojectImageTo3D(disparity, Q)
     ours = np.asarray(reproject_disparity(jnp.asarray(disparity), jnp.asarray(Q)))
+    # OpenCV computes and returns float32 (eps 6e-8): 1e-6 is ~16 float32 roundings.
     assert np.abs(ours - ref).max() / np.abs(ref).max() <= 1e-6
     assert np.all(np.abs(ours - ref) <= 1e-6 * np.abs(ref) + 1e-6)
 
@@ -87,6 +89,7 @@ def _two_cameras(seed=3):
     return k1, c1, k2, c2, R, T, X, q1, q2
 
 
+@pytest.mark.numerics
 def test_triangulate_dlt_matches_cv2_triangulate_points():
     k1, _, k2, _, R, T, X, q1, q2 = _two_cameras()
     K1 = np.array([[k1[0], 0, k1[2]], [0, k1[1], k1[3]], [0, 0, 1]])
@@ -97,6 +100,7 @@ def test_triangulate_dlt_matches_cv2_triangulate_points():
     h = cv2.triangulatePoints(P1, P2, n1.T, n2.T)
     ref = (h[:3] / h[3]).T
     ours = np.asarray(triangulate_dlt(jnp.asarray(P1), jnp.asarray(P2), jnp.asarray(n1), jnp.asarray(n2)))
+    # Both solve the 4x4 DLT system by SVD in float64: rounding ~ its condition number (~1e4 here) * eps.
     assert np.abs(ours - ref).max() / np.abs(ref).max() <= 1e-6
 
 

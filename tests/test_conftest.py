@@ -1,0 +1,20 @@
+"""The suite's own rules: real-data tests skip with the reason on a machine without the data, and fail under CI."""
+
+import pytest
+
+import conftest
+
+
+@pytest.mark.parametrize("ci,outcome", [("", pytest.skip.Exception), ("true", pytest.fail.Exception)])
+def test_absent_real_data_skips_locally_and_fails_under_ci(monkeypatch, tmp_path, ci, outcome):
+    monkeypatch.setattr(conftest, "DATA", tmp_path / "no_data")
+    monkeypatch.setenv("CI", ci)
+    with pytest.raises(outcome, match="opencv_stereo"):
+        conftest.require_data("opencv_stereo")
+
+
+def test_present_real_data_is_returned(monkeypatch, tmp_path):
+    (tmp_path / "opencv_stereo").mkdir()
+    monkeypatch.setattr(conftest, "DATA", tmp_path)
+    monkeypatch.setenv("CI", "true")
+    assert conftest.require_data("opencv_stereo") == tmp_path / "opencv_stereo"

@@ -1,0 +1,65 @@
+"""Subsets whose solves did not converge are left out of a calibration's statistics (one camera and rig),
+and a calibration none of whose subsets converged is refused. Real pairs: OpenCV's 13 sample pairs, m = 12."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from conftest import require_data
+from dstereo.calib import mono
+from dstereo.calib import stereo_pipeline
+from dstereo.calib.pipeline import calibrate_camera
+from dstereo.config import Config
+from dstereo.errors import DstereoError
+from dstereo.solver.lm import LMOptions
+
+CONFIG = Config(pattern=(9, 6), square=1.0, per_set=12)
+POISONED = [2, 7]  # 2 of the C(13, 12) = 13 subsets
+
+
+def _poison(solutions, column: int, offset: float):
+    """Subsets POISONED as an unconverged solve leaves them: status 'iteration limit', values far off."""
+    values, status = solutions.values.copy(), solutions.status.copy()
+    values[POISONED, column] += offset
+    status[POISONED] = -1
+    return dataclasses.replace(solutions, values=values, status=status)
+
+
+def test_unconverged_subsets_are_left_out_of_the_final_values(monkeypatch):
+    folder = require_data("opencv_stereo")
+    real = mono.solve_subsets
+    monkeypatch.setattr(mono, "solve_subsets", lambda *a, **k: _poison(real(*a, **k), 0, 50.0))  # fx + 50 px
+    cal = calibrate_camera(folder, CONFIG.with_overrides(glob="left*.jpg"))
+    assert cal.unconverged == POISONED
+    assert any("2 of 13 subset solves did not converge" in w and "subsets 2, 7" in w for w in cal.warnings)
+    kept = np.delete(cal.subsets.values, POISONED, axis=0)
+    # No steps: the final values are the plain mean of the converged subsets (the same rows, summed by the same
+    # numpy routine: equal to rounding). Averaging the poisoned two in would move fx by 100 / 13 = 7.7 px.
+    for j, name in enumerate(cal.full.names):
+        assert cal.final[name] == pytest.approx(kept[:, j].mean(), rel=1e-12), name
+
+
+def test_a_calibration_with_no_converged_subset_is_refused(monkeypatch):
+    """One LM iteration from the full set's optimum cannot meet ftol: every subset ends at the limit (-1)."""
+    folder = require_data("opencv_stereo")
+    real = mono.solve_subsets
+    monkeypatch.setattr(mono, "solve_subsets", lambda *a, **k: real(*a, **{**k, "options": LMOptions(max_iter=1)}))
+    with pytest.raises(DstereoError, match="none of the 13 subset solves converged"):
+        calibrate_camera(folder, CONFIG.with_overrides(glob="left*.jpg"))
+
+
+def test_unconverged_stereo_subsets_are_left_out_of_the_rig(monkeypatch):
+    folder = require_data("opencv_stereo")
+    left, right = sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg"))
+    sources = stereo_pipeline.StereoSources(tuple(left), tuple(right), tuple(left), tuple(right), "test pairs")
+    real = stereo_pipeline.solve_stereo_subsets
+    monkeypatch.setattr(stereo_pipeline, "solve_stereo_subsets", lambda *a, **k: _poison(real(*a, **k), 3, 1.0))
+    job = stereo_pipeline.calibrate_stereo_project(sources, CONFIG.with_overrides(mode="stereo"))
+    assert (~job.subsets.converged).sum() == 2
+    assert any("2 of 13 stereo subset solves did not converge" in w for w in job.warnings)
+    cols = job.subsets.columns()
+    keep = job.subsets.converged
+    # Tx moved by 1 square in the poisoned two: averaged in, Tx would move by 2 / 13 = 0.15 square.
+    for name in ("Tx", "Tnorm", "RVx", "stereo_re"):
+        assert job.final[name] == pytest.approx(cols[name][keep].mean(), rel=1e-12), name
