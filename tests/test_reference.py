@@ -191,9 +191,10 @@ def test_distances_cli(tmp_path, rig, truth, board_view):
     rows += [f"distance,p{i},p{j},{d:.17g}" for (i, j), d in zip(pairs, lengths)]
     (tmp_path / "marks.csv").write_text("# marks\n" + "\n".join(rows) + "\n")
     cv2.imwrite(str(tmp_path / "L.png"), board_view[0].left)
+    cv2.imwrite(str(tmp_path / "R.png"), board_view[0].right)  # one image for both cameras is refused as bad input
     write_calibration(tmp_path / "stereo.yml", start, (640, 480))
     code, _, err = run_cli("refine", "--calib", tmp_path / "stereo.yml", "--left", tmp_path / "L.png", "--right",
-                           tmp_path / "L.png", "--distances", tmp_path / "marks.csv", "--out", tmp_path / "out")
+                           tmp_path / "R.png", "--distances", tmp_path / "marks.csv", "--out", tmp_path / "out")
     assert code == 0, err
     got = rig_error(read_stereo_calibration(tmp_path / "out" / "stereo.yml"), truth)
     assert abs(got["baseline_rel"]) < 0.002
