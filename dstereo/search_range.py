@@ -9,7 +9,8 @@ Sources, first that applies wins (`choose_range`):
 1. the user's depth range (--z-min/--z-max) or SGBM range (--sgbm min_disparity/num_disparities, a preset);
 2. a Middlebury calib.txt's `ndisp` (the conservative bound the benchmark allows algorithms to use: 0..ndisp-1;
    its vmin/vmax are for visualisation only and are used only when ndisp is missing);
-3. sparse SIFT matches on the rectified pair: matches on the same row (|dy| <= 1.5 px) give d_s; the range is
+3. sparse SIFT matches on the rectified pair: matches on the same row (|dy| <= 1.5 px) whose disparity agrees with
+   their image neighbours' give d_s; the range is
    their 0.5..99.5th percentile widened by a margin (30 % of that span, at least 16 px: sparse features miss
    textureless parts; measured on Middlebury upscaled 2x, the nearest 1 % of Adirondack lies 20 px beyond them);
 4. otherwise the default 0..63 px, with a warning.
@@ -107,7 +108,21 @@ def sparse_disparities(left_rect: np.ndarray, right_rect: np.ndarray, sign: floa
     except DstereoError:
         return np.zeros(0)
     same_row = np.abs(m.left[:, 1] - m.right[:, 1]) <= ROW_TOLERANCE_PX
-    return sign * (m.left[same_row, 0] - m.right[same_row, 0]) / scale
+    d_s = sign * (m.left[same_row, 0] - m.right[same_row, 0]) / scale
+    return d_s[consistent_with_neighbours(m.left[same_row], d_s)]
+
+
+def consistent_with_neighbours(q: np.ndarray, d: np.ndarray, k: int = 6) -> np.ndarray:
+    """Matches whose disparity agrees with the median of their k nearest matches in the image (within 3 px or
+    10 %): a false match on a repeated pattern (a chessboard row) lands on the right row with a wrong disparity,
+    and its neighbours say so. Fewer than k + 1 matches: all are kept."""
+    if len(d) <= k:
+        return np.ones(len(d), bool)
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(q).query(q, k + 1)
+    local = np.median(d[idx[:, 1:]], axis=1)
+    return np.abs(d - local) <= np.maximum(3.0, 0.1 * np.abs(local))
 
 
 def from_sparse(d_s: np.ndarray, width: int) -> SearchRange | None:

@@ -15,8 +15,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_fit, rate_map
 from dstereo.recession.sequence import Frame
-from dstereo.recession.surface import Grid, SampleFrame, cell_heights, estimate_axis, frame_from_axis, grid_over
-from dstereo.recession.surface import _trim, valid_points
+from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_points, fit_face, frame_from_axis
+from dstereo.recession.surface import grid_over, valid_points
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,7 @@ class RecessionResult:
     rates: dict[str, np.ndarray]
     config: RecessionConfig
     warnings: list[str] = field(default_factory=list)
+    search_ranges: dict[int, dict] = field(default_factory=dict)  # frame index -> summary['search_range']
 
     @property
     def times(self) -> np.ndarray:
@@ -117,36 +118,56 @@ class RecessionResult:
                       f"{self.config.stagnation_model} fit over the cells within "
                       f"{self.config.stagnation_radius_mm:g} mm; rate: least-squares line over time, 95 % "
                       "interval from Student's t on the fit residuals (n - 2 dof)",
+            "search_range": _range_summary(self.search_ranges, self.reference),
             "warnings": list(self.warnings),
         }
 
 
+def _range_summary(ranges: dict[int, dict], reference: int) -> dict | None:
+    """The reference frame's disparity search range, and the span over all frames (each frame finds its own)."""
+    if not ranges:
+        return None
+    ref = ranges.get(reference) or next(iter(ranges.values()))
+    return ref | {"frames": {"min_disparity": min(r["min_disparity"] for r in ranges.values()),
+                             "max_disparity": max(r["max_disparity"] for r in ranges.values()),
+                             "widened": sum(bool(r["widened"]) for r in ranges.values()),
+                             "note": "each frame's range comes from its own pair; span over all frames"}}
+
+
 def _sample_frame(points: np.ndarray, config: RecessionConfig) -> SampleFrame:
     if config.axis is None:
-        return estimate_axis(points, config.grid_mm)
+        return fit_face(points, config.grid_mm).frame
     if config.point is not None:
         frame = frame_from_axis(config.axis, config.point)
         return replace(frame, source="given axis and point")
-    auto = estimate_axis(points, config.grid_mm)
+    auto = fit_face(points, config.grid_mm).frame
     return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre")
 
 
 class _Reference:
-    """The reference frame's sample frame, grid, face slab and cell heights."""
+    """The reference frame's sample frame, grid, face slab, face cells and cell heights. Only the grid cells the
+    reference face covers (its largest connected region on the quadric, `face_points`) carry heights: a side
+    wall or a stray match outside the face never enters a map or the face centre."""
 
     def __init__(self, points: np.ndarray, config: RecessionConfig):
         self.sample = _sample_frame(points, config)
         uvh = self.sample.coordinates(valid_points(points))
-        keep, _ = _trim(uvh, 4.0)
+        keep, _ = face_points(uvh, config.grid_mm)
         face = uvh[keep]
         self.grid = grid_over(face[:, :2], config.grid_mm)
         self.slab = (float(face[:, 2].min()) - config.slab_mm[0], float(face[:, 2].max()) + config.slab_mm[1])
+        cells = self.grid.cell_index(face[:, :2])
+        self.face_cells = np.zeros(self.grid.shape[0] * self.grid.shape[1], bool)
+        self.face_cells[cells[cells >= 0]] = True
+        self.face_cells = self.face_cells.reshape(self.grid.shape)
 
 
 def _frame_heights(points: np.ndarray, ref: _Reference, config: RecessionConfig):
     uvh = ref.sample.coordinates(valid_points(points))
     uvh = uvh[(uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])]
-    return cell_heights(uvh, ref.grid, config.min_points_per_cell)
+    height, se, count = cell_heights(uvh, ref.grid, config.min_points_per_cell)
+    height[~ref.face_cells], se[~ref.face_cells], count[~ref.face_cells] = np.nan, np.nan, 0
+    return height, se, count
 
 
 def run_recession(frames: list[Frame], calib, config: RecessionConfig = RecessionConfig(), recon_config=None,
@@ -183,7 +204,12 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     if ref is None:
         raise DstereoError("no frame of the sequence gave a surface to measure from; first failure: "
                            f"{results[0].reason}")
-    return _assemble(results, ref, ref_index, maps, ses, config)
+    result = _assemble(results, ref, ref_index, maps, ses, config)
+    log = getattr(reconstruct, "log", {})
+    log = {i: log[f.key] for i, f in enumerate(frames) if f.key in log}
+    result.search_ranges = {i: entry["search_range"] for i, entry in log.items()}
+    result.warnings += [w for i in sorted(log) for w in log[i]["warnings"]]
+    return result
 
 
 def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: int = 20) -> None:
@@ -205,12 +231,15 @@ def _reconstructor(calib, recon_config, refine: bool):
     def run(frame: Frame) -> np.ndarray:
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            return reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left)).points
+            result = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
             raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
+        run.log[frame.key] = {"search_range": result.summary["search_range"], "warnings": result.warnings}
+        return result.points
 
+    run.log = {}  # frame key -> the search range and warnings of every frame that matched
     return run
 
 
