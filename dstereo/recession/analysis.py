@@ -134,14 +134,27 @@ def _range_summary(ranges: dict[int, dict], reference: int) -> dict | None:
                              "note": "each frame's range comes from its own pair; span over all frames"}}
 
 
-def _sample_frame(points: np.ndarray, config: RecessionConfig) -> SampleFrame:
+def _sample_frame(points: np.ndarray, config: RecessionConfig) -> tuple[SampleFrame, np.ndarray | None]:
+    """The sample frame, and the face points (mask over the valid points) when the auto fit found them."""
     if config.axis is None:
-        return fit_face(points, config.grid_mm).frame
+        fit = fit_face(points, config.grid_mm)
+        return fit.frame, fit.keep
     if config.point is not None:
         frame = frame_from_axis(config.axis, config.point)
-        return replace(frame, source="given axis and point")
+        return replace(frame, source="given axis and point"), None
     auto = fit_face(points, config.grid_mm).frame
-    return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre")
+    return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre"), None
+
+
+def _settled_face(uvh: np.ndarray, grid_mm: float, passes: int = 10) -> np.ndarray:
+    """Face points in a given frame: `face_points` repeated from its own result until the set stops changing."""
+    keep, _ = face_points(uvh, grid_mm)
+    for _ in range(passes):
+        new, _ = face_points(uvh, grid_mm, start=keep)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return keep
 
 
 class _Reference:
@@ -150,9 +163,10 @@ class _Reference:
     wall or a stray match outside the face never enters a map or the face centre."""
 
     def __init__(self, points: np.ndarray, config: RecessionConfig):
-        self.sample = _sample_frame(points, config)
+        self.sample, keep = _sample_frame(points, config)
         uvh = self.sample.coordinates(valid_points(points))
-        keep, _ = face_points(uvh, config.grid_mm)
+        if keep is None:
+            keep = _settled_face(uvh, config.grid_mm)
         face = uvh[keep]
         self.grid = grid_over(face[:, :2], config.grid_mm)
         self.slab = (float(face[:, 2].min()) - config.slab_mm[0], float(face[:, 2].max()) + config.slab_mm[1])

@@ -4,7 +4,8 @@ Sample frame: origin at the stagnation point `s`, unit axis `n` pointing away fr
 sample), `e1`, `e2` completing a right-handed frame. A point p has face coordinates u = (p - s).e1,
 v = (p - s).e2 and height h = (p - s).n; as the face recedes its height grows, so recession = h(t) - h(t0).
 
-Auto axis (`estimate_axis`, `fit_face`): a least-squares plane through the first frame's points, then, until
+Auto axis (`estimate_axis`, `fit_face`): a least-squares plane through the first frame's points near the plane
+most of them lie near (RANSAC, in their largest connected region), then, until
 the axis settles (changes by less than AXIS_TOLERANCE_DEG between passes with the same face points, at most
 MAX_PASSES; else an error): keep the points within k robust sigma of a quadric h(u, v) in that plane's
 coordinates (a domed face is not trimmed at its top or rim) that form the largest connected region of grid
@@ -83,9 +84,10 @@ def _quadric_design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
 
 
-def _trim(uvh: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier mask and quadric coefficients: points within k robust sigma of a quadric h(u, v), twice."""
-    keep = np.ones(len(uvh), bool)
+def _trim(uvh: np.ndarray, k: float, start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Inlier mask and quadric coefficients: points within k robust sigma of a quadric h(u, v), refitted three
+    times, starting from the `start` points (default all)."""
+    keep = np.ones(len(uvh), bool) if start is None else start.copy()
     coef = np.zeros(6)
     for _ in range(3):
         a = _quadric_design(uvh[keep, 0], uvh[keep, 1])
@@ -123,10 +125,13 @@ def largest_region(uv: np.ndarray, keep: np.ndarray, grid_mm: float) -> np.ndarr
     return keep & out
 
 
-def face_points(uvh: np.ndarray, grid_mm: float, k: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def face_points(uvh: np.ndarray, grid_mm: float, k: float = 4.0,
+                start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(mask, quadric coefficients) of the front face's points in face coordinates: on the quadric within k
-    robust sigma and in the largest connected region of grid cells."""
-    keep, coef = _trim(uvh, k)
+    robust sigma (the quadric and its sigma first fitted to the `start` points: the face found so far, so a
+    side wall or background does not widen the tolerance that is to reject them) and in the largest connected
+    region of grid cells."""
+    keep, coef = _trim(uvh, k, start)
     return largest_region(uvh[:, :2], keep, grid_mm), coef
 
 
@@ -137,6 +142,33 @@ def _slope_sigma_deg(uvh: np.ndarray, coef: np.ndarray) -> float:
     sigma2 = float(res @ res) / max(len(res) - 6, 1)
     cov = sigma2 * np.linalg.pinv(a.T @ a)
     return float(np.degrees(np.sqrt(cov[1, 1] + cov[2, 2])))
+
+
+def _ransac_start(p: np.ndarray, grid_mm: float, tries: int = 256, seed: int = 0) -> np.ndarray:
+    """Start of the face fit: the points near the plane (within 3 % of the cloud's extent) that most points lie
+    near, in their largest connected region. A plane through all points would lean towards the side wall and the
+    background (measured 22 deg off on a cloud with a side wall in view); a band around the face's best plane
+    holds most of the face and little of anything else."""
+    rng = np.random.default_rng(seed)
+    spread = np.percentile(p, 90, axis=0) - np.percentile(p, 10, axis=0)
+    band = 0.03 * float(np.sort(spread)[1:].mean())  # the two larger extents: across the face
+    sample = p[rng.choice(len(p), min(len(p), 5000), replace=False)]
+    best, best_count = None, -1
+    for _ in range(tries):
+        a, b, c = sample[rng.choice(len(sample), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        if np.linalg.norm(n) < 1e-9:
+            continue
+        n = n / np.linalg.norm(n)
+        count = int(np.sum(np.abs((sample - a) @ n) <= band))
+        if count > best_count:
+            best, best_count = (n, a), count
+    if best is None:
+        return np.ones(len(p), bool)
+    n, a = best
+    near = np.abs((p - a) @ n) <= band
+    frame = frame_from_axis(n, a)
+    return largest_region(frame.coordinates(p)[:, :2], near, grid_mm)
 
 
 def _plane_frame(p: np.ndarray) -> "SampleFrame":
@@ -162,14 +194,14 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
     if len(p) < min_points:
         raise DstereoError(f"only {len(p)} points in the first frame; need at least {min_points} to find the "
                            "sample axis (check the calibration and the depth range, or give --axis and --point)")
-    keep = np.ones(len(p), bool)
+    keep = _ransac_start(p, grid_mm)
     previous, change = None, float("nan")
     for passes in range(1, MAX_PASSES + 1):
         if keep.sum() < min_points:
             raise DstereoError(f"the automatic sample axis kept only {int(keep.sum())} face points after {passes - 1} "
                                "plane fits; the front face is not seen clearly: give --axis and --point")
         frame = _plane_frame(p[keep])
-        new_keep, coef = face_points(frame.coordinates(p), grid_mm, k)
+        new_keep, coef = face_points(frame.coordinates(p), grid_mm, k, keep)
         if passes > FREE_PASSES:
             new_keep &= keep  # a point once dropped stays dropped: the fit cannot cycle between two point sets
         if previous is not None:
@@ -182,7 +214,7 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
                            f"{change:.3f} deg per fit (tolerance {AXIS_TOLERANCE_DEG} deg); the face may be hidden in "
                            "part or not roughly symmetric: give --axis and --point")
     uvh = frame.coordinates(p[new_keep])
-    _, coef = _trim(uvh, k)
+    _, coef = _trim(uvh, k, np.ones(len(uvh), bool))
     cells = np.unique(np.round(uvh[:, :2] / grid_mm).astype(np.int64), axis=0) * grid_mm
     u0, v0 = cells.mean(axis=0)
     h0 = float((_quadric_design(np.array([u0]), np.array([v0])) @ coef)[0])
