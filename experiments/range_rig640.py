@@ -4,11 +4,12 @@ Needs the rig calibrated first (square 25 mm: the true size is unknown, and dept
 
     dstereo calibrate --left '../shared/data/rig640/left*.jpg' --right '../shared/data/rig640/right*.jpg' \
         --pattern 9x6 --square 25 --out /tmp/rig640cal
-    python -m experiments.range_rig640 --calib /tmp/rig640cal/stereo.yml [--pairs 05 12 20] [--old]
+    python -m experiments.range_rig640 --calib /tmp/rig640cal/stereo.yml [--pairs 05 12 20] [--md OUT.md]
+    PYTHONPATH=OLD_CHECKOUT python experiments/range_rig640.py ...   (the previous code, from a checkout of it)
 
 Per pair: the board's corners found in the original left image, solvePnP with the calibrated left camera gives
 their depths; the reconstruction's depth at the same corners (mapped to the rectified grid by R1/P1, median of a
-5 x 5 window) is compared with them. `--old` reproduces the previous defaults (search 0..63 px).
+5 x 5 window) is compared with them. Defaults only (`ReconstructionConfig()`).
 """
 
 from __future__ import annotations
@@ -47,7 +48,10 @@ def board_check(calib, name: str, config: ReconstructionConfig) -> dict:
         z_rec.append(np.nanmedian(window) if np.isfinite(window).any() else np.nan)
     z_rec = np.array(z_rec)
     ok = np.isfinite(z_rec)
-    s = result.summary["search_range"]
+    s = result.summary.get("search_range") or {"min_disparity": result.summary["sgbm"]["min_disparity"],
+                                                "max_disparity": result.summary["sgbm"]["min_disparity"]
+                                                + result.summary["sgbm"]["num_disparities"] - 1,
+                                                "source": "fixed (code before issue 14)", "widened": 0}
     return {"pair": name, "pnp_mm": float(np.median(z_pnp)), "recon_mm": float(np.median(z_rec[ok])) if ok.any()
             else float("nan"), "corners_with_depth": int(ok.sum()),
             "rel_err_pct": float(100 * (np.median(z_rec[ok]) / np.median(z_pnp) - 1)) if ok.any() else float("nan"),
@@ -56,15 +60,23 @@ def board_check(calib, name: str, config: ReconstructionConfig) -> dict:
 
 
 def main():
+    import json
+
     ap = argparse.ArgumentParser()
     ap.add_argument("--calib", required=True)
     ap.add_argument("--pairs", nargs="*", default=["05", "12", "20"])
-    ap.add_argument("--old", action="store_true", help="previous defaults: search 0..63 px")
+    ap.add_argument("--md", help="also write the rows as a markdown table")
     args = ap.parse_args()
     calib = read_stereo_calibration(args.calib)
-    config = ReconstructionConfig(sgbm_user=("min_disparity", "num_disparities")) if args.old else ReconstructionConfig()
-    for name in args.pairs:
-        print(board_check(calib, name, config))
+    rows = [board_check(calib, name, ReconstructionConfig()) for name in args.pairs]
+    for row in rows:
+        print(json.dumps(row))
+    if args.md:
+        lines = ["| pair | solvePnP depth mm | reconstructed mm | error % | corners with depth | search range | "
+                 "warnings |", "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['pair']} | {r['pnp_mm']:.1f} | {r['recon_mm']:.1f} | {r['rel_err_pct']:+.2f} | "
+                  f"{r['corners_with_depth']}/54 | {r['range']} | {len(r['warnings'])} |" for r in rows]
+        Path(args.md).write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
