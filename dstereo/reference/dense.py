@@ -38,7 +38,7 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
         raise DstereoError(f"calibration {calib.source}: an already rectified (Middlebury) pair has no rig to refine")
     result = reconstruct_calibrated(calib, left, right, config or ReconstructionConfig())
     _refuse_saturated(result)
-    v, u = np.nonzero(np.isfinite(result.disparity))
+    v, u = np.nonzero(_trusted(result))
     if len(u) < 50:
         raise DstereoError("dense matching found fewer than 50 valid pixels on the reference; give it texture, set "
                            "the depth range (--z-min/--z-max) or check the calibration's image size")
@@ -51,6 +51,19 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     q_r = _to_raw(jnp.asarray(calib.k2), jnp.asarray(calib.D2), jnp.asarray(m["R2"]), jnp.asarray(m["P2"]),
                   jnp.asarray(np.c_[u - d, v]))
     return np.asarray(q_l), np.asarray(q_r)
+
+
+def _trusted(result) -> np.ndarray:
+    """Valid pixels fit for a refinement: not within 1 px of either end of the search range (where SGBM pins what it
+    cannot match) and not in the left band of max-disparity columns that SGBM only matches because the pair was
+    padded (`dstereo.disparity._sgbm`; its matches there are mostly the background's). Density matters less here
+    than outliers: the refinement's fit is least squares."""
+    d = result.disparity
+    s = result.summary["search_range"]
+    ds = np.sign(result.matrices["Q"][3, 2]) * d
+    u = np.arange(d.shape[1])[None, :]
+    inner = (ds > s["min_disparity"] + 1) & (ds < s["max_disparity"] - 1)
+    return np.isfinite(d) & inner & (u >= max(s["max_disparity"], 0))
 
 
 def _refuse_saturated(result) -> None:
