@@ -196,3 +196,39 @@ def test_doffs_within_the_files_rounding_is_accepted_and_used(tmp_path):
     path.write_text(text.format("47.58"))  # 0.018 px off: more than rounding
     with pytest.raises(DstereoError, match=r"doffs 47.58 differs from cx1 - cx0 = 47.562 by more than"):
         read_middlebury_calib(path)
+
+
+# --- SGBM settings that follow the image ---------------------------------------------------------------------
+
+
+def test_sgbm_settings_follow_the_image_unless_set():
+    from dstereo.disparity import PRESETS, SGBMParams
+    from dstereo.reconstruction import ReconstructionConfig, sized_sgbm, user_sgbm_names
+
+    default = ReconstructionConfig()
+    webcam = sized_sgbm(default.sgbm, user_sgbm_names(default), (480, 640))
+    assert (webcam.block_size, webcam.speckle_window_size, webcam.penalties(1)) == (5, 100, (200, 800))
+    big = sized_sgbm(default.sgbm, user_sgbm_names(default), (3000, 4000, 3))  # 12 Mpx: 100 x 39 -> capped
+    assert (big.block_size, big.speckle_window_size, big.penalties(3)) == (9, 2000, (8 * 3 * 81, 32 * 3 * 81))
+    mid = sized_sgbm(default.sgbm, user_sgbm_names(default), (1536, 2048))  # 3.1 Mpx: 100 x 10.24
+    assert (mid.block_size, mid.speckle_window_size) == (7, 1024)
+    # what the user set stays: named on the command line (even at the default's value), or a library caller's own
+    named = ReconstructionConfig(sgbm_user=("block_size",))
+    assert sized_sgbm(named.sgbm, user_sgbm_names(named), (3000, 4000)).block_size == 5
+    own = ReconstructionConfig(sgbm=SGBMParams(speckle_window_size=50))
+    assert sized_sgbm(own.sgbm, user_sgbm_names(own), (3000, 4000)).speckle_window_size == 50
+    preset = ReconstructionConfig(sgbm=PRESETS["thesis-5.15"], sgbm_user=("preset",))
+    assert sized_sgbm(preset.sgbm, user_sgbm_names(preset), (3000, 4000)) == PRESETS["thesis-5.15"]
+
+
+def test_cli_and_config_files_record_what_the_user_set(tmp_path):
+    from dstereo.commands.matching_options import matching_changes
+    from dstereo.disparity import PRESETS
+    from dstereo.reconstruction import load_config
+
+    changes = matching_changes(PRESETS["default"], None, ["blockSize=5", "num_disparities=64"], None, None, None)
+    assert changes["sgbm_user"] == ("block_size", "num_disparities")
+    assert matching_changes(PRESETS["default"], "thesis-5.9", [], None, None, None)["sgbm_user"] == ("preset",)
+    path = tmp_path / "dstereo.toml"
+    path.write_text("[sgbm]\nspeckleWindowSize = 100\n")
+    assert load_config(path).sgbm_user == ("speckle_window_size",)
