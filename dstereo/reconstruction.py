@@ -208,7 +208,29 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
         warnings.append(sr.saturation_warning(name, rng, sat, Q))
     summary = rng.as_dict(Q) | {"saturation": sat.as_dict(), "tries": tries,
                                 "sign": "disparities sign-normalised: sign(Q[3,2]) (u_left - u_right)"}
+    if rng.user:
+        summary["sparse_check"] = _sparse_check(name, rng, left_rect, right_rect, sign, Q, warnings)
     return disparity, params, summary, warnings
+
+
+def _sparse_check(name: str, rng, left_rect, right_rect, sign: float, Q: np.ndarray, warnings: list) -> dict:
+    """A user's range checked against sparse matches on the rectified pair (independent of SGBM, which does not
+    always pile up at a range end when the scene runs past it): a warning when over 2 % of them lie outside."""
+    from dstereo import search_range as sr
+
+    d_s = sr.sparse_disparities(left_rect, right_rect, sign)
+    if len(d_s) < sr.MIN_MATCHES:
+        return {"matches": int(len(d_s)), "outside_share": None}
+    below = float(np.mean(d_s < rng.min_disparity))
+    above = float(np.mean(d_s > rng.max_disparity))
+    if below + above > sr.SPARSE_OUTSIDE_SHARE:
+        lo, hi = np.percentile(d_s, [0.5, 99.5])
+        near, far = sr.depth_for(Q, hi), sr.depth_for(Q, lo)
+        warnings.append(f"{name}: {100 * (below + above):.0f}% of {len(d_s)} sparse matches lie outside the disparity "
+                        f"search range {rng.min_disparity}..{rng.max_disparity} px ({rng.source}): {100 * below:.0f}% "
+                        f"below, {100 * above:.0f}% above; they put the scene at {lo:.0f}..{hi:.0f} px (depth "
+                        f"{near:.0f}..{far:.0f} mm); widen the range to that, or drop the flags to let dstereo choose")
+    return {"matches": int(len(d_s)), "below_share": below, "above_share": above}
 
 
 def _disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:

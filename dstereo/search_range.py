@@ -16,7 +16,9 @@ Sources, first that applies wins (`choose_range`):
 4. otherwise the default 0..63 px, with a warning.
 After matching (`saturation`), the share of valid pixels within one px of either end is checked; a range the tool
 chose itself is widened on the saturated side and matched again (`MAX_WIDENINGS` times at most); a user's range is
-kept and the result carries a warning with the figures and the fix.
+kept and the result carries a warning with the figures and the fix; a user's range is also checked against the
+sparse matches (over SPARSE_OUTSIDE_SHARE of them outside: a warning), since SGBM does not always pile up at a
+range end when the scene runs past it.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ DEFAULT_RANGE = (0, 64)
 EDGE_SHARE = 0.01  # share of valid pixels within 1 px of a range end above which the scene runs off it
 MAX_WIDENINGS = 2
 MIN_MATCHES = 20
+SPARSE_OUTSIDE_SHARE = 0.02  # a user's range that leaves out more of the sparse matches than this gets a warning
 ROW_TOLERANCE_PX = 1.5  # |y_left - y_right| of a sparse match on a rectified pair (calibration-limited)
 SPARSE_MAX_PIXELS = 1_500_000  # larger pairs are downscaled for the sparse estimate (SIFT time)
 

@@ -165,6 +165,9 @@ def test_a_users_short_range_is_kept_with_a_warning(teddy):
     assert (s["min_disparity"], s["max_disparity"], s["user"], s["widened"]) == (0, 31, True, 0)
     assert s["saturation"]["saturated_high"]
     assert any("runs off the disparity search range 0..31" in w and "--z-min/--z-max" in w for w in result.warnings)
+    # and independently of SGBM: most sparse matches (the scene's 15..53 px) lie above the range
+    assert s["sparse_check"]["above_share"] > 0.3
+    assert any("sparse matches lie outside the disparity search range 0..31" in w for w in result.warnings)
 
 
 def test_a_short_estimated_range_is_widened(teddy):
