@@ -4,18 +4,19 @@ Sample frame: origin at the stagnation point `s`, unit axis `n` pointing away fr
 sample), `e1`, `e2` completing a right-handed frame. A point p has face coordinates u = (p - s).e1,
 v = (p - s).e2 and height h = (p - s).n; as the face recedes its height grows, so recession = h(t) - h(t0).
 
-Auto axis (`estimate_axis`, `fit_face`): a least-squares plane through the first frame's points near the plane
-most of them lie near (RANSAC, in their largest connected region), then, until
-the axis settles (changes by less than AXIS_TOLERANCE_DEG between passes with the same face points, at most
-MAX_PASSES; else an error): keep the points within k robust sigma of a quadric h(u, v) in that plane's
-coordinates (a domed face is not trimmed at its top or rim) that form the largest connected region of grid
-cells in (u, v) (the side wall and background matches are cut off: they lie off the quadric or apart from the
-face), and refit the plane to them. After FREE_PASSES passes a dropped point stays
-dropped (points at the threshold could otherwise make the fit cycle). Its normal is the axis, with a standard deviation from the quadric fit's
-slopes (noise only); the stagnation point is the centre of the face: the centroid of the face's grid cells,
-moved onto the quadric. This assumes the face is seen whole and the axis is roughly normal to the face's
-outline (true for the flat and the domed samples of the thesis, also turned 10-15 deg off the rig axis with the
-side wall in view); give the axis and the point otherwise.
+Auto axis (`estimate_axis`, `fit_face`): start from the points near the plane most of them lie near (RANSAC,
+in their largest connected region); then, until the axis settles (moves by less than AXIS_TOLERANCE_DEG between
+passes with the same face points; MAX_PASSES at most, else an error), fit a least-squares plane to the face
+points and keep the points within k robust sigma of a quadric h(u, v) in that plane's coordinates, fitted to the
+face found so far (a domed face is not trimmed at its top or rim; a side wall does not widen the tolerance that
+is to reject it), that form the largest connected region of grid cells in (u, v) (background and stray matches
+apart from the face are cut off). After FREE_PASSES passes a dropped point stays dropped (points at the threshold
+could otherwise make the fit cycle). The plane's normal is the axis; `axis_sigma_deg` combines the quadric fit's
+slope noise with the angle between the axis and the quadric's normal at the face centre (a lower bound: it does
+not see a bias the matching shares over the face). The stagnation point is the centre of the face: the centroid
+of the face's grid cells, moved onto the quadric. This assumes the face is seen whole and the axis is roughly
+normal to the face's outline (true for the flat and the domed samples of the thesis, also turned 10-15 deg off
+the rig axis with the side wall in view); give the axis and the point otherwise.
 """
 
 from __future__ import annotations
