@@ -31,7 +31,9 @@ LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 class ReconstructionConfig:
     """Everything a reconstruction can be told (the CLI and configuration files fill it).
 
-    depth_range (mm) overrides the SGBM search range; alpha / zero_disparity are stereoRectify's (the default
+    depth_range (mm) sets the SGBM search range; without it (and without min/num_disparities in `sgbm_user`)
+    the range comes from the data (`dstereo.search_range`, `match_in_range`), as do block size and speckle window
+    unless named in `sgbm_user`; alpha / zero_disparity are stereoRectify's (the default
     zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
     (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
     statistical outlier removal; max_jump is the relative depth step that breaks the mesh. refine: SGBM's
