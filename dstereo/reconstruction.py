@@ -143,7 +143,9 @@ def sized_sgbm(params: SGBMParams, user: set[str], shape: tuple[int, ...]) -> SG
     """SGBM settings that follow the image where the user did not set them: block size 5 up to ~1.2 Mpx, 7 up to
     ~5 Mpx, 9 beyond (a 12 Mpx camera resolves the same texture over 2-3x more pixels than a 640 x 480 webcam);
     speckle window 100 px per 640 x 480 of image area (at least 100, at most 2000), so a speck is the same share
-    of the image. P1/P2 (None) follow block size and channels by the thesis rule (`SGBMParams.penalties`)."""
+    of the image. P1/P2 (None) follow block size and channels by the thesis rule (`SGBMParams.penalties`).
+    Measured on four Middlebury scenes upscaled 2x (1.4 Mpx), bad-2.0 with missing = bad, block 5 / 7 / 9:
+    Adirondack 22.1 / 17.5 / 16.0 %, Motorcycle 10.0 / 8.8 / 8.6, Piano 24.6 / 23.3 / 23.2, Teddy 6.8 / 6.8 / 7.5."""
     pixels = shape[0] * shape[1]
     changes = {}
     if "block_size" not in user:
