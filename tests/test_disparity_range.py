@@ -235,3 +235,15 @@ def test_cli_and_config_files_record_what_the_user_set(tmp_path):
     path = tmp_path / "dstereo.toml"
     path.write_text("[sgbm]\nspeckleWindowSize = 100\n")
     assert load_config(path).sgbm_user == ("speckle_window_size",)
+
+
+def test_false_matches_on_a_repeated_pattern_are_dropped():
+    """A chessboard's repeated squares give same-row matches one square off: their disparity disagrees with their
+    image neighbours' and they leave the estimate (otherwise the range would reach 30 px too far)."""
+    from dstereo.search_range import consistent_with_neighbours
+
+    q = np.stack(np.meshgrid(np.arange(0, 200, 10.0), np.arange(0, 100, 10.0)), axis=-1).reshape(-1, 2)
+    d = np.full(len(q), 50.0) + 0.01 * q[:, 0]  # a slanted board: 50..52 px
+    d[[7, 55, 130]] = 80.0  # one square (30 px) off
+    keep = consistent_with_neighbours(q, d)
+    assert not keep[[7, 55, 130]].any() and keep.sum() == len(q) - 3
