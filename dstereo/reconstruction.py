@@ -32,7 +32,8 @@ class ReconstructionConfig:
     """Everything a reconstruction can be told (the CLI and configuration files fill it).
 
     depth_range (mm) sets the SGBM search range; without it (and without min/num_disparities in `sgbm_user`)
-    the range comes from the data (`dstereo.search_range`, `match_in_range`), as do block size and speckle window
+    the range comes from the data (`dstereo.search_range`, `match_in_range`; `search_range` (min, num) is a range a
+    program chose, widened like an estimate when saturated), as do block size and speckle window
     unless named in `sgbm_user`; alpha / zero_disparity are stereoRectify's (the default
     zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
     (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
@@ -46,6 +47,7 @@ class ReconstructionConfig:
     sgbm: SGBMParams = PRESETS["default"]
     sgbm_user: tuple[str, ...] = ()  # SGBM fields the user set (CLI/config), kept as given; "preset": all of them
     depth_range: tuple[float, float] | None = None
+    search_range: tuple[int, int] | None = None  # (min, num) chosen by a caller (a sequence's first frame), not a user
     alpha: float = -1.0
     zero_disparity: bool = False
     undistort: str = "opencv"
@@ -170,6 +172,8 @@ def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, l
     if {"min_disparity", "num_disparities"} & user:
         what = "preset" if "preset" in config.sgbm_user else "--sgbm min_disparity/num_disparities"
         return sr.SearchRange(config.sgbm.min_disparity, config.sgbm.num_disparities, what, user=True)
+    if config.search_range is not None:
+        return sr.SearchRange(*config.search_range, "first frame's range", "chosen on the sequence's first frame")
     if calib is not None and calib.rectified and (found := sr.from_middlebury(calib.extras)) is not None:
         return found
     if estimate is None:

@@ -124,14 +124,16 @@ class RecessionResult:
 
 
 def _range_summary(ranges: dict[int, dict], reference: int) -> dict | None:
-    """The reference frame's disparity search range, and the span over all frames (each frame finds its own)."""
+    """The reference frame's disparity search range, and the span over all frames (the first frame's range is
+    used for the later ones, widened where one runs off it)."""
     if not ranges:
         return None
     ref = ranges.get(reference) or next(iter(ranges.values()))
     return ref | {"frames": {"min_disparity": min(r["min_disparity"] for r in ranges.values()),
                              "max_disparity": max(r["max_disparity"] for r in ranges.values()),
                              "widened": sum(bool(r["widened"]) for r in ranges.values()),
-                             "note": "each frame's range comes from its own pair; span over all frames"}}
+                             "note": "the first frame's range serves every later frame (widened where one runs "
+                                     "off it); span over all frames"}}
 
 
 def _sample_frame(points: np.ndarray, config: RecessionConfig) -> tuple[SampleFrame, np.ndarray | None]:
@@ -245,15 +247,21 @@ def _reconstructor(calib, recon_config, refine: bool):
     def run(frame: Frame) -> np.ndarray:
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            result = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
+            result = reconstruct_calibrated(calib, left, right, run.config, name=str(frame.left))
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
             raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
-        run.log[frame.key] = {"search_range": result.summary["search_range"], "warnings": result.warnings}
+        search = result.summary["search_range"]
+        run.log[frame.key] = {"search_range": search, "warnings": result.warnings}
+        if not search["user"] and run.config.search_range is None:
+            # Every later frame is matched over the first frame's range (the same matcher for the whole sequence,
+            # and no sparse matching per frame); it is still widened where a frame runs off it.
+            run.config = replace(run.config, search_range=(search["min_disparity"], search["num_disparities"]))
         return result.points
 
     run.log = {}  # frame key -> the search range and warnings of every frame that matched
+    run.config = recon_config
     return run
 
 
