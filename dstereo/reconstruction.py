@@ -578,7 +578,7 @@ def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionC
     user = tuple(base.sgbm_user) + (("preset",) if preset is not None else ()) + tuple(
         CV_NAMES.get(k, k).strip().lower().replace("-", "_") for k in sgbm_items)
     z = (section.pop("z_min", None), section.pop("z_max", None))
-    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm", "sgbm_user"}
+    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm", "sgbm_user", "search_range"}
     unknown = sorted(set(section) - known)
     if unknown:
         raise DstereoError(f"{where}: unknown [reconstruct] key(s) {unknown}; known: {sorted(known)} + z_min, z_max")
