@@ -176,8 +176,25 @@ def _to_float(raw: np.ndarray, min_disparity: int) -> np.ndarray:
     return d
 
 
+def _sgbm(params: SGBMParams, channels: int, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """SGBM's raw 16x disparity with both images padded on the left by the largest disparity searched.
+
+    OpenCV leaves the first min_disparity + num_disparities - 1 columns without a disparity (it only matches
+    where every candidate lies inside the right image), so a wide search range would cost a band of the image.
+    Padded with black, those columns are matched against what the right image holds; a pixel whose match falls
+    into the pad sees black and is not matched (or is caught by the uniqueness and texture tests)."""
+    import cv2
+
+    pad = max(params.max_disparity, 0)
+    if pad == 0:
+        return _matcher(params, channels).compute(left, right)
+    a, b = (cv2.copyMakeBorder(x, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0) for x in (left, right))
+    return _matcher(params, channels).compute(a, b)[:, pad:]
+
+
 def compute_disparity(left: np.ndarray, right: np.ndarray, params: SGBMParams) -> np.ndarray:
-    """Left-image disparity (h, w) float32 of a rectified pair (uint8 grey or BGR), NaN where invalid."""
+    """Left-image disparity (h, w) float32 of a rectified pair (uint8 grey or BGR), NaN where invalid (also where
+    the match would lie left of the right image)."""
     if left.shape != right.shape:
         raise DstereoError(
             f"rectified images differ in size {left.shape[:2]} vs {right.shape[:2]}; give a pair of equal size"
@@ -185,12 +202,14 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, params: SGBMParams) -
     if left.dtype != np.uint8 or right.dtype != np.uint8:
         raise DstereoError(f"SGBM needs 8-bit images, got {left.dtype}; convert (e.g. scale 16-bit images by 1/256)")
     channels = 1 if left.ndim == 2 else left.shape[2]
-    disp = _to_float(_matcher(params, channels).compute(left, right), params.min_disparity)
+    disp = _to_float(_sgbm(params, channels, left, right), params.min_disparity)
+    u = np.arange(left.shape[1], dtype=np.float32)[None, :]
+    disp[~(u - disp >= 0)] = np.nan  # (NaN stays NaN) a match inside the black pad is no match
     if params.texture_threshold > 0:
         disp[_local_std(left, params.block_size) < params.texture_threshold] = np.nan
     if params.lr_check is not None:
         # The right image's disparity is the left disparity of the mirrored pair (flip both, swap them).
-        raw_r = _matcher(params, channels).compute(np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]))
+        raw_r = _sgbm(params, channels, np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(left[:, ::-1]))
         disp = left_right_check(disp, _to_float(raw_r, params.min_disparity)[:, ::-1], params.lr_check)
     return disp
 

@@ -21,8 +21,8 @@ import numpy as np
 
 from dstereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.errors import DstereoError
-from dstereo.io.results import check_output
 from dstereo.io.calib_files import StereoCalibration
+from dstereo.io.results import check_output
 
 LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 
@@ -31,7 +31,10 @@ LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 class ReconstructionConfig:
     """Everything a reconstruction can be told (the CLI and configuration files fill it).
 
-    depth_range (mm) overrides the SGBM search range; alpha / zero_disparity are stereoRectify's (the default
+    depth_range (mm) sets the SGBM search range; without it (and without min/num_disparities in `sgbm_user`)
+    the range comes from the data (`dstereo.search_range`, `match_in_range`; `search_range` (min, num) is a range a
+    program chose, widened like an estimate when saturated), as do block size and speckle window
+    unless named in `sgbm_user`; alpha / zero_disparity are stereoRectify's (the default
     zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
     (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
     statistical outlier removal; max_jump is the relative depth step that breaks the mesh. refine: SGBM's
@@ -42,7 +45,9 @@ class ReconstructionConfig:
     """
 
     sgbm: SGBMParams = PRESETS["default"]
+    sgbm_user: tuple[str, ...] = ()  # SGBM fields the user set (CLI/config), kept as given; "preset": all of them
     depth_range: tuple[float, float] | None = None
+    search_range: tuple[int, int] | None = None  # (min, num) chosen by a caller (a sequence's first frame), not a user
     alpha: float = -1.0
     zero_disparity: bool = False
     undistort: str = "opencv"
@@ -121,13 +126,119 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
-def _search_range(config: ReconstructionConfig, Q: np.ndarray) -> SGBMParams:
-    """SGBM parameters with the search range from the depth range, for the sign-normalised disparity."""
-    if config.depth_range is None:
-        return config.sgbm
-    b = 1.0 / abs(Q[3, 2])
-    lo, num = disparity_range(Q[2, 3], b, *config.depth_range, doffs=Q[3, 3] * b, margin=2.0)
-    return config.sgbm.with_overrides({"min_disparity": lo, "num_disparities": num})
+# --- search range and matching (issue 14): sizing, range source, saturation check and widening ----------------
+
+
+def user_sgbm_names(config: ReconstructionConfig) -> set[str]:
+    """SGBM fields the user chose: named in `sgbm_user` (CLI, configuration file; "preset" = all) or set to a
+    value other than the default's (library callers passing their own SGBMParams)."""
+    from dataclasses import fields
+
+    names = {f.name for f in fields(SGBMParams)}
+    if "preset" in config.sgbm_user:
+        return names
+    default = PRESETS["default"]
+    return set(config.sgbm_user) | {n for n in names if getattr(config.sgbm, n) != getattr(default, n)}
+
+
+def sized_sgbm(params: SGBMParams, user: set[str], shape: tuple[int, ...]) -> SGBMParams:
+    """SGBM settings that follow the image where the user did not set them: block size 5 up to ~1.2 Mpx, 7 up to
+    ~5 Mpx, 9 beyond (a 12 Mpx camera resolves the same texture over 2-3x more pixels than a 640 x 480 webcam);
+    speckle window 100 px per 640 x 480 of image area (at least 100, at most 2000), so a speck is the same share
+    of the image. P1/P2 (None) follow block size and channels by the thesis rule (`SGBMParams.penalties`).
+    Measured on four Middlebury scenes upscaled 2x (1.4 Mpx), bad-2.0 with missing = bad, block 5 / 7 / 9:
+    Adirondack 22.1 / 17.5 / 16.0 %, Motorcycle 10.0 / 8.8 / 8.6, Piano 24.6 / 23.3 / 23.2, Teddy 6.8 / 6.8 / 7.5."""
+    pixels = shape[0] * shape[1]
+    changes = {}
+    if "block_size" not in user:
+        changes["block_size"] = 5 if pixels <= 1_200_000 else (7 if pixels <= 5_000_000 else 9)
+    if "speckle_window_size" not in user:
+        changes["speckle_window_size"] = int(np.clip(round(100 * pixels / (640 * 480)), 100, 2000))
+    return params.with_overrides(changes)
+
+
+def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, left_rect, right_rect,
+                  calib: StereoCalibration | None = None, estimate=None):
+    """The search range before matching (`dstereo.search_range`, sources in order): the user's depth range or
+    SGBM range, a Middlebury file's ndisp, the given sparse `estimate`, sparse matches on the rectified pair,
+    the default."""
+    from dstereo import search_range as sr
+
+    if config.depth_range is not None:
+        b = 1.0 / abs(Q[3, 2])
+        lo, num = disparity_range(Q[2, 3], b, *config.depth_range, doffs=Q[3, 3] * b, margin=2.0)
+        return sr.SearchRange(lo, num, "--z-min/--z-max", f"depth {config.depth_range[0]:g}.."
+                              f"{config.depth_range[1]:g} mm, margin 2 px", user=True)
+    if {"min_disparity", "num_disparities"} & user:
+        what = "preset" if "preset" in config.sgbm_user else "--sgbm min_disparity/num_disparities"
+        return sr.SearchRange(config.sgbm.min_disparity, config.sgbm.num_disparities, what, user=True)
+    if config.search_range is not None:
+        return sr.SearchRange(*config.search_range, "first frame's range", "chosen on the sequence's first frame")
+    if calib is not None and calib.rectified and (found := sr.from_middlebury(calib.extras)) is not None:
+        return found
+    if estimate is None:
+        estimate = sr.from_sparse(sr.sparse_disparities(left_rect, right_rect, 1.0 if Q[3, 2] >= 0 else -1.0),
+                                  left_rect.shape[1])
+    if estimate is not None:
+        return estimate
+    return sr.SearchRange(*sr.DEFAULT_RANGE, "default", f"fewer than {sr.MIN_MATCHES} sparse matches on the "
+                          "rectified rows to estimate the range from")
+
+
+def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfig, Q: np.ndarray,
+                   outside: np.ndarray, calib: StereoCalibration | None = None, estimate=None):
+    """SGBM with settings sized to the image over a search range from the data, checked for saturation: a range
+    the tool chose is widened on the side the scene runs off and matched again (bounded); a user's range is
+    kept, with a warning. Returns (disparity, params, summary['search_range'], warnings)."""
+    from dstereo import search_range as sr
+
+    user = user_sgbm_names(config)
+    base = sized_sgbm(config.sgbm, user, left_rect.shape)
+    rng = initial_range(config, user, Q, left_rect, right_rect, calib, estimate)
+    sign = 1.0 if Q[3, 2] >= 0 else -1.0
+    tries, warnings = [], []
+    if rng.source == "default":
+        warnings.append(f"{name}: disparity search range {rng.min_disparity}..{rng.max_disparity} px is the default "
+                        f"({rng.detail}); set --z-min/--z-max to the scene's depth range")
+    while True:
+        params = base.with_overrides({"min_disparity": rng.min_disparity, "num_disparities": rng.num_disparities})
+        disparity = _disparity(left_rect, right_rect, params, Q, config.color_matching)
+        disparity[outside] = np.nan
+        sat = sr.saturation(sign * disparity, rng, ~outside)
+        tries.append({"min_disparity": rng.min_disparity, "max_disparity": rng.max_disparity, **sat.as_dict()})
+        if not sat.saturated or rng.user or rng.widened >= sr.MAX_WIDENINGS:
+            break
+        grown = sr.widened(rng, sat, left_rect.shape[1])
+        if grown is None:
+            break
+        rng = grown
+    if sat.saturated:
+        warnings.append(sr.saturation_warning(name, rng, sat, Q))
+    summary = rng.as_dict(Q) | {"saturation": sat.as_dict(), "tries": tries,
+                                "sign": "disparities sign-normalised: sign(Q[3,2]) (u_left - u_right)"}
+    if rng.user:
+        summary["sparse_check"] = _sparse_check(name, rng, left_rect, right_rect, sign, Q, warnings)
+    return disparity, params, summary, warnings
+
+
+def _sparse_check(name: str, rng, left_rect, right_rect, sign: float, Q: np.ndarray, warnings: list) -> dict:
+    """A user's range checked against sparse matches on the rectified pair (independent of SGBM, which does not
+    always pile up at a range end when the scene runs past it): a warning when over 2 % of them lie outside."""
+    from dstereo import search_range as sr
+
+    d_s = sr.sparse_disparities(left_rect, right_rect, sign)
+    if len(d_s) < sr.MIN_MATCHES:
+        return {"matches": int(len(d_s)), "outside_share": None}
+    below = float(np.mean(d_s < rng.min_disparity))
+    above = float(np.mean(d_s > rng.max_disparity))
+    if below + above > sr.SPARSE_OUTSIDE_SHARE:
+        lo, hi = np.percentile(d_s, [0.5, 99.5])
+        near, far = sr.depth_for(Q, hi), sr.depth_for(Q, lo)
+        warnings.append(f"{name}: {100 * (below + above):.0f}% of {len(d_s)} sparse matches lie outside the disparity "
+                        f"search range {rng.min_disparity}..{rng.max_disparity} px ({rng.source}): {100 * below:.0f}% "
+                        f"below, {100 * above:.0f}% above; they put the scene at {lo:.0f}..{hi:.0f} px (depth "
+                        f"{near:.0f}..{far:.0f} mm); widen the range to that, or drop the flags to let dstereo choose")
+    return {"matches": int(len(d_s)), "below_share": below, "above_share": above}
 
 
 def _disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:
@@ -249,17 +360,16 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
         outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
     timings["rectify_s"] = time.perf_counter() - t0
     Q = np.asarray(rect.Q)
-    params = _search_range(config, Q)
     t0 = time.perf_counter()
-    disparity = _disparity(left_rect, right_rect, params, Q, config.color_matching)
-    disparity[outside] = np.nan
+    disparity, params, search_range, warnings = match_in_range(name, left_rect, right_rect, config, Q, outside,
+                                                               calib=calib)
     timings["disparity_s"] = time.perf_counter() - t0
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
     summary = {"mode": "calibrated", "calibration": calib.source, "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
-               "sgbm": params.as_dict(), "alpha": config.alpha, "zero_disparity": config.zero_disparity,
-               "refine": {"enabled": False}}
-    exact, warnings = None, []
+               "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
+               "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
+    exact = None
     if config.refine:
         disparity, exact = _refine(name, left, right, exact_maps, disparity, summary, timings, warnings)
     result = _finish(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
@@ -368,22 +478,21 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
         raise DstereoError(f"{name}: fewer than 8 matches triangulate in front of the cameras; check the focal length")
     Q = uncalibrated_q(f, size, baseline, d_sparse[front], z[front])
     timings["rectify_s"] = time.perf_counter() - t0
-    if config.depth_range is not None:
-        params = _search_range(config, Q)
-    else:
-        ds = np.sign(Q[3, 2]) * d_sparse[front]
-        lo = int(np.floor(np.percentile(ds, 1))) - 8
-        params = config.sgbm.with_overrides(
-            {"min_disparity": lo, "num_disparities": 16 * int(np.ceil((np.percentile(ds, 99) + 8 - lo + 1) / 16))})
+    from dstereo.search_range import from_sparse
+
     t0 = time.perf_counter()
-    disparity = _disparity(left_rect, right_rect, params, Q, config.color_matching)
+    # The sparse matches that fitted F (warped onto the rectified rows) give the range estimate here.
+    estimate = from_sparse(np.sign(Q[3, 2]) * d_sparse[front], size[0])
+    disparity, params, search_range, warnings = match_in_range(
+        name, left_rect, right_rect, config, Q, np.zeros(left_rect.shape[:2], bool), estimate=estimate)
     timings["disparity_s"] = time.perf_counter() - t0
-    warnings = [] if scaled else [f"{name}: no baseline given: the reconstruction is UNSCALED (baseline = 1)"]
+    if not scaled:
+        warnings.insert(0, f"{name}: no baseline given: the reconstruction is UNSCALED (baseline = 1)")
     matrices = {"H1": H1, "H2": H2, "F": fit.F, "Q": Q, "R": R, "t": t}
     summary = {"mode": "uncalibrated", "units": "mm" if scaled else "unscaled (baseline = 1)", "scaled": scaled,
                "frame": "homography-rectified left image (approximately the left camera; distortion ignored)",
                "matches": int(len(matches.left)), "inliers": int(fit.inliers.sum()), "f_sampson_rms_px": fit.rms,
-               "focal_px": f, "sgbm": params.as_dict(),
+               "focal_px": f, "sgbm": params.as_dict(), "search_range": search_range,
                "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
                                "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
     if config.refine:
@@ -445,6 +554,8 @@ def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionC
     SGBM starting point, 'z_min'/'z_max' give the depth range in mm."""
     from dataclasses import fields, replace
 
+    from dstereo.disparity import CV_NAMES
+
     section = dict(data.get("reconstruct", {}))
     sgbm = base.sgbm
     preset = section.pop("preset", data.get("sgbm", {}).get("preset"))
@@ -452,9 +563,12 @@ def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionC
         if preset not in PRESETS:
             raise DstereoError(f"{where}: unknown SGBM preset {preset!r}; use one of {sorted(PRESETS)}")
         sgbm = PRESETS[preset]
-    sgbm = sgbm.with_overrides({k: v for k, v in data.get("sgbm", {}).items() if k != "preset"})
+    sgbm_items = {k: v for k, v in data.get("sgbm", {}).items() if k != "preset"}
+    sgbm = sgbm.with_overrides(sgbm_items)
+    user = tuple(base.sgbm_user) + (("preset",) if preset is not None else ()) + tuple(
+        CV_NAMES.get(k, k).strip().lower().replace("-", "_") for k in sgbm_items)
     z = (section.pop("z_min", None), section.pop("z_max", None))
-    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm"}
+    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm", "sgbm_user", "search_range"}
     unknown = sorted(set(section) - known)
     if unknown:
         raise DstereoError(f"{where}: unknown [reconstruct] key(s) {unknown}; known: {sorted(known)} + z_min, z_max")
@@ -466,7 +580,7 @@ def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionC
         if None in z:
             raise DstereoError(f"{where}: give both z_min and z_max (mm)")
         section["depth_range"] = (float(z[0]), float(z[1]))
-    return replace(base, sgbm=sgbm, **section)
+    return replace(base, sgbm=sgbm, sgbm_user=user, **section)
 
 
 def load_config(path: str | Path, base: ReconstructionConfig = ReconstructionConfig()) -> ReconstructionConfig:

@@ -371,6 +371,9 @@ def test_cli_reconstruct(tmp_path, monkeypatch, capsys):
     assert "valid" in run.output and (tmp_path / "r" / "summary.json").is_file()
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert summary["sgbm"]["mode"] == "hh" and summary["config"]["outlier_neighbours"] == 8
+    # the user's range is kept as given, recorded and printed (issue 14)
+    assert summary["search_range"]["source"] == "--sgbm min_disparity/num_disparities"
+    assert "disparity search range 0..79 px (--sgbm" in run.output
     monkeypatch.setattr("sys.argv", ["dstereo", *args])
     with pytest.raises(SystemExit) as exc:
         cli.main()

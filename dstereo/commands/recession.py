@@ -41,7 +41,7 @@ def recession(
     from dataclasses import replace
 
     from dstereo.commands.progress import progress_bars
-    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
@@ -83,9 +83,11 @@ def recession(
     if quiet:
         return
     fit = result.fit
+    typer.echo(search_range_line(summary.get("search_range")) + " (reference frame)")
     typer.echo(f"{summary['frames_used']} of {summary['frames']} frames; stagnation point "
                f"{[round(v, 2) for v in result.sample.point.tolist()]} mm, axis "
-               f"{[round(v, 4) for v in result.sample.axis.tolist()]} ({result.sample.source})")
+               f"{[round(v, 4) for v in result.sample.axis.tolist()]} ({result.sample.source}"
+               + (f"; axis sigma {result.sample.axis_sigma_deg:.2g} deg" if result.sample.axis_sigma_deg else "") + ")")
     last = [f for f in result.frames if f.ok][-1]
     typer.echo(f"recession at the stagnation point after {last.time_s - result.frames[result.reference].time_s:g} s: "
                f"{last.recession.value:.3f} +- {last.recession.se:.3f} mm")

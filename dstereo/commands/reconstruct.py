@@ -51,7 +51,7 @@ def reconstruct(
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
     from dataclasses import replace
 
-    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes
+    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
     from dstereo.errors import DstereoError
     from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
 
@@ -107,6 +107,7 @@ def reconstruct(
         depth = s.get("depth_mm") or {}
         typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
                    f"{depth.get('max', float('nan')):.1f} {s['units']}")
+        typer.echo(f"  {search_range_line(s.get('search_range'))}")
         if s.get("refine", {}).get("enabled"):
             typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
         unc = s.get("uncertainty") or {}

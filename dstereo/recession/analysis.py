@@ -15,8 +15,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_fit, rate_map
 from dstereo.recession.sequence import Frame
-from dstereo.recession.surface import Grid, SampleFrame, cell_heights, estimate_axis, frame_from_axis, grid_over
-from dstereo.recession.surface import _trim, valid_points
+from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_points, fit_face, frame_from_axis
+from dstereo.recession.surface import grid_over, valid_points
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,7 @@ class RecessionResult:
     random_sigma: np.ndarray | None = None  # (frames, ny, nx) RMS per-point random height std per cell, mm
     random_se: np.ndarray | None = None  # (frames, ny, nx) the cell height's random standard error it implies
     noise_checks: dict = field(default_factory=dict)  # frame index -> summary['disparity_noise'] plane check
+    search_ranges: dict[int, dict] = field(default_factory=dict)  # frame index -> summary['search_range']
 
     @property
     def times(self) -> np.ndarray:
@@ -120,37 +121,73 @@ class RecessionResult:
                       f"{self.config.stagnation_model} fit over the cells within "
                       f"{self.config.stagnation_radius_mm:g} mm; rate: least-squares line over time, 95 % "
                       "interval from Student's t on the fit residuals (n - 2 dof)",
+            "search_range": _range_summary(self.search_ranges, self.reference),
             "warnings": list(self.warnings),
             "random_uncertainty": _random_summary(self),
         }
 
 
-def _sample_frame(points: np.ndarray, config: RecessionConfig) -> SampleFrame:
+def _range_summary(ranges: dict[int, dict], reference: int) -> dict | None:
+    """The reference frame's disparity search range, and the span over all frames (the first frame's range is
+    used for the later ones, widened where one runs off it)."""
+    if not ranges:
+        return None
+    ref = ranges.get(reference) or next(iter(ranges.values()))
+    return ref | {"frames": {"min_disparity": min(r["min_disparity"] for r in ranges.values()),
+                             "max_disparity": max(r["max_disparity"] for r in ranges.values()),
+                             "widened": sum(bool(r["widened"]) for r in ranges.values()),
+                             "note": "the first frame's range serves every later frame (widened where one runs "
+                                     "off it); span over all frames"}}
+
+
+def _sample_frame(points: np.ndarray, config: RecessionConfig) -> tuple[SampleFrame, np.ndarray | None]:
+    """The sample frame, and the face points (mask over the valid points) when the auto fit found them."""
     if config.axis is None:
-        return estimate_axis(points, config.grid_mm)
+        fit = fit_face(points, config.grid_mm)
+        return fit.frame, fit.keep
     if config.point is not None:
         frame = frame_from_axis(config.axis, config.point)
-        return replace(frame, source="given axis and point")
-    auto = estimate_axis(points, config.grid_mm)
-    return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre")
+        return replace(frame, source="given axis and point"), None
+    auto = fit_face(points, config.grid_mm).frame
+    return replace(frame_from_axis(config.axis, auto.point), source="given axis, estimated face centre"), None
+
+
+def _settled_face(uvh: np.ndarray, grid_mm: float, passes: int = 10) -> np.ndarray:
+    """Face points in a given frame: `face_points` repeated from its own result until the set stops changing."""
+    keep, _ = face_points(uvh, grid_mm)
+    for _ in range(passes):
+        new, _ = face_points(uvh, grid_mm, start=keep)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return keep
 
 
 class _Reference:
-    """The reference frame's sample frame, grid, face slab and cell heights."""
+    """The reference frame's sample frame, grid, face slab, face cells and cell heights. Only the grid cells the
+    reference face covers (its largest connected region on the quadric, `face_points`) carry heights: a side
+    wall or a stray match outside the face never enters a map or the face centre."""
 
     def __init__(self, points: np.ndarray, config: RecessionConfig):
-        self.sample = _sample_frame(points, config)
+        self.sample, keep = _sample_frame(points, config)
         uvh = self.sample.coordinates(valid_points(points))
-        keep, _ = _trim(uvh, 4.0)
+        if keep is None:
+            keep = _settled_face(uvh, config.grid_mm)
         face = uvh[keep]
         self.grid = grid_over(face[:, :2], config.grid_mm)
         self.slab = (float(face[:, 2].min()) - config.slab_mm[0], float(face[:, 2].max()) + config.slab_mm[1])
+        cells = self.grid.cell_index(face[:, :2])
+        self.face_cells = np.zeros(self.grid.shape[0] * self.grid.shape[1], bool)
+        self.face_cells[cells[cells >= 0]] = True
+        self.face_cells = self.face_cells.reshape(self.grid.shape)
 
 
 def _frame_heights(points: np.ndarray, ref: _Reference, config: RecessionConfig):
     uvh = ref.sample.coordinates(valid_points(points))
     uvh = uvh[(uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])]
-    return cell_heights(uvh, ref.grid, config.min_points_per_cell)
+    height, se, count = cell_heights(uvh, ref.grid, config.min_points_per_cell)
+    height[~ref.face_cells], se[~ref.face_cells], count[~ref.face_cells] = np.nan, np.nan, 0
+    return height, se, count
 
 
 def run_recession(frames: list[Frame], calib, config: RecessionConfig = RecessionConfig(), recon_config=None,
@@ -204,6 +241,10 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
         for i, (m, se) in sigmas.items():
             out.random_sigma[i] = np.where(np.isfinite(out.heights[i]), m, np.nan)
             out.random_se[i] = np.where(np.isfinite(out.heights[i]), se, np.nan)
+    log = getattr(reconstruct, "log", {})
+    log = {i: log[f.key] for i, f in enumerate(frames) if f.key in log}
+    out.search_ranges = {i: entry["search_range"] for i, entry in log.items()}
+    out.warnings += [w for i in sorted(log) for w in log[i]["warnings"]]
     return out
 
 
@@ -284,15 +325,23 @@ def _reconstructor(calib, recon_config, refine: bool):
 
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            r = reconstruct_calibrated(calib, left, right, recon_config, name=str(frame.left))
-            sigma_d, _ = disparity_sigma_hook(r, recon_config, originals=(left, right))
-            return (r.points, point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d),
-                    r.summary["disparity_noise"]["plane_check"])
+            r = reconstruct_calibrated(calib, left, right, run.config, name=str(frame.left))
+            sigma_d, _ = disparity_sigma_hook(r, run.config, originals=(left, right))
+            vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
             raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
+        search = r.summary["search_range"]
+        run.log[frame.key] = {"search_range": search, "warnings": r.warnings}
+        if not search["user"] and run.config.search_range is None:
+            # Every later frame is matched over the first frame's range (the same matcher for the whole sequence,
+            # and no sparse matching per frame); it is still widened where a frame runs off it.
+            run.config = replace(run.config, search_range=(search["min_disparity"], search["num_disparities"]))
+        return r.points, vectors, r.summary["disparity_noise"]["plane_check"]
 
+    run.log = {}  # frame key -> the search range and warnings of every frame that matched
+    run.config = recon_config
     return run
 
 

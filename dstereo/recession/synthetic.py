@@ -41,10 +41,12 @@ def sample_truth(rig, sample, T_world_sample) -> dict:
 
 def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.0, total_mm: float = 2.0,
                              peak_share: float = 0.6, sigma_mm: float = 8.0, image_size: tuple[int, int] = (640, 480),
-                             seed: int = 0, flat: bool = False, options=None, force: bool = False) -> dict:
+                             seed: int = 0, flat: bool = False, options=None, force: bool = False,
+                             yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> dict:
     """Render and write a sequence (module docstring); returns the truth. `image_size` scales the reduced rig
     (the focal length with it, so the field of view is kept); `flat` renders a flat front face instead of the
-    domed one; `options` are the RenderOptions (default `synth.scenes.OBJECT_OPTIONS`)."""
+    domed one; `options` are the RenderOptions (default `synth.scenes.OBJECT_OPTIONS`); `yaw_deg`/`pitch_deg` tilt the
+    sample's axis off the rig's (`synth.rig.sample_pose`): its side wall comes into view."""
     from dstereo.synth import Sample, plasmatron_rig, recession_sequence, sample_pose
     from dstereo.synth.recession import profile_for_total
     from dstereo.synth.scenes import OBJECT_OPTIONS
@@ -56,7 +58,7 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
     rig = plasmatron_rig(tuple(image_size), 4800.0 * image_size[0] / 640.0)
     sample = Sample.flat() if flat else Sample()
     profile = profile_for_total(total_mm, duration_s, peak_share, sigma_mm)
-    pose = sample_pose(sample.length)
+    pose = sample_pose(sample.length, yaw_deg=yaw_deg, pitch_deg=pitch_deg)
     renders = recession_sequence(rig, sample, profile, n_frames, duration_s, pose, seed=seed,
                                  options=options or OBJECT_OPTIONS)
     write_recession_sequence(folder, renders, force=force)
@@ -65,6 +67,7 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
              "recession_stagnation_mm": [r.truth_left["recession_stagnation_mm"] for r in renders],
              "profile": profile.to_truth(), "rate_stagnation_mm_s": profile.uniform_rate + profile.peak_rate,
              "sample": sample.truth(), "image_size": list(image_size), "seed": seed,
+             "yaw_deg": yaw_deg, "pitch_deg": pitch_deg,
              **sample_truth(rig, sample, pose)}
     (folder / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth

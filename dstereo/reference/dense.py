@@ -5,7 +5,8 @@ rectified pixel pair (u, v) <-> (u - d, v), and the rectification it was found w
 original (distorted) images. Those raw pixel pairs are then triangulated with the corrected rig. SGBM searches
 along rectified rows only, so its matches carry no information on the vertical (epipolar) misalignment a
 rotation error causes: a dense reference constrains the rig through the reconstructed shape only, and rounds of
-re-rectification with the corrected rig let the matcher follow the correction.
+re-rectification with the corrected rig let the matcher follow the correction. The search range is the
+reconstruction's (`dstereo.search_range`); a pair whose scene still runs off it is refused, not matched short.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     if calib.rectified:
         raise DstereoError(f"calibration {calib.source}: an already rectified (Middlebury) pair has no rig to refine")
     result = reconstruct_calibrated(calib, left, right, config or ReconstructionConfig())
-    v, u = np.nonzero(np.isfinite(result.disparity))
+    _refuse_saturated(result)
+    v, u = np.nonzero(_trusted(result))
     if len(u) < 50:
         raise DstereoError("dense matching found fewer than 50 valid pixels on the reference; give it texture, set "
                            "the depth range (--z-min/--z-max) or check the calibration's image size")
@@ -49,6 +51,28 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     q_r = _to_raw(jnp.asarray(calib.k2), jnp.asarray(calib.D2), jnp.asarray(m["R2"]), jnp.asarray(m["P2"]),
                   jnp.asarray(np.c_[u - d, v]))
     return np.asarray(q_l), np.asarray(q_r)
+
+
+def _trusted(result) -> np.ndarray:
+    """Valid pixels fit for a refinement: not within 1 px of either end of the search range (where SGBM pins what it
+    cannot match) and not in the left band of max-disparity columns that SGBM only matches because the pair was
+    padded (`dstereo.disparity._sgbm`; its matches there are mostly the background's). Density matters less here
+    than outliers: the refinement's fit is least squares."""
+    d = result.disparity
+    s = result.summary["search_range"]
+    ds = np.sign(result.matrices["Q"][3, 2]) * d
+    u = np.arange(d.shape[1])[None, :]
+    inner = (ds > s["min_disparity"] + 1) & (ds < s["max_disparity"] - 1)
+    return np.isfinite(d) & inner & (u >= max(s["max_disparity"], 0))
+
+
+def _refuse_saturated(result) -> None:
+    """Matches cut off by the disparity search range would bias the refinement: refuse them (the reconstruction
+    has already widened a range it chose itself; what is left is a user's range or a scene beyond the image)."""
+    search = result.summary.get("search_range") or {}
+    if (search.get("saturation") or {}).get("saturated_low") or (search.get("saturation") or {}).get("saturated_high"):
+        text = next((w for w in result.warnings if "search range" in w), "the scene runs off the search range")
+        raise DstereoError(f"dense matching: {text}")
 
 
 def refine_dense(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, reference, focal: bool = False,

@@ -1,0 +1,249 @@
+"""The SGBM search range (issue 14): `disparity_range` by hand, the range sources, the estimate from sparse
+matches on pairs whose true range is known (a rendered converging rig with negative disparities, a Middlebury
+scene upscaled 2x), saturation detected and widened, and Middlebury files as they are published."""
+
+import numpy as np
+import pytest
+
+from conftest import require_data
+from dstereo.disparity import disparity_range
+from dstereo.errors import DstereoError
+from dstereo.search_range import (SearchRange, from_bounds, from_middlebury, from_sparse, saturation,
+                                  sparse_disparities, widened)
+
+# --- disparity_range: expected values worked out by hand (d = f B / Z - doffs) --------------------------------
+# f = 1000 px, B = 64 mm: Z = 1000 mm -> d = 64 px, Z = 2000 mm -> d = 32 px (exact in binary floating point).
+CASES = [
+    # doffs, margin, expected (lo, num), why
+    (0.0, 0.0, (32, 48), "32..64 holds 33 values: ceil(33 / 16) = 3 blocks (without the +1: 32 -> 2 blocks)"),
+    (0.5, 0.0, (31, 48), "31.5..63.5: floor(31.5) = 31 (ceil would give 32); 31..64 = 34 values"),
+    (0.5, 2.0, (29, 48), "29.5..65.5 with the margin: floor 29, ceil 66, 38 values"),
+    (40.0, 0.0, (-8, 48), "-8..24: a converging rig's negative disparities stay (33 values)"),
+    (-0.25, 0.0, (32, 48), "32.25..64.25 -> 32..65 = 34 values"),
+]
+
+
+@pytest.mark.parametrize("doffs, margin, expected, why", CASES)
+def test_disparity_range_by_hand(doffs, margin, expected, why):
+    assert disparity_range(1000.0, 64.0, 1000.0, 2000.0, doffs=doffs, margin=margin) == expected, why
+
+
+def test_disparity_range_minimum_and_bad_input():
+    assert disparity_range(1000.0, 64.0, 1900.0, 2000.0) == (32, 16)  # 32..34: 3 values, one block of 16
+    for z in ((2000.0, 1000.0), (0.0, 1000.0), (1000.0, 1000.0)):
+        with pytest.raises(DstereoError, match="depth range"):
+            disparity_range(1000.0, 64.0, *z)
+    with pytest.raises(DstereoError, match="positive"):
+        disparity_range(-1000.0, 64.0, 1000.0, 2000.0)
+
+
+def test_range_sources_by_hand():
+    r = from_bounds(-3.5, 60.2, "x")
+    assert (r.min_disparity, r.num_disparities, r.max_disparity) == (-4, 80, 75)  # -4..61 = 66 values -> 80
+    m = from_middlebury({"ndisp": 73.0, "vmin": 8.0, "vmax": 65.0})
+    assert (m.min_disparity, m.max_disparity, m.source) == (0, 79, "calib.txt ndisp")  # 0..72 -> 80 values
+    v = from_middlebury({"vmin": 8.0, "vmax": 65.0})  # margin max(2, 5.7) px
+    assert (v.min_disparity, v.max_disparity) == (2, 81)  # 2.3..70.7 -> 2..71 = 70 values -> 80
+    assert from_middlebury({}) is None
+    assert from_sparse(np.arange(10.0), 640) is None  # too few matches: no estimate
+    # 0.5..99.5 % of 0..100 = 0.5..99.5, margin 30 % of 99 = 29.7 -> -29.2..129.2 -> -30..130 = 161 -> 176
+    s = from_sparse(np.linspace(0.0, 100.0, 1001), 640)
+    assert (s.min_disparity, s.num_disparities) == (-30, 176)
+
+
+def test_saturation_and_widening():
+    rng = SearchRange(0, 64, "sparse matches")
+    d = np.full((10, 100), 30.0)
+    d[0, :5] = 63.2  # 5 of 1000 valid pixels at the top end: 0.5 %, under the 1 % limit
+    d[1, :] = np.nan
+    sat = saturation(d, rng)
+    assert sat.high_share == pytest.approx(5 / 900) and not sat.saturated
+    assert sat.invalid_share == pytest.approx(0.1)
+    d[2, :] = 62.5  # now 105 of 900 within 1 px of the top
+    sat = saturation(d, rng)
+    assert sat.high and not sat.low
+    grown = widened(rng, sat, 640)
+    assert (grown.min_disparity, grown.max_disparity, grown.widened) == (0, 127, 1)
+    assert widened(SearchRange(-640, 1280, "x"), sat, 640) is None  # -640..639: all a 640 px wide image holds
+
+
+# --- estimates on pairs whose true range is known ------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def converging_pair():
+    """A tilted sample 640 mm from the reduced Plasmatron rig (aimed at 600 mm): behind the rectified
+    zero-disparity plane, so its disparities are negative. Rendered at 240 x 180."""
+    from dstereo.io.calib_files import StereoCalibration
+    from dstereo.recession.synthetic import sample_truth
+    from dstereo.synth import Sample, plasmatron_rig, sample_pose
+    from dstereo.synth.scenes import sample_pair
+
+    size = (240, 180)
+    rig = plasmatron_rig(size, 4800.0 * size[0] / 640)
+    sample = Sample()
+    pose = sample_pose(sample.length, distance_mm=640.0, yaw_deg=12.0)
+    render = sample_pair(rig, sample, pose, seed=0)
+    r, t = rig.rotation_translation()
+    calib = StereoCalibration(np.asarray(rig.left.matrix()), np.asarray(rig.left.coeffs()),
+                              np.asarray(rig.right.matrix()), np.asarray(rig.right.coeffs()), np.asarray(r),
+                              np.asarray(t), size, source="rendered rig")
+    return render, calib, sample_truth(rig, sample, pose)
+
+
+def _true_disparities(render, calib, result):
+    """Sign-normalised disparities of the rendered surface's pixels, from the render's depth and the Q used."""
+    from dstereo.synth.rays import camera_rays
+    from dstereo.synth.truth import camera_from_truth
+
+    depth = render.truth_left["depth"]
+    xy = np.asarray(camera_rays(camera_from_truth(render.truth_left["camera"]), 1))[:, :, 0, :]
+    points = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)[np.isfinite(depth)] * \
+        depth[np.isfinite(depth)][:, None]
+    z_rect = (points @ result.matrices["R1"].T)[:, 2]
+    Q = result.matrices["Q"]
+    return (Q[2, 3] / z_rect - Q[3, 3]) / abs(Q[3, 2])
+
+
+def test_converging_rig_range_holds_its_negative_disparities(converging_pair):
+    from dstereo.reconstruction import ReconstructionConfig, reconstruct_calibrated
+
+    render, calib, _ = converging_pair
+    result = reconstruct_calibrated(calib, render.left, render.right, ReconstructionConfig(uncertainty=False))
+    true = _true_disparities(render, calib, result)
+    assert np.percentile(true, 99) < 0  # the surface lies behind the zero-disparity plane
+    s = result.summary["search_range"]
+    assert s["source"] == "sparse matches" and not s["saturation"]["saturated_low"]
+    assert s["min_disparity"] <= true.min() and true.max() <= s["max_disparity"]
+    assert s["depth_range_mm"]["near"] < 600 and s["depth_range_mm"]["far"] > 700
+    # the old default, 0..63 px, holds none of it: almost all of the surface lost
+    old = reconstruct_calibrated(calib, render.left, render.right, ReconstructionConfig(
+        uncertainty=False, sgbm_user=("min_disparity", "num_disparities")))
+    seen = np.isfinite(render.truth_left["depth"])
+    assert np.isfinite(result.disparity[seen]).mean() > 0.8 > 0.2 > np.isfinite(old.disparity[seen]).mean()
+    assert any("runs off the disparity search range" in w for w in old.warnings)
+
+
+def test_middlebury_upscaled_2x_range_from_the_pair():
+    import cv2
+
+    from dstereo.io.calib_files import read_pfm
+    from dstereo.reconstruction import read_image
+
+    scene = require_data("middlebury2014q") / "Adirondack"
+    up = [cv2.resize(read_image(scene / n), None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
+          for n in ("im0.png", "im1.png")]
+    gt = 2.0 * read_pfm(scene / "disp0GT.pfm")
+    gt = gt[np.isfinite(gt)]
+    est = from_sparse(sparse_disparities(*up, 1.0), up[0].shape[1])
+    lo, hi = np.percentile(gt, [0.5, 99.5])  # measured 20..124 px; the sparse 0.5-99.5 % is 22..96
+    assert est.min_disparity <= lo and hi <= est.max_disparity
+    assert est.num_disparities <= 2 * (hi - lo)  # and not absurdly wide
+
+
+# --- saturation after matching ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def teddy():
+    from dstereo.io.calib_files import read_middlebury_calib
+    from dstereo.reconstruction import read_image
+
+    scene = require_data("middlebury2014q") / "Teddy"  # ground truth 15..53 px
+    return read_middlebury_calib(scene / "calib.txt"), read_image(scene / "im0.png"), read_image(scene / "im1.png")
+
+
+def test_a_users_short_range_is_kept_with_a_warning(teddy):
+    from dstereo.reconstruction import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.disparity import SGBMParams
+
+    calib, left, right = teddy
+    config = ReconstructionConfig(sgbm=SGBMParams(num_disparities=32), sgbm_user=("num_disparities",),
+                                  uncertainty=False)
+    result = reconstruct_calibrated(calib, left, right, config)
+    s = result.summary["search_range"]
+    assert (s["min_disparity"], s["max_disparity"], s["user"], s["widened"]) == (0, 31, True, 0)
+    assert s["saturation"]["saturated_high"]
+    assert any("runs off the disparity search range 0..31" in w and "--z-min/--z-max" in w for w in result.warnings)
+    # and independently of SGBM: most sparse matches (the scene's 15..53 px) lie above the range
+    assert s["sparse_check"]["above_share"] > 0.3
+    assert any("sparse matches lie outside the disparity search range 0..31" in w for w in result.warnings)
+
+
+def test_a_short_estimated_range_is_widened(teddy):
+    from dstereo.reconstruction import ReconstructionConfig, match_in_range
+
+    calib, left, right = teddy
+    Q = np.array([[1, 0, 0, -calib.K1[0, 2]], [0, 1, 0, -calib.K1[1, 2]], [0, 0, 0, calib.K1[0, 0]],
+                  [0, 0, 1 / calib.baseline, calib.extras["doffs"] / calib.baseline]])
+    short = SearchRange(0, 32, "sparse matches")
+    d, params, s, warnings = match_in_range("teddy", left, right, ReconstructionConfig(), Q,
+                                            np.zeros(left.shape[:2], bool), estimate=short)
+    assert s["widened"] >= 1 and s["max_disparity"] >= 53 and warnings == []
+    assert s["tries"][0]["saturated_high"] and not s["saturation"]["saturated_high"]
+    assert params.num_disparities == s["num_disparities"]
+
+
+# --- Middlebury files as published ---------------------------------------------------------------------------
+
+
+def test_doffs_within_the_files_rounding_is_accepted_and_used(tmp_path):
+    from dstereo.io.calib_files import read_middlebury_calib
+
+    text = "cam0=[1000.0 0 300.125; 0 1000.0 200; 0 0 1]\ncam1=[1000.0 0 347.687; 0 1000.0 200; 0 0 1]\n" \
+           "doffs={}\nbaseline=100\nwidth=640\nheight=480\nndisp=64\n"
+    path = tmp_path / "calib.txt"
+    path.write_text(text.format("47.561"))  # cx1 - cx0 = 47.562: the official files round cx to 3 decimals
+    calib = read_middlebury_calib(path)
+    assert calib.K2[0, 2] - calib.K1[0, 2] == pytest.approx(47.561, abs=1e-12)  # depth goes through doffs
+    path.write_text(text.format("47.58"))  # 0.018 px off: more than rounding
+    with pytest.raises(DstereoError, match=r"doffs 47.58 differs from cx1 - cx0 = 47.562 by more than"):
+        read_middlebury_calib(path)
+
+
+# --- SGBM settings that follow the image ---------------------------------------------------------------------
+
+
+def test_sgbm_settings_follow_the_image_unless_set():
+    from dstereo.disparity import PRESETS, SGBMParams
+    from dstereo.reconstruction import ReconstructionConfig, sized_sgbm, user_sgbm_names
+
+    default = ReconstructionConfig()
+    webcam = sized_sgbm(default.sgbm, user_sgbm_names(default), (480, 640))
+    assert (webcam.block_size, webcam.speckle_window_size, webcam.penalties(1)) == (5, 100, (200, 800))
+    big = sized_sgbm(default.sgbm, user_sgbm_names(default), (3000, 4000, 3))  # 12 Mpx: 100 x 39 -> capped
+    assert (big.block_size, big.speckle_window_size, big.penalties(3)) == (9, 2000, (8 * 3 * 81, 32 * 3 * 81))
+    mid = sized_sgbm(default.sgbm, user_sgbm_names(default), (1536, 2048))  # 3.1 Mpx: 100 x 10.24
+    assert (mid.block_size, mid.speckle_window_size) == (7, 1024)
+    # what the user set stays: named on the command line (even at the default's value), or a library caller's own
+    named = ReconstructionConfig(sgbm_user=("block_size",))
+    assert sized_sgbm(named.sgbm, user_sgbm_names(named), (3000, 4000)).block_size == 5
+    own = ReconstructionConfig(sgbm=SGBMParams(speckle_window_size=50))
+    assert sized_sgbm(own.sgbm, user_sgbm_names(own), (3000, 4000)).speckle_window_size == 50
+    preset = ReconstructionConfig(sgbm=PRESETS["thesis-5.15"], sgbm_user=("preset",))
+    assert sized_sgbm(preset.sgbm, user_sgbm_names(preset), (3000, 4000)) == PRESETS["thesis-5.15"]
+
+
+def test_cli_and_config_files_record_what_the_user_set(tmp_path):
+    from dstereo.commands.matching_options import matching_changes
+    from dstereo.disparity import PRESETS
+    from dstereo.reconstruction import load_config
+
+    changes = matching_changes(PRESETS["default"], None, ["blockSize=5", "num_disparities=64"], None, None, None)
+    assert changes["sgbm_user"] == ("block_size", "num_disparities")
+    assert matching_changes(PRESETS["default"], "thesis-5.9", [], None, None, None)["sgbm_user"] == ("preset",)
+    path = tmp_path / "dstereo.toml"
+    path.write_text("[sgbm]\nspeckleWindowSize = 100\n")
+    assert load_config(path).sgbm_user == ("speckle_window_size",)
+
+
+def test_false_matches_on_a_repeated_pattern_are_dropped():
+    """A chessboard's repeated squares give same-row matches one square off: their disparity disagrees with their
+    image neighbours' and they leave the estimate (otherwise the range would reach 30 px too far)."""
+    from dstereo.search_range import consistent_with_neighbours
+
+    q = np.stack(np.meshgrid(np.arange(0, 200, 10.0), np.arange(0, 100, 10.0)), axis=-1).reshape(-1, 2)
+    d = np.full(len(q), 50.0) + 0.01 * q[:, 0]  # a slanted board: 50..52 px
+    d[[7, 55, 130]] = 80.0  # one square (30 px) off
+    keep = consistent_with_neighbours(q, d)
+    assert not keep[[7, 55, 130]].any() and keep.sum() == len(q) - 3
