@@ -133,7 +133,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:
-        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
+        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
