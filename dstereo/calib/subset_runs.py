@@ -18,7 +18,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from dstereo.calib.subset_table import MEMORY_LIMIT_BYTES, SubsetTable
+from dstereo.calib import subset_table
+from dstereo.calib.subset_table import SubsetTable
 from dstereo.errors import DstereoError
 
 BLOCK_TARGET = 4096  # subsets per block: seconds of work, a few MB of solver output
@@ -94,12 +95,12 @@ class RunEstimate:
 
 
 def estimate_run(subsets: int, columns: int, per_set: int, folder: str | Path | None,
-                 memory_limit: int = MEMORY_LIMIT_BYTES) -> RunEstimate:
+                 memory_limit: int | None = None) -> RunEstimate:
     """Memory and disk a run will need (module docstring), with what the machine has."""
     folder = Path(folder) if folder is not None else Path(os.environ.get("TMPDIR", "/tmp"))
     probe = next((p for p in (folder, *folder.parents) if p.exists()), Path("/"))
     table = 8 * columns * subsets
-    on_disk = table > memory_limit
+    on_disk = table > (subset_table.MEMORY_LIMIT_BYTES if memory_limit is None else memory_limit)
     ram = BASE_BYTES + BYTES_PER_SUBSET * subsets + (0 if on_disk else table)
     csv_row = 12 + 3 * per_set + CSV_FLOAT_CHARS * (columns + 1) + 8
     disk = (table if on_disk else 0) + csv_row * subsets
@@ -118,7 +119,7 @@ Block = Callable[[object, Callable[[int, int], None] | None], tuple[np.ndarray, 
 
 def solve_in_blocks(plan, columns: Sequence[str], solve_block: Block, chunk: int, folder: str | Path | None = None,
                     progress: Callable[[int, int], None] | None = None, note: Callable[[str], None] | None = None,
-                    memory_limit: int = MEMORY_LIMIT_BYTES) -> tuple[SubsetTable, list]:
+                    memory_limit: int | None = None) -> tuple[SubsetTable, list]:
     """Solve `plan` block by block: `solve_block(block_plan, progress)` returns (rows (k, P), status (k,),
     solutions). Returns the table and, up to KEEP_SOLUTIONS subsets, the blocks' solutions (else [])."""
     n = len(plan)

@@ -25,12 +25,12 @@ class SubsetTable:
     """`count` rows of float64 `columns` plus an int16 `status` per row (solver status; > 0 converged)."""
 
     def __init__(self, columns: Sequence[str], count: int, folder: str | Path | None = None,
-                 memory_limit: int = MEMORY_LIMIT_BYTES):
+                 memory_limit: int | None = None):
         self.columns, self.count = tuple(columns), int(count)
         self.status = np.zeros(self.count, dtype=np.int16)
         self._values = self._file = self._dir = None
         nbytes = 8 * len(self.columns) * self.count
-        if nbytes <= memory_limit:
+        if nbytes <= (MEMORY_LIMIT_BYTES if memory_limit is None else memory_limit):
             self._values = np.full((len(self.columns), self.count), np.nan)
             return
         parent = Path(folder) if folder is not None else Path(tempfile.gettempdir())

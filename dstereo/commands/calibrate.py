@@ -110,7 +110,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     sources = stereo_sources(images, cfg, left, right)
     out = _results_folder(out, project, force, cfg)
     with progress_bars(quiet) as progress:
-        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
+        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:

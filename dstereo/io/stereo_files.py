@@ -207,11 +207,16 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
     from dstereo.io.results import atomic_folder, fill_camera_folder
 
     out = Path(out)
-    with atomic_folder(out, force) as tmp:
-        for side, cal in (("left", job.left), ("right", job.right)):
-            (tmp / side).mkdir()
-            fill_camera_folder(tmp / side, cal, projection_range=projection_range)
-        _fill_stereo_folder(tmp, job)
+    try:
+        with atomic_folder(out, force) as tmp:
+            for side, cal in (("left", job.left), ("right", job.right)):
+                (tmp / side).mkdir()
+                fill_camera_folder(tmp / side, cal, projection_range=projection_range)
+            _fill_stereo_folder(tmp, job)
+    finally:  # huge runs' per-subset files (now in the CSVs) go
+        for filtering in (job.left.filtering, job.right.filtering, job.filtering):
+            if filtering is not None:
+                filtering.table.close()
     return out
 
 
@@ -248,7 +253,7 @@ def stereo_summary(job) -> dict:
     }
     if job.filtering is not None:
         f, plan = job.filtering, job.plan
-        summary["subsets"] = {"per_set": int(plan.index.shape[1]), "solved": int(len(plan.index)),
+        summary["subsets"] = {"per_set": int(plan.per_set), "solved": int(len(plan)),
                               "sampling": plan.describe(), "initial_count": int(f.usable.sum()),
                               "final_count": int(f.survivors.sum()), "initial": f.stats(0),
                               "final": f.stats(len(f.steps)),
@@ -284,12 +289,12 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     if job.filtering is not None:
         f = job.filtering
         write_stats_files(folder / "stereo_stats", f, STEREO_TITLE)
-        write_subsets_csv(folder / "stereo_subsets.csv", job.plan.index, f, job.subsets.status)
+        write_subsets_csv(folder / "stereo_subsets.csv", job.plan, f, f.table.status)
         from dstereo.io import plots as mono_plots
 
         full_values = s.columns()
-        for j, name in enumerate(f.columns):
-            mono_plots.parameter_figure(name, f.table[f.alive_after(0), j], f.table[f.survivors, j],
+        for name in f.columns:
+            mono_plots.parameter_figure(name, f.values(name, 0), f.values(name, len(f.steps)),
                                         plots / f"{name}.png", STEREO_UNITS.get(name, job.config.unit),
                                         full_values[name])
         for names, target, title in ((("Tnorm", "Tx", "Ty", "Tz"), "T.png", "translation vector T"),
@@ -312,11 +317,14 @@ def _pyplot():
 
 def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
     """Thesis Figures 5.15/5.16: one panel per parameter, box plots of the initial and the optimised subsets."""
+    from dstereo.io.plots import box_stats
+
     plt = _pyplot()
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.8))
     for ax, name in zip(axes, names):
         col = filtering.column(name)
-        ax.boxplot([col[filtering.alive_after(0)], col[filtering.survivors]], widths=0.6)
+        ax.bxp([box_stats(col[filtering.alive_after(0)], "initial"), box_stats(col[filtering.survivors], "final")],
+               widths=0.6)
         ax.set_xticks([1, 2], ["initial", "optimised"])
         ax.set_title(f"{name} ({STEREO_UNITS.get(name, unit)})")
         ax.ticklabel_format(axis="y", useOffset=False)
