@@ -423,9 +423,27 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
     return fig
 
 
+def log_ticks(lo: float, hi: float) -> np.ndarray:
+    """Colour-bar ticks of a log scale over [lo, hi]: 1-2-5 times powers of ten inside, else (a range under
+    about a factor 5) five geometric steps rounded to 2 significant digits; distinct and labelled by `tick_label`."""
+    decades = np.arange(np.floor(np.log10(lo)), np.ceil(np.log10(hi)) + 1)
+    ticks = np.array([m * 10.0 ** d for d in decades for m in (1, 2, 5)])
+    ticks = ticks[(ticks >= lo) & (ticks <= hi)]
+    if len(ticks) < 3:
+        ticks = np.unique([float(f"{t:.2g}") for t in np.geomspace(lo, hi, 5)])
+        ticks = ticks[(ticks >= lo) & (ticks <= hi)]
+    return ticks
+
+
+def tick_label(value: float, _pos=None) -> str:
+    """'0.05', '2', '150', '2e+04': significant digits, never a small value printed as 0."""
+    return f"{value:.3g}"
+
+
 def _plot_contour(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4.5))
     from matplotlib.colors import LogNorm
+    from matplotlib.ticker import FuncFormatter
 
     focal, f_number = np.meshgrid(_focal_axis(config, 120), _f_number_axis(config, 120))
     total = _total(config, focal, f_number)
@@ -434,7 +452,9 @@ def _plot_contour(config: OpticsConfig, plt):
     else:
         levels = np.geomspace(np.nanmin(total), np.nanmax(total), 21)
         filled = ax.contourf(focal, f_number, total, levels=levels, norm=LogNorm())
-        fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)", format="%.0f")
+        bar = fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)",
+                           ticks=log_ticks(levels[0], levels[-1]), format=FuncFormatter(tick_label))
+        bar.minorticks_off()
     chosen = float(_total(config, config.focal_length, config.f_number))
     if np.isfinite(chosen):
         line = ax.contour(focal, f_number, total, levels=[chosen], colors="white", linewidths=1)

@@ -118,18 +118,36 @@ def parameter_figure(name: str, initial: np.ndarray, final: np.ndarray, path: Pa
         ax.set_xlabel(label)
         if reference is not None and np.isfinite(reference):
             ax.axvline(reference, color="tab:red", ls="--", lw=1, label="full set")
+    from matplotlib.ticker import MaxNLocator
+
+    for ax in axes:
+        ax.xaxis.set_major_locator(MaxNLocator(5))  # values like 799.25 need room: at most ~5 ticks
+        ax.ticklabel_format(axis="x", useOffset=False)
     axes[0].set_ylabel("subsets")
     axes[1].set_ylabel(f"density (1/{unit})" if unit else "density")
     axes[0].legend(fontsize=8)
     axes[1].legend(fontsize=8)
     fig.suptitle(f"{name}: initial and optimised subsets")
-    fig.subplots_adjust(left=0.05, right=0.98, bottom=0.14, top=0.84, wspace=0.25)
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.14, top=0.84, wspace=0.3)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
 
-def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: dict[str, float], path: Path) -> None:
-    """Heat map of all detected corners over the image, quadrant and centre regions outlined with their share."""
+def corner_patches(image_size: tuple[int, int]) -> dict[str, tuple[float, float, float, float]]:
+    """The four image-corner patches of the coverage check (outer quarter of the width and of the height,
+    1/16 of the area each, as `pipeline.corner_coverage` counts them), as (x0, y0, width, height) in px with
+    pixel centres at integer coordinates."""
+    w, h = image_size
+    x0 = {"left": -0.5, "right": 0.75 * w - 0.5}
+    y0 = {"upper": -0.5, "lower": 0.75 * h - 0.5}
+    return {f"{v}_{u}": (x0[u], y0[v], w / 4, h / 4) for v in ("upper", "lower") for u in ("left", "right")}
+
+
+def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: dict[str, float], path: Path,
+                     corner_percent: dict[str, float] | None = None, corner_min: float | None = None) -> None:
+    """Heat map of all detected corners over the image, quadrant and centre regions outlined with their share;
+    the image-corner patches the coverage warnings speak of are drawn (dashed) with their share, in orange
+    where below `corner_min` %."""
     plt = _pyplot()
     w, h = image_size
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.6))
@@ -140,12 +158,22 @@ def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: d
     ax.axvline(w / 2 - 0.5, color="w", lw=1)
     ax.axhline(h / 2 - 0.5, color="w", lw=1)
     ax.add_patch(plt.Rectangle((w / 4 - 0.5, h / 4 - 0.5), w / 2, h / 2, fill=False, ec="tab:red", lw=1.5))
-    spots = {"upper_left": (0.25, 0.1), "upper_right": (0.75, 0.1), "lower_left": (0.25, 0.9),
-             "lower_right": (0.75, 0.9), "centre": (0.5, 0.5)}
+    # Quadrant shares between the image-corner patch and the centre box (the patches carry their own).
+    spots = {"upper_left": (0.375, 0.125), "upper_right": (0.625, 0.125), "lower_left": (0.375, 0.875),
+             "lower_right": (0.625, 0.875), "centre": (0.5, 0.5)}
     for name, (fx, fy) in spots.items():
         ax.text(fx * w, fy * h, f"{percent[name]:.1f}%", color="w", ha="center", va="center", fontsize=12,
                 bbox=dict(facecolor="black", alpha=0.4, lw=0))
-    ax.set_title(f"corner coverage ({len(points)} corners)")
+    if corner_percent is not None:
+        for name, (x0, y0, pw, ph) in corner_patches(image_size).items():
+            low = corner_min is not None and corner_percent[name] < corner_min
+            colour = "tab:orange" if low else "w"
+            ax.add_patch(plt.Rectangle((x0, y0), pw, ph, fill=False, ec=colour, lw=2.5 if low else 1, ls="--"))
+            ax.text(x0 + pw / 2, y0 + ph / 2, f"corner\n{corner_percent[name]:.1f}%", color=colour, ha="center",
+                    va="center", fontsize=9, bbox=dict(facecolor="black", alpha=0.4, lw=0))
+    ax.set_title(f"corner coverage ({len(points)} corners): % per quadrant, centre (red)"
+                 + ("\nand image-corner patch (dashed, 1/16 of the area)" if corner_percent is not None else ""),
+                 fontsize=10)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     fig.tight_layout()
@@ -169,19 +197,26 @@ def per_image_rms(names: list[str], rms: np.ndarray, path: Path) -> None:
 
 
 def residual_vectors(observed: np.ndarray, residuals: np.ndarray, image_size: tuple[int, int], path: Path) -> None:
-    """Residual vectors (projected - observed) of every corner, drawn at the corner, exaggerated to be seen."""
+    """Residual vectors (projected - observed) of every corner, drawn at the corner, exaggerated to be seen;
+    colour = length (colour bar in px), a key arrow gives the scale."""
     plt = _pyplot()
     w, h = image_size
     pts, res = observed.reshape(-1, 2), residuals.reshape(-1, 2)
-    typical = float(np.percentile(np.linalg.norm(res, axis=1), 95)) or 1.0
+    length = np.linalg.norm(res, axis=1)
+    typical = float(np.percentile(length, 95)) or 1.0
     scale = 0.04 * max(w, h) / typical  # the 95th-percentile residual drawn 4 % of the image long
     fig, ax = plt.subplots(figsize=(8, 8 * h / w + 0.6))
-    ax.quiver(pts[:, 0], pts[:, 1], res[:, 0] * scale, res[:, 1] * scale, np.linalg.norm(res, axis=1),
-              angles="xy", scale_units="xy", scale=1, cmap="plasma", width=0.002)
+    arrows = ax.quiver(pts[:, 0], pts[:, 1], res[:, 0] * scale, res[:, 1] * scale, length,
+                       angles="xy", scale_units="xy", scale=1, cmap="plasma", width=0.002)
+    fig.colorbar(arrows, ax=ax, fraction=0.04, label="residual length (px)")
+    key = float(f"{typical:.1g}")
+    ax.quiverkey(arrows, 0.82, 1.02, key * scale, f"{key:g} px", labelpos="E", coordinates="axes", color="k")
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_aspect("equal")
-    ax.set_title(f"residuals (projected - observed), drawn x{scale:.0f}; colour = length (px)")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    ax.set_title(f"residuals (projected - observed), drawn x{scale:.0f}", loc="left")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

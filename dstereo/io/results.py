@@ -330,7 +330,10 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
             plots.parameter_figure(name, f.values(name, 0), f.values(name, len(f.steps)), plot_dir / f"{name}.png",
                                    UNITS.get(name, ""), ref)
     pts = cal.observations.reshape(-1, 2)
-    plots.coverage_heatmap(pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png")
+    from dstereo.calib.pipeline import CORNER_MIN_PERCENT
+
+    plots.coverage_heatmap(pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
+                           cal.coverage.corner_percent, CORNER_MIN_PERCENT)
     plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
     plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)

@@ -16,6 +16,26 @@ def _pyplot():
     return plt
 
 
+OVER_COLOUR = "tab:red"  # pixels above the colour scale
+ROBUST_PERCENTILE = 99.0  # projection maps: the colour scale stops here unless the data fit in it
+
+
+def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE) -> tuple[float, float, bool]:
+    """(vmin, vmax, clipped) of a non-negative map for its colour scale: 0 to the `percentile` of the finite
+    values, so that one huge value (a 4e13 px std where a ray leaves the model's valid range) does not
+    compress every other pixel into one colour; `clipped` says some finite values lie above (drawn in the
+    "over" colour). Non-finite values are ignored (masked when drawn)."""
+    finite = np.asarray(values, float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return 0.0, 1.0, False
+    top = float(np.percentile(finite, percentile))
+    peak = float(finite.max())
+    if not top > 0:
+        top = peak if peak > 0 else 1.0
+    return 0.0, top, bool(peak > top)
+
+
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
     """Depth standard deviation per pixel, colour bar in `unit`, pixels without a point black; the colour
     scale stops at the 95th percentile (arrow on the bar) so a few far, badly matched points do not wash the
@@ -39,24 +59,40 @@ def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -
 
 
 def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], title: str, unit: str) -> None:
-    """Worst-direction std (px) of the projection over the image, with contour lines (a `ProjectionUncertaintyMap`)."""
+    """Worst-direction std (px) of the projection over the image, with contour lines (a `ProjectionUncertaintyMap`).
+    Colour scale from `colour_limits`: values above it in OVER_COLOUR, non-finite values grey."""
+    import matplotlib
+
     plt = _pyplot()
     w, h = image_size
+    std = np.ma.masked_invalid(np.asarray(pmap.std, float))
+    vmin, vmax, clipped = colour_limits(pmap.std)
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.8))
     du = (pmap.u[1] - pmap.u[0]) / 2 if len(pmap.u) > 1 else 0.5
     dv = (pmap.v[1] - pmap.v[0]) / 2 if len(pmap.v) > 1 else 0.5
     extent = (pmap.u[0] - du, pmap.u[-1] + du, pmap.v[-1] + dv, pmap.v[0] - dv)
-    im = ax.imshow(pmap.std, extent=extent, cmap="viridis", interpolation="bilinear", vmin=0.0)
-    if np.ptp(pmap.std) > 0:
-        cs = ax.contour(pmap.u, pmap.v, pmap.std, levels=6, colors="w", linewidths=0.7)
+    cmap = matplotlib.colormaps["viridis"].with_extremes(over=OVER_COLOUR, bad="0.6")
+    im = ax.imshow(std, extent=extent, cmap=cmap, interpolation="nearest" if clipped else "bilinear",
+                   vmin=vmin, vmax=vmax)
+    finite = np.asarray(pmap.std, float)[np.isfinite(pmap.std)]
+    if finite.size and np.ptp(finite) > 0:
+        levels = np.linspace(float(finite.min()), vmax, 7)[1:-1] if clipped else 6
+        cs = ax.contour(pmap.u, pmap.v, std, levels=levels, colors="w", linewidths=0.7)
         ax.clabel(cs, fmt="%.2g", fontsize=8)
-    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)")
+    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)",
+                 extend="max" if clipped else "neither")
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
+    notes = []
+    if clipped:
+        notes.append(f"red: above the scale ({ROBUST_PERCENTILE:g}th percentile {vmax:.3g} px; max "
+                     f"{float(finite.max()):.3g} px)")
+    if np.ma.count_masked(std):
+        notes.append("grey: not finite (outside the model's valid range)")
     ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray; intrinsics only (no extrinsics "
-                 "compensation)", fontsize=9)
+                 "compensation)" + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
