@@ -144,11 +144,10 @@ def run_steps(
         minimum = step.min_subsets if step.min_subsets is not None else min_subsets
         alive = removed_at == SURVIVES
         before, passes, stopped, bounds = int(alive.sum()), 0, False, {}
-        step_columns = {name: table.column(columns.index(name)) for name in step.parameters}
         while True:
             outside = np.zeros(len(table), bool)
             for name, limit in zip(step.parameters, step.max_error):
-                col = step_columns[name]
+                col = table.column(columns.index(name))  # one column at a time (re-read per pass: bounded memory)
                 lo, hi = _bounds(col[alive], name, limit, absolute)
                 bounds[name] = (float(lo), float(hi))
                 outside |= alive & ~((col >= lo) & (col <= hi))

@@ -24,11 +24,13 @@ from dstereo.errors import DstereoError
 
 BLOCK_TARGET = 4096  # subsets per block: seconds of work, a few MB of solver output
 KEEP_SOLUTIONS = 20_000  # up to this many subsets the solver's per-subset outputs are kept whole (as before)
-# Resident bytes per subset beyond the table itself, while the steps and statistics run: plan ranks (8),
-# status/fate/usable (5), a step's columns with their masked and sorted copies (~3 x 8 per column, two
-# columns typical), a statistics column and its masked copy (16), masks (~4).
-BYTES_PER_SUBSET = 8 + 5 + 48 + 16 + 4
-BASE_BYTES = 700 * 2 ** 20  # Python, JAX, XLA's compiled solver, matplotlib: measured ~0.55-0.65 GB peak at C=1e4
+# Peak resident memory measured with /usr/bin/time -v on 29 views, m = 20, 10 columns: C = 1e4 0.48 GB,
+# 1e5 0.55 GB (real solves), 1e7 0.84 GB (experiments/huge_run_fake_solve.py: everything but the solves, whose
+# blocks held a flat ~0.5 GB over the first 3 minutes of a real 1e7 run): ~30 bytes a subset over ~0.53 GB
+# (plan ranks 8, status/fate/usable 5, a column and its masked and sorted copies while a step, a statistic or
+# a figure works on it). The estimate adds a third for margin.
+BYTES_PER_SUBSET = 40
+BASE_BYTES = 600 * 2 ** 20
 CSV_FLOAT_CHARS = 21  # repr of a float64 and its comma
 
 

@@ -3,7 +3,8 @@
 The robust steps and the statistics read it a column at a time; nothing needs all C rows of every column at
 once. Below `MEMORY_LIMIT_BYTES` it is a plain (P, C) array. Above, it is a raw float64 file laid out column
 after column (column j's C values contiguous), written with `os.pwrite` as solve blocks finish and read back
-one column (or one block of rows) at a time: the values go through the page cache, not this process's
+one column (or one block of rows) at a time; the file is unlinked as soon as it is created, so nothing
+is left behind however the run ends: the values go through the page cache, not this process's
 memory, so a run of 10 million subsets holds ~80 MB per column it is working on, not 10 columns x 80 MB.
 Status (int16), 2 bytes a subset, stays in memory.
 """
@@ -11,7 +12,6 @@ Status (int16), 2 bytes a subset, stays in memory.
 from __future__ import annotations
 
 import os
-import shutil
 import tempfile
 from pathlib import Path
 from typing import Sequence
@@ -28,16 +28,19 @@ class SubsetTable:
                  memory_limit: int | None = None):
         self.columns, self.count = tuple(columns), int(count)
         self.status = np.zeros(self.count, dtype=np.int16)
-        self._values = self._file = self._dir = None
+        self._values = self._file = self._remove_at_close = None
         nbytes = 8 * len(self.columns) * self.count
         if nbytes <= (MEMORY_LIMIT_BYTES if memory_limit is None else memory_limit):
             self._values = np.full((len(self.columns), self.count), np.nan)
             return
         parent = Path(folder) if folder is not None else Path(tempfile.gettempdir())
         parent.mkdir(parents=True, exist_ok=True)
-        self._dir = Path(tempfile.mkdtemp(prefix=".dstereo-subsets-", dir=parent))
-        self._path = self._dir / "values.f64"
-        self._file = os.open(self._path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._file, name = tempfile.mkstemp(prefix=".dstereo-subsets-", suffix=".f64", dir=parent)
+        self._path = Path(name)
+        try:  # unlinked at once (POSIX): the space is freed when the file closes, even if the process is killed
+            os.unlink(name)
+        except OSError:  # Windows: removed by close()
+            self._remove_at_close = self._path
         os.ftruncate(self._file, nbytes)  # sparse: disk blocks are taken as rows arrive
 
     @classmethod
@@ -54,8 +57,9 @@ class SubsetTable:
         return self._file is not None
 
     @property
-    def folder(self) -> Path | None:
-        return self._dir
+    def path(self) -> Path | None:
+        """Where the values file was created (already unlinked on POSIX systems)."""
+        return self._path if self._file is not None else None
 
     def __len__(self) -> int:
         return self.count
@@ -104,7 +108,8 @@ class SubsetTable:
         if self._file is not None:
             os.close(self._file)
             self._file = None
-            shutil.rmtree(self._dir, ignore_errors=True)
+            if self._remove_at_close is not None and self._remove_at_close.exists():
+                self._remove_at_close.unlink()
 
     def __del__(self):
         try:

@@ -28,6 +28,7 @@ def _horizontal() -> dict:
 
 
 EXACT_KDE_MAX = 2000  # up to this many values the KDE is scipy's exact sum; beyond, binned (cost ~ grid, not C)
+BIN_BLOCK = 1 << 20  # values binned at a time
 MAX_FLIERS = 1000  # outliers drawn per box plot at most (evenly spaced in order, extremes included)
 
 
@@ -64,10 +65,13 @@ def binned_kde(values: np.ndarray, grid: np.ndarray) -> np.ndarray | None:
     lo, hi = lo - 4 * h, hi + 4 * h
     points = int(min(2 ** 20, max(len(grid), np.ceil((hi - lo) / (h / 10))) + 1))
     delta = (hi - lo) / (points - 1)
-    pos = (values - lo) / delta
-    left = np.floor(pos).astype(np.int64)
-    frac = pos - left
-    counts = np.bincount(left, 1 - frac, minlength=points + 1) + np.bincount(left + 1, frac, minlength=points + 1)
+    counts = np.zeros(points + 1)
+    for a in range(0, n, BIN_BLOCK):  # a block at a time: transient memory ~ BIN_BLOCK, not C
+        pos = (values[a: a + BIN_BLOCK] - lo) / delta
+        left = np.floor(pos).astype(np.int64)
+        frac = pos - left
+        counts += np.bincount(left, 1 - frac, minlength=points + 1) + np.bincount(left + 1, frac,
+                                                                                   minlength=points + 1)
     half = int(np.ceil(5 * h / delta))
     offsets = np.arange(-half, half + 1) * delta
     kernel = np.exp(-0.5 * (offsets / h) ** 2) / (h * np.sqrt(2 * np.pi) * n)
@@ -75,20 +79,28 @@ def binned_kde(values: np.ndarray, grid: np.ndarray) -> np.ndarray | None:
     return np.interp(grid, lo + delta * np.arange(points), np.maximum(density, 0.0))
 
 
+def _percentile_sorted(s: np.ndarray, q: float) -> float:
+    """numpy's default (linear) percentile of an already sorted array, without another copy."""
+    pos = q / 100 * (s.size - 1)
+    i = int(np.floor(pos))
+    j = min(i + 1, s.size - 1)
+    return float(s[i] + (s[j] - s[i]) * (pos - i))
+
+
 def box_stats(values: np.ndarray, label: str = "") -> dict:
     """matplotlib's box-plot statistics (quartiles by linear interpolation, whiskers at the most extreme
-    values within 1.5 IQR, the rest fliers) from quantiles and masks, for `Axes.bxp`: no per-point artist for
+    values within 1.5 IQR, the rest fliers) from one sorted copy, for `Axes.bxp`: no per-point artist for
     millions of values. More than MAX_FLIERS fliers are thinned to evenly spaced order statistics."""
     x = np.asarray(values, float)
-    x = x[np.isfinite(x)]
-    q1, med, q3 = np.percentile(x, [25, 50, 75])
+    s = np.sort(x[np.isfinite(x)]) if not np.isfinite(x).all() else np.sort(x)
+    q1, med, q3 = (_percentile_sorted(s, q) for q in (25, 50, 75))
     iqr = q3 - q1
-    inside = x[(x >= q1 - 1.5 * iqr) & (x <= q3 + 1.5 * iqr)]
-    fliers = np.sort(x[(x < q1 - 1.5 * iqr) | (x > q3 + 1.5 * iqr)])
+    lo, hi = np.searchsorted(s, q1 - 1.5 * iqr, "left"), np.searchsorted(s, q3 + 1.5 * iqr, "right")
+    fliers = np.concatenate([s[:lo], s[hi:]])
     if fliers.size > MAX_FLIERS:
         fliers = fliers[np.unique(np.linspace(0, fliers.size - 1, MAX_FLIERS).round().astype(int))]
-    return {"label": label, "med": med, "q1": q1, "q3": q3, "whislo": float(inside.min()) if inside.size else q1,
-            "whishi": float(inside.max()) if inside.size else q3, "fliers": fliers, "mean": float(np.mean(x))}
+    return {"label": label, "med": med, "q1": q1, "q3": q3, "whislo": float(s[lo]) if hi > lo else q1,
+            "whishi": float(s[hi - 1]) if hi > lo else q3, "fliers": fliers, "mean": float(np.mean(s))}
 
 
 def parameter_figure(name: str, initial: np.ndarray, final: np.ndarray, path: Path, unit: str = "",
