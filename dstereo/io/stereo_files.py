@@ -343,8 +343,15 @@ def _frustum(k: np.ndarray, size: tuple[int, int], depth: float) -> np.ndarray:
     return np.vstack([np.zeros(3), rays])
 
 
+def frustum_depth(baseline: float, distance: float) -> float:
+    """Drawn depth of a camera frustum: half the baseline (two frusta side by side then stay apart and the
+    baseline reads at a glance), kept between 3 % and 25 % of the board distance so they remain visible."""
+    return float(np.clip(0.5 * baseline, 0.03 * distance, 0.25 * distance))
+
+
 def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
-    """3D view in the left camera's frame: both cameras (frusta) and every pair's board."""
+    """3D view in the left camera's frame: both cameras (frusta sized by `frustum_depth`), the baseline
+    between their centres, and every pair's board."""
     from scipy.spatial.transform import Rotation
 
     plt = _pyplot()
@@ -358,8 +365,11 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
         pts = Rotation.from_rotvec(pose[:3]).apply(outline) + pose[3:]
         boards.append(pts)
         ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
-    depth = 0.25 * float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
+    distance = float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
+    depth = frustum_depth(float(solution.baseline), distance)
     centre_r = -solution.R.T @ solution.T
+    ax.plot(*_display([np.zeros(3), centre_r]), color="k", lw=2.5, marker="o", ms=4,
+            label=f"baseline {solution.baseline:.4g} {unit}")
     for name, cam, rot, centre, colour in (("left", solution.left, np.eye(3), np.zeros(3), "tab:blue"),
                                            ("right", solution.right, solution.R.T, centre_r, "tab:red")):
         f = _frustum(np.asarray(cam.k), cam.image_size, depth) @ rot.T + centre
@@ -375,7 +385,8 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
     ax.set_xlim(mid[0] - span, mid[0] + span)
     ax.set_ylim(mid[2] - span, mid[2] + span)
     ax.set_zlim(-mid[1] - span, -mid[1] + span)
-    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses")
+    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses "
+                 f"(median distance {distance:.4g} {unit}); frusta drawn {depth:.3g} {unit} deep", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=90)
