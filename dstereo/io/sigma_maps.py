@@ -18,22 +18,31 @@ def _pyplot():
 
 OVER_COLOUR = "tab:red"  # pixels above the colour scale
 ROBUST_PERCENTILE = 99.0  # projection maps: the colour scale stops here unless the data fit in it
+SWAMP_FACTOR = 2.0  # the full range is kept unless it is more than this times the percentile range
 
 
-def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE) -> tuple[float, float, bool]:
-    """(vmin, vmax, clipped) of a non-negative map for its colour scale: 0 to the `percentile` of the finite
-    values, so that one huge value (a 4e13 px std where a ray leaves the model's valid range) does not
-    compress every other pixel into one colour; `clipped` says some finite values lie above (drawn in the
-    "over" colour). Non-finite values are ignored (masked when drawn)."""
+def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE,
+                  lower: float | None = None) -> tuple[float, float, str]:
+    """(vmin, vmax, extend) of a map's colour scale. Non-negative maps (`lower` None): 0 to the `percentile` of
+    the finite values, so that one huge value (a 4e13 px std where a ray leaves the model's valid range) does
+    not compress every other pixel into one colour. Signed maps: `lower` to `percentile` percentiles.
+    `extend` ("neither", "max", "min", "both", as matplotlib's colour bar takes it) says which side has finite
+    values beyond the scale (drawn in the over/under colour). Non-finite values are ignored (mask them)."""
     finite = np.asarray(values, float)
     finite = finite[np.isfinite(finite)]
     if finite.size == 0:
-        return 0.0, 1.0, False
-    top = float(np.percentile(finite, percentile))
-    peak = float(finite.max())
-    if not top > 0:
-        top = peak if peak > 0 else 1.0
-    return 0.0, top, bool(peak > top)
+        return 0.0, 1.0, "neither"
+    top, peak = float(np.percentile(finite, percentile)), float(finite.max())
+    bottom, least = (0.0, 0.0) if lower is None else (float(np.percentile(finite, lower)), float(finite.min()))
+    if peak - bottom <= SWAMP_FACTOR * (top - bottom):  # nothing far above: the full range shows it all
+        top = peak
+    if lower is not None and top - least <= SWAMP_FACTOR * (top - bottom):
+        bottom = least
+    if not top > bottom:  # constant
+        top = bottom + (abs(bottom) or 1.0)
+    over, under = peak > top, lower is not None and least < bottom
+    return bottom, top, {(False, False): "neither", (True, False): "max", (False, True): "min",
+                         (True, True): "both"}[(bool(over), bool(under))]
 
 
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
@@ -66,7 +75,8 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
     plt = _pyplot()
     w, h = image_size
     std = np.ma.masked_invalid(np.asarray(pmap.std, float))
-    vmin, vmax, clipped = colour_limits(pmap.std)
+    vmin, vmax, extend = colour_limits(pmap.std)
+    clipped = extend != "neither"
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.8))
     du = (pmap.u[1] - pmap.u[0]) / 2 if len(pmap.u) > 1 else 0.5
     dv = (pmap.v[1] - pmap.v[0]) / 2 if len(pmap.v) > 1 else 0.5
@@ -79,8 +89,7 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
         levels = np.linspace(float(finite.min()), vmax, 7)[1:-1] if clipped else 6
         cs = ax.contour(pmap.u, pmap.v, std, levels=levels, colors="w", linewidths=0.7)
         ax.clabel(cs, fmt="%.2g", fontsize=8)
-    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)",
-                 extend="max" if clipped else "neither")
+    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)", extend=extend)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_xlabel("x (px)")
