@@ -446,9 +446,11 @@ def _plot_vs_focal(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
     focal = _focal_axis(config)
     ax.plot(focal, _total(config, focal, config.f_number))
-    ax.plot([config.focal_length], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    chosen = float(_total(config, config.focal_length, config.f_number))
+    ax.plot([config.focal_length], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel=_label_focal(config), ylabel="total depth of field (mm)",
            title=f"N = {config.f_number:g}, s = {config.focus_distance:g} mm")
+    ax.legend()
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig
@@ -458,9 +460,11 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
     f_number = _f_number_axis(config)
     ax.plot(f_number, _total(config, config.focal_length, f_number))
-    ax.plot([config.f_number], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    chosen = float(_total(config, config.focal_length, config.f_number))
+    ax.plot([config.f_number], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel="f-number N", ylabel="total depth of field (mm)",
            title=f"f = {config.focal_length:g} mm, s = {config.focus_distance:g} mm")
+    ax.legend()
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig
@@ -469,6 +473,9 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
 def _plot_contour(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4.5))
     from matplotlib.colors import LogNorm
+    from matplotlib.ticker import FuncFormatter
+
+    from dstereo.io.plots import log_ticks, tick_label
 
     focal, f_number = np.meshgrid(_focal_axis(config, 120), _f_number_axis(config, 120))
     total = _total(config, focal, f_number)
@@ -477,7 +484,9 @@ def _plot_contour(config: OpticsConfig, plt):
     else:
         levels = np.geomspace(np.nanmin(total), np.nanmax(total), 21)
         filled = ax.contourf(focal, f_number, total, levels=levels, norm=LogNorm())
-        fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)", format="%.0f")
+        bar = fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)",
+                           ticks=log_ticks(levels[0], levels[-1]), format=FuncFormatter(tick_label))
+        bar.minorticks_off()
     chosen = float(_total(config, config.focal_length, config.f_number))
     if np.isfinite(chosen):
         line = ax.contour(focal, f_number, total, levels=[chosen], colors="white", linewidths=1)

@@ -98,7 +98,8 @@ class CameraCalibration:
     observations: np.ndarray  # (V, n, 2) px
     full: object  # dstereo.calib.mono.CameraSolution
     plan: object | None  # dstereo.calib.subsets.SubsetPlan
-    subsets: object | None  # dstereo.calib.mono.SubsetSolutions
+    subsets: object | None  # dstereo.calib.mono.SubsetSolutions; None above KEEP_SOLUTIONS subsets (the
+    # per-subset values and status are then only in `filtering.table`)
     filtering: FilterResult | None
     columns: tuple[str, ...]  # ("re", fx, fy, cx, cy, free coefficients...)
     final: dict[str, float]
@@ -110,7 +111,9 @@ class CameraCalibration:
 
     @property
     def unconverged(self) -> list[int]:
-        return [] if self.subsets is None else [int(i) for i in np.flatnonzero(~self.subsets.converged)]
+        if self.filtering is None:
+            return []
+        return [int(i) for i in np.flatnonzero(~(self.filtering.table.status > 0))]
 
     @property
     def final_coefficients(self) -> np.ndarray:
@@ -147,10 +150,15 @@ def calibrate_camera(
     steps: Sequence[Step] | None = None,
     progress: Progress | None = None,
     use_cache: bool = True,
+    scratch: Path | None = None,
 ) -> CameraCalibration:
     """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
-    `config.steps`). Raises DstereoError for unreadable files, m > N, or a step that leaves no subset."""
-    from dstereo.calib.mono import calibrate_full, solve_subsets
+    `config.steps`). Raises DstereoError for unreadable files, m > N, a step that leaves no subset, or a run
+    that cannot fit this machine (figures in the message).
+
+    `scratch`: folder for the per-subset table of a huge run (default the system temp folder; the CLI passes
+    the results folder's parent). `progress` may carry a `note(text)` method: the run's estimate goes there."""
+    from dstereo.calib.mono import calibrate_full
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
 
@@ -175,8 +183,13 @@ def calibrate_camera(
         warnings.append(f"image {name} rejected: {reason}")
     plan = None
     if config.per_set is not None:
+        from dstereo.calib.subset_runs import check_subset_run
+
+        # Before the plan: a sample of 1e11 subsets would need 800 GB for its ranks alone.
+        check_subset_run(len(used), config.per_set, config.max_subsets, 5 + len(config.model), scratch,
+                         getattr(progress, "note", None))  # columns re, fx, fy, cx, cy + the free coefficients
         plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
-        if len(plan.index) < 2 and steps:
+        if len(plan) < 2 and steps:
             raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
                                "the steps need several: lower --per-set")
 
@@ -200,25 +213,30 @@ def calibrate_camera(
     if plan is not None:
         t0 = time.perf_counter()
         if progress is not None:
-            progress("subsets", 0, len(plan.index))
-        subsets = solve_subsets(det.object_points, obs, plan, full,
-                                progress=None if progress is None else (lambda i, n: progress("subsets", i, n)))
+            progress("subsets", 0, len(plan))
+        subsets, table = _solve_subsets(det.object_points, obs, plan, full, columns, scratch, progress)
         timings["subsets_s"] = time.perf_counter() - t0
-        table = np.column_stack([subsets.rms, subsets.values])
-        usable = subsets.converged & np.all(np.isfinite(table), axis=1)
+        t0 = time.perf_counter()
+        usable = table.status > 0
+        for j in range(len(columns)):
+            usable &= np.isfinite(table.column(j))
         if not usable.any():
+            table.close()
             raise DstereoError(f"none of the {len(table)} subset solves converged; check the images and --pattern")
         if not usable.all():
             bad = np.flatnonzero(~usable)
             warnings.append(f"{len(bad)} of {len(table)} subset solves did not converge and are left out of the "
                             f"statistics (subsets {', '.join(map(str, bad[:10]))}{', ...' if len(bad) > 10 else ''})")
-        t0 = time.perf_counter()
-        filtering = run_steps(table, columns, steps, usable, config.min_subsets)
+        try:
+            filtering = run_steps(table, columns, steps, usable, config.min_subsets)
+        except BaseException:
+            table.close()
+            raise
         timings["steps_s"] = time.perf_counter() - t0
         warnings += [s.message for s in filtering.steps if s.stopped_by_minimum]
-        rows = filtering.table[filtering.survivors]
-        final = {n: float(np.mean(rows[:, j + 1])) for j, n in enumerate(full.names)}
-        spread = {n: float(np.std(rows[:, j + 1])) for j, n in enumerate(full.names)}
+        stats = filtering.stats(len(filtering.steps))
+        final = {n: stats[n]["mean"] for n in full.names}
+        spread = {n: stats[n]["std"] for n in full.names}
 
     coverage = corner_coverage(obs.reshape(-1, 2), det.image_size)
     warnings += list(coverage.warnings)
@@ -227,3 +245,27 @@ def calibrate_camera(
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings,
     )
+
+
+def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
+    """(SubsetSolutions or None, SubsetTable): every subset solved block by block (`subset_runs`); the whole
+    SubsetSolutions only up to KEEP_SOLUTIONS subsets (above, the table holds what the steps need)."""
+    from dstereo.calib.mono import SubsetSolutions, chunk_rows, solve_subsets
+    from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
+
+    m, n_views = plan.per_set, len(obs)
+
+    def solve_block(block, report):
+        sol = solve_subsets(obj, obs, block, full, progress=report)
+        return np.column_stack([sol.rms, sol.values]), sol.status, sol
+
+    table, kept = solve_in_blocks(
+        plan, columns, solve_block, chunk_rows(m if 2 * m < n_views else n_views, obs.shape[1]), scratch,
+        progress=None if progress is None else (lambda i, n: progress("subsets", i, n)),
+        note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None)
+    if not kept:
+        return None, table
+    cat = lambda name: np.concatenate([getattr(s, name) for s in kept])  # noqa: E731
+    return SubsetSolutions(plan=plan, names=full.names, values=cat("values"), std=cat("std"), rms=cat("rms"),
+                           iterations=cat("iterations"), status=cat("status"),
+                           timings={"solve_s": sum(s.timings["solve_s"] for s in kept)}), table

@@ -9,15 +9,19 @@ Tx, ..., RVz). Steps run in order; each names parameters with a max error:
   belonging to neither half.
 Parameters of one step are filtered jointly: each pass removes every subset that fails any of them.
 A minimum number of subsets stops a step before a pass that would leave fewer, and says so.
+
+The table is read a column at a time (`SubsetTable`, possibly on disk): a step holds only its own columns,
+and the statistics per step are computed column by column and kept (the stats files ask for each k often).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
+from dstereo.calib.subset_table import SubsetTable
 from dstereo.config import ABSOLUTE_PARAMETERS, Step
 from dstereo.errors import DstereoError
 
@@ -61,10 +65,14 @@ class FilterResult:
     """The table, which rows were usable, and at which step each row was removed (0: survives)."""
 
     columns: tuple[str, ...]
-    table: np.ndarray  # (C, P)
+    table: SubsetTable  # C rows of the named columns (read a column at a time)
     usable: np.ndarray  # (C,) bool
-    removed_at: np.ndarray  # (C,) int: SURVIVES, step number k, or UNUSABLE
+    removed_at: np.ndarray  # (C,) int16: SURVIVES, step number k, or UNUSABLE
     steps: list[StepOutcome]
+    _stats: dict = field(default_factory=dict, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.table)
 
     def alive_after(self, k: int) -> np.ndarray:
         """(C,) bool: usable rows that survived steps 1..k (k = 0: before any step)."""
@@ -75,18 +83,25 @@ class FilterResult:
         return self.alive_after(len(self.steps))
 
     def column(self, name: str) -> np.ndarray:
-        return self.table[:, self.columns.index(name)]
+        return self.table.column(self.columns.index(name))
+
+    def values(self, name: str, k: int) -> np.ndarray:
+        """One column's values over the survivors of steps 1..k."""
+        return self.column(name)[self.alive_after(k)]
 
     def stats(self, k: int) -> dict[str, dict[str, float]]:
         """Mean, standard deviation (population, as numpy's std) and error % = std / |mean| * 100 per column,
-        plus min and max, over the survivors of steps 1..k."""
-        rows = self.table[self.alive_after(k)]
+        plus min and max, over the survivors of steps 1..k (computed once per k)."""
+        if k in self._stats:
+            return self._stats[k]
+        alive = self.alive_after(k)
         out = {}
         for j, name in enumerate(self.columns):
-            col = rows[:, j]
+            col = self.table.column(j)[alive]
             mean, std = float(np.mean(col)), float(np.std(col))
             out[name] = {"mean": mean, "std": std, "error_percent": 100.0 * std / abs(mean) if mean else float("inf"),
                          "min": float(np.min(col)), "max": float(np.max(col)), "count": int(col.size)}
+        self._stats[k] = out
         return out
 
 
@@ -99,24 +114,28 @@ def _bounds(col: np.ndarray, name: str, limit: float, absolute: Sequence[str]) -
 
 
 def run_steps(
-    table: np.ndarray,
+    table: np.ndarray | SubsetTable,
     columns: Sequence[str],
     steps: Sequence[Step],
     usable: np.ndarray | None = None,
     min_subsets: int | None = None,
     absolute: Sequence[str] = ABSOLUTE_PARAMETERS,
 ) -> FilterResult:
-    """Apply `steps` in order to the rows of `table` (C, P) whose `usable` flag is set.
+    """Apply `steps` in order to the rows of `table` (C, P), an array or a SubsetTable, whose `usable` flag is set.
 
     A step's own `min_subsets` overrides the argument. A pass that would leave no subset at all (possible only
     for absolute limits) raises DstereoError unless a minimum stops the step first.
     """
-    table = np.asarray(table, dtype=float)
     columns = tuple(columns)
-    if table.ndim != 2 or table.shape[1] != len(columns):
-        raise DstereoError(f"subset table: shape {table.shape} does not match {len(columns)} columns {columns}")
+    if not isinstance(table, SubsetTable):
+        table = np.asarray(table, dtype=float)
+        if table.ndim != 2 or table.shape[1] != len(columns):
+            raise DstereoError(f"subset table: shape {table.shape} does not match {len(columns)} columns {columns}")
+        table = SubsetTable.from_rows(table, columns)
+    elif table.columns != columns:
+        raise DstereoError(f"subset table: columns {table.columns} are not {columns}")
     usable = np.ones(len(table), bool) if usable is None else np.asarray(usable, bool)
-    removed_at = np.where(usable, SURVIVES, UNUSABLE)
+    removed_at = np.where(usable, SURVIVES, UNUSABLE).astype(np.int16)
     outcomes = []
     for k, step in enumerate(steps, 1):
         missing = [p for p in step.parameters if p not in columns]
@@ -128,7 +147,7 @@ def run_steps(
         while True:
             outside = np.zeros(len(table), bool)
             for name, limit in zip(step.parameters, step.max_error):
-                col = table[:, columns.index(name)]
+                col = table.column(columns.index(name))  # one column at a time (re-read per pass: bounded memory)
                 lo, hi = _bounds(col[alive], name, limit, absolute)
                 bounds[name] = (float(lo), float(hi))
                 outside |= alive & ~((col >= lo) & (col <= hi))

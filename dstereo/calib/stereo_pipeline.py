@@ -35,6 +35,7 @@ from dstereo.io.stereo_files import StereoDetection, detect_pairs
 LEFT_FOLDERS = ("images_left", "calibrate_left")
 RIGHT_FOLDERS = ("images_right", "calibrate_right")
 STEREO_FOLDERS = ("images_stereo_left", "images_stereo_right")
+STEREO_CHUNK = 32  # solve_stereo_subsets' chunk (its default)
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,7 @@ class StereoCalibrationJob:
     detection: StereoDetection
     full: StereoSolution
     plan: object | None
-    subsets: StereoSubsetSolutions | None
+    subsets: StereoSubsetSolutions | None  # None above KEEP_SOLUTIONS subsets: then only `filtering.table`
     filtering: FilterResult | None
     final: dict[str, float]  # STEP_COLUMNS
     spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
@@ -140,13 +141,52 @@ def _camera(cal: CameraCalibration):
                          cal.detection.image_size)
 
 
+class _Prefixed:
+    """A progress callback whose stages (and notes) are prefixed with the camera's side."""
+
+    def __init__(self, progress, side: str):
+        self.progress, self.side = progress, side
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        self.progress(f"{self.side} {stage}", done, total)
+
+    def note(self, text: str) -> None:
+        if getattr(self.progress, "note", None) is not None:
+            self.progress.note(f"{self.side} camera: {text}")
+
+
 def _prefixed(progress: Progress | None, side: str) -> Progress | None:
-    return None if progress is None else (lambda stage, done, total: progress(f"{side} {stage}", done, total))
+    return None if progress is None else _Prefixed(progress, side)
+
+
+def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
+    """(StereoSubsetSolutions or None, SubsetTable of STEP_COLUMNS): block by block, as the mono pipeline."""
+    from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
+
+    note = getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None
+
+    def solve_block(block, report):
+        sol = solve_stereo_subsets(obj, obs_l, obs_r, block, full, progress=report)
+        cols = sol.columns()
+        return np.column_stack([cols[k] for k in STEP_COLUMNS]), sol.status, sol
+
+    report = None if progress is None else (lambda d, n: progress("stereo subsets", d, n))
+    table, kept = solve_in_blocks(plan, STEP_COLUMNS, solve_block, STEREO_CHUNK, scratch, progress=report,
+                                  note=None if note is None else (lambda text: note("stereo " + text)))
+    if not kept:
+        return None, table
+    cat = lambda name: np.concatenate([getattr(s, name) for s in kept])  # noqa: E731
+    return StereoSubsetSolutions(
+        plan=plan, names=full.names, values=cat("values"), std=cat("std"), norm_std=cat("norm_std"), rms=cat("rms"),
+        stereo_re=cat("stereo_re"), iterations=cat("iterations"), status=cat("status"),
+        timings={"solve_s": sum(s.timings["solve_s"] for s in kept)}), table
 
 
 def calibrate_stereo_project(sources: StereoSources, config: Config, progress: Progress | None = None,
-                             use_cache: bool = True) -> StereoCalibrationJob:
-    """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps."""
+                             use_cache: bool = True, scratch: Path | None = None) -> StereoCalibrationJob:
+    """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps, or a
+    subset run that cannot fit this machine. `scratch`: folder for huge runs' per-subset tables (as mono)."""
+    from dstereo.calib.subset_runs import check_subset_run
     from dstereo.calib.subsets import plan_subsets
     from dstereo.models.rig import essential_matrix, fundamental_matrix
     from dstereo.models.pose import rodrigues
@@ -170,7 +210,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         cfg = config.with_overrides(image_format=fmt)
         try:
             cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
-                                          use_cache=use_cache)
+                                          use_cache=use_cache, scratch=scratch)
         except DstereoError as exc:
             raise DstereoError(f"{side} camera: {exc}") from None
         timings[f"{side}_s"] = time.perf_counter() - t0
@@ -194,22 +234,28 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     plan = subsets = filtering = None
     if config.per_set is not None:
         t0 = time.perf_counter()
+        check_subset_run(len(det.pairs), config.per_set, config.max_subsets, len(STEP_COLUMNS), scratch,
+                         getattr(progress, "note", None), label="stereo ")
         plan = plan_subsets(len(det.pairs), config.per_set, cap=config.max_subsets, seed=config.seed)
-        subsets = solve_stereo_subsets(det.object_points, obs_l, obs_r, plan, full, progress=None if progress is None
-                                       else (lambda d, n: progress("stereo subsets", d, n)))
-        cols = subsets.columns()
-        table = np.column_stack([cols[k] for k in STEP_COLUMNS])
-        usable = subsets.converged & np.all(np.isfinite(table), axis=1)
+        subsets, table = _solve_stereo_subsets(det.object_points, obs_l, obs_r, plan, full, scratch, progress)
+        usable = table.status > 0
+        for j in range(len(STEP_COLUMNS)):
+            usable &= np.isfinite(table.column(j))
         if not usable.any():
+            table.close()
             raise DstereoError(f"none of the {len(table)} stereo subset solves converged; check the pairs")
         if not usable.all():
             warnings.append(f"{int((~usable).sum())} of {len(table)} stereo subset solves did not converge and are "
                             "left out of the statistics")
-        filtering = run_steps(table, STEP_COLUMNS, config.stereo_steps, usable, config.min_subsets)
+        try:
+            filtering = run_steps(table, STEP_COLUMNS, config.stereo_steps, usable, config.min_subsets)
+        except BaseException:
+            table.close()
+            raise
         warnings += [f"stereo {s.message}" for s in filtering.steps if s.stopped_by_minimum]
-        rows = table[filtering.survivors]
-        final = {k: float(np.mean(rows[:, j])) for j, k in enumerate(STEP_COLUMNS)}
-        spread = {k: float(np.std(rows[:, j])) for j, k in enumerate(STEP_COLUMNS)}
+        stats = filtering.stats(len(filtering.steps))
+        final = {k: stats[k]["mean"] for k in STEP_COLUMNS}
+        spread = {k: stats[k]["std"] for k in STEP_COLUMNS}
         timings["stereo_subsets_s"] = time.perf_counter() - t0
     rvec = np.array([final["RVx"], final["RVy"], final["RVz"]])
     T = np.array([final["Tx"], final["Ty"], final["Tz"]])

@@ -129,7 +129,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     out = _results_folder(out, project, force, cfg, inputs=[*sources.mono_left, *sources.mono_right,
                                                              *sources.stereo_left, *sources.stereo_right])
     with progress_bars(quiet) as progress:
-        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache)
+        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         _check_rig_fits(job)
         job.warnings += _stereo_view_warnings(job)  # before writing: summary.json keeps them
         write_stereo_results(out, job, force, projection_range=projection_range)
@@ -192,7 +192,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:
-        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache)
+        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
         t0 = time.perf_counter()
         if progress is not None:

@@ -16,47 +16,125 @@ def _pyplot():
     return plt
 
 
+OVER_COLOUR = "tab:red"  # pixels above the colour scale
+ROBUST_PERCENTILE = 99.0  # projection maps: the colour scale stops here unless the data fit in it
+SWAMP_FACTOR = 1.25  # the full range is kept unless it is more than this times the percentile range
+
+
+def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE,
+                  lower: float | None = None) -> tuple[float, float, str]:
+    """(vmin, vmax, extend) of a map's colour scale. Non-negative maps (`lower` None): 0 to the `percentile` of
+    the finite values, so that one huge value (a 4e13 px std where a ray leaves the model's valid range) does
+    not compress every other pixel into one colour. Signed maps: `lower` to `percentile` percentiles.
+    `extend` ("neither", "max", "min", "both", as matplotlib's colour bar takes it) says which side has finite
+    values beyond the scale (drawn in the over/under colour). Non-finite values are ignored (mask them)."""
+    finite = np.asarray(values, float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return 0.0, 1.0, "neither"
+    top, peak = float(np.percentile(finite, percentile)), float(finite.max())
+    bottom, least = (0.0, 0.0) if lower is None else (float(np.percentile(finite, lower)), float(finite.min()))
+    if peak - bottom <= SWAMP_FACTOR * (top - bottom):  # nothing far above: the full range shows it all
+        top = peak
+    if lower is not None and top - least <= SWAMP_FACTOR * (top - bottom):
+        bottom = least
+    if not top > bottom:  # constant
+        top = bottom + (abs(bottom) or 1.0)
+    over, under = peak > top, lower is not None and least < bottom
+    return bottom, top, {(False, False): "neither", (True, False): "max", (False, True): "min",
+                         (True, True): "both"}[(bool(over), bool(under))]
+
+
+LOG_RANGE = 20.0  # a non-negative map whose colour range spans more than this factor is drawn on a log scale
+
+
+def map_norm(values: np.ndarray, percentile: float = ROBUST_PERCENTILE, lower: float | None = None):
+    """(norm, extend, log) for imshow / colorbar: `colour_limits`, and for a non-negative map whose scale spans
+    more than LOG_RANGE from its smallest positive value, a log scale from there (both the small middle and
+    the large rim of a map then show)."""
+    from matplotlib.colors import LogNorm, Normalize
+
+    vmin, vmax, extend = colour_limits(values, percentile, lower)
+    finite = np.asarray(values, float)
+    finite = finite[np.isfinite(finite)]
+    least = float(finite[finite > 0].min()) if lower is None and (finite > 0).any() else 0.0
+    if least > 0 and vmax / least > LOG_RANGE:
+        return LogNorm(least, vmax), extend, True
+    return Normalize(vmin, vmax), extend, False
+
+
+def log_colour_bar(bar) -> None:
+    """1-2-5 ticks with significant-digit labels on a log colour bar (matplotlib's default can print 0)."""
+    from matplotlib.ticker import FuncFormatter
+
+    from dstereo.io.plots import log_ticks, tick_label
+
+    bar.set_ticks(log_ticks(bar.norm.vmin, bar.norm.vmax))
+    bar.ax.yaxis.set_major_formatter(FuncFormatter(tick_label))
+    bar.minorticks_off()
+
+
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
     """Depth standard deviation per pixel, colour bar in `unit`, pixels without a point black; the colour
-    scale stops at the 95th percentile (arrow on the bar) so a few far, badly matched points do not wash the
-    map out."""
+    scale stops at the 95th percentile (arrow on the bar, `colour_limits`) when a few far, badly matched
+    points would otherwise wash the map out."""
     import matplotlib
 
     plt = _pyplot()
     h, w = sigma_z.shape
-    finite = sigma_z[np.isfinite(sigma_z)]
-    top = float(np.percentile(finite, 95)) if finite.size else 1.0
+    vmin, vmax, extend = colour_limits(sigma_z, 95.0)
     fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
-    cmap = matplotlib.colormaps["magma"].with_extremes(bad="black")
-    im = ax.imshow(np.ma.masked_invalid(sigma_z), cmap=cmap, vmin=0.0, vmax=top if top > 0 else None,
-                   interpolation="nearest")
-    ax.set_title(title)
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad="black", over="tab:cyan")
+    im = ax.imshow(np.ma.masked_invalid(sigma_z), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    scale = "\ncolour scale to the 95th percentile; cyan above it" if extend != "neither" else ""
+    ax.set_title(title + scale, fontsize=10)
     ax.set_axis_off()
-    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}] (scale to the 95th percentile)", fraction=0.046,
-                 pad=0.04, extend="max")
+    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}]", fraction=0.046, pad=0.04, extend=extend)
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
 
 
 def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], title: str, unit: str) -> None:
-    """Worst-direction std (px) of the projection over the image, with contour lines (a `ProjectionUncertaintyMap`)."""
+    """Worst-direction std (px) of the projection over the image, with contour lines (a `ProjectionUncertaintyMap`).
+    Colour scale from `colour_limits` (values above it in OVER_COLOUR, non-finite grey), on a log scale when it
+    spans more than LOG_RANGE (a wide-angle lens: 0.4 px in the middle, 20 px at the rim), so both show."""
+    import matplotlib
+
     plt = _pyplot()
     w, h = image_size
+    std = np.ma.masked_invalid(np.asarray(pmap.std, float))
+    norm, extend, log = map_norm(pmap.std)
+    least, vmax, clipped = norm.vmin, norm.vmax, extend != "neither"
+    finite = np.asarray(pmap.std, float)[np.isfinite(pmap.std)]
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.8))
     du = (pmap.u[1] - pmap.u[0]) / 2 if len(pmap.u) > 1 else 0.5
     dv = (pmap.v[1] - pmap.v[0]) / 2 if len(pmap.v) > 1 else 0.5
     extent = (pmap.u[0] - du, pmap.u[-1] + du, pmap.v[-1] + dv, pmap.v[0] - dv)
-    im = ax.imshow(pmap.std, extent=extent, cmap="viridis", interpolation="bilinear", vmin=0.0)
-    if np.ptp(pmap.std) > 0:
-        cs = ax.contour(pmap.u, pmap.v, pmap.std, levels=6, colors="w", linewidths=0.7)
+    cmap = matplotlib.colormaps["viridis"].with_extremes(over=OVER_COLOUR, bad="0.6")
+    im = ax.imshow(std, extent=extent, cmap=cmap, interpolation="nearest" if clipped else "bilinear", norm=norm)
+    if finite.size and np.ptp(finite) > 0:
+        if log:
+            levels = np.geomspace(least, vmax, 7)[1:-1]
+        else:
+            levels = np.linspace(float(finite.min()), vmax, 7)[1:-1] if clipped else 6
+        cs = ax.contour(pmap.u, pmap.v, std, levels=levels, colors="w", linewidths=0.7)
         ax.clabel(cs, fmt="%.2g", fontsize=8)
-    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)")
+    bar = fig.colorbar(im, ax=ax, fraction=0.04, extend=extend,
+                       label="projection std, worst direction (px)" + (", log scale" if log else ""))
+    if log:
+        log_colour_bar(bar)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
+    notes = []
+    if clipped:
+        notes.append(f"red: above the scale ({ROBUST_PERCENTILE:g}th percentile {vmax:.3g} px; max "
+                     f"{float(finite.max()):.3g} px)")
+    if np.ma.count_masked(std):
+        notes.append("grey: not finite (outside the model's valid range)")
     ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray; intrinsics only (no extrinsics "
-                 "compensation)", fontsize=9)
+                 "compensation)" + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -240,11 +240,16 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
     from dstereo.io.results import atomic_folder, fill_camera_folder
 
     out = Path(out)
-    with atomic_folder(out, force) as tmp:
-        for side, cal in (("left", job.left), ("right", job.right)):
-            (tmp / side).mkdir()
-            fill_camera_folder(tmp / side, cal, projection_range=projection_range)
-        _fill_stereo_folder(tmp, job)
+    try:
+        with atomic_folder(out, force) as tmp:
+            for side, cal in (("left", job.left), ("right", job.right)):
+                (tmp / side).mkdir()
+                fill_camera_folder(tmp / side, cal, projection_range=projection_range)
+            _fill_stereo_folder(tmp, job)
+    finally:  # huge runs' per-subset files (now in the CSVs) go
+        for filtering in (job.left.filtering, job.right.filtering, job.filtering):
+            if filtering is not None:
+                filtering.table.close()
     return out
 
 
@@ -281,7 +286,7 @@ def stereo_summary(job) -> dict:
     }
     if job.filtering is not None:
         f, plan = job.filtering, job.plan
-        summary["subsets"] = {"per_set": int(plan.index.shape[1]), "solved": int(len(plan.index)),
+        summary["subsets"] = {"per_set": int(plan.per_set), "solved": int(len(plan)),
                               "sampling": plan.describe(), "initial_count": int(f.usable.sum()),
                               "final_count": int(f.survivors.sum()), "initial": f.stats(0),
                               "final": f.stats(len(f.steps)),
@@ -317,12 +322,12 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     if job.filtering is not None:
         f = job.filtering
         write_stats_files(folder / "stereo_stats", f, STEREO_TITLE)
-        write_subsets_csv(folder / "stereo_subsets.csv", job.plan.index, f, job.subsets.status)
+        write_subsets_csv(folder / "stereo_subsets.csv", job.plan, f, f.table.status)
         from dstereo.io import plots as mono_plots
 
         full_values = s.columns()
-        for j, name in enumerate(f.columns):
-            mono_plots.parameter_figure(name, f.table[f.alive_after(0), j], f.table[f.survivors, j],
+        for name in f.columns:
+            mono_plots.parameter_figure(name, f.values(name, 0), f.values(name, len(f.steps)),
                                         plots / f"{name}.png", STEREO_UNITS.get(name, job.config.unit),
                                         full_values[name])
         for names, target, title in ((("Tnorm", "Tx", "Ty", "Tz"), "T.png", "translation vector T"),
@@ -345,11 +350,14 @@ def _pyplot():
 
 def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
     """Thesis Figures 5.15/5.16: one panel per parameter, box plots of the initial and the optimised subsets."""
+    from dstereo.io.plots import box_stats
+
     plt = _pyplot()
     fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.8))
     for ax, name in zip(axes, names):
         col = filtering.column(name)
-        ax.boxplot([col[filtering.alive_after(0)], col[filtering.survivors]], widths=0.6)
+        ax.bxp([box_stats(col[filtering.alive_after(0)], "initial"), box_stats(col[filtering.survivors], "final")],
+               widths=0.6)
         ax.set_xticks([1, 2], ["initial", "optimised"])
         ax.set_title(f"{name} ({STEREO_UNITS.get(name, unit)})")
         ax.ticklabel_format(axis="y", useOffset=False)
@@ -368,8 +376,15 @@ def _frustum(k: np.ndarray, size: tuple[int, int], depth: float) -> np.ndarray:
     return np.vstack([np.zeros(3), rays])
 
 
+def frustum_depth(baseline: float, distance: float) -> float:
+    """Drawn depth of a camera frustum: half the baseline (two frusta side by side then stay apart and the
+    baseline reads at a glance), kept between 3 % and 25 % of the board distance so they remain visible."""
+    return float(np.clip(0.5 * baseline, 0.03 * distance, 0.25 * distance))
+
+
 def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
-    """3D view in the left camera's frame: both cameras (frusta) and every pair's board."""
+    """3D view in the left camera's frame: both cameras (frusta sized by `frustum_depth`), the baseline
+    between their centres, and every pair's board."""
     from scipy.spatial.transform import Rotation
 
     plt = _pyplot()
@@ -383,8 +398,11 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
         pts = Rotation.from_rotvec(pose[:3]).apply(outline) + pose[3:]
         boards.append(pts)
         ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
-    depth = 0.25 * float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
+    distance = float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
+    depth = frustum_depth(float(solution.baseline), distance)
     centre_r = -solution.R.T @ solution.T
+    ax.plot(*_display([np.zeros(3), centre_r]), color="k", lw=2.5, marker="o", ms=4,
+            label=f"baseline {solution.baseline:.4g} {unit}")
     for name, cam, rot, centre, colour in (("left", solution.left, np.eye(3), np.zeros(3), "tab:blue"),
                                            ("right", solution.right, solution.R.T, centre_r, "tab:red")):
         f = _frustum(np.asarray(cam.k), cam.image_size, depth) @ rot.T + centre
@@ -400,7 +418,8 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
     ax.set_xlim(mid[0] - span, mid[0] + span)
     ax.set_ylim(mid[2] - span, mid[2] + span)
     ax.set_zlim(-mid[1] - span, -mid[1] + span)
-    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses")
+    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses "
+                 f"(median distance {distance:.4g} {unit}); frusta drawn {depth:.3g} {unit} deep", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=90)
