@@ -423,27 +423,12 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
     return fig
 
 
-def log_ticks(lo: float, hi: float) -> np.ndarray:
-    """Colour-bar ticks of a log scale over [lo, hi]: 1-2-5 times powers of ten inside, else (a range under
-    about a factor 5) five geometric steps rounded to 2 significant digits; distinct and labelled by `tick_label`."""
-    decades = np.arange(np.floor(np.log10(lo)), np.ceil(np.log10(hi)) + 1)
-    ticks = np.array([m * 10.0 ** d for d in decades for m in (1, 2, 5)])
-    ticks = ticks[(ticks >= lo) & (ticks <= hi)]
-    if len(ticks) < 3:
-        ticks = np.unique([float(f"{t:.2g}") for t in np.geomspace(lo, hi, 5)])
-        ticks = ticks[(ticks >= lo) & (ticks <= hi)]
-    return ticks
-
-
-def tick_label(value: float, _pos=None) -> str:
-    """'0.05', '2', '150', '2e+04': significant digits, never a small value printed as 0."""
-    return f"{value:.3g}"
-
-
 def _plot_contour(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4.5))
     from matplotlib.colors import LogNorm
     from matplotlib.ticker import FuncFormatter
+
+    from dstereo.io.plots import log_ticks, tick_label
 
     focal, f_number = np.meshgrid(_focal_axis(config, 120), _f_number_axis(config, 120))
     total = _total(config, focal, f_number)

@@ -10,10 +10,9 @@ from scipy.stats import gaussian_kde
 
 from dstereo.calib.pipeline import CORNER_MIN_PERCENT, corner_coverage
 from dstereo.io import plots
-from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches
+from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches, log_ticks, tick_label
 from dstereo.io.sigma_maps import colour_limits, projection_uncertainty_png
 from dstereo.io.stereo_files import frustum_depth
-from dstereo.optics import log_ticks, tick_label
 from dstereo.projection_uncertainty import ProjectionUncertaintyMap
 
 
@@ -121,3 +120,15 @@ def test_parameter_figure_of_a_million_subsets_draws_summaries(tmp_path, saved):
     hist, kde, box = saved[0].axes
     assert len(kde.get_lines()) >= 2 and sum(len(line.get_xdata()) for line in box.get_lines()) < 5000
     assert kde.get_ylabel() == "density (1/px)"
+
+
+def test_wide_angle_map_gets_a_log_scale(tmp_path, saved):
+    # A rational model on a fisheye: ~0.4 px in the middle, tens of px towards the rim, 1e3+ px spikes there.
+    u, v, std = _smooth_map()
+    wide = 0.4 * np.exp(25 * (std - 0.05))
+    wide[0, :3] = [1.5e3, np.nan, 4e13]
+    pmap = ProjectionUncertaintyMap(u, v, np.zeros(wide.shape + (2, 2)), wide, 100.0)
+    projection_uncertainty_png(tmp_path / "w.png", pmap, (640, 480), "test", "mm")
+    norm = saved[0].axes[0].get_images()[0].norm
+    assert type(norm).__name__ == "LogNorm" and norm.vmin == pytest.approx(np.nanmin(wide))
+    assert norm.vmax == pytest.approx(np.percentile(wide[np.isfinite(wide)], 99))

@@ -139,3 +139,16 @@ def test_streamed_run_writes_the_same_folder(tmp_path, left_images, monkeypatch)
     plain, streamed = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("plain", "streamed"))
     assert plain["subsets"] == streamed["subsets"] and plain["final"] == streamed["final"]
     assert not list(tmp_path.glob(".dstereo-subsets-*"))  # the per-subset file is removed
+
+
+def test_a_run_that_cannot_fit_is_refused_before_any_solve(tmp_path, left_images, monkeypatch):
+    monkeypatch.setattr(subset_runs, "available_memory", lambda: 100 * 2 ** 20)
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in left_images:
+        (images / src.name).symlink_to(src)
+    code, out, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "res")
+    assert code == 1 and not (tmp_path / "res").exists()
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dstereo: error: max-subsets: 286 subsets need about")
+    assert "100 MB is available; free memory first" in lines[0]

@@ -30,7 +30,6 @@ MODEL_LADDER = ("rational", "k1k2k3p1p2", "k1k2p1p2", "k1k2", "k1")
 QUADRANT_MIN_PERCENT = 12.5
 CORNER_MIN_PERCENT = 1.0
 REGIONS = ("upper_left", "lower_left", "upper_right", "lower_right", "centre")
-NOTE_ABOVE = 20_000  # runs of more subsets print their memory/disk/time estimate
 
 
 @dataclass(frozen=True)
@@ -188,18 +187,15 @@ def calibrate_camera(
         warnings.append(f"image {name} rejected: {reason}")
     plan = None
     if config.per_set is not None:
+        from dstereo.calib.subset_runs import check_subset_run
+
+        # Before the plan: a sample of 1e11 subsets would need 800 GB for its ranks alone.
+        check_subset_run(len(used), config.per_set, config.max_subsets, 5 + len(config.model), scratch,
+                         getattr(progress, "note", None))  # columns re, fx, fy, cx, cy + the free coefficients
         plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
         if len(plan) < 2 and steps:
             raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
                                "the steps need several: lower --per-set")
-
-    if plan is not None:
-        from dstereo.calib.subset_runs import estimate_run
-
-        est = estimate_run(len(plan), 5 + len(config.model), config.per_set, scratch)  # re, fx, fy, cx, cy, ...
-        est.check()
-        if getattr(progress, "note", None) is not None and len(plan) > NOTE_ABOVE:
-            progress.note(est.text())
 
     t0 = time.perf_counter()
     if progress is not None:
@@ -277,7 +273,7 @@ def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
     """(SubsetSolutions or None, SubsetTable): every subset solved block by block (`subset_runs`); the whole
     SubsetSolutions only up to KEEP_SOLUTIONS subsets (above, the table holds what the steps need)."""
     from dstereo.calib.mono import SubsetSolutions, chunk_rows, solve_subsets
-    from dstereo.calib.subset_runs import solve_in_blocks
+    from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
 
     m, n_views = plan.per_set, len(obs)
 

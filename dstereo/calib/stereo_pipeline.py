@@ -167,14 +167,9 @@ def _prefixed(progress: Progress | None, side: str) -> Progress | None:
 
 def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
     """(StereoSubsetSolutions or None, SubsetTable of STEP_COLUMNS): block by block, as the mono pipeline."""
-    from dstereo.calib.pipeline import NOTE_ABOVE
-    from dstereo.calib.subset_runs import estimate_run, solve_in_blocks
+    from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
 
     note = getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None
-    est = estimate_run(len(plan), len(STEP_COLUMNS), plan.per_set, scratch)
-    est.check()
-    if note is not None:
-        note("stereo " + est.text())
 
     def solve_block(block, report):
         sol = solve_stereo_subsets(obj, obs_l, obs_r, block, full, progress=report)
@@ -197,6 +192,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
                              use_cache: bool = True, scratch: Path | None = None) -> StereoCalibrationJob:
     """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps, or a
     subset run that cannot fit this machine. `scratch`: folder for huge runs' per-subset tables (as mono)."""
+    from dstereo.calib.subset_runs import check_subset_run
     from dstereo.calib.subsets import plan_subsets
     from dstereo.models.rig import essential_matrix, fundamental_matrix
     from dstereo.models.pose import rodrigues
@@ -244,6 +240,8 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     plan = subsets = filtering = rig_fs = subset_mean = None
     if config.per_set is not None:
         t0 = time.perf_counter()
+        check_subset_run(len(det.pairs), config.per_set, config.max_subsets, len(STEP_COLUMNS), scratch,
+                         getattr(progress, "note", None), label="stereo ")
         plan = plan_subsets(len(det.pairs), config.per_set, cap=config.max_subsets, seed=config.seed)
         subsets, table = _solve_stereo_subsets(det.object_points, obs_l, obs_r, plan, full, scratch, progress)
         usable = table.status > 0

@@ -22,6 +22,7 @@ from dstereo.calib import subset_table
 from dstereo.calib.subset_table import SubsetTable
 from dstereo.errors import DstereoError
 
+NOTE_ABOVE = 20_000  # runs of more subsets print their memory/disk/time estimate
 BLOCK_TARGET = 4096  # subsets per block: seconds of work, a few MB of solver output
 KEEP_SOLUTIONS = 20_000  # up to this many subsets the solver's per-subset outputs are kept whole (as before)
 # Peak resident memory measured with /usr/bin/time -v on 29 views, m = 20, 10 columns: C = 1e4 0.48 GB,
@@ -86,9 +87,11 @@ class RunEstimate:
     def check(self) -> None:
         """Refuse (DstereoError, with the figures) a run that cannot fit."""
         if self.ram_bytes > self.available_ram:
-            fit = max(0, int((self.available_ram - BASE_BYTES) / BYTES_PER_SUBSET))
+            fit = int((self.available_ram - BASE_BYTES) / BYTES_PER_SUBSET)
+            what = (f"lower --max-subsets to at most about {fit}" if fit >= 2 else
+                    f"free memory first (a run needs about {_size(BASE_BYTES)} before any subset)")
             raise DstereoError(f"max-subsets: {self.subsets} subsets need about {_size(self.ram_bytes)} of memory but "
-                               f"{_size(self.available_ram)} is available; lower --max-subsets to at most about {fit}")
+                               f"{_size(self.available_ram)} is available; {what}")
         if self.disk_bytes > self.free_disk:
             per = self.disk_bytes / max(self.subsets, 1)
             raise DstereoError(f"max-subsets: {self.subsets} subsets need about {_size(self.disk_bytes)} of disk in "
@@ -108,6 +111,22 @@ def estimate_run(subsets: int, columns: int, per_set: int, folder: str | Path | 
     disk = (table if on_disk else 0) + csv_row * subsets
     return RunEstimate(subsets, columns, ram, disk, on_disk, available_memory(), shutil.disk_usage(probe).free,
                        folder)
+
+
+def check_subset_run(n_images: int, per_set: int, cap: int, columns: int, folder, note=None,
+                     label: str = "") -> RunEstimate | None:
+    """Estimate the run of min(C(n, m), cap) subsets, refuse it (DstereoError) if it cannot fit, and pass
+    the estimate to `note` for runs above NOTE_ABOVE subsets. Call before planning: the plan itself costs memory."""
+    import math
+
+    if per_set < 1 or per_set > n_images:
+        return None  # plan_subsets gives the message
+    count = min(math.comb(n_images, per_set), cap)
+    est = estimate_run(count, columns, per_set, folder)
+    est.check()
+    if note is not None and count > NOTE_ABOVE:
+        note(label + est.text())
+    return est
 
 
 def block_size(chunk: int, workers: int = 2) -> int:

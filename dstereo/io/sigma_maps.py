@@ -45,6 +45,35 @@ def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE,
                          (True, True): "both"}[(bool(over), bool(under))]
 
 
+LOG_RANGE = 20.0  # a non-negative map whose colour range spans more than this factor is drawn on a log scale
+
+
+def map_norm(values: np.ndarray, percentile: float = ROBUST_PERCENTILE, lower: float | None = None):
+    """(norm, extend, log) for imshow / colorbar: `colour_limits`, and for a non-negative map whose scale spans
+    more than LOG_RANGE from its smallest positive value, a log scale from there (both the small middle and
+    the large rim of a map then show)."""
+    from matplotlib.colors import LogNorm, Normalize
+
+    vmin, vmax, extend = colour_limits(values, percentile, lower)
+    finite = np.asarray(values, float)
+    finite = finite[np.isfinite(finite)]
+    least = float(finite[finite > 0].min()) if lower is None and (finite > 0).any() else 0.0
+    if least > 0 and vmax / least > LOG_RANGE:
+        return LogNorm(least, vmax), extend, True
+    return Normalize(vmin, vmax), extend, False
+
+
+def log_colour_bar(bar) -> None:
+    """1-2-5 ticks with significant-digit labels on a log colour bar (matplotlib's default can print 0)."""
+    from matplotlib.ticker import FuncFormatter
+
+    from dstereo.io.plots import log_ticks, tick_label
+
+    bar.set_ticks(log_ticks(bar.norm.vmin, bar.norm.vmax))
+    bar.ax.yaxis.set_major_formatter(FuncFormatter(tick_label))
+    bar.minorticks_off()
+
+
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
     """Depth standard deviation per pixel, colour bar in `unit`, pixels without a point black; the colour
     scale stops at the 95th percentile (arrow on the bar) so a few far, badly matched points do not wash the
@@ -67,29 +96,37 @@ def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -
     plt.close(fig)
 
 
+
+
 def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], title: str, unit: str) -> None:
     """Worst-direction std (px) of the projection over the image, with contour lines (a `ProjectionUncertaintyMap`).
-    Colour scale from `colour_limits`: values above it in OVER_COLOUR, non-finite values grey."""
+    Colour scale from `colour_limits` (values above it in OVER_COLOUR, non-finite grey), on a log scale when it
+    spans more than LOG_RANGE (a wide-angle lens: 0.4 px in the middle, 20 px at the rim), so both show."""
     import matplotlib
 
     plt = _pyplot()
     w, h = image_size
     std = np.ma.masked_invalid(np.asarray(pmap.std, float))
-    vmin, vmax, extend = colour_limits(pmap.std)
-    clipped = extend != "neither"
+    norm, extend, log = map_norm(pmap.std)
+    least, vmax, clipped = norm.vmin, norm.vmax, extend != "neither"
+    finite = np.asarray(pmap.std, float)[np.isfinite(pmap.std)]
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.8))
     du = (pmap.u[1] - pmap.u[0]) / 2 if len(pmap.u) > 1 else 0.5
     dv = (pmap.v[1] - pmap.v[0]) / 2 if len(pmap.v) > 1 else 0.5
     extent = (pmap.u[0] - du, pmap.u[-1] + du, pmap.v[-1] + dv, pmap.v[0] - dv)
     cmap = matplotlib.colormaps["viridis"].with_extremes(over=OVER_COLOUR, bad="0.6")
-    im = ax.imshow(std, extent=extent, cmap=cmap, interpolation="nearest" if clipped else "bilinear",
-                   vmin=vmin, vmax=vmax)
-    finite = np.asarray(pmap.std, float)[np.isfinite(pmap.std)]
+    im = ax.imshow(std, extent=extent, cmap=cmap, interpolation="nearest" if clipped else "bilinear", norm=norm)
     if finite.size and np.ptp(finite) > 0:
-        levels = np.linspace(float(finite.min()), vmax, 7)[1:-1] if clipped else 6
+        if log:
+            levels = np.geomspace(least, vmax, 7)[1:-1]
+        else:
+            levels = np.linspace(float(finite.min()), vmax, 7)[1:-1] if clipped else 6
         cs = ax.contour(pmap.u, pmap.v, std, levels=levels, colors="w", linewidths=0.7)
         ax.clabel(cs, fmt="%.2g", fontsize=8)
-    fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)", extend=extend)
+    bar = fig.colorbar(im, ax=ax, fraction=0.04, extend=extend,
+                       label="projection std, worst direction (px)" + (", log scale" if log else ""))
+    if log:
+        log_colour_bar(bar)
     ax.set_xlim(-0.5, w - 0.5)
     ax.set_ylim(h - 0.5, -0.5)
     ax.set_xlabel("x (px)")

@@ -85,27 +85,29 @@ def recession_maps(result, path: Path, max_panels: int = 12) -> None:
 
 def rate_map(result, path: Path) -> None:
     """Rate per grid cell and the half-width of its 95 % interval. Colour scales from the 1st-99th percentile
-    (rate) and 0-99th (interval), so a few edge cells fitted from few frames do not wash the maps out; cells
-    beyond the scale in the over/under colour, cells without a fit grey."""
+    (rate) and up to the 99th (interval; log when it spans more than 20x), so a few edge cells fitted from few
+    frames do not wash the maps out; cells beyond the scale in the over/under colour (red/blue), cells without a fit white."""
     import matplotlib
 
-    from dstereo.io.sigma_maps import colour_limits
+    from dstereo.io.sigma_maps import log_colour_bar, map_norm
 
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), dpi=100)
     for ax, key, title in ((axes[0], "rate", "recession rate"), (axes[1], "ci95_half", "95% interval half-width")):
         data = 1000 * np.asarray(result.rates[key], float)
-        vmin, vmax, extend = colour_limits(data, 99.0, lower=1.0 if key == "rate" else None)
+        norm, extend, log = map_norm(data, 99.0, lower=1.0 if key == "rate" else None)
         cmap = matplotlib.colormaps["magma" if key == "rate" else "cividis"].with_extremes(
-            over="tab:red", under="tab:blue", bad="0.6")
-        im = ax.imshow(np.ma.masked_invalid(data), extent=_extent(result.grid), cmap=cmap, vmin=vmin, vmax=vmax,
+            over="tab:red", under="tab:blue", bad="white")
+        im = ax.imshow(np.ma.masked_invalid(data), extent=_extent(result.grid), cmap=cmap, norm=norm,
                        interpolation="nearest")
         ax.plot(0, 0, "c+", ms=10)
         ax.set_title(title + ("" if extend == "neither" else " (colour scale 1st-99th percentile)"
                               if key == "rate" else " (colour scale to the 99th percentile)"), fontsize=10)
         ax.set_xlabel("u [mm]")
         ax.set_ylabel("v [mm]")
-        fig.colorbar(im, ax=ax, label="mm/ks (um/s)", extend=extend)
+        bar = fig.colorbar(im, ax=ax, label="mm/ks (um/s)" + (", log scale" if log else ""), extend=extend)
+        if log:
+            log_colour_bar(bar)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
