@@ -368,6 +368,12 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     """Console text of a finished job (the CLI prints it)."""
     s, pm = job.full, (lambda v, e: f"{v:.6g} +- {e:.3g}" if e == e else f"{v:.6g}")  # noqa: E731
     unit = job.config.unit
+    full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
+    full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
+    kind = "Jacobian"
+    if job.full_set_sigma is not None:  # the honest +-: intrinsics errors carried into the rig
+        full_std |= job.full_set_sigma.std
+        kind = job.full_set_sigma.label.split(":")[0]
     lines = [f"individual: left RMS {job.left.full.rms:.4f} px ({len(job.left.used)} images), right RMS "
              f"{job.right.full.rms:.4f} px ({len(job.right.used)} images)",
              f"stereo: {len(job.detection.pairs)} pairs ({len(job.detection.dropped)} dropped), RMS {s.rms:.4f} px, "
@@ -375,12 +381,6 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
              f"{'parameter':>9}  {'full set +- std (' + kind + ')':>28}  " + (
                  f"subset mean +- spread of {int(job.filtering.survivors.sum())} subsets" if job.filtering
                  else "final")]
-    full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
-    full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
-    kind = "Jacobian"
-    if job.full_set_sigma is not None:  # the honest +-: intrinsics errors carried into the rig
-        full_std |= job.full_set_sigma.std
-        kind = job.full_set_sigma.label.split(":")[0]
     full_vals = s.columns()
     shown = job.subset_mean if job.subset_mean is not None else job.final
     for k in STEP_COLUMNS:
