@@ -146,15 +146,10 @@ def test_cli_final_mean_writes_the_thesis_mean(tmp_path):
     np.testing.assert_allclose(dist, [mean(n) for n in FIVE[:2] + ("p1", "p2", "k3")], rtol=1e-12, atol=1e-15)
 
 
-def test_fixed_mode_rig_sigma_is_the_propagated_one():
-    """The rig's reported +- equals an independent linear propagation: A = d rig / d intrinsics by central
-    differences of full re-solves of the rig, cov = C_rig|k + A C_k A^T.
-
-    Tolerance 3 %: the tool's A is the Gauss-Newton linearisation at the optimum (second-order residual terms
-    dropped, of relative size residual / (curvature * sigma) ~ 1 % at 0.2 px noise); the differences use steps
-    of 0.1 sigma (truncation ~1e-3) and re-solves converged to LM's 1e-12 tolerances."""
-    from scipy.linalg import block_diag
-
+@pytest.fixture(scope="module")
+def rig_job():
+    """A synthetic rig (12 pairs, 0.2 px noise), each camera calibrated on its own views, the rig in fixed mode;
+    the job object carries what `attach_rig_uncertainty` reads."""
     from dstereo.calib.stereo import calibrate_stereo, camera_from_solution
     from dstereo.synth.poses import compose
 
@@ -172,6 +167,46 @@ def test_fixed_mode_rig_sigma_is_the_propagated_one():
                           left=SimpleNamespace(full=sols[0], final_solution=None),
                           right=SimpleNamespace(full=sols[1], final_solution=None),
                           detection=SimpleNamespace(object_points=obj, observations=lambda: (obs_l, obs_r)))
+    return obj, obs_l, obs_r, sols, cams, stereo, job
+
+
+def test_rig_written_is_the_solve_on_the_surviving_pairs(rig_job):
+    """Pair 0 in no surviving subset: stereo.yml's rig is a fresh rig solve on pairs 1-11, and its covariance
+    (stereo.yml's cov) is that solve's, not the full set's."""
+    from dstereo.calib.final_solution import rig_final
+    from dstereo.calib.stereo import STEP_COLUMNS, calibrate_stereo
+    from dstereo.calib.stereo_pipeline import rig_covariance
+
+    obj, obs_l, obs_r, sols, cams, stereo, job = rig_job
+    index = np.array([np.arange(1, 7), np.arange(6, 12), np.arange(2, 8)])  # pair 0 in none
+    row = [stereo.columns()[k] for k in STEP_COLUMNS]
+    filtering = run_steps(np.array([row] * 3), STEP_COLUMNS, [])
+    mean = dict(zip(STEP_COLUMNS, row))
+    rf = rig_final("survivors", filtering, index, obj, obs_l, obs_r, stereo, mean)
+    fresh = calibrate_stereo(obj, obs_l[1:], obs_r[1:], *cams, "fixed")
+    np.testing.assert_array_equal(rf.solution.values, fresh.values)
+    assert rf.final == fresh.columns() and not rf.views[0] and rf.views[1:].all()
+    written = SimpleNamespace(**vars(job))
+    written.rig_final = rf
+    attach_rig_uncertainty(written)
+    expected = rig_covariance(job, solution=fresh, pairs=rf.views)[1]
+    np.testing.assert_array_equal(written.calibration_covariance[1], expected)
+    assert not np.allclose(expected, rig_covariance(job)[1], rtol=1e-3)
+
+
+def test_fixed_mode_rig_sigma_is_the_propagated_one(rig_job):
+    """The rig's reported +- equals an independent linear propagation: A = d rig / d intrinsics by central
+    differences of full re-solves of the rig, cov = C_rig|k + A C_k A^T.
+
+    Tolerance 3 %: the tool's A is the Gauss-Newton linearisation at the optimum (second-order residual terms
+    dropped, of relative size residual / (curvature * sigma) ~ 1 % at 0.2 px noise); the differences use steps
+    of 0.1 sigma (truncation ~1e-3) and re-solves converged to LM's 1e-12 tolerances."""
+    from scipy.linalg import block_diag
+
+    from dstereo.calib.stereo import calibrate_stereo
+
+    obj, obs_l, obs_r, sols, cams, stereo, job = rig_job
+    job = SimpleNamespace(**vars(job))
     attach_rig_uncertainty(job)
     columns = []
     for side in (0, 1):

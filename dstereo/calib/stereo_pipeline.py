@@ -293,7 +293,8 @@ FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance 
                    "intrinsics errors carried into the rig (A C_k A^T, A = d rig / d intrinsics at the stereo "
                    "optimum), "
                    "with the cross terms A C_k; assumes the stereo corners' noise independent of the individual "
-                   "solves'. Values in this file are the final ones; the covariance is that of the full-set solves")
+                   "solves'. Values in this file are the final ones; the covariance is that of the solves on the "
+                   "surviving views and pairs (the full-set solves when all survive)")
 BLOCK_STRUCTURE = ("block-diagonal (left, right, rig): each camera's intrinsics from its individual (mono) full-set "
                    "solve, the rig from the stereo solve with the intrinsics held fixed; no correlations")
 JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-set)"
