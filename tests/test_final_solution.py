@@ -226,3 +226,14 @@ def test_fixed_mode_rig_sigma_is_the_propagated_one(rig_job):
     # It is not the fixed-intrinsics Jacobian sigma the reports showed before (that one is far smaller here).
     assert np.all(got > 1.5 * np.asarray(stereo.std[:6]))
     assert "propagated" in job.full_set_sigma.label
+
+
+def test_final_option_in_toml_and_its_errors():
+    from dstereo.config import Config, config_from_toml, to_toml, validate
+    from dstereo.errors import DstereoError
+
+    cfg = config_from_toml('[pattern]\ncolumns = 9\nrows = 6\n[calibration]\nfinal = "mean"\n', "t.toml")
+    assert cfg.final == "mean" and Config().final == "survivors"
+    assert config_from_toml(to_toml(cfg), "back.toml").final == "mean"  # the results folder's config.toml
+    with pytest.raises(DstereoError, match="final 'median'; use one of survivors, mean"):
+        validate(cfg.with_overrides(final="median"))
