@@ -135,7 +135,7 @@ class MeanCheck:
 
     def text(self, what: str = "camera") -> str:
         return (f"the thesis's subset mean {what} fits its {self.views} surviving views at RMS {self.rms_mean:.4f} px "
-                f"against {self.rms_solution:.4f} px for the solve on the same views ({self.ratio:.2f}x, poses "
+                f"against {self.rms_solution:.4f} px for the solve on the same views ({self.ratio:.3f}x, poses "
                 f"refitted): averaging parameters one by one gives no consistent calibration")
 
     def as_dict(self) -> dict:
