@@ -152,3 +152,23 @@ def test_a_run_that_cannot_fit_is_refused_before_any_solve(tmp_path, left_images
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("dstereo: error: max-subsets: 286 subsets need about")
     assert "100 MB is available; free memory first" in lines[0]
+
+
+def test_csv_lines_are_what_csv_writer_writes(tmp_path):
+    import csv
+
+    from dstereo.io.results import write_subsets_csv
+
+    rng = np.random.default_rng(5)
+    rows = np.column_stack([np.abs(rng.normal(0.3, 0.1, 50)), rng.normal(800, 1, 50), rng.normal(0, 1e-4, 50)])
+    f = run_steps(rows, ("re", "fx", "p1"), (Step(("re",), (0.35,)),), rng.random(50) > 0.1)
+    plan, status = plan_subsets(8, 4, cap=50, seed=1), rng.integers(-1, 3, 50)
+    write_subsets_csv(tmp_path / "ours.csv", plan, f, status)
+    with open(tmp_path / "ref.csv", "w", newline="") as fh:  # the writer of before, cell by cell
+        w = csv.writer(fh)
+        w.writerow(["subset", "images", "fx", "p1", "rms", "converged", "survives", "removed_at_step", "solver_status"])
+        for i in range(50):
+            fate = int(f.removed_at[i])
+            w.writerow([i, " ".join(map(str, plan.index[i])), *(repr(float(rows[i, j])) for j in (1, 2, 0)),
+                        int(fate != -1), int(fate == 0), fate if fate > 0 else "", int(status[i])])
+    assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()

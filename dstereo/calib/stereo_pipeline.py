@@ -176,8 +176,8 @@ def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
         cols = sol.columns()
         return np.column_stack([cols[k] for k in STEP_COLUMNS]), sol.status, sol
 
-    table, kept = solve_in_blocks(plan, STEP_COLUMNS, solve_block, STEREO_CHUNK, scratch,
-                                  progress=None if progress is None else (lambda d, n: progress("stereo subsets", d, n)),
+    report = None if progress is None else (lambda d, n: progress("stereo subsets", d, n))
+    table, kept = solve_in_blocks(plan, STEP_COLUMNS, solve_block, STEREO_CHUNK, scratch, progress=report,
                                   note=None if note is None else (lambda text: note("stereo " + text)))
     if not kept:
         return None, table

@@ -44,7 +44,7 @@ def _horizontal() -> dict:
     return {"orientation": "horizontal"} if (major, minor) >= (3, 10) else {"vert": False}
 
 
-EXACT_KDE_MAX = 2000  # up to this many values the KDE is scipy's exact sum; beyond, binned (cost ~ grid, not C)
+EXACT_KDE_MAX = 500  # up to this many values the KDE is scipy's exact sum; beyond, binned (cost ~ grid, not C)
 BIN_BLOCK = 1 << 20  # values binned at a time
 MAX_FLIERS = 1000  # outliers drawn per box plot at most (evenly spaced in order, extremes included)
 

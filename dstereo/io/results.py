@@ -181,7 +181,8 @@ def write_subsets_csv(path: Path, plan, filtering: FilterResult, status: np.ndar
             images = [" ".join(map(str, r)) for r in index.tolist()]
             fh.write("".join(
                 f"{a + i},{images[i]},{','.join(map(repr, row))},{int(fate != UNUSABLE)},{int(fate == SURVIVES)},"
-                f"{fate if fate > 0 else ''}{codes[i]}\r\n" for i, (row, fate) in enumerate(zip(table.tolist(), fates))))
+                f"{fate if fate > 0 else ''}{codes[i]}\r\n"
+                for i, (row, fate) in enumerate(zip(table.tolist(), fates))))
 
 
 def steps_summary(filtering: FilterResult) -> list[dict]:

@@ -18,7 +18,7 @@ def _pyplot():
 
 OVER_COLOUR = "tab:red"  # pixels above the colour scale
 ROBUST_PERCENTILE = 99.0  # projection maps: the colour scale stops here unless the data fit in it
-SWAMP_FACTOR = 2.0  # the full range is kept unless it is more than this times the percentile range
+SWAMP_FACTOR = 1.25  # the full range is kept unless it is more than this times the percentile range
 
 
 def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE,
@@ -76,26 +76,22 @@ def log_colour_bar(bar) -> None:
 
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
     """Depth standard deviation per pixel, colour bar in `unit`, pixels without a point black; the colour
-    scale stops at the 95th percentile (arrow on the bar) so a few far, badly matched points do not wash the
-    map out."""
+    scale stops at the 95th percentile (arrow on the bar, `colour_limits`) when a few far, badly matched
+    points would otherwise wash the map out."""
     import matplotlib
 
     plt = _pyplot()
     h, w = sigma_z.shape
-    finite = sigma_z[np.isfinite(sigma_z)]
-    top = float(np.percentile(finite, 95)) if finite.size else 1.0
+    vmin, vmax, extend = colour_limits(sigma_z, 95.0)
     fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
-    cmap = matplotlib.colormaps["magma"].with_extremes(bad="black")
-    im = ax.imshow(np.ma.masked_invalid(sigma_z), cmap=cmap, vmin=0.0, vmax=top if top > 0 else None,
-                   interpolation="nearest")
-    ax.set_title(title)
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad="black", over="tab:cyan")
+    im = ax.imshow(np.ma.masked_invalid(sigma_z), cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    scale = "\ncolour scale to the 95th percentile; cyan above it" if extend != "neither" else ""
+    ax.set_title(title + scale, fontsize=10)
     ax.set_axis_off()
-    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}] (scale to the 95th percentile)", fraction=0.046,
-                 pad=0.04, extend="max")
+    fig.colorbar(im, ax=ax, label=f"depth std sigma_z [{unit}]", fraction=0.046, pad=0.04, extend=extend)
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
-
-
 
 
 def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], title: str, unit: str) -> None:

@@ -86,7 +86,8 @@ def recession_maps(result, path: Path, max_panels: int = 12) -> None:
 def rate_map(result, path: Path) -> None:
     """Rate per grid cell and the half-width of its 95 % interval. Colour scales from the 1st-99th percentile
     (rate) and up to the 99th (interval; log when it spans more than 20x), so a few edge cells fitted from few
-    frames do not wash the maps out; cells beyond the scale in the over/under colour (red/blue), cells without a fit white."""
+    frames do not wash the maps out; cells beyond the scale in the over/under colour (red/blue), cells without a
+    fit white."""
     import matplotlib
 
     from dstereo.io.sigma_maps import log_colour_bar, map_norm
