@@ -15,7 +15,7 @@ import pytest
 
 from conftest import require_data, run_cli
 from dstereo.calib import mono
-from dstereo.calib.final_solution import RIG, attach_rig_uncertainty, camera_final, surviving_views
+from dstereo.calib.final_solution import RIG, attach_rig_uncertainty, camera_final, surviving_views, view_survival
 from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subsets import plan_subsets
 from dstereo.config import Step
@@ -76,6 +76,10 @@ def test_written_camera_is_a_fresh_solve_on_the_surviving_views(bad_view_run):
         expected[list(row)] = True
     assert not expected[0] and expected[1:].all()  # the construction: view 0 is in no surviving subset
     np.testing.assert_array_equal(surviving_views(filtering, plan, 10, block=7), expected)
+    alive, usable = view_survival(filtering, plan, 10, block=7)
+    rows = np.asarray(plan.index)
+    assert alive.tolist() == [sum(v in r for r in rows[filtering.survivors]) for v in range(10)]
+    assert usable.tolist() == [sum(v in r for r in rows[filtering.usable]) for v in range(10)]
     fs = camera_final("survivors", filtering, plan, obj, obs, full, SIZE, mean)
     fresh = mono.calibrate_full(obj, obs[1:], SIZE, FIVE)  # the same program on the same data: equal
     np.testing.assert_array_equal(fs.solution.values, fresh.values)

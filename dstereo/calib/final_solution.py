@@ -40,16 +40,21 @@ POSE_ITERATIONS = 60  # LM iterations of a pose refit from a nearby start (6 par
 # --- surviving views ------------------------------------------------------------------------------------------
 
 
-def surviving_views(filtering, plan, n_views: int, block: int = 65536) -> np.ndarray:
-    """(V,) bool: the views that appear in at least one surviving subset (read from the plan a block at a time)."""
-    keep = np.zeros(n_views, bool)
-    survivors = filtering.survivors
+def view_survival(filtering, plan, n_views: int, block: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """((V,) surviving subsets holding each view, (V,) usable subsets holding it), read a block at a time."""
+    alive_n, usable_n = np.zeros(n_views, np.int64), np.zeros(n_views, np.int64)
+    survivors, usable = filtering.survivors, filtering.usable
     rows_of = plan.rows if hasattr(plan, "rows") else (lambda a, b: np.asarray(plan)[a:b])
     for a in range(0, len(survivors), block):
-        alive = survivors[a:a + block]
-        if alive.any():
-            keep[np.unique(rows_of(a, a + len(alive))[alive])] = True
-    return keep
+        rows = rows_of(a, a + len(survivors[a:a + block]))
+        alive_n += np.bincount(rows[survivors[a:a + block]].ravel(), minlength=n_views)
+        usable_n += np.bincount(rows[usable[a:a + block]].ravel(), minlength=n_views)
+    return alive_n, usable_n
+
+
+def surviving_views(filtering, plan, n_views: int, block: int = 65536) -> np.ndarray:
+    """(V,) bool: the views that appear in at least one surviving subset."""
+    return view_survival(filtering, plan, n_views, block)[0] > 0
 
 
 # --- pose refits --------------------------------------------------------------------------------------------
@@ -154,6 +159,7 @@ class FinalSolution:
     solution: object  # CameraSolution on the surviving views (the full-set solve when all survive)
     subset_mean: dict[str, float]
     check: MeanCheck
+    survival: tuple[np.ndarray, np.ndarray] | None = None  # `view_survival`
 
     @property
     def final(self) -> dict[str, float]:
@@ -172,20 +178,27 @@ class FinalSolution:
         return solve + "; the thesis's subset mean is beside it (subset_mean)"
 
     def as_dict(self, names_used: list[str]) -> dict:
-        return {"choice": self.choice, "source": self.source(names_used),
-                "survivor_views": [names_used[i] for i in np.flatnonzero(self.views)],
+        out = {"choice": self.choice, "source": self.source(names_used),
+               "survivor_views": [names_used[i] for i in np.flatnonzero(self.views)],
                 "left_out_views": [names_used[i] for i in np.flatnonzero(~self.views)],
                 "solution": self.solution.as_dict(),
                 "solution_std": dict(zip(self.solution.names, map(float, self.solution.std))),
-                "solution_rms_px": float(self.solution.rms), "subset_mean": dict(self.subset_mean),
-                "mean_check": self.check.as_dict()}
+               "solution_rms_px": float(self.solution.rms), "subset_mean": dict(self.subset_mean),
+               "mean_check": self.check.as_dict()}
+        if self.survival is not None:  # share of each view's (converged) subsets that survive the steps
+            alive, usable = self.survival
+            out["view_survival"] = {names_used[i]: {"surviving_subsets": int(alive[i]), "subsets": int(usable[i]),
+                                                    "share": float(alive[i] / usable[i]) if usable[i] else None}
+                                    for i in range(len(alive))}
+        return out
 
 
 def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subset_mean: dict) -> FinalSolution:
     """The solve on the surviving views (re-solved only when some view survives in no subset) and the mean check."""
     from dstereo.calib.mono import calibrate_full
 
-    views = surviving_views(filtering, plan, len(obs))
+    survival = view_survival(filtering, plan, len(obs))
+    views = survival[0] > 0
     solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free))
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
@@ -198,7 +211,8 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, obj, obs[views], solution.poses)
     # The solution's own refit equals its RMS to the solver's tolerance; the refitted figure is compared so that
     # both sides are measured the same way.
-    return FinalSolution(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms_sol, rms_mean))
+    return FinalSolution(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms_sol, rms_mean),
+                         survival)
 
 
 def written_camera_solution(cal):
