@@ -554,7 +554,8 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
     elif comments:
         out.append("# min_subsets = 50  # a step stops before it leaves fewer subsets")
     if cfg.final != "survivors":
-        out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the survivors' solve"))
+        out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the "
+                                                         "survivors' solve"))
     elif comments:
         out.append('# final = "mean"  # camera file: the thesis\'s subset mean instead of the survivors\' solve')
     if comments:
