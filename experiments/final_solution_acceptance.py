@@ -12,7 +12,8 @@
     full_set.std, now the propagated one) and, for comparison, the fixed-intrinsics Jacobian sigma the reports
     showed before. Acceptance: RMS z <= 1.5.
 
-`python -m experiments.final_solution_acceptance [--cap 300]`; writes experiments/results/final_solution.{md,json}.
+`python -m experiments.final_solution_acceptance [--cap 300] [--rational]`; writes
+experiments/results/final_solution.{md,json} (--rational: the cameras with the rational model, *_rational.*).
 """
 
 from __future__ import annotations
@@ -31,12 +32,15 @@ CAMERAS = (("opencv_stereo", "left*.jpg"), ("opencv_stereo", "right*.jpg"), ("ri
 RIG = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
 
 
+MODEL = ("k1", "k2", "p1", "p2", "k3")
+
+
 def thesis_config(cap: int, per_set: int | None = 10):
     from dstereo.config import Config, Step
 
     steps = (Step(("re",), (0.5,)), Step(("p1", "p2"), (1.5, 1.5)), Step(("k1", "k2", "k3"), (1.5,) * 3),
              Step(("fx", "fy", "cx", "cy"), (1.0,) * 4)) if per_set else ()
-    return Config(pattern=(9, 6), square=1.0, per_set=per_set, max_subsets=cap, steps=steps)
+    return Config(pattern=(9, 6), square=1.0, per_set=per_set, max_subsets=cap, steps=steps, model=MODEL)
 
 
 def opencv_refit_rms(K, D, obj, obs) -> float:
@@ -68,10 +72,10 @@ def camera_study(folder: str, glob: str, cap: int) -> dict:
     obj = cal.detection.object_points.astype(np.float64)
     obs = cal.observations[fs.views]
     mat = lambda f: np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1.0]])  # noqa: E731
-    vec = lambda f: np.array([f.get(n, 0.0) for n in COEFF_NAMES])[:5]  # noqa: E731
+    vec = lambda f: np.array([f.get(n, 0.0) for n in COEFF_NAMES])[:8 if "k4" in MODEL else 5]  # noqa: E731
     written = opencv_refit_rms(mat(cal.final), vec(cal.final), obj, obs)
     mean = opencv_refit_rms(mat(fs.subset_mean), vec(fs.subset_mean), obj, obs)
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS  # the same 5-coefficient model, started at dstereo's solve
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | (cv2.CALIB_RATIONAL_MODEL if "k4" in MODEL else 0)  # dstereo's model
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 500, 1e-15)
     cv_rms, *_ = cv2.calibrateCamera([obj.astype(np.float32)] * len(obs), [o.astype(np.float32) for o in obs],
                                      cal.detection.image_size, mat(cal.final), vec(cal.final), flags=flags,
@@ -133,18 +137,29 @@ def rig_study(folder: str, seed: int = 0) -> dict:
 
 def markdown(cams: list[dict], rigs: list[dict], cap: int) -> str:
     lines = ["# Issue 15 scope 1: the written camera is a solution; the rig's +- is honest", "",
-             f"`python -m experiments.final_solution_acceptance --cap {cap}` (model k1 k2 p1 p2 k3, thesis steps, "
+             f"`python -m experiments.final_solution_acceptance --cap {cap}` (model {' '.join(MODEL)}, thesis steps, "
              f"m = 10, at most {cap} subsets; square = 1).", "",
              "## (a) RMS on the surviving views' corners, every pose refitted by cv2.solvePnP + RefineLM", "",
              "| camera | views (surviving) | subsets (surviving) | full-set solve RMS (OpenCV / dstereo) | written "
-             "camera | vs full | thesis mean | vs full | tool warns |", "|---|---|---|---|---|---|---|---|---|"]
+             "camera | vs full | thesis mean | vs full | mean, tool's refit | tool warns |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for c in cams:
         lines.append(f"| {c['camera']} | {c['views']} ({c['surviving_views']}) | {c['subsets']} "
                      f"({c['surviving_subsets']}) | {c['full_set_solve_rms_opencv']:.4f} / "
                      f"{c['full_set_solve_rms_dstereo']:.4f} | {c['written_rms_solvepnp']:.4f} | "
                      f"{100 * c['written_vs_full']:+.3f} % | {c['mean_rms_solvepnp']:.4f} | "
-                     f"{100 * c['mean_vs_full']:+.2f} % | {c['tool_warns']} |")
-    lines += ["", "Acceptance: written camera within 1 % of the full-set solve on the same views.", "",
+                     f"{100 * c['mean_vs_full']:+.2f} % | {c['mean_rms_tool_refit']:.4f} | {c['tool_warns']} |")
+    lines += ["", "Acceptance: written camera within 1 % of the full-set solve on the same views (vs full: against "
+              "dstereo's solve; OpenCV's calibrateCamera from dstereo's solve is beside it). RMS = sqrt(SSE / "
+              "corners). The tool warns when its own refit (LM per view from three starts) puts the mean > 1 % "
+              "above the solve.", ""]
+    lower = [c for c in cams if c["full_set_solve_rms_opencv"] < 0.999 * c["full_set_solve_rms_dstereo"]]
+    gain = lambda c: 100 * (1 - c["full_set_solve_rms_opencv"] / c["full_set_solve_rms_dstereo"])  # noqa: E731
+    lines += [f"Found: on {c['camera']} cv2.calibrateCamera, started from dstereo's full-set solve, reaches RMS "
+              f"{c['full_set_solve_rms_opencv']:.4f} px, {gain(c):.1f} % below dstereo's own solve: a lower minimum "
+              "exists that dstereo's LM does not reach (not part of this change; the written camera is dstereo's "
+              "solve)." for c in lower]
+    lines += ([""] if lower else []) + [
               "## (b) Rig cross-validation over disjoint halves of the pairs", "",
               "z = (a - b) / sqrt(sa^2 + sb^2) per component RVx..Tz, pooled over the splits (odd/even, "
               "first/second, two random).", "",
@@ -169,16 +184,22 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cap", type=int, default=300, help="subsets per camera (a seeded sample above)")
     ap.add_argument("--skip-cameras", action="store_true")
+    ap.add_argument("--rational", action="store_true", help="cameras only, rational model (k1..k6, p1, p2)")
     args = ap.parse_args()
+    global MODEL
+    if args.rational:
+        MODEL = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
     cams = [] if args.skip_cameras else [camera_study(f, g, args.cap) for f, g in CAMERAS]
     for c in cams:
         print(json.dumps({k: c[k] for k in ("camera", "written_vs_full", "mean_vs_full", "tool_warns")}))
-    rigs = [rig_study(s) for s in ("opencv_stereo", "rig640")]
+    rigs = [] if args.rational else [rig_study(s) for s in ("opencv_stereo", "rig640")]
     for r in rigs:
         print(r["set"], "RMS z", r["rms_z"], "old", r["rms_z_intrinsics_exact"])
     OUT.mkdir(exist_ok=True)
-    (OUT / "final_solution.json").write_text(json.dumps({"cameras": cams, "rigs": rigs}, indent=1, default=float))
-    (OUT / "final_solution.md").write_text(markdown(cams, rigs, args.cap))
+    name = "final_solution_rational" if args.rational else "final_solution"
+    (OUT / f"{name}.json").write_text(json.dumps({"model": MODEL, "cameras": cams, "rigs": rigs}, indent=1,
+                                                 default=float))
+    (OUT / f"{name}.md").write_text(markdown(cams, rigs, args.cap))
 
 
 if __name__ == "__main__":
