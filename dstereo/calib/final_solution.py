@@ -115,10 +115,11 @@ def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
 
 def refit_rms(k, coeffs, obj, obs, start_poses) -> tuple[float, np.ndarray]:
     """(RMS px over all corners, (V, 6) poses) of a fixed camera (k (4,), coeffs (8,)) on views `obs` (V, n, 2),
-    each view's board pose refitted from `start_poses` (V, 6) and from two homography starts (corners undistorted
-    by this camera, and taken as they are); per view the best fit counts. Several starts because a camera that is no solution (a subset mean of a rational model) can put a
-    pole of its distortion near the corners, and LM from one start then stops behind it (measured on
-    opencv_stereo left: 0.4083 px from the solve's poses, 0.4040 px from both, = cv2.solvePnP + RefineLM).
+    each view's board pose refitted from `start_poses` (V, 6) and from two homography starts (the corners
+    undistorted by this camera, and taken as they are); per view the best fit counts. Several starts because a
+    camera that is no solution (a subset mean of a rational model) can put a pole of its distortion near the
+    corners, and LM from one start then stops behind it (measured on opencv_stereo left, rational: 0.4083 px
+    from the solve's poses, 0.4041 px from the three; cv2.solvePnP + RefineLM 0.4040 px).
     RMS = sqrt(SSE / corners), OpenCV's convention."""
     cams = (np.asarray(k, float), np.asarray(coeffs, float))
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
