@@ -403,9 +403,11 @@ def _plot_vs_focal(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
     focal = _focal_axis(config)
     ax.plot(focal, _total(config, focal, config.f_number))
-    ax.plot([config.focal_length], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    chosen = float(_total(config, config.focal_length, config.f_number))
+    ax.plot([config.focal_length], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel=_label_focal(config), ylabel="total depth of field (mm)",
            title=f"N = {config.f_number:g}, s = {config.focus_distance:g} mm")
+    ax.legend()
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig
@@ -415,9 +417,11 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
     f_number = _f_number_axis(config)
     ax.plot(f_number, _total(config, config.focal_length, f_number))
-    ax.plot([config.f_number], [_total(config, config.focal_length, config.f_number)], "rx", ms=10)
+    chosen = float(_total(config, config.focal_length, config.f_number))
+    ax.plot([config.f_number], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel="f-number N", ylabel="total depth of field (mm)",
            title=f"f = {config.focal_length:g} mm, s = {config.focus_distance:g} mm")
+    ax.legend()
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig

@@ -32,8 +32,8 @@ def log_ticks(lo: float, hi: float) -> np.ndarray:
 
 
 def tick_label(value: float, _pos=None) -> str:
-    """'0.05', '2', '150', '2e+04': significant digits, never a small value printed as 0."""
-    return f"{value:.3g}"
+    """'0.05', '2', '150', '20000': the tick's own digits (1-2-5 ticks are short), never a small value as 0."""
+    return f"{value:g}"
 
 
 def _horizontal() -> dict:
