@@ -241,3 +241,27 @@ def test_final_option_in_toml_and_its_errors():
     assert config_from_toml(to_toml(cfg), "back.toml").final == "mean"  # the results folder's config.toml
     with pytest.raises(DstereoError, match="final 'median'; use one of survivors, mean"):
         validate(cfg.with_overrides(final="median"))
+
+
+def test_cli_stereo_final_mean_writes_the_thesis_rig(tmp_path):
+    """Stereo with `--final mean`: stereo.yml's T and R are the mean of stereo_subsets.csv's surviving rows (the
+    thesis's rig), and stereo.json keeps the consistent rig solve beside it (every pair survives: the full set)."""
+    import csv
+    import json
+
+    from dstereo.io.calib_files import read_stereo_calibration
+
+    data = require_data("opencv_stereo")
+    out = tmp_path / "r"
+    code, _, err = run_cli("calibrate", "--left", data / "left*.jpg", "--right", data / "right*.jpg", "--pattern",
+                           "9x6", "--per-set", "12", "--final", "mean", "--out", out, "-q")
+    assert code == 0, err
+    rows = [r for r in csv.DictReader(open(out / "stereo_subsets.csv")) if r["survives"] == "1"]
+    mean = lambda n: np.mean([float(r[n]) for r in rows])  # noqa: E731
+    back = read_stereo_calibration(out / "stereo.yml")
+    np.testing.assert_allclose(back.T, [mean(n) for n in ("Tx", "Ty", "Tz")], rtol=1e-12)
+    np.testing.assert_allclose(cv2.Rodrigues(back.R)[0].ravel(), [mean(n) for n in ("RVx", "RVy", "RVz")],
+                               rtol=1e-9, atol=1e-15)  # R written as a matrix: Rodrigues round trip
+    summary = json.loads((out / "stereo.json").read_text())
+    assert summary["final_check"]["choice"] == "mean" and summary["final_check"]["left_out_pairs"] == []
+    assert summary["final_check"]["solution"]["Tx"] == pytest.approx(summary["full_set"]["Tx"], rel=1e-12)
