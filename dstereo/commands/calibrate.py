@@ -34,6 +34,9 @@ def calibrate(
         "Tz, RVnorm, RVx, RVy, RVz, e.g. --step stereo_re=3 --step Tnorm=0.75"),
     min_subsets: Optional[int] = typer.Option(
         None, "--min-subsets", help="A step stops before it would leave fewer subsets."),
+    final: Optional[str] = typer.Option(
+        None, "--final", help="What camera.yml/stereo.yml hold with subsets: survivors (default: the solve on the "
+        "surviving subsets' views) or mean (the thesis's per-parameter subset mean)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -63,7 +66,7 @@ def calibrate(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
         image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets,
+        seed=seed, min_subsets=min_subsets, final=final,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
@@ -218,9 +221,10 @@ def _pm(value: float, spread: float) -> str:
 def _render(cal, out: Path) -> None:
     """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
     full = cal.full
-    rows = [(n, _pm(float(v), float(s)), _pm(cal.final[n], cal.spread[n]))
+    mean = cal.subset_mean if cal.subset_mean is not None else cal.final
+    rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
             for n, v, s in zip(full.names, full.values, full.std)]
-    subsets = "final: subset mean +- spread"
+    subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
     try:
@@ -241,6 +245,11 @@ def _render(cal, out: Path) -> None:
     if cal.filtering is not None:
         for s in cal.filtering.steps:
             typer.echo(f"  {s.message}")
+    if cal.final_solution is not None:
+        c = cal.final_solution.check
+        typer.echo(f"camera.yml: {cal.final_solution.source(cal.used)}")
+        typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
+                   f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
     typer.echo(f"wrote {out}")

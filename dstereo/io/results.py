@@ -243,7 +243,7 @@ def summary_dict(cal) -> dict:
         "final": dict(cal.final),
         "final_source": "full-set solve (no subsets: set images per set to run the subset analysis)",
         "comparison": [{"parameter": n, "full_set": float(v), "full_set_std": float(s),
-                        "subset_mean": cal.final[n] if cal.filtering is not None else None,
+                        "subset_mean": cal.subset_mean[n] if cal.subset_mean is not None else None,
                         "subset_spread": cal.spread[n] if cal.filtering is not None else None}
                        for n, v, s in zip(names, full.values, full.std)],
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
@@ -270,6 +270,12 @@ def summary_dict(cal) -> dict:
         summary["final_source"] = f"mean over the {int(survivors.sum())} surviving subsets (the thesis's answer)"
         summary["final_spread"] = dict(cal.spread)
         summary["final"]["re"] = f.stats(len(f.steps))["re"]["mean"]
+        if cal.final_solution is not None:  # calib/final_solution.py: what camera.yml holds, beside the mean
+            summary["final_source"] = cal.final_solution.source(cal.used)
+            summary["final_check"] = cal.final_solution.as_dict(cal.used)
+            summary["subset_mean"] = dict(cal.subset_mean) | {"re": f.stats(len(f.steps))["re"]["mean"]}
+            if cal.final_solution.choice == "survivors":
+                summary["final"]["re"] = float(cal.final_solution.solution.rms)
     return summary
 
 
@@ -404,12 +410,22 @@ def report_markdown(cal, summary: dict) -> str:
                   + ", ".join(f"[{n[10:-4]}](stats/{n})" for n in files if n.startswith("parameter")),
                   "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
     lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
-              "standard deviations, and the spread (standard deviation) across the surviving subsets.", "",
-              "| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
+              "standard deviations, and the thesis's mean and spread (standard deviation) across the surviving "
+              "subsets.", "",
+              "| parameter | final | full set | +- std (Jacobian) | subset mean | subset spread |",
+              "|---|---|---|---|---|---|"]
     for row in summary["comparison"]:
-        spread = row["subset_spread"]
+        spread, mean = row["subset_spread"], row["subset_mean"]
         lines.append(f"| {row['parameter']} | {_fmt(summary['final'][row['parameter']])} | {_fmt(row['full_set'])} | "
-                     f"{_fmt(row['full_set_std'])} | {_fmt(spread) if spread is not None else '-'} |")
+                     f"{_fmt(row['full_set_std'])} | {_fmt(mean) if mean is not None else '-'} | "
+                     f"{_fmt(spread) if spread is not None else '-'} |")
+    check = summary.get("final_check", {}).get("mean_check")
+    if check is not None:
+        verdict = ("**fits worse than the solve**" if check["mean_worse"] else
+                   f"fits as well as the solve (within {100 * check['margin']:g} %)")
+        lines += ["", f"Fit on the {check['views']} surviving views' corners, each board pose refitted: the solve "
+                  f"RMS {check['rms_solution_px']:.4f} px, the thesis's subset mean RMS {check['rms_mean_px']:.4f} px "
+                  f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
               "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
     cov = cal.coverage
