@@ -51,8 +51,9 @@ def test_camera_file_reads_back_and_equals_opencv_fisheye(fisheye_run):
     np.testing.assert_allclose([full[n] for n in PRESETS["fisheye"]], d.ravel(), rtol=1e-5, atol=1e-7)
     assert abs(full["rms"] - rms) < 1e-6 * rms
     assert summary["undistorted"] and (fisheye_run / summary["undistorted"][0]).is_file()
-    assert summary["projection_uncertainty"] is None
-    assert any("projection-uncertainty map not computed" in w for w in summary["warnings"])
+    pu = summary["projection_uncertainty"]
+    assert pu["std_px"]["pixels_without_ray"] == 0 and 0 < pu["std_px"]["median"] < 1.0
+    assert (fisheye_run / "plots" / "projection_uncertainty.png").is_file()
 
 
 def test_pinhole_camera_file_keeps_its_layout(tmp_path):

@@ -111,3 +111,28 @@ def test_undistortion_reports_non_invertible_pixels():
     # the good point round-trips
     back = np.asarray(fisheye.project(k, d, jnp.array([xy[0, 0], xy[0, 1], 1.0])))
     np.testing.assert_allclose(back, np.asarray(q[0]), atol=1e-9)
+
+
+def test_projection_uncertainty_map_of_a_fisheye():
+    from dstereo.projection_uncertainty import projection_uncertainty_map
+
+    names = ("fx", "fy", "cx", "cy", "fk1", "fk2", "fk3", "fk4")
+    a = np.random.default_rng(2).normal(size=(8, 8)) * np.array([0.3, 0.3, 0.2, 0.2, 4e-3, 1e-2, 2e-2, 1e-2])
+    cov = a.T @ a
+    coeffs = np.concatenate([D, np.zeros(4)])
+    pmap = projection_uncertainty_map(K, coeffs, names, cov, (640, 640), 5.0, grid=(6, 5))
+    # independent: the ray from OpenCV's undistortion, J = [dq/dk, dq/dD] from the hand Jacobian, J S J'
+    q = np.stack(np.meshgrid(pmap.u, pmap.v), axis=-1).reshape(-1, 2)
+    xy = _cv_undistort(q)
+    ray = np.column_stack([xy, np.ones(len(xy))])
+    p = 5.0 * ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    _, dk, dd, _ = fisheye.project_jacobian(jnp.asarray(K), jnp.asarray(D), jnp.asarray(p.T))
+    jac = np.concatenate([np.asarray(dk), np.asarray(dd)], axis=1).transpose(2, 0, 1)  # (n, 2, 8)
+    ref = jac @ cov @ jac.transpose(0, 2, 1)
+    # OpenCV's undistortion converges to ~1e-9 here; the covariance is smooth in the ray: 1e-6 relative
+    np.testing.assert_allclose(pmap.cov.reshape(-1, 2, 2), ref, rtol=1e-6, atol=1e-12)
+    assert pmap.summary()["std_px"]["pixels_without_ray"] == 0
+    # a lens whose model folds back inside the image: the pixels beyond its image circle are NaN and counted
+    folded = projection_uncertainty_map(K, np.array([-0.2, 0, 0, 0, 0, 0, 0, 0.0]), names, cov, (640, 640), 5.0,
+                                        grid=(6, 5))
+    assert 0 < folded.summary()["std_px"]["pixels_without_ray"] < 30 and np.isnan(folded.std[0, 0])

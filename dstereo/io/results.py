@@ -341,12 +341,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
     plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
-    if full.lens_model == "pinhole":
-        summary["projection_uncertainty"] = write_projection_uncertainty(folder, cal, projection_range)
-    else:  # the map's model is the pinhole one; say so rather than draw a wrong map
-        summary["projection_uncertainty"] = None
-        summary["warnings"].append(f"projection-uncertainty map not computed for the {full.lens_model} model (only "
-                                   "for pinhole models so far)")
+    summary["projection_uncertainty"] = write_projection_uncertainty(folder, cal, projection_range)
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
         ["summary.json", "report.md"]
     write_json(folder / "summary.json", summary)
