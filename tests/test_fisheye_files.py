@@ -21,8 +21,8 @@ def fisheye_run(tmp_path_factory):
     images = require_data("fisheye640")
     out = tmp_path_factory.mktemp("fe") / "results"
     code, stdout, err = run_cli("calibrate", "--images", images, "--pattern", "9x6", "--square", "1",
-                                "--model", "fisheye", "--per-set", "12", "--max-subsets", "20", "--out", out,
-                                "--quiet")
+                                "--model", "fisheye", "--per-set", "12", "--max-subsets", "20", "--step", "re=0.5",
+                                "--step", "fk1=1.5,fk2=1.5", "--out", out, "--quiet")
     assert code == 0, err
     return out
 
@@ -34,6 +34,7 @@ def test_camera_file_reads_back_and_equals_opencv_fisheye(fisheye_run):
     full, final = summary["full_set"], summary["final"]
     # the file holds the final answer (mean over the surviving subsets), coefficients in cv2.fisheye's order
     assert summary["subsets"]["final_count"] > 0
+    assert [st["parameters"] for st in summary["subsets"]["steps"]] == [["re"], ["fk1", "fk2"]]
     np.testing.assert_allclose(cam.D, [final[n] for n in PRESETS["fisheye"]], rtol=1e-15)
     np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [final[n] for n in ("fx", "fy", "cx", "cy")],
                                rtol=1e-15)
