@@ -5,7 +5,6 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from dstereo.models import fisheye
 
