@@ -47,7 +47,7 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
     dv = (pmap.v[1] - pmap.v[0]) / 2 if len(pmap.v) > 1 else 0.5
     extent = (pmap.u[0] - du, pmap.u[-1] + du, pmap.v[-1] + dv, pmap.v[0] - dv)
     im = ax.imshow(pmap.std, extent=extent, cmap="viridis", interpolation="bilinear", vmin=0.0)
-    if np.nanmax(pmap.std) - np.nanmin(pmap.std) > 0:  # NaN: pixels without a ray (fisheye)
+    if np.ptp(pmap.std) > 0:
         cs = ax.contour(pmap.u, pmap.v, pmap.std, levels=6, colors="w", linewidths=0.7)
         ax.clabel(cs, fmt="%.2g", fontsize=8)
     fig.colorbar(im, ax=ax, fraction=0.04, label="projection std, worst direction (px)")
