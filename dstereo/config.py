@@ -25,7 +25,8 @@ from pathlib import Path
 from dstereo.errors import DstereoError
 
 # Parameter names a mono step may filter; `re` is the subset's RMS reprojection error (px, absolute limit).
-MONO_PARAMETERS = ("re", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MONO_PARAMETERS = ("re", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
+                   "fk1", "fk2", "fk3", "fk4")  # fk: the fisheye lens (cv2.fisheye k1..k4)
 # Stereo step parameters (filtered by the stereo pipeline): stereo_re is absolute, the rest IQR.
 STEREO_PARAMETERS = ("stereo_re", "Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")
 # Parameters whose max error is an absolute limit in pixels; every other one is an IQR multiple alpha.

@@ -21,11 +21,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, lens_model
 from dstereo.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
+FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
 NOTE = ("intrinsics only: a point at the given range on each pixel's ray is held fixed in the camera frame; "
         "mrcal-style compensation by the camera pose (extrinsics) is not included")
 
@@ -47,9 +49,22 @@ def pixel_covariance(params, index: tuple[int, ...], cov, q, range_):
     return jac @ cov @ jac.T
 
 
+def fisheye_pixel_covariance(params, index: tuple[int, ...], cov, q, range_):
+    """`pixel_covariance` for the fisheye lens (params = fx fy cx cy fk1..fk4 + 4 unused); NaN where the pixel
+    has no ray in front of the camera (outside the model's image circle, or beyond 90 degrees)."""
+    k, d = params[:4], params[4:8]
+    ray, _ = fisheye.unproject(k, d, q)  # unit ray, NaN where the inverse did not converge
+    p = range_ * jnp.where(ray[2] > 0, ray, jnp.nan)
+    idx = jnp.array(index)
+    full = lambda theta: params.at[idx].set(theta)  # noqa: E731
+    jac = jax.jacfwd(lambda theta: fisheye.project(full(theta)[:4], full(theta)[4:8], p))(params[idx])
+    return jac @ cov @ jac.T
+
+
 @functools.lru_cache(maxsize=None)
-def _map_fn(index: tuple[int, ...]):
-    one = lambda params, cov, q, r: pixel_covariance(params, index, cov, q, r)  # noqa: E731
+def _map_fn(index: tuple[int, ...], model: str = "pinhole"):
+    cov_fn = fisheye_pixel_covariance if model == "fisheye" else pixel_covariance
+    one = lambda params, cov, q, r: cov_fn(params, index, cov, q, r)  # noqa: E731
     return jax.jit(jax.vmap(one, in_axes=(None, None, 0, None)))
 
 
@@ -66,8 +81,11 @@ class ProjectionUncertaintyMap:
     note: str = NOTE
 
     def summary(self) -> dict:
-        return {"range": self.range_, "std_px": {"min": float(self.std.min()), "median": float(np.median(self.std)),
-                                                 "max": float(self.std.max())},
+        # NaN marks pixels without a ray (a fisheye's corners beyond its image circle): left out, and counted
+        std = self.std[np.isfinite(self.std)]
+        return {"range": self.range_, "std_px": {"min": float(std.min()), "median": float(np.median(std)),
+                                                 "max": float(std.max()), "pixels_without_ray": int(self.std.size
+                                                                                                    - std.size)},
                 "grid": [len(self.u), len(self.v)], "note": self.note}
 
 
@@ -80,17 +98,22 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
     """
     if not np.isfinite(range_) or range_ <= 0:
         raise DstereoError(f"projection uncertainty range {range_}: give a positive distance (board unit)")
-    unknown = [n for n in names if n not in CAMERA_NAMES]
+    model = lens_model(tuple(names))
+    known = FISHEYE_CAMERA_NAMES if model == "fisheye" else CAMERA_NAMES
+    unknown = [n for n in names if n not in known or not n]
     if unknown:
-        raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)}")
-    index = tuple(CAMERA_NAMES.index(n) for n in names)
+        raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)} "
+                           f"or {list(FISHEYE_CAMERA_NAMES[:8])}")
+    index = tuple(known.index(n) for n in names)
     params = jnp.concatenate([jnp.asarray(k, float), jnp.asarray(coeffs, float)])
     w, h = image_size
     u = np.linspace(0.0, w - 1.0, grid[0])
     v = np.linspace(0.0, h - 1.0, grid[1])
     q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-    cov_q = np.asarray(_map_fn(index)(params, jnp.asarray(cov, float), jnp.asarray(q), float(range_)))
-    std = np.sqrt(np.maximum(np.linalg.eigvalsh(cov_q)[:, -1], 0.0))
+    cov_q = np.asarray(_map_fn(index, model)(params, jnp.asarray(cov, float), jnp.asarray(q), float(range_)))
+    ok = np.all(np.isfinite(cov_q), axis=(1, 2))
+    std = np.full(len(q), np.nan)
+    std[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(cov_q[ok])[:, -1], 0.0))
     return ProjectionUncertaintyMap(u, v, cov_q.reshape(grid[1], grid[0], 2, 2), std.reshape(grid[1], grid[0]),
                                     float(range_))
 

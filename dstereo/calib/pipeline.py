@@ -121,10 +121,11 @@ class CameraCalibration:
 
     @property
     def final_coefficients(self) -> np.ndarray:
-        """(8,) distortion coefficients of `final`, OpenCV order, zeros where not free."""
-        from dstereo.models.distortion import COEFF_NAMES
+        """(8,) distortion coefficients of `final`, OpenCV order (fisheye: cv2.fisheye's D in [:4]), zeros where
+        not free."""
+        from dstereo.models.distortion import coeff_slots
 
-        return np.array([self.final.get(n, 0.0) for n in COEFF_NAMES])
+        return np.array([self.final.get(n, 0.0) if n else 0.0 for n in coeff_slots(tuple(self.config.model))])
 
     @property
     def final_camera_matrix(self) -> np.ndarray:

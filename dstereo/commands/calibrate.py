@@ -23,7 +23,7 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4)."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -72,6 +72,11 @@ def calibrate(
     cfg = validate(cfg)
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
+        from dstereo.models.distortion import lens_model
+
+        if lens_model(tuple(cfg.model)) == "fisheye":
+            raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
+                               "calibrate each camera alone with --images DIR")
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return

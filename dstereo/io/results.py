@@ -199,24 +199,44 @@ def steps_summary(filtering: FilterResult) -> list[dict]:
 
 
 def distortion_vector(coeffs8: np.ndarray, free: Sequence[str]) -> np.ndarray:
-    """OpenCV's 5-vector (k1 k2 p1 p2 k3), or all 8 when a rational coefficient is free."""
+    """OpenCV's 5-vector (k1 k2 p1 p2 k3), or all 8 when a rational coefficient is free; for the fisheye model
+    cv2.fisheye's D (k1 k2 k3 k4)."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(free)) == "fisheye":
+        return np.asarray(coeffs8, float)[:4]
     return np.asarray(coeffs8, float)[: 8 if set(free) & {"k4", "k5", "k6"} else 5]
 
 
-def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict) -> None:
-    """camera.yml (cv2.FileStorage) and camera.json with the same numbers."""
+def distortion_names(free: Sequence[str], n: int) -> list[str]:
+    """Names of the written distortion vector's entries (fisheye: cv2.fisheye's k1..k4)."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(free)) == "fisheye":
+        return ["k1", "k2", "k3", "k4"]
+    return ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:n]
+
+
+def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict,
+                       model: str = "pinhole") -> None:
+    """camera.yml (cv2.FileStorage) and camera.json with the same numbers. A fisheye camera adds
+    `distortion_model: fisheye` (D is then cv2.fisheye's 4-vector); without the field the camera is OpenCV's
+    pinhole + distortion model, as before."""
     import cv2
 
     fs = cv2.FileStorage(str(folder / "camera.yml"), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("image_width", int(image_size[0]))
         fs.write("image_height", int(image_size[1]))
+        if model != "pinhole":
+            fs.write("distortion_model", model)
         fs.write("camera_matrix", np.asarray(K, np.float64))
         fs.write("distortion_coefficients", np.asarray(D, np.float64).reshape(1, -1))
     finally:
         fs.release()
+    flag = {} if model == "pinhole" else {"distortion_model": model}
     write_json(folder / "camera.json", {"image_width": int(image_size[0]), "image_height": int(image_size[1]),
-                                        "camera_matrix": np.asarray(K).tolist(),
+                                        **flag, "camera_matrix": np.asarray(K).tolist(),
                                         "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
 
 
@@ -319,8 +339,8 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     full, det = cal.full, cal.detection
     summary = summary_dict(cal)
     K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
-    names = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][: len(D)]
-    write_camera_files(folder, K, D, det.image_size, {
+    names = distortion_names(full.free, len(D))
+    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, extra={
         "distortion_names": names, "source": summary["final_source"],
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
@@ -368,7 +388,10 @@ def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> 
         image = cv2.imread(str(by_name[name]), cv2.IMREAD_COLOR)
         if image is None:
             continue
-        fixed = cv2.undistort(image, K, coeffs8)
+        if cal.full.lens_model == "fisheye":  # same K for the view: the image circle's rim falls outside it
+            fixed = cv2.fisheye.undistortImage(image, K, np.asarray(coeffs8[:4], float), Knew=K)
+        else:
+            fixed = cv2.undistort(image, K, coeffs8)
         gap = np.full((image.shape[0], 8, 3), 255, np.uint8)
         target = f"{Path(name).stem}_undistorted.png"
         cv2.imwrite(str(folder / target), np.hstack([image, gap, fixed]))
@@ -388,7 +411,7 @@ def report_markdown(cal, summary: dict) -> str:
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
-             f"- distortion model: {', '.join(full.free) or 'none'}",
+             f"- distortion model: {full.lens_model}, {', '.join(full.free) or 'none'}",
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
