@@ -60,9 +60,9 @@ def surviving_views(filtering, plan, n_views: int, block: int = 65536) -> np.nda
 # --- pose refits --------------------------------------------------------------------------------------------
 
 
-def _mono_residual(pose, k, coeffs, obj, obs_v, rig):
+def _mono_residual(pose, k, coeffs, obj, obs_v, rig, lens=project):
     p = obj @ rodrigues(pose[:3]).T + pose[3:6]
-    return (jax.vmap(project, in_axes=(None, None, 0))(k, coeffs, p) - obs_v).ravel()
+    return (jax.vmap(lens, in_axes=(None, None, 0))(k, coeffs, p) - obs_v).ravel()
 
 
 def _pair_residual(pose, cams, obj, obs_v, rig):
@@ -75,12 +75,16 @@ def _pair_residual(pose, cams, obj, obs_v, rig):
 
 
 @functools.lru_cache(maxsize=None)
-def _refit(stereo: bool):
-    """Compiled: every view's pose refitted by LM for fixed camera(s) (and rig); returns poses and SSE per view."""
+def _refit(stereo: bool, free: tuple[str, ...] = ()):
+    """Compiled: every view's pose refitted by LM for fixed camera(s) (and rig); returns poses and SSE per view.
+    `free` names the mono camera's lens model (`mono.lens_functions`: pinhole or fisheye); stereo is pinhole."""
+    from dstereo.calib.mono import lens_functions
+
+    lens = lens_functions(free)[0]
 
     def one(pose0, cams, obj, obs_v, rig):
         res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig)) if stereo else \
-            (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig))
+            (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens))
         cost0 = jnp.sum(res(pose0) ** 2)
 
         def body(_, state):
@@ -113,21 +117,30 @@ def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
     return poses if np.all(np.isfinite(poses)) else None
 
 
-def refit_rms(k, coeffs, obj, obs, start_poses) -> tuple[float, np.ndarray]:
+def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = ()) -> tuple[float, np.ndarray]:
     """(RMS px over all corners, (V, 6) poses) of a fixed camera (k (4,), coeffs (8,)) on views `obs` (V, n, 2),
     each view's board pose refitted from `start_poses` (V, 6) and from two homography starts (the corners
     undistorted by this camera, and taken as they are); per view the best fit counts. Several starts because a
     camera that is no solution (a subset mean of a rational model) can put a pole of its distortion near the
     corners, and LM from one start then stops behind it (measured on opencv_stereo left, rational: 0.4083 px
     from the solve's poses, 0.4041 px from the three; cv2.solvePnP + RefineLM 0.4040 px).
-    RMS = sqrt(SSE / corners), OpenCV's convention."""
+    RMS = sqrt(SSE / corners), OpenCV's convention. `free` names the lens model (a fisheye camera's corners
+    are not undistorted by the pinhole homography start: its poses start from `start_poses` and the raw corners).
+    """
+    from dstereo.models.distortion import lens_model
+
+    free = tuple(free)
     cams = (np.asarray(k, float), np.asarray(coeffs, float))
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
-    poses, sse = (np.asarray(a) for a in _refit(False)(np.asarray(start_poses, float), cams, obj, obs, np.zeros(6)))
-    for other in (_homography_poses(k, coeffs, obj, obs), _homography_poses(k, np.zeros(8), obj, obs)):
+    refit = _refit(False, free)
+    poses, sse = (np.asarray(a) for a in refit(np.asarray(start_poses, float), cams, obj, obs, np.zeros(6)))
+    starts = [_homography_poses(k, np.zeros(8), obj, obs)]
+    if lens_model(free) == "pinhole":
+        starts.append(_homography_poses(k, coeffs, obj, obs))
+    for other in starts:
         if other is None:
             continue
-        poses_h, sse_h = (np.asarray(a) for a in _refit(False)(other, cams, obj, obs, np.zeros(6)))
+        poses_h, sse_h = (np.asarray(a) for a in refit(other, cams, obj, obs, np.zeros(6)))
         better = np.isfinite(sse_h) & ~(sse_h >= sse)
         poses, sse = np.where(better[:, None], poses_h, poses), np.where(better, sse_h, sse)
     return float(np.sqrt(np.sum(sse) / (obs.shape[0] * obs.shape[1]))), poses
@@ -227,12 +240,13 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
     coeffs = np.array(solution.coeffs, float)
-    from dstereo.models.distortion import COEFF_NAMES
+    from dstereo.models.distortion import coeff_slots
 
+    free = tuple(full.free)
     for n in names[4:]:
-        coeffs[COEFF_NAMES.index(n)] = subset_mean[n]
-    rms_mean, _ = refit_rms(k, coeffs, obj, obs[views], solution.poses)
-    rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, obj, obs[views], solution.poses)
+        coeffs[coeff_slots(free).index(n)] = subset_mean[n]
+    rms_mean, _ = refit_rms(k, coeffs, obj, obs[views], solution.poses, free)
+    rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, obj, obs[views], solution.poses, free)
     # The solution's own refit equals its RMS to the solver's tolerance; the refitted figure is compared so that
     # both sides are measured the same way.
     return FinalSolution(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms_sol, rms_mean),
