@@ -104,24 +104,31 @@ def _threads(requested: int | None) -> int:
 @functools.lru_cache(maxsize=None)
 def _solver(free: tuple[str, ...], options: LMOptions):
     """The one compiled program behind the full set and every subset: CHUNK problems of V views, each with
-    its own start, view weights (0 = left out) and initial damping. The full set and subsets of the same
-    images share its shape, so a calibration with subsets compiles once (compile time dominates a cold run)."""
+    its own start, view weights (0 = left out), corner weights (0 = an outlier) and initial damping. The full
+    set and subsets of the same images share its shape, so a calibration with subsets compiles once (compile
+    time dominates a cold run), whatever the outlier mask."""
     res, lin = view_residual_for(free), view_linearize_for(free)
 
-    def batch(g0, p0, obs, weight, lambda0, normal0, shared):
-        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0)
+    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared):
+        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight)
 
     return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
 
 
-def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None):
+def _residual_weights(inliers: np.ndarray) -> np.ndarray:
+    """(..., V, n) corner inlier mask -> (..., V, 2n) residual weights in the residual's (x, y) per point order."""
+    return np.repeat(np.asarray(inliers, float), 2, axis=-1)
+
+
+def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None):
     """Call the compiled solver on one chunk given as per-problem numpy arrays (leading axis <= chunk_rows).
 
     `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
     and `.normal`); the solver then skips linearising the start. Without it, the same compiled program
     linearises the start itself (a traced flag, not a second compile). An argument that is already a device
     array is taken as it is, at the chunk's full size: subsets pass what all their chunks share once.
-    `weight` is always per chunk and gives the number of problems."""
+    `weight` is always per chunk and gives the number of problems. `r_weight` (per problem (V, 2n), default
+    all 1): the corners' residual weights, 0 for an outlier."""
     n, (n_views, n_pts) = len(weight), np.shape(obs)[1:3]
     rows = chunk_rows(n_views, n_pts)
 
@@ -137,8 +144,10 @@ def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None):
     if not given:
         normal0 = (np.zeros((n, n_views, 2 * n_pts)), np.zeros((n, n_views, n_p1, n_p1)))
     key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
-    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0)]
-    out = _solver(tuple(free), key)(*args[:5], (*args[5:], np.full(rows, given)), shared)
+    if r_weight is None:
+        r_weight = np.ones((n, n_views, 2 * n_pts))
+    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
+    out = _solver(tuple(free), key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared)
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
 
 
@@ -152,9 +161,9 @@ class CameraSolution:
     cov: np.ndarray  # (G, G)
     coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order (fisheye: cv2.fisheye's D in [:4])
     poses: np.ndarray  # (V, 6) rvec, tvec per view
-    rms: float  # sqrt(SSE / points), OpenCV's reprojection error
-    per_view_rms: np.ndarray  # (V,)
-    residuals: np.ndarray  # (V, n, 2) observed - projected... sign: projected - observed
+    rms: float  # sqrt(SSE / points), OpenCV's reprojection error, over the inlier corners
+    per_view_rms: np.ndarray  # (V,) over each view's inlier corners
+    residuals: np.ndarray  # (V, n, 2) projected - observed, outliers' included
     iterations: int
     status: int
     conditioning: Conditioning
@@ -162,6 +171,7 @@ class CameraSolution:
     image_size: tuple[int, int]
     timings: dict = field(default_factory=dict)
     normal: np.ndarray | None = None  # (V, P+1, P+1) per view [J r]'[J r] at the solution: subsets start from it
+    inliers: np.ndarray | None = None  # (V, n) bool: corners the solve used (None: all); subsets use the same
 
     @property
     def converged(self) -> bool:
@@ -200,20 +210,30 @@ def calibrate_full(
     image_size: tuple[int, int],
     free: tuple[str, ...] = ("k1", "k2", "p1", "p2", "k3"),
     options: LMOptions = LMOptions(),
+    inliers: np.ndarray | None = None,
+    start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> CameraSolution:
-    """Calibrate from all views: closed-form start, then the structured LM to convergence."""
+    """Calibrate from all views: closed-form start, then the structured LM to convergence.
+
+    `inliers` (V, n) bool: corners to fit (the others, outliers, weigh 0; default all). `start`: (shared vector,
+    (V, 6) poses) of the same views to start from (an earlier mask's solve) instead of the closed form."""
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     _check_views(obj, obs)
     t0 = time.perf_counter()
-    fish = lens_model(tuple(free)) == "fisheye"
-    # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
-    k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
-    g0 = np.concatenate([k0, np.zeros(len(free))])
+    mask = np.ones(obs.shape[:2], bool) if inliers is None else np.asarray(inliers, bool)
+    if start is not None:
+        g0, p0, lam = np.asarray(start[0], float), np.asarray(start[1], float), 1e-6
+    else:
+        fish = lens_model(tuple(free)) == "fisheye"
+        # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
+        k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
+        g0, lam = np.concatenate([k0, np.zeros(len(free))]), options.lambda0
     shared = (np.asarray(obj, float), np.zeros(8))  # numpy: no eager JAX op (each compiles on first use)
-    out = _run(free, options, g0[None], p0[None], obs[None], np.ones((1, len(obs))), np.array([options.lambda0]),
-               shared)
+    # A view without inlier corners (rejected whole) takes no part: weight 0, its pose carried unchanged
+    out = _run(free, options, g0[None], p0[None], obs[None], mask.any(axis=1)[None].astype(float), np.array([lam]),
+               shared, r_weight=_residual_weights(mask)[None])
     out = jax.tree_util.tree_map(lambda a: a[0], out)
-    sol = _solution_from(out, obj, obs, tuple(free), image_size)
+    sol = _solution_from(out, obj, obs, tuple(free), image_size, mask)
     sol.timings["solve_s"] = time.perf_counter() - t0
     if not np.isfinite(sol.rms):
         raise DstereoError(
@@ -223,21 +243,22 @@ def calibrate_full(
     return sol  # may be unconverged (sol.status < 0): callers report it, never hide it
 
 
-def _solution_from(out, obj, obs, free, image_size) -> CameraSolution:
+def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
     names = INTRINSIC_NAMES + tuple(free)
     g = out.g
     coeffs = np.zeros(8)
     coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:]
-    n_params = len(g) + out.p.size
+    n_params = len(g) + 6 * int(mask.any(axis=1).sum())
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
     resid = np.asarray(out.residuals).reshape(obs.shape)
-    n_points = obs.shape[0] * obs.shape[1]
+    n_in = np.maximum(mask.sum(axis=1), 1)
     return CameraSolution(
         names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, coeffs=coeffs, poses=out.p,
-        rms=float(np.sqrt(out.sse / n_points)),
-        per_view_rms=np.sqrt(np.mean(np.sum(resid ** 2, axis=2), axis=1)),
+        rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
+        per_view_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=2) * mask, axis=1) / n_in),
         residuals=resid, iterations=int(out.iterations), status=int(out.status), normal=np.asarray(out.normal),
         conditioning=conditioning(out.schur, names), free=free, image_size=tuple(image_size),
+        inliers=None if mask.all() else mask,
     )
 
 
@@ -284,6 +305,8 @@ def solve_subsets(
     obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
     shared = (np.asarray(obj, float), np.zeros(8))
     gathered = 2 * m < n_views
+    # The full set's outlier mask: a corner rejected there is left out of every subset too
+    r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers)
 
     # The full set's linearisation at its solution (the subsets' start), per view and unweighted: every
     # subset reuses it instead of linearising its start again (one pass of about six saved).
@@ -297,21 +320,22 @@ def solve_subsets(
         common = (put(start.values), put(poses), put(obs))
         lam_all = put(np.float64(options.lambda0))
         normal_all = None if normal is None else tuple(put(a) for a in normal)
+        r_weight_all = put(r_weight)
 
     def chunk_args(rows):
         c = len(rows)
         if gathered:
             g0 = np.broadcast_to(start.values, (c, len(start.values)))
             start_ne = None if normal is None else tuple(a[rows] for a in normal)
-            return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne
+            return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne, r_weight[rows]
         weight = np.zeros((c, n_views))
         np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat views
-        return (*common, weight, lam_all), normal_all
+        return (*common, weight, lam_all), normal_all, r_weight_all
 
     def run(rows):
-        args, start_ne = chunk_args(rows)
+        args, start_ne, r_w = chunk_args(rows)
         # Per-view linearisations and residuals are not kept per subset (C=5000: ~400 MB).
-        return _run(free, options, *args, shared, start_ne)._replace(normal=None, residuals=None)
+        return _run(free, options, *args, shared, start_ne, r_w)._replace(normal=None, residuals=None)
 
     t0 = time.perf_counter()
     rows = chunk_rows(m if gathered else n_views, obs.shape[1])
@@ -325,7 +349,7 @@ def solve_subsets(
             if progress is not None:
                 progress(done, n_sub)
     out = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
-    n_points = m * obj.shape[0]
+    n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
     n_params = len(start.values) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)
     cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)

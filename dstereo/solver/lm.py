@@ -50,9 +50,11 @@ class LMResult(NamedTuple):
     iterations: Int[Array, ""]
     status: Int[Array, ""]  # see STATUS_TEXT; > 0 converged
     schur: Float[Array, "G G"]  # undamped U - sum W V^-1 W' at the solution: inverse = cov(g) / sigma^2
-    n_residuals: Int[Array, ""]  # residuals of the views taking part, counted with their weights
-    residuals: Float[Array, "V R"]  # at the solution, times sqrt(weight): zero for views left out
-    normal: Float[Array, "V P1 P1"]  # per view [J r]'[J r] at the solution, unweighted (P1 = G + B + 1)
+    n_residuals: Int[Array, ""]  # residuals of weight > 0 in the views taking part, counted with view weights
+    residuals: Float[Array, "V R"]  # at the solution, times sqrt(view weight), not residual weight: zero for views
+    # left out, an outlier's (residual weight 0) own value
+    normal: Float[Array, "V P1 P1"]  # per view [J r]'[J r] at the solution, residual weights in, view weights not
+    # (P1 = G + B + 1)
 
 
 # view_residual(g, p_v, data_v, shared) -> (R,) residuals of one view
@@ -90,14 +92,15 @@ def jacfwd_linearize(view_residual: ViewResidual):
     return linearize
 
 
-def _normal_equations(linearize, g, p, data, shared) -> _Normal:
+def _normal_equations(linearize, g, p, data, shared, r_weight) -> _Normal:
+    """`r_weight` (V, R): per-residual weights (0 = an outlier, left out of every sum; `r` keeps its value)."""
     r, jt = jax.vmap(linearize, in_axes=(None, 0, 0, None))(g, p, data, shared)  # (V, R), (V, G+B, R)
     # One batched product per view gives J'J, J'r and r'r together (a flat dot_general is several times
     # faster on CPU than block einsums); the Jacobian is stored transposed so that both operands contract
     # over their last, contiguous axis.
     # The barrier makes XLA write [J' r'] out before the product: fused into the product's operand, the
     # model would be re-evaluated for every Jacobian entry it feeds (measured: 40 % slower per pass).
-    a = jax.lax.optimization_barrier(jnp.concatenate([jt, r[:, None, :]], axis=1))
+    a = jax.lax.optimization_barrier(jnp.concatenate([jt, r[:, None, :]], axis=1) * jnp.sqrt(r_weight)[:, None, :])
     return _Normal(r, jax.lax.dot_general(a, a, (((2,), (2,)), ((0,), (0,)))))
 
 
@@ -176,7 +179,7 @@ def _start(g0, p0, r_shape, normal0, lambda0) -> _State:
     return _State(g0, p0, _Normal(r, m), lambda0, jnp.asarray(2.0), jnp.asarray(given).astype(int), jnp.asarray(0))
 
 
-def _pass(linearize, data, shared, options: LMOptions, active, s: _State) -> _State:
+def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _State) -> _State:
     """One LM pass of one problem: solve for a damped step, linearise the trial point there, accept or
     reject it, and test convergence. The model is evaluated once per pass, so the compiled loop holds one
     copy of it. Pass 0 (no linearisation given) takes a zero step: it linearises the start."""
@@ -194,7 +197,7 @@ def _pass(linearize, data, shared, options: LMOptions, active, s: _State) -> _St
     dg, dp, pred = _damped_step(cur, s.lam)
     dg, dp, pred = jnp.where(first, 0.0, dg), jnp.where(first | ~used, 0.0, dp), jnp.where(first, 0.0, pred)
     g_t, p_t = s.g + dg, s.p + dp
-    ne_t = _normal_equations(linearize, g_t, p_t, data, shared)
+    ne_t = _normal_equations(linearize, g_t, p_t, data, shared, r_weight)
     sse_t = jnp.sum(active * ne_t.m[:, -1, -1])
     sse = jnp.where(first, jnp.inf, cur.sse)
     actual = 0.5 * (sse - sse_t)
@@ -232,8 +235,10 @@ def _pass(linearize, data, shared, options: LMOptions, active, s: _State) -> _St
                   jnp.where(done, s.status, status))
 
 
-def _result(s: _State, active) -> LMResult:
-    n_res = jnp.round(jnp.sum(active)).astype(int) * s.ne.r.shape[1]  # weighted count
+def _result(s: _State, active, r_weight) -> LMResult:
+    # Only residuals of positive weight count (the residual dof and sigma^2 of an outlier-masked solve are the
+    # inliers'); views count with their weights.
+    n_res = jnp.round(jnp.sum(active * jnp.sum(r_weight > 0, axis=1))).astype(int)
     b = _blocks(s.ne, active, s.g.shape[0])
     return LMResult(s.g, s.p, b.sse, s.it - 1, s.status, schur_complement(b), n_res,
                     s.ne.r * jnp.sqrt(active)[:, None], s.ne.m)
@@ -258,8 +263,10 @@ def solve_structured(
     active: Float[Array, " V"] | None = None,
     lambda0: Float[Array, ""] | None = None,
     normal0: tuple | None = None,
+    r_weight: Float[Array, "V R"] | None = None,
 ) -> LMResult:
-    """Minimise sum_v active_v |view_residual(g, p_v, data_v, shared)|^2 over g and all p_v, one problem.
+    """Minimise sum_v active_v |sqrt(r_weight_v) * view_residual(g, p_v, data_v, shared)|^2 over g and all p_v,
+    one problem.
 
     `linearize(g, p_v, data_v, shared) -> (r, [dr/dg, dr/dp_v]')` (the Jacobian transposed) may be given
     where a problem knows a faster Jacobian than forward-mode over the whole view; tests compare the two.
@@ -269,11 +276,13 @@ def solve_structured(
     next to the optimum, without a second compile). `normal0 = (residuals, normal, given)`, from an
     `LMResult` whose solution is this start (the full set's, for its subsets), saves linearising the start
     again where `given` is True; a traced flag, so one compiled solver serves both kinds of start.
+    `r_weight` (default all 1) weighs single residuals: 0 leaves an outlier out of the fit and of the residual
+    count (`n_residuals`) without changing shapes, so one compiled solver serves every outlier mask.
     It is `solve_structured_batch` with a batch of one; for a batch use that, not `jax.vmap` of this function.
     """
     add = lambda a: None if a is None else jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], a)  # noqa: E731
     out = solve_structured_batch(view_residual, add(g0), add(p0), add(data), shared, options, linearize, add(active),
-                                 add(lambda0), add(normal0))
+                                 add(lambda0), add(normal0), add(r_weight))
     return jax.tree_util.tree_map(lambda x: x[0], out)
 
 
@@ -288,6 +297,7 @@ def solve_structured_batch(
     active: Float[Array, "N V"] | None = None,
     lambda0: Float[Array, " N"] | None = None,
     normal0: tuple | None = None,
+    r_weight: Float[Array, "N V R"] | None = None,
 ) -> LMResult:
     """`solve_structured` for N problems at once (every argument but `shared` has a leading axis N).
 
@@ -299,7 +309,8 @@ def solve_structured_batch(
     linearize, r_shape = _prepare(view_residual, g0[0], p0[0], one(data), shared, linearize, normal0)
     active = jnp.ones(p0.shape[:2]) if active is None else jnp.asarray(active, float)
     lam0 = jnp.full(n, options.lambda0) if lambda0 is None else jnp.asarray(lambda0, float)
+    r_weight = jnp.ones((n, *r_shape)) if r_weight is None else jnp.asarray(r_weight, float)
     start = jax.vmap(lambda g, p, l, ne: _start(g, p, r_shape, ne, l))(g0, p0, lam0, normal0)
-    step = jax.vmap(lambda s, d, a: _pass(linearize, d, shared, options, a, s))
-    end = jax.lax.while_loop(lambda s: jnp.any(s.status == 0), lambda s: step(s, data, active), start)
-    return jax.vmap(_result)(end, active)
+    step = jax.vmap(lambda s, d, a, w: _pass(linearize, d, shared, options, a, w, s))
+    end = jax.lax.while_loop(lambda s: jnp.any(s.status == 0), lambda s: step(s, data, active, r_weight), start)
+    return jax.vmap(_result)(end, active, r_weight)

@@ -1,0 +1,150 @@
+"""Outlier rejection: per-residual weights in the solver (dof), injected outliers found, clean sets kept."""
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dstereo.calib import mono
+from dstereo.calib.outliers import reject_outliers, threshold
+from dstereo.io.corners import board_points
+from dstereo.models.distortion import PRESETS
+
+FIVE = PRESETS["default"]
+N_VIEWS, PATTERN, NOISE = 24, (9, 6), 0.15
+
+
+def _views(seed: int):
+    """Board corners through a known camera plus NOISE px Gaussian noise (the engine's synthetic recipe)."""
+    from dstereo.models.camera import project_view
+
+    rng = np.random.default_rng(seed)
+    obj = board_points(PATTERN, 25.0)
+    k_true = np.array([800.0, 796.8, 652.0, 478.0])
+    coeffs = np.array([-0.25, 0.12, 0.001, -0.0015, -0.03, 0, 0, 0])
+    centre = obj.mean(axis=0)
+    poses = []
+    for _ in range(N_VIEWS):
+        rvec = np.deg2rad(rng.uniform(-40, 40, 3)) * np.array([1, 1, 0.3])
+        aim = np.array([rng.uniform(360, 920), rng.uniform(280, 680)])
+        ray = np.r_[(aim - k_true[2:]) / k_true[:2], 1.0]
+        poses.append(np.r_[rvec, rng.uniform(500, 800) * ray - cv2.Rodrigues(rvec)[0] @ centre])
+    proj = jax.vmap(jax.vmap(project_view, in_axes=(None, None, None, 0)), in_axes=(None, None, 0, None))
+    clean = np.asarray(proj(k_true, coeffs, np.array(poses), obj))
+    return obj, clean + rng.normal(0, NOISE, clean.shape), rng
+
+
+def test_zero_residual_weights_leave_residuals_out_of_the_fit_and_the_dof():
+    """A linear problem (as test_engine's dof test) with 6 of 40 residuals weighted 0: the solution, sigma^2
+    and covariance are those of least squares on the other 34 rows, dof = 34 - 10; the zeroed rows may hold
+    anything (here gross errors) without effect."""
+    from dstereo.calib.uncertainty import covariance
+    from dstereo.solver.lm import solve_structured
+
+    rng = np.random.default_rng(3)
+    n_v, n_r = 8, 5
+    x = rng.uniform(-1, 1, (n_v, n_r))
+    a = np.zeros((n_v * n_r, 2 + n_v))
+    a[:, 0], a[:, 1] = x.ravel(), x.ravel() ** 2
+    a[np.arange(n_v * n_r), 2 + np.repeat(np.arange(n_v), n_r)] = 1.0
+    y = a @ np.r_[0.7, 0.2, rng.normal(0, 1, n_v)] + rng.normal(0, 0.01, n_v * n_r)
+    w = np.ones(n_v * n_r)
+    w[[0, 7, 13, 21, 30, 38]] = 0.0
+    y_bad = y + 50.0 * (w == 0)
+    res = lambda g, p_v, xy, shared: g[0] * xy[0] + g[1] * xy[0] ** 2 + p_v[0] - xy[1]  # noqa: E731
+    out = solve_structured(res, jnp.zeros(2), jnp.zeros((n_v, 1)), jnp.asarray(np.stack([x, y_bad.reshape(n_v, n_r)], 1)),
+                           r_weight=jnp.asarray(w.reshape(n_v, n_r)))
+    assert int(out.status) > 0
+    keep = w > 0
+    ai, yi = a[keep], y[keep]
+    sol, *_ = np.linalg.lstsq(ai, yi, rcond=None)
+    # Linear: LM's stopping rule leaves ~1e-12 relative; the solution's sigma is ~1e-2
+    np.testing.assert_allclose(np.asarray(out.g), sol[:2], atol=1e-9)
+    assert int(out.n_residuals) == keep.sum()
+    sse = float(np.sum((ai @ sol - yi) ** 2))
+    np.testing.assert_allclose(float(out.sse), sse, rtol=1e-9)
+    cov = covariance(np.asarray(out.schur), float(out.sse), int(out.n_residuals), 2 + n_v)
+    expect = sse / (keep.sum() - 2 - n_v) * np.linalg.inv(ai.T @ ai)[:2, :2]
+    # float64 inverses of a well-conditioned matrix; 1e-8 allows LM's 1e-12 relative SSE excess
+    np.testing.assert_allclose(cov, expect, rtol=1e-8)
+
+
+def test_threshold_loses_half_a_corner_on_average():
+    # chi^2(2) tail: N exp(-k^2 / 2) = 0.5 by construction
+    for n in (500, 1566, 10000):
+        assert n * np.exp(-threshold(n) ** 2 / 2) == pytest.approx(0.5, rel=1e-12)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    obj, obs, rng = _views(5)
+    first = mono.calibrate_full(obj, obs, (1280, 960), FIVE)
+    return obj, obs, rng, first
+
+
+def test_clean_set_loses_almost_no_corners(clean):
+    obj, obs, _, first = clean
+    names = [f"v{i}" for i in range(len(obs))]
+    sol, keep, rep = reject_outliers(obj, obs, (1280, 960), FIVE, names, first)
+    assert len(keep) == len(obs) and not rep.views
+    assert len(rep.corners) < 0.005 * obs.shape[0] * obs.shape[1]
+
+
+def test_injected_outliers_are_all_found_and_do_not_move_fx(clean):
+    """1 % of corners moved 5-20 px in random directions: every one is rejected, no view is lost, and fx
+    stays within 0.2 sigma of the clean solve (sigma: the clean solve's Jacobian standard deviation).
+    Without rejection the same outliers move fx by several sigma (checked, so the test can fail)."""
+    obj, obs, rng, first = clean
+    n = obs.shape[0] * obs.shape[1]
+    pick = rng.choice(n, size=int(round(0.01 * n)), replace=False)
+    bad = obs.reshape(-1, 2).copy()
+    ang = rng.uniform(0, 2 * np.pi, len(pick))
+    bad[pick] += rng.uniform(5, 20, len(pick))[:, None] * np.c_[np.cos(ang), np.sin(ang)]
+    bad = bad.reshape(obs.shape)
+    names = [f"v{i}" for i in range(len(obs))]
+    dirty = mono.calibrate_full(obj, bad, (1280, 960), FIVE)
+    assert abs(dirty.values[0] - first.values[0]) > 1.0 * first.std[0]  # the outliers matter
+    sol, keep, rep = reject_outliers(obj, bad, (1280, 960), FIVE, names, dirty)
+    assert len(keep) == len(obs)
+    found = {v * obs.shape[1] + c for v, c in zip(*np.nonzero(~sol.inliers))}
+    assert set(pick.tolist()) <= found
+    assert len(found) - len(pick) < 0.005 * n  # at most the clean set's share of false rejections
+    assert abs(sol.values[0] - first.values[0]) < 0.2 * first.std[0]
+    assert rep.rms_after < rep.rms_before
+    d = rep.as_dict()
+    assert len(d["corners"]) == len(found) and all(c["residual_sigma"] > rep.k for c in d["corners"])
+
+
+def test_a_mis_detected_view_is_rejected_whole(clean):
+    obj, obs, rng, first = clean
+    bad = obs.copy()
+    bad[3] = bad[3][::-1]  # the corners numbered from the opposite end: most residuals huge
+    names = [f"v{i}" for i in range(len(obs))]
+    dirty = mono.calibrate_full(obj, bad, (1280, 960), FIVE, start=(first.values, first.poses))
+    sol, keep, rep = reject_outliers(obj, bad, (1280, 960), FIVE, names, dirty)
+    assert 3 not in keep and len(keep) == len(obs) - 1
+    assert [v for v, _ in rep.views] == ["v3"]
+    # the answer is the clean solve of the other views (a view fewer moves fx by itself)
+    ref = mono.calibrate_full(obj, obs[keep], (1280, 960), FIVE, start=(first.values, first.poses[keep]))
+    assert abs(sol.values[0] - ref.values[0]) < 0.2 * ref.std[0]
+
+
+def test_subsets_use_the_full_sets_mask(clean):
+    """A subset solve of a masked full set equals a separate full solve of those views with the same mask
+    (both converge to the same least-squares optimum: agreement to the solver's tolerance, 1e-6 relative)."""
+    from dstereo.calib.subsets import SubsetPlan
+
+    obj, obs, rng, first = clean
+    mask = np.ones(obs.shape[:2], bool)
+    mask[rng.integers(0, len(obs), 12), rng.integers(0, obs.shape[1], 12)] = False
+    bad = obs.copy()
+    bad[~mask] += 30.0
+    full = mono.calibrate_full(obj, bad, (1280, 960), FIVE, inliers=mask, start=(first.values, first.poses))
+    rows = np.arange(14)
+    plan = SubsetPlan(rows[None], total=1, exhaustive=False, seed=0, n_images=len(obs))
+    sub = mono.solve_subsets(obj, bad, plan, full)
+    alone = mono.calibrate_full(obj, bad[rows], (1280, 960), FIVE, inliers=mask[rows],
+                                start=(full.values, full.poses[rows]))
+    np.testing.assert_allclose(sub.values[0], alone.values, rtol=1e-6)
+    np.testing.assert_allclose(sub.rms[0], alone.rms, rtol=1e-6)
