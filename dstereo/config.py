@@ -77,6 +77,8 @@ class Config:
     # What camera.yml / stereo.yml hold with subsets: "survivors" (the solve on the surviving subsets' views, a
     # consistent calibration) or "mean" (the thesis's per-parameter subset mean); see calib/final_solution.py
     final: str = "survivors"
+    # Iterative k-sigma rejection of outlier corners and views before the subsets (calib/outliers.py)
+    outlier_rejection: bool = True
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
@@ -174,7 +176,7 @@ _TOML_KEYS = {
     "": {"mode"},
     "pattern": {"columns", "rows", "square", "unit"},
     "images": {"folder", "format", "format_left", "format_right", "glob"},
-    "calibration": {"model", "per_set", "max_subsets", "seed", "min_subsets", "final"},
+    "calibration": {"model", "per_set", "max_subsets", "seed", "min_subsets", "final", "outlier_rejection"},
 }
 
 
@@ -223,6 +225,7 @@ def config_from_toml(text: str, where: str) -> Config:
         seed=_whole(cal.get("seed", 0), f"{where}: [calibration] seed", 0),
         min_subsets=_optional_whole(cal.get("min_subsets"), f"{where}: [calibration] min_subsets", 1),
         final=str(cal.get("final", "survivors")),
+        outlier_rejection=_flag(cal.get("outlier_rejection", True), f"{where}: [calibration] outlier_rejection"),
         steps=_toml_steps(data.get("steps", []), f"{where}: steps", stereo=False),
         stereo_steps=_toml_steps(data.get("stereo", {}).get("steps", []), f"{where}: stereo.steps", stereo=True),
         source=where,
@@ -231,6 +234,12 @@ def config_from_toml(text: str, where: str) -> Config:
     if extra:
         raise DstereoError(f"{where}: unknown key(s) {extra} in [stereo]; known: ['steps']")
     return cfg
+
+
+def _flag(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise DstereoError(f"{where}: {value!r} is not true or false")
+    return value
 
 
 def _toml_steps(items, where: str, stereo: bool) -> tuple[Step, ...]:
@@ -618,6 +627,8 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
         out.append(f"min_subsets = {cfg.min_subsets}" + c("a step stops before it leaves fewer subsets"))
     elif comments:
         out.append("# min_subsets = 50  # a step stops before it leaves fewer subsets")
+    if not cfg.outlier_rejection:
+        out.append("outlier_rejection = false" + c("keep every corner (default true: k-sigma rejection)"))
     if cfg.final != "survivors":
         out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the "
                                                          "survivors' solve"))

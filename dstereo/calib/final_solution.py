@@ -236,7 +236,9 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
 
     survival = view_survival(filtering, plan, len(obs))
     views = survival[0] > 0
-    solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free))
+    inliers = None if full.inliers is None else full.inliers[views]  # the full set's outlier mask carries over
+    solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free),
+                                                       inliers=inliers)
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
     coeffs = np.array(solution.coeffs, float)

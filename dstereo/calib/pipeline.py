@@ -112,6 +112,7 @@ class CameraCalibration:
     # With subsets: the survivors' solve, the thesis's subset mean and how they compare (calib/final_solution.py)
     final_solution: object | None = None
     subset_mean: dict[str, float] | None = None
+    outliers: object | None = None  # dstereo.calib.outliers.OutlierReport: corners and views rejected
 
     @property
     def unconverged(self) -> list[int]:
@@ -193,10 +194,6 @@ def calibrate_camera(
         # Before the plan: a sample of 1e11 subsets would need 800 GB for its ranks alone.
         check_subset_run(len(used), config.per_set, config.max_subsets, 5 + len(config.model), scratch,
                          getattr(progress, "note", None))  # columns re, fx, fy, cx, cy + the free coefficients
-        plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
-        if len(plan) < 2 and steps:
-            raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
-                               "the steps need several: lower --per-set")
 
     t0 = time.perf_counter()
     if progress is not None:
@@ -205,6 +202,16 @@ def calibrate_camera(
     if progress is not None:
         progress("full-set solve", 1, 1)
     timings["full_solve_s"] = time.perf_counter() - t0
+    full, used, obs, outliers = _reject_outliers(config, det, used, obs, full, warnings)
+    timings["outliers_s"] = time.perf_counter() - t0 - timings["full_solve_s"]
+    if config.per_set is not None:
+        if config.per_set > len(used):
+            raise DstereoError(f"per-set: m = {config.per_set} but only {len(used)} views are left after outlier "
+                               "rejection; lower --per-set (or --no-outlier-rejection)")
+        plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
+        if len(plan) < 2 and steps:
+            raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
+                               "the steps need several: lower --per-set")
     if not full.converged:
         warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
     columns = ("re",) + tuple(full.names)
@@ -252,8 +259,19 @@ def calibrate_camera(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
-        subset_mean=subset_mean,
+        subset_mean=subset_mean, outliers=outliers,
     )
+
+
+def _reject_outliers(config, det, used, obs, full, warnings):
+    """(full, used, obs, OutlierReport): the full-set solve on the inlier corners of the kept views."""
+    from dstereo.calib.outliers import OutlierReport, reject_outliers
+
+    if not config.outlier_rejection:
+        return full, used, obs, OutlierReport(False)
+    full, keep, report = reject_outliers(det.object_points, obs, det.image_size, tuple(config.model), used, full)
+    warnings += report.warnings()
+    return full, [used[i] for i in keep], obs[keep], report
 
 
 def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnings):

@@ -37,6 +37,9 @@ def calibrate(
     final: Optional[str] = typer.Option(
         None, "--final", help="What camera.yml/stereo.yml hold with subsets: survivors (default: the solve on the "
         "surviving subsets' views) or mean (the thesis's per-parameter subset mean)."),
+    no_outlier_rejection: bool = typer.Option(
+        False, "--no-outlier-rejection", help="Keep every detected corner and view (default: iterative k-sigma "
+        "rejection of outlier corners and views, each one reported)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -66,7 +69,7 @@ def calibrate(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
         image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets, final=final,
+        seed=seed, min_subsets=min_subsets, final=final, outlier_rejection=False if no_outlier_rejection else None,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
@@ -247,6 +250,12 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"{'parameter':>9}  {'full set +- std':>{width}}  {subsets}")
         for name, a, b in rows:
             typer.echo(f"{name:>9}  {a:>{width}}  {b}")
+    if cal.outliers is not None:
+        typer.echo(cal.outliers.summary())
+        worst = sorted(cal.outliers.corners, key=lambda c: -c[3])[:5]
+        if worst:
+            typer.echo("  worst: " + "; ".join(f"{i} corner {c} {r:.2f} px ({z:.1f} sigma)" for i, c, r, z in worst)
+                       + " (all in report.md / summary.json)")
     if cal.filtering is not None:
         for s in cal.filtering.steps:
             typer.echo(f"  {s.message}")

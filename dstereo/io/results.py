@@ -269,6 +269,7 @@ def summary_dict(cal) -> dict:
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
                      "points": cal.coverage.points},
         "model_advice": cal.model_advice,
+        "outliers": None if getattr(cal, "outliers", None) is None else cal.outliers.as_dict(),
         "warnings": list(cal.warnings),
         "timings": dict(cal.timings),
     }
@@ -403,6 +404,24 @@ def _fmt(value: float) -> str:
     return f"{value:.6g}" if value == value else "-"
 
 
+REPORT_OUTLIERS = 30  # rejected corners listed in report.md (all of them in summary.json)
+
+
+def outlier_lines(report) -> list[str]:
+    """report.md's outlier section: the summary and the worst rejected corners (calib/outliers.py)."""
+    if report is None:
+        return []
+    lines = ["## Outlier rejection", "", report.summary() + ".", ""]
+    if report.corners:
+        worst = sorted(report.corners, key=lambda c: -c[3])[:REPORT_OUTLIERS]
+        lines += ["| image | corner | residual (px) | residual / sigma |", "|---|---|---|---|"]
+        lines += [f"| {i} | {c} | {r:.3f} | {z:.1f} |" for i, c, r, z in worst]
+        if len(report.corners) > REPORT_OUTLIERS:
+            lines.append(f"| ... {len(report.corners) - REPORT_OUTLIERS} more in summary.json | | | |")
+        lines.append("")
+    return lines
+
+
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
     full, cfg = cal.full, cal.config
@@ -415,6 +434,7 @@ def report_markdown(cal, summary: dict) -> str:
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
+    lines += outlier_lines(getattr(cal, "outliers", None))
     sub = summary["subsets"]
     if sub is not None:
         lines += ["## Subsets and optimisation steps", "",
