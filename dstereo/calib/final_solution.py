@@ -82,9 +82,10 @@ def _refit(stereo: bool, free: tuple[str, ...] = ()):
 
     lens = lens_functions(free)[0]
 
-    def one(pose0, cams, obj, obs_v, rig):
-        res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig)) if stereo else \
-            (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens))
+    def one(pose0, cams, obj, obs_v, rig, w_v):
+        # w_v: residual weights (0 = an outlier corner, calib/outliers.py), as in the solve
+        res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig) * w_v) if stereo else \
+            (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens) * w_v)
         cost0 = jnp.sum(res(pose0) ** 2)
 
         def body(_, state):
@@ -101,7 +102,7 @@ def _refit(stereo: bool, free: tuple[str, ...] = ()):
         pose, _, cost = jax.lax.fori_loop(0, POSE_ITERATIONS, body, (pose0, 1e-3, cost0))
         return pose, cost
 
-    return jax.jit(jax.vmap(one, in_axes=(0, None, None, 0, None)))
+    return jax.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)))
 
 
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
@@ -117,7 +118,7 @@ def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
     return poses if np.all(np.isfinite(poses)) else None
 
 
-def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = ()) -> tuple[float, np.ndarray]:
+def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = (), inliers=None) -> tuple[float, np.ndarray]:
     """(RMS px over all corners, (V, 6) poses) of a fixed camera (k (4,), coeffs (8,)) on views `obs` (V, n, 2),
     each view's board pose refitted from `start_poses` (V, 6) and from two homography starts (the corners
     undistorted by this camera, and taken as they are); per view the best fit counts. Several starts because a
@@ -126,6 +127,7 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = ()) -> t
     from the solve's poses, 0.4041 px from the three; cv2.solvePnP + RefineLM 0.4040 px).
     RMS = sqrt(SSE / corners), OpenCV's convention. `free` names the lens model (a fisheye camera's corners
     are not undistorted by the pinhole homography start: its poses start from `start_poses` and the raw corners).
+    `inliers` (V, n) bool: the corners that count (outlier rejection's mask; default all).
     """
     from dstereo.models.distortion import lens_model
 
@@ -133,17 +135,19 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = ()) -> t
     cams = (np.asarray(k, float), np.asarray(coeffs, float))
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     refit = _refit(False, free)
-    poses, sse = (np.asarray(a) for a in refit(np.asarray(start_poses, float), cams, obj, obs, np.zeros(6)))
+    mask = np.ones(obs.shape[:2], bool) if inliers is None else np.asarray(inliers, bool)
+    w = np.repeat(mask.astype(float), 2, axis=1)
+    poses, sse = (np.asarray(a) for a in refit(np.asarray(start_poses, float), cams, obj, obs, np.zeros(6), w))
     starts = [_homography_poses(k, np.zeros(8), obj, obs)]
     if lens_model(free) == "pinhole":
         starts.append(_homography_poses(k, coeffs, obj, obs))
     for other in starts:
         if other is None:
             continue
-        poses_h, sse_h = (np.asarray(a) for a in refit(other, cams, obj, obs, np.zeros(6)))
+        poses_h, sse_h = (np.asarray(a) for a in refit(other, cams, obj, obs, np.zeros(6), w))
         better = np.isfinite(sse_h) & ~(sse_h >= sse)
         poses, sse = np.where(better[:, None], poses_h, poses), np.where(better, sse_h, sse)
-    return float(np.sqrt(np.sum(sse) / (obs.shape[0] * obs.shape[1]))), poses
+    return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1))), poses
 
 
 def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses) -> float:
@@ -151,7 +155,7 @@ def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses) -> float:
     cams = tuple((np.asarray(c[0], float), np.asarray(c[1], float)) for c in (left, right))
     data = np.stack([np.asarray(obs_l, float), np.asarray(obs_r, float)], axis=1)  # (V, 2, n, 2)
     _, sse = _refit(True)(np.asarray(start_poses, float), cams, np.asarray(obj, float), data,
-                          np.asarray(rig, float))
+                          np.asarray(rig, float), np.ones((len(data), 4 * data.shape[2])))
     return float(np.sqrt(np.sum(sse) / (2 * obs_l.shape[0] * obs_l.shape[1])))
 
 
@@ -247,8 +251,8 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     free = tuple(full.free)
     for n in names[4:]:
         coeffs[coeff_slots(free).index(n)] = subset_mean[n]
-    rms_mean, _ = refit_rms(k, coeffs, obj, obs[views], solution.poses, free)
-    rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, obj, obs[views], solution.poses, free)
+    rms_mean, _ = refit_rms(k, coeffs, obj, obs[views], solution.poses, free, inliers)
+    rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, obj, obs[views], solution.poses, free, inliers)
     # The solution's own refit equals its RMS to the solver's tolerance; the refitted figure is compared so that
     # both sides are measured the same way.
     return FinalSolution(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms_sol, rms_mean),
