@@ -15,19 +15,21 @@ FIVE = PRESETS["default"]
 N_VIEWS, PATTERN, NOISE = 24, (9, 6), 0.15
 
 
-def _views(seed: int):
+
+def _views(seed: int, coeffs=None, margin=(360, 280), n_views=N_VIEWS):
     """Board corners through a known camera plus NOISE px Gaussian noise (the engine's synthetic recipe)."""
     from dstereo.models.camera import project_view
 
     rng = np.random.default_rng(seed)
     obj = board_points(PATTERN, 25.0)
     k_true = np.array([800.0, 796.8, 652.0, 478.0])
-    coeffs = np.array([-0.25, 0.12, 0.001, -0.0015, -0.03, 0, 0, 0])
+    coeffs = np.array([-0.25, 0.12, 0.001, -0.0015, -0.03, 0, 0, 0]) if coeffs is None else coeffs
     centre = obj.mean(axis=0)
     poses = []
-    for _ in range(N_VIEWS):
+    for _ in range(n_views):
         rvec = np.deg2rad(rng.uniform(-40, 40, 3)) * np.array([1, 1, 0.3])
-        aim = np.array([rng.uniform(360, 920), rng.uniform(280, 680)])
+        # board centres aimed at least `margin` px from the image's sides
+        aim = np.array([rng.uniform(margin[0], 1280 - margin[0]), rng.uniform(margin[1], 960 - margin[1])])
         ray = np.r_[(aim - k_true[2:]) / k_true[:2], 1.0]
         poses.append(np.r_[rvec, rng.uniform(500, 800) * ray - cv2.Rodrigues(rvec)[0] @ centre])
     proj = jax.vmap(jax.vmap(project_view, in_axes=(None, None, None, 0)), in_axes=(None, None, 0, None))

@@ -257,8 +257,8 @@ def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
         rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
         per_view_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=2) * mask, axis=1) / n_in),
         residuals=resid, iterations=int(out.iterations), status=int(out.status), normal=np.asarray(out.normal),
-        conditioning=conditioning(out.schur, names), free=free, image_size=tuple(image_size),
-        inliers=None if mask.all() else mask,
+        conditioning=conditioning(out.schur, names, g, np.sqrt(np.maximum(np.diag(cov), 0.0)), image_size),
+        free=free, image_size=tuple(image_size), inliers=None if mask.all() else mask,
     )
 
 

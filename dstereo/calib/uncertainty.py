@@ -7,12 +7,21 @@ singular, standard deviations are meaningless: `conditioning` says so and names 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 # Scaled (correlation-form) condition number above which the shared parameters are not all identifiable.
 ILL_CONDITIONED = 1e10
+# A wild fit: a parameter not determined (sigma above WILD_SIGMA of its value: not 2-sigma from zero) at a value
+# no lens needs, with cancelling partners. The condition number misses these (webcams, rational model:
+# k1 = 138 +- 168, k3 = -590 +- 588 at scaled condition 7e7-1.6e9). Radial / rational / fisheye coefficients of
+# normalised coordinates are O(0.01-1) for real lenses (a well-determined k = 20 in a rational pair is fine:
+# only large *and* undetermined values count); tangential ones are < 0.01 (decentring of a few microns).
+WILD_SIGMA = 0.5
+WILD_VALUE = {"k": 1.0, "p": 0.1, "fk": 1.0}
+# Intrinsics: a focal length uncertain by more than this share of itself is no calibration.
+WILD_FOCAL_SIGMA = 0.05
 
 
 def scaled_inverse(schur: np.ndarray) -> np.ndarray:
@@ -54,16 +63,50 @@ def covariance(schur: np.ndarray, sse: float, n_residuals: int, n_params: int) -
     return sigma2 * scaled_inverse(schur)
 
 
+def _coeff_kind(name: str) -> str | None:
+    base = name.split(".")[-1]  # a stereo joint solve names them left.k1, right.p2
+    for kind in ("fk", "k", "p"):
+        if base.startswith(kind) and base[len(kind):].isdigit():
+            return kind
+    return None
+
+
+def wild_parameters(names, values, std, image_size=None) -> list[tuple[str, float, float, str]]:
+    """(name, value, sigma, why) of each parameter whose fit is wild (see WILD_SIGMA, WILD_VALUE)."""
+    out = []
+    for n, v, s in zip(names, np.asarray(values, float), np.asarray(std, float)):
+        base, kind = n.split(".")[-1], _coeff_kind(n)
+        if not np.isfinite(v) or not np.isfinite(s):
+            out.append((n, float(v), float(s), "not finite"))
+        elif kind is not None and abs(v) > WILD_VALUE[kind] and s > WILD_SIGMA * abs(v):
+            out.append((n, float(v), float(s), f"undetermined at a value (|{base}| > {WILD_VALUE[kind]:g}) no lens "
+                                               "needs"))
+        elif base in ("fx", "fy") and (v <= 0 or s > WILD_FOCAL_SIGMA * v):
+            out.append((n, float(v), float(s), f"focal length not positive or uncertain by > {WILD_FOCAL_SIGMA:.0%}"))
+        elif base in ("cx", "cy") and image_size is not None:
+            size = image_size[0] if base == "cx" else image_size[1]
+            if not 0 <= v <= size or s > 0.25 * size:
+                out.append((n, float(v), float(s), f"principal point outside the image (0..{size}) or uncertain "
+                                                   "by > 1/4 of it"))
+    return out
+
+
 @dataclass
 class Conditioning:
     condition_number: float  # of the scale-free (unit-diagonal) Schur complement
-    identifiable: bool
-    weak_parameters: list[str]  # those loading on the near-null directions
+    identifiable: bool  # condition number below ILL_CONDITIONED and no wild parameter
+    weak_parameters: list[str]  # those loading on the near-null directions, and the wild ones
     max_correlation: tuple[str, str, float]
+    wild: list[tuple[str, float, float, str]] = field(default_factory=list)  # `wild_parameters`
 
     def message(self) -> str:
         if self.identifiable:
-            return f"well conditioned (scaled condition number {self.condition_number:.2g})"
+            return f"well conditioned (scaled condition number {self.condition_number:.2g}, no wild parameter)"
+        if self.wild:
+            figures = "; ".join(f"{n} = {v:.4g} +- {s:.3g} ({why})" for n, v, s, why in self.wild)
+            return (f"wild fit: {figures}. These values are not determined by the views (cancelling "
+                    f"parameters; scaled condition number {self.condition_number:.2g}); use a smaller distortion "
+                    "model (or --model auto once it exists), or add views that fill the image corners")
         return (
             f"not identifiable from these views: scaled condition number {self.condition_number:.2g} "
             f"(> {ILL_CONDITIONED:.0e}); weakly determined: {', '.join(self.weak_parameters)}. Their standard "
@@ -71,7 +114,8 @@ class Conditioning:
         )
 
 
-def conditioning(schur: np.ndarray, names: tuple[str, ...]) -> Conditioning:
+def conditioning(schur: np.ndarray, names: tuple[str, ...], values=None, std=None, image_size=None) -> Conditioning:
+    """Condition number and weak directions of `schur`; with `values` and their `std`, the wild-fit test."""
     d = np.sqrt(np.maximum(np.diag(schur), 1e-300))
     scaled = schur / np.outer(d, d)
     evals, evecs = np.linalg.eigh(scaled)
@@ -83,4 +127,7 @@ def conditioning(schur: np.ndarray, names: tuple[str, ...]) -> Conditioning:
     corr = corr / np.outer(cd, cd)
     np.fill_diagonal(corr, 0.0)
     i, j = np.unravel_index(np.argmax(np.abs(corr)), corr.shape)
-    return Conditioning(cond, cond <= ILL_CONDITIONED, weak, (names[i], names[j], float(corr[i, j])))
+    wild = [] if values is None else wild_parameters(names, values, std, image_size)
+    weak += [w[0] for w in wild if w[0] not in weak]
+    return Conditioning(cond, cond <= ILL_CONDITIONED and not wild, weak, (names[i], names[j], float(corr[i, j])),
+                        wild)

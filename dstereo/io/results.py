@@ -258,6 +258,8 @@ def summary_dict(cal) -> dict:
                      "conditioning": {"identifiable": bool(full.conditioning.identifiable),
                                       "condition_number": float(full.conditioning.condition_number),
                                       "weak_parameters": list(full.conditioning.weak_parameters),
+                                      "wild_parameters": [{"parameter": n, "value": v, "std": sd, "why": why}
+                                                          for n, v, sd, why in full.conditioning.wild],
                                       "message": full.conditioning.message()}},
         "subsets": None,
         "final": dict(cal.final),
@@ -270,6 +272,9 @@ def summary_dict(cal) -> dict:
                      "points": cal.coverage.points},
         "model_advice": cal.model_advice,
         "outliers": None if getattr(cal, "outliers", None) is None else cal.outliers.as_dict(),
+        "residual_pattern": None if getattr(cal, "residual_pattern", None) is None else cal.residual_pattern.as_dict(),
+        "residual_pattern_all_corners": None if getattr(cal, "residual_pattern_all", None) is None
+        else cal.residual_pattern_all.as_dict(),
         "warnings": list(cal.warnings),
         "timings": dict(cal.timings),
     }
@@ -435,6 +440,12 @@ def report_markdown(cal, summary: dict) -> str:
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
     lines += outlier_lines(getattr(cal, "outliers", None))
+    pattern = getattr(cal, "residual_pattern", None)
+    if pattern is not None:
+        lines += [f"- residual pattern (8 x 6 cells): systematic {pattern.systematic_px:.3f} px of RMS "
+                  f"{pattern.rms_px:.3f} px, chi^2 {pattern.statistic:.0f} / {pattern.dof} dof, p = {pattern.p_value:.2g}"
+                  f" ({'significant: the model is too simple' if pattern.significant else 'no significant pattern'})",
+                  ""]
     sub = summary["subsets"]
     if sub is not None:
         lines += ["## Subsets and optimisation steps", "",
