@@ -96,26 +96,31 @@ def test_survivors_equal_an_independent_reimplementation(thesis_run):
 
 
 def test_subset_values_match_opencv(thesis_run):
-    """Spot-check 3 subsets against cv2.calibrateCamera on the same corners (corners.npz) with a tight criterion."""
+    """Spot-check 3 subsets against cv2.calibrateCamera on the same corners (corners.npz, less the outliers that
+    summary.json lists as rejected) with a tight criterion."""
     import cv2
 
     results = thesis_run[0]
-    used = _summary(results)["images"]["used"]
+    summary = _summary(results)
+    used = summary["images"]["used"]
     rows = _subsets(results)
+    out = {(c["image"], c["corner"]) for c in summary["outliers"]["corners"]}
     with np.load(results / "corners.npz") as z:
-        obj = z["object_points"].astype(np.float32)
-        corners = [z[name] for name in used]
+        obj_all = z["object_points"].astype(np.float32)
+        keep = [np.array([(name, c) not in out for c in range(len(obj_all))]) for name in used]
+        corners = [z[name][k] for name, k in zip(used, keep)]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
     for row in (rows[0], rows[143], rows[285]):
         idx = [int(i) for i in row["images"].split()]
         rms, K, D, _, _, std, _, _ = cv2.calibrateCameraExtended(
-            [obj] * len(idx), [corners[i].astype(np.float32) for i in idx], (640, 480), None, None, criteria=crit)
+            [obj_all[keep[i]] for i in idx], [corners[i].astype(np.float32) for i in idx], (640, 480), None, None,
+            criteria=crit)
         ref = dict(zip(("fx", "fy", "cx", "cy"), (K[0, 0], K[1, 1], K[0, 2], K[1, 2])))
         ref.update(zip(("k1", "k2", "p1", "p2", "k3"), D.ravel()))
         sd = dict(zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), std.ravel()))
         # Both SSEs within ftol = 1e-12 of the optimum's: RMS to ftol / 2 (the CSV's 17 digits are exact enough).
         assert float(row["rms"]) == pytest.approx(rms, rel=1e-12)
-        n_res, n_par = 2 * obj.shape[0] * len(idx), len(PARAMS) + 6 * len(idx)
+        n_res, n_par = 2 * sum(int(keep[i].sum()) for i in idx), len(PARAMS) + 6 * len(idx)
         for name in PARAMS:
             # Within the two stopping rules' reach, in units of the subset's own std (lm_agreement, ~6e-5 std):
             # k2 and k3 share a flat valley (correlation ~ -0.98), so a relative bound would be tight there.

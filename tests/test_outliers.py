@@ -171,3 +171,35 @@ def test_config_key_and_the_pipeline_switch():
     assert not off.outliers.enabled and off.full.inliers is None
     assert 5 <= len(on.outliers.corners) <= 40 and on.full.rms < 0.6 * off.full.rms
     assert on.full.inliers.sum() == on.full.inliers.size - len(on.outliers.corners)
+
+
+def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
+    """The rig solve with corners masked (the cameras' outlier masks) is the same problem whether those corners
+    hold their detected values or are 25 px off: equal to the solver's tolerance (both converge to one
+    optimum; 1e-7 relative allows the ftol = 1e-12 stopping rule), its RMS over the inliers only, and its
+    residual count (the dof) the inliers'."""
+    from conftest import require_data
+    from dstereo.calib.stereo import calibrate_stereo, camera_from_solution
+    from dstereo.io.corners import detect_folder
+
+    root = require_data("opencv_stereo")
+    dets = [detect_folder(root, (9, 6), 1.0, files=sorted(root.glob(f"{s}*.jpg"))) for s in ("left", "right")]
+    common = sorted(set(n[4:] for n in dets[0].corners) & set(n[5:] for n in dets[1].corners))
+    obs_l = np.stack([dets[0].corners["left" + n] for n in common])
+    obs_r = np.stack([dets[1].corners["right" + n] for n in common])
+    obj = dets[0].object_points
+    cams = [camera_from_solution(mono.calibrate_full(obj, o, (640, 480), FIVE)) for o in (obs_l, obs_r)]
+    rng = np.random.default_rng(2)
+    mask = rng.random((len(common), 2, obj.shape[0])) > 0.02
+    bad_l, bad_r = obs_l.copy(), obs_r.copy()
+    bad_l[~mask[:, 0]] += 25.0
+    bad_r[~mask[:, 1]] -= 25.0
+    a = calibrate_stereo(obj, obs_l, obs_r, *cams, inliers=mask)
+    b = calibrate_stereo(obj, bad_l, bad_r, *cams, inliers=mask)
+    plain = calibrate_stereo(obj, bad_l, bad_r, *cams)
+    np.testing.assert_allclose(b.values, a.values, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(b.rms, a.rms, rtol=1e-7)
+    np.testing.assert_allclose(b.std, a.std, rtol=1e-6)
+    assert plain.rms > 5 * b.rms  # unmasked, the same outliers dominate the fit
+    inl = np.linalg.norm(b.residuals, axis=3)[mask]
+    assert b.rms == pytest.approx(np.sqrt(np.mean(inl ** 2)), rel=1e-9)

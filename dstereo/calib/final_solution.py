@@ -150,13 +150,17 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = (), inli
     return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1))), poses
 
 
-def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses) -> float:
-    """RMS px over both cameras' corners of fixed cameras (k, coeffs) and rig (6,), board poses refitted."""
+def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses, inliers=None) -> float:
+    """RMS px over both cameras' corners of fixed cameras (k, coeffs) and rig (6,), board poses refitted;
+    `inliers` (V, 2, n): the corners that count (the rig solve's outlier mask; default all)."""
+    from dstereo.calib.stereo import pair_weights
+
     cams = tuple((np.asarray(c[0], float), np.asarray(c[1], float)) for c in (left, right))
     data = np.stack([np.asarray(obs_l, float), np.asarray(obs_r, float)], axis=1)  # (V, 2, n, 2)
+    mask = np.ones((len(data), 2, data.shape[2]), bool) if inliers is None else np.asarray(inliers, bool)
     _, sse = _refit(True)(np.asarray(start_poses, float), cams, np.asarray(obj, float), data,
-                          np.asarray(rig, float), np.ones((len(data), 4 * data.shape[2])))
-    return float(np.sqrt(np.sum(sse) / (2 * obs_l.shape[0] * obs_l.shape[1])))
+                          np.asarray(rig, float), pair_weights(mask))
+    return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1)))
 
 
 # --- the decision -------------------------------------------------------------------------------------------
@@ -305,11 +309,12 @@ def rig_final(choice: str, filtering, plan, obj, obs_l, obs_r, full, subset_mean
     from dstereo.calib.stereo import calibrate_stereo
 
     views = surviving_views(filtering, plan, len(obs_l))
-    solution = full if views.all() else calibrate_stereo(obj, obs_l[views], obs_r[views], full.left, full.right,
-                                                         full.mode)
+    solution = full if views.all() else calibrate_stereo(
+        obj, obs_l[views], obs_r[views], full.left, full.right, full.mode,
+        inliers=None if full.inliers is None else full.inliers[views])  # the cameras' outlier masks carry over
     cams = [(np.asarray(c.k), np.asarray(c.dist.coeffs)) for c in (solution.left, solution.right)]
     mean_rig = np.array([subset_mean[n] for n in RIG])
-    rms = [refit_pairs_rms(*cams, rig, obj, obs_l[views], obs_r[views], solution.poses)
+    rms = [refit_pairs_rms(*cams, rig, obj, obs_l[views], obs_r[views], solution.poses, solution.inliers)
            for rig in (np.asarray(solution.values[:6]), mean_rig)]
     return RigFinal(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms[0], rms[1]))
 

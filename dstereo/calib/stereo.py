@@ -119,7 +119,8 @@ def view_linearize_for(spec: _Spec):
 @functools.lru_cache(maxsize=None)
 def _full_solver(spec: _Spec, options: LMOptions):
     res, lin = view_residual_for(spec), view_linearize_for(spec)
-    return jax.jit(lambda g0, p0, obs, shared: solve_structured(res, g0, p0, obs, shared, options, lin),
+    return jax.jit(lambda g0, p0, obs, shared, r_weight: solve_structured(res, g0, p0, obs, shared, options, lin,
+                                                                        r_weight=r_weight),
                    compiler_options=COMPILE_OPTIONS)
 
 
@@ -127,9 +128,9 @@ def _full_solver(spec: _Spec, options: LMOptions):
 def _batch_solver(spec: _Spec, options: LMOptions):
     res, lin = view_residual_for(spec), view_linearize_for(spec)
 
-    def batch(g0, p0, obs, shared):  # one start g0 for every problem
+    def batch(g0, p0, obs, shared, r_weight):  # one start g0 for every problem
         return solve_structured_batch(res, jnp.broadcast_to(g0, (p0.shape[0], *g0.shape)), p0, obs, shared, options,
-                                      lin)
+                                      lin, r_weight=r_weight)
 
     return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
 
@@ -200,6 +201,7 @@ class StereoSolution:
     iterations: int
     status: int
     conditioning: Conditioning
+    inliers: np.ndarray | None = None  # (V, 2, n) bool: corners the solve used [left, right] (None: all)
     timings: dict = field(default_factory=dict)
 
     @property
@@ -288,8 +290,10 @@ def calibrate_stereo(
     right: Camera,
     mode: str = "fixed",
     options: LMOptions = LMOptions(),
+    inliers: np.ndarray | None = None,
 ) -> StereoSolution:
     """Calibrate the rig from all pairs: obj (n, 3) board points, obs_* (V, n, 2) corners of each pair.
+    `inliers` (V, 2, n) bool [left, right]: the corners that count (the cameras' outlier masks; default all).
 
     `left`/`right` are the individual calibrations (their `dist.free` says which coefficients the joint mode
     refines). Start: median of the per-pair relative poses; then the structured LM with intrinsics fixed; in
@@ -303,18 +307,34 @@ def calibrate_stereo(
     data = jnp.stack([jnp.asarray(obs_left), jnp.asarray(obs_right)], axis=1)  # (V, 2, n, 2)
     shared = _shared(obj, left, right)
     fixed = _Spec(False)
-    out = _full_solver(fixed, options)(jnp.asarray(rig0), jnp.asarray(poses0), data, shared)
+    mask = _pair_mask(inliers, obs_left.shape)
+    r_w = jnp.asarray(pair_weights(mask))
+    out = _full_solver(fixed, options)(jnp.asarray(rig0), jnp.asarray(poses0), data, shared, r_w)
     iterations = int(out.iterations)
     if spec.joint:
-        out = _full_solver(spec, options)(jnp.asarray(_g0(spec, np.asarray(out.g), left, right)), out.p, data, shared)
+        out = _full_solver(spec, options)(jnp.asarray(_g0(spec, np.asarray(out.g), left, right)), out.p, data, shared,
+                                          r_w)
         iterations += int(out.iterations)
     out = jax.tree_util.tree_map(np.array, out)
-    sol = _solution_from(out, spec, mode, obj, data, left, right, iterations)
+    sol = _solution_from(out, spec, mode, obj, data, left, right, iterations, mask)
     sol.timings["solve_s"] = time.perf_counter() - t0
     if not np.isfinite(sol.rms):
         raise DstereoError(f"stereo calibration failed ({STATUS_TEXT[sol.status]}); check that the left and right "
                            "images of each pair show the board in the same corner order")
     return sol
+
+
+def _pair_mask(inliers, shape) -> np.ndarray:
+    """(V, 2, n) bool from `inliers` or all True; a pair with no inlier corner at all keeps its corners (its
+    pose would be undetermined)."""
+    mask = np.ones((shape[0], 2, shape[1]), bool) if inliers is None else np.array(inliers, bool)
+    mask[~mask.any(axis=(1, 2))] = True
+    return mask
+
+
+def pair_weights(mask: np.ndarray) -> np.ndarray:
+    """(..., V, 2, n) corner mask -> (..., V, 4n) residual weights in `view_residual_for`'s order."""
+    return np.repeat(mask.astype(float), 2, axis=-1).reshape(*mask.shape[:-2], -1)
 
 
 def cameras_from(spec: _Spec, g: np.ndarray, left: Camera, right: Camera) -> tuple[Camera, Camera]:
@@ -326,7 +346,7 @@ def cameras_from(spec: _Spec, g: np.ndarray, left: Camera, right: Camera) -> tup
 
 
 def _solution_from(out, spec: _Spec, mode: str, obj, data, left: Camera, right: Camera,
-                   iterations: int) -> StereoSolution:
+                   iterations: int, mask: np.ndarray) -> StereoSolution:
     g = out.g
     names = spec.names()
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), len(g) + out.p.size)
@@ -339,9 +359,10 @@ def _solution_from(out, spec: _Spec, mode: str, obj, data, left: Camera, right: 
     return StereoSolution(
         mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, left=cam_l,
         right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
-        poses=out.p, rms=float(np.sqrt(out.sse / (2 * resid.shape[0] * n))),
-        per_pair_rms=np.sqrt(np.mean(np.sum(resid ** 2, axis=3), axis=(1, 2))), residuals=resid,
-        iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),
+        poses=out.p, rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
+        per_pair_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=3) * mask, axis=(1, 2)) / np.maximum(mask.sum(axis=(1, 2)), 1)),
+        residuals=resid, iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),
+        inliers=None if mask.all() else mask,
     )
 
 
@@ -395,18 +416,21 @@ def solve_stereo_subsets(
     shared = _shared(obj, start.left, start.right)
     data = jnp.stack([jnp.asarray(obs_left), jnp.asarray(obs_right)], axis=1)
     poses, g0 = jnp.asarray(start.poses), jnp.asarray(start.values)
+    mask = _pair_mask(start.inliers, obs_left.shape)  # the full set's outlier mask, in every subset
+    r_w = jnp.asarray(pair_weights(mask))
     outs, re = [], []
     t0 = time.perf_counter()
     for c in range(0, len(padded), chunk):
         idx = jnp.asarray(padded[c: c + chunk])
-        out = solver(g0, poses[idx], data[idx], shared)
-        r = np.asarray(residuals(out.g, out.p, data[idx], shared))  # (chunk, m, 4n)
-        re.append(np.mean(np.sqrt(np.sum(r ** 2, axis=2) / (r.shape[2] / 2)), axis=1))
+        out = solver(g0, poses[idx], data[idx], shared, r_w[idx])
+        w = np.asarray(r_w[idx])
+        r = np.asarray(residuals(out.g, out.p, data[idx], shared)) * w  # (chunk, m, 4n), outliers zeroed
+        re.append(np.mean(np.sqrt(np.sum(r ** 2, axis=2) / (np.sum(w, axis=2) / 2)), axis=1))
         outs.append(jax.tree_util.tree_map(np.array, out))
         if progress is not None:
             progress(min(c + chunk, n_sub), n_sub)
     out = jax.tree_util.tree_map(lambda *a: np.concatenate(a)[:n_sub], *outs)
-    n_points = 2 * m * obj.shape[0]
+    n_points = out.n_residuals / 2  # inlier corners of both cameras
     sigma2 = out.sse / (out.n_residuals - (out.g.shape[1] + 6 * m))
     cov = scaled_inverse(out.schur) * sigma2[:, None, None]
     norm_std = np.array([[_norm_std(g[3:6], c[3:6, 3:6]), _norm_std(g[0:3], c[0:3, 0:3])]

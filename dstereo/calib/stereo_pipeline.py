@@ -229,7 +229,9 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     t0 = time.perf_counter()
     if progress is not None:
         progress("stereo solve", 0, 1)
-    full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed")
+    inliers = _pair_inliers(det, cams, obs_l, obs_r)
+    full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed",
+                            inliers=inliers)
     if progress is not None:
         progress("stereo solve", 1, 1)
     timings["stereo_s"] = time.perf_counter() - t0
@@ -286,6 +288,23 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     attach_rig_uncertainty(job)
     timings["rig_covariance_s"] = time.perf_counter() - t0
     return job
+
+
+def _pair_inliers(det, cams, obs_l, obs_r) -> np.ndarray | None:
+    """(V, 2, n) corner mask of the pairs from each camera's outlier rejection (calib/outliers.py): a pair's image
+    that its camera's calibration used, with the same corners, takes that view's mask; an image the camera
+    rejected whole has no inlier corner; an image the camera did not see (other folder) keeps all corners."""
+    mask = np.ones((len(det.pairs), 2, obs_l.shape[1]), bool)
+    for side, (cal, obs) in enumerate(((cams["left"], obs_l), (cams["right"], obs_r))):
+        rejected = {v for v, _ in cal.outliers.views} if cal.outliers is not None else set()
+        rows = {name: i for i, name in enumerate(cal.used)}
+        for p, pair in enumerate(det.pairs):
+            name = pair[side]
+            if name in rejected:
+                mask[p, side] = False
+            elif name in rows and cal.full.inliers is not None and np.allclose(cal.observations[rows[name]], obs[p]):
+                mask[p, side] = cal.full.inliers[rows[name]]
+    return None if mask.all() else mask
 
 
 FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance from its individual (mono) full-set "
