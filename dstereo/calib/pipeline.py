@@ -196,6 +196,7 @@ def calibrate_camera(
         # Before the plan: a sample of 1e11 subsets would need 800 GB for its ranks alone.
         check_subset_run(len(used), config.per_set, config.max_subsets, 5 + len(config.model), scratch,
                          getattr(progress, "note", None))  # columns re, fx, fy, cx, cy + the free coefficients
+        plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)  # checks m <= N
 
     t0 = time.perf_counter()
     if progress is not None:
@@ -209,16 +210,17 @@ def calibrate_camera(
     # Before rejection too: a model too simple for the lens puts its worst residuals at the edges, and rejecting
     # them as outliers would hide the pattern (k1,k2 on fisheye640: p = 9e-24 before, 2e-4 after)
     pattern_all = solution_pattern(obs, full)
+    n_before = len(used)
     full, used, obs, outliers = _reject_outliers(config, det, used, obs, full, warnings)
     timings["outliers_s"] = time.perf_counter() - t0 - timings["full_solve_s"]
-    if config.per_set is not None:
+    if config.per_set is not None and len(used) < n_before:  # views rejected whole: plan the rest
         if config.per_set > len(used):
             raise DstereoError(f"per-set: m = {config.per_set} but only {len(used)} views are left after outlier "
                                "rejection; lower --per-set (or --no-outlier-rejection)")
         plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
-        if len(plan) < 2 and steps:
-            raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
-                               "the steps need several: lower --per-set")
+    if plan is not None and len(plan) < 2 and steps:
+        raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
+                           "the steps need several: lower --per-set")
     if not full.converged:
         warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
     columns = ("re",) + tuple(full.names)
