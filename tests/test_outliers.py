@@ -112,7 +112,12 @@ def test_injected_outliers_are_all_found_and_do_not_move_fx(clean):
     found = {v * obs.shape[1] + c for v, c in zip(*np.nonzero(~sol.inliers))}
     assert set(pick.tolist()) <= found
     assert len(found) - len(pick) < 0.005 * n  # at most the clean set's share of false rejections
-    assert abs(sol.values[0] - first.values[0]) < 0.2 * first.std[0]
+    assert abs(sol.values[0] - first.values[0]) < 0.2 * first.std[0]  # this seed: 0.19 sigma (see below)
+    # The displaced corners carry no weight: the result is the clean solve without those corners (to the
+    # solver's tolerance, 1e-7 sigma); what remains against the clean solve of every corner is the 1 % of
+    # information lost (expected ~ sqrt(0.01) = 0.1 sigma; measured 0.19, 0.10, 0.33 sigma on seeds 5, 6, 7)
+    same = mono.calibrate_full(obj, obs, (1280, 960), FIVE, inliers=sol.inliers, start=(first.values, first.poses))
+    assert abs(sol.values[0] - same.values[0]) < 1e-4 * first.std[0]
     assert rep.rms_after < rep.rms_before
     d = rep.as_dict()
     assert len(d["corners"]) == len(found) and all(c["residual_sigma"] > rep.k for c in d["corners"])
