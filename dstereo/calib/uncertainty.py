@@ -102,15 +102,18 @@ class Conditioning:
     def message(self) -> str:
         if self.identifiable:
             return f"well conditioned (scaled condition number {self.condition_number:.2g}, no wild parameter)"
+        wild = ""
         if self.wild:
             figures = "; ".join(f"{n} = {v:.4g} +- {s:.3g} ({why})" for n, v, s, why in self.wild)
-            return (f"wild fit: {figures}. These values are not determined by the views (cancelling "
-                    f"parameters; scaled condition number {self.condition_number:.2g}); use a smaller distortion "
+            wild = f"wild fit: {figures}. These values are not determined by the views (cancelling parameters)"
+        if self.condition_number <= ILL_CONDITIONED:
+            return (f"{wild}, at scaled condition number {self.condition_number:.2g}; use a smaller distortion "
                     "model (or --model auto once it exists), or add views that fill the image corners")
         return (
             f"not identifiable from these views: scaled condition number {self.condition_number:.2g} "
-            f"(> {ILL_CONDITIONED:.0e}); weakly determined: {', '.join(self.weak_parameters)}. Their standard "
-            "deviations are not meaningful; use a simpler distortion model or add views that fill the image corners"
+            f"(> {ILL_CONDITIONED:.0e}); weakly determined: {', '.join(self.weak_parameters)}. "
+            + (f"{wild}. " if wild else "") + "Their standard deviations are not meaningful; use a simpler "
+            "distortion model (or --model auto once it exists) or add views that fill the image corners"
         )
 
 
