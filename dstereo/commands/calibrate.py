@@ -157,13 +157,9 @@ def _view_warnings(cal) -> list[str]:
 
     pattern = cal.config.pattern
     return (view_checks.outlying_views(cal.used, cal.full.per_view_rms)
-            + view_checks.stray_corners(cal.used, _inlier_residuals(cal.full), pattern)
+            + view_checks.stray_corners(cal.used, cal.full.residuals, pattern)  # rejected corners too: a
+            # corner far off may mean a wrong --pattern, whose hint this warning carries
             + view_checks.mirrored_views({n: cal.detection.corners[n] for n in cal.used}, pattern))
-
-
-def _inlier_residuals(full):
-    """Residuals with the rejected corners zeroed: those are reported as outliers, not again as stray corners."""
-    return full.residuals if full.inliers is None else full.residuals * full.inliers[..., None]
 
 
 # A rig solve whose RMS exceeds this multiple of the worse camera's own RMS (and 1 px) cannot describe pairs of one
