@@ -55,8 +55,8 @@ def test_zero_residual_weights_leave_residuals_out_of_the_fit_and_the_dof():
     w[[0, 7, 13, 21, 30, 38]] = 0.0
     y_bad = y + 50.0 * (w == 0)
     res = lambda g, p_v, xy, shared: g[0] * xy[0] + g[1] * xy[0] ** 2 + p_v[0] - xy[1]  # noqa: E731
-    out = solve_structured(res, jnp.zeros(2), jnp.zeros((n_v, 1)), jnp.asarray(np.stack([x, y_bad.reshape(n_v, n_r)], 1)),
-                           r_weight=jnp.asarray(w.reshape(n_v, n_r)))
+    data = jnp.asarray(np.stack([x, y_bad.reshape(n_v, n_r)], 1))
+    out = solve_structured(res, jnp.zeros(2), jnp.zeros((n_v, 1)), data, r_weight=jnp.asarray(w.reshape(n_v, n_r)))
     assert int(out.status) > 0
     keep = w > 0
     ai, yi = a[keep], y[keep]

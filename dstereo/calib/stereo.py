@@ -360,7 +360,8 @@ def _solution_from(out, spec: _Spec, mode: str, obj, data, left: Camera, right: 
         mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, left=cam_l,
         right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
         poses=out.p, rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
-        per_pair_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=3) * mask, axis=(1, 2)) / np.maximum(mask.sum(axis=(1, 2)), 1)),
+        per_pair_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=3) * mask, axis=(1, 2))
+                             / np.maximum(mask.sum(axis=(1, 2)), 1)),
         residuals=resid, iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),
         inliers=None if mask.all() else mask,
     )

@@ -443,7 +443,8 @@ def report_markdown(cal, summary: dict) -> str:
     pattern = getattr(cal, "residual_pattern", None)
     if pattern is not None:
         lines += [f"- residual pattern (8 x 6 cells): systematic {pattern.systematic_px:.3f} px of RMS "
-                  f"{pattern.rms_px:.3f} px, chi^2 {pattern.statistic:.0f} / {pattern.dof} dof, p = {pattern.p_value:.2g}"
+                  f"{pattern.rms_px:.3f} px, chi^2 {pattern.statistic:.0f} / {pattern.dof} dof, "
+                  f"p = {pattern.p_value:.2g}"
                   f" ({'significant: the model is too simple' if pattern.significant else 'no significant pattern'})",
                   ""]
     sub = summary["subsets"]
