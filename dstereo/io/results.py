@@ -269,6 +269,7 @@ def summary_dict(cal) -> dict:
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
                      "points": cal.coverage.points},
         "model_advice": cal.model_advice,
+        "model_choice": cal.model_choice.as_dict() if cal.model_choice is not None else None,  # --model auto
         "warnings": list(cal.warnings),
         "timings": dict(cal.timings),
     }
@@ -403,6 +404,17 @@ def _fmt(value: float) -> str:
     return f"{value:.6g}" if value == value else "-"
 
 
+def _model_choice_lines(choice) -> list[str]:
+    """report.md's `--model auto` section: the candidates' table and the rule (calib/model_choice.py)."""
+    kind = "leave one view out" if choice.heldout_views == choice.folds else f"{choice.folds} folds"
+    return ["## Model choice (--model auto)", "",
+            f"Held-out error: {kind} ({choice.heldout_views} views held out); each held-out view's board pose "
+            "refitted for the fold's fixed camera, RMS over its corners. Rule: " + choice.rule + ".", "",
+            *choice.table_markdown(), "",
+            f"Chosen: **{choice.chosen}** ({', '.join(choice.chosen_candidate.free)}); the rest of this report is "
+            "its calibration.", ""]
+
+
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
     full, cfg = cal.full, cal.config
@@ -415,6 +427,8 @@ def report_markdown(cal, summary: dict) -> str:
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
+    if cal.model_choice is not None:
+        lines += _model_choice_lines(cal.model_choice)
     sub = summary["subsets"]
     if sub is not None:
         lines += ["## Subsets and optimisation steps", "",
