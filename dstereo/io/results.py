@@ -346,6 +346,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
                      "rms": float(full.rms), "std": summary["full_set"]["std"]}})
+    summary["cameramodel"] = _write_mrcal(folder, cal, K)
     np.savez(folder / "corners.npz", object_points=det.object_points,
              **{name: det.corners[name] for name in cal.used})
     (folder / "config.toml").write_text(to_toml(cal.config, comments=False))
@@ -373,6 +374,14 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     write_json(folder / "summary.json", summary)
     (folder / "report.md").write_text(report_markdown(cal, summary))
     return summary
+
+
+def _write_mrcal(folder: Path, cal, K: np.ndarray) -> str:
+    """camera.cameramodel (mrcal's format, io/cameramodel.py) of what camera.yml holds; what was done, or why not."""
+    from dstereo.io.cameramodel import write_cameramodel
+
+    return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
+                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate")
 
 
 def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
@@ -464,7 +473,8 @@ def report_markdown(cal, summary: dict) -> str:
                   f"RMS {check['rms_solution_px']:.4f} px, the thesis's subset mean RMS {check['rms_mean_px']:.4f} px "
                   f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
-              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
+              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).",
+              f"For mrcal's tools: {summary.get('cameramodel', '-')}.", ""]
     cov = cal.coverage
     lines += ["## Distortion coverage (thesis section 5.2.1.2)", "", "| image area | % of corners |", "|---|---|"]
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]
