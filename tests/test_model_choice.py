@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import require_data, run_cli
-from dstereo.calib.model_choice import Candidate, choose, choose_model, fold_plan
+from dstereo.calib.model_choice import Candidate, choose, choose_model, fold_plan, residual_structure
 from dstereo.config import Config, config_from_toml, to_toml, validate
 from dstereo.errors import DstereoError
 
@@ -42,7 +42,7 @@ def fisheye_choice():
     size, k = (640, 640), np.array([[205.0, 0, 322.3], [0, 204.2, 316.8], [0, 0, 1]])
     d = np.array([0.021, -0.008, 0.0035, -0.0007])
     obj, obs = _views(lambda o, r, t: cv2.fisheye.projectPoints(o[None], r, t, k, d)[0][0], size, 1.05, (5, 8), 3)
-    return choose_model(obj, obs, size)
+    return choose_model(obj, obs, size), obs
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def pinhole_choice():
     size, k = (640, 480), np.array([[900.0, 0, 321.0], [0, 899.0, 242.0], [0, 0, 1]])
     d = np.array([-0.15, 0.05, 0.0, 0.0, 0.0])
     obj, obs = _views(lambda o, r, t: cv2.projectPoints(o, r, t, k, d)[0][:, 0], size, 0.25, (14, 20), 5)
-    return choose_model(obj, obs, size)
+    return choose_model(obj, obs, size), obs
 
 
 def _by_name(choice):
@@ -59,6 +59,7 @@ def _by_name(choice):
 
 
 def test_fisheye_lens_picks_fisheye_or_a_model_within_noise_of_it(fisheye_choice):
+    fisheye_choice = fisheye_choice[0]
     c = _by_name(fisheye_choice)
     chosen, fish = c[fisheye_choice.chosen], c["fisheye"]
     both = np.isfinite(fish.heldout_mse)
@@ -72,11 +73,21 @@ def test_fisheye_lens_picks_fisheye_or_a_model_within_noise_of_it(fisheye_choice
 
 
 def test_narrow_pinhole_lens_picks_a_small_model(pinhole_choice):
+    pinhole_choice = pinhole_choice[0]
     c = _by_name(pinhole_choice)
     # Every model fits a k1, k2 lens; the rule then prefers the fewest parameters (k1k2, the truth)
     assert pinhole_choice.chosen == "k1k2", pinhole_choice.table_markdown()
     assert c["rational"].rms <= c["k1k2"].rms  # the richer model fits the training corners no worse ...
     assert c["k1k2"].identifiable
+
+
+def test_residual_structure_points_to_auto_only_where_the_model_misses(fisheye_choice, pinhole_choice):
+    for (choice, obs), preset, expected in ((fisheye_choice, "default", True), (fisheye_choice, "fisheye", False),
+                                            (pinhole_choice, "k1k2", False)):
+        sol = _by_name(choice)[preset].solution
+        text = residual_structure(obs, sol.residuals, sol.values[:4])
+        assert (text is not None) == expected, (preset, text)
+        assert text is None or "--model auto" in text
 
 
 def test_fold_plan_leave_one_out_and_equal_folds():

@@ -36,6 +36,12 @@ MAX_FOLDS = 30  # up to this many views: leave one view out; beyond: this many f
 FIT_MARGIN = 0.01  # a chosen model's training RMS may exceed the held-out-best model's by at most 1 %
 POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-set pose (converges in < 10)
 WEAK_Z = 2.0  # a coefficient whose |value| is below WEAK_Z of its standard deviations is not told from zero
+# Residual structure: corners in STRUCTURE_RINGS rings of equal count around the principal point; a ring whose
+# mean radial residual (per view, then over views) is STRUCTURE_Z standard errors from zero shows a distortion
+# the model does not follow. Measured (experiments/results/model_auto.md's cameras): fisheye640 with k1k2 /
+# 5 coefficients: up to 5.2 / 4.0; models that fit (fisheye640 fisheye and rational, the narrow lenses of
+# opencv_stereo and rig640 with every candidate): at most 2.3.
+STRUCTURE_RINGS, STRUCTURE_Z, STRUCTURE_MIN_VIEWS = 5, 3.5, 6
 
 
 @dataclass
@@ -166,17 +172,20 @@ def evaluate(preset: str, obj, obs, image_size) -> Candidate:
     z = np.abs(full.values[4:]) / np.maximum(full.std[4:], 1e-300)
     weakest = (free[int(np.argmin(z))], float(np.min(z))) if free else ("", float("inf"))
     converged = bool(full.converged and np.all(sub.converged) and np.all(np.isfinite(sse)))
+    note = "" if converged else (f"did not converge (full set: {full.status_text}; {int(np.sum(~sub.converged))} of "
+                                 f"{len(plan)} folds unconverged): not a candidate")
     return Candidate(preset=preset, free=free, n_params=4 + len(free), rms=float(full.rms),
                      heldout_rms=float(np.sqrt(np.nanmean(mse))), heldout_mse=mse, converged=converged,
                      identifiable=bool(full.conditioning.identifiable),
-                     condition_number=float(full.conditioning.condition_number), weakest=weakest, solution=full)
+                     condition_number=float(full.conditioning.condition_number), weakest=weakest, note=note,
+                     solution=full)
 
 
 def choose(candidates: list[Candidate]) -> tuple[str, str]:
     """(chosen, best) preset names by the module's rule; fills each candidate's diff_mse, diff_se and note."""
     usable = [c for c in candidates if c.converged and np.isfinite(c.heldout_rms)]
     for c in candidates:
-        if c not in usable:
+        if c not in usable and not c.note:
             c.note = "did not converge on every fold: not a candidate"
     if not usable:
         raise DstereoError("model auto: no candidate lens model converged on every fold; choose one with --model "
@@ -235,6 +244,31 @@ def choice_warning(choice: ModelChoice) -> str | None:
     return (f"model auto chose {c.preset} ({','.join(c.free)}), which is not identifiable from these views "
             f"({c.identifiability_text()}), because no simpler model predicts held-out views as well "
             f"({c.heldout_rms:.4f} px); add views that tilt the board and fill the image corners")
+
+
+def residual_structure(obs, residuals, k) -> str | None:
+    """A sentence when the full-set residuals (V, n, 2) px of corners obs (V, n, 2) show a radial pattern around
+    the principal point k[2:4] that the lens model leaves (see STRUCTURE_*), else None."""
+    obs, residuals = np.asarray(obs, float), np.asarray(residuals, float)
+    d = obs - np.asarray(k, float)[2:4]
+    r = np.linalg.norm(d, axis=2)
+    radial = np.sum(residuals * d, axis=2) / np.maximum(r, 1e-9)  # (V, n) outward component
+    edges = np.quantile(r, np.linspace(0.0, 1.0, STRUCTURE_RINGS + 1))
+    worst = None
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (r >= lo) & (r <= hi)
+        per_view = np.array([radial[v][inside[v]].mean() for v in range(len(obs)) if inside[v].sum() >= 3])
+        if len(per_view) < STRUCTURE_MIN_VIEWS:
+            continue
+        z = per_view.mean() / max(per_view.std(ddof=1) / np.sqrt(len(per_view)), 1e-12)
+        if abs(z) > STRUCTURE_Z and (worst is None or abs(z) > abs(worst[2])):
+            worst = (lo, hi, z, per_view.mean())
+    if worst is None:
+        return None
+    lo, hi, z, mean = worst
+    return (f"the residuals show a radial pattern the lens model does not follow: corners {lo:.0f}-{hi:.0f} px from "
+            f"the principal point sit {mean:+.3f} px off radially on average ({z:+.1f} standard errors over views); "
+            "let held-out views choose the lens model (--model auto)")
 
 
 def is_fisheye(preset: str) -> bool:

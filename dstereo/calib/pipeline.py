@@ -220,8 +220,13 @@ def calibrate_camera(
 
         advice = choice_warning(choice)
     else:
+        from dstereo.calib.model_choice import residual_structure
+
         advice = suggest_model(tuple(config.model), full.conditioning.identifiable,
                                full.conditioning.weak_parameters)
+        structure = residual_structure(obs, full.residuals, full.values[:4])
+        if structure:
+            advice = structure if advice is None else f"{advice}; {structure}"
     if advice:
         warnings.append(advice)
 
