@@ -268,6 +268,11 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"camera.yml: {cal.final_solution.source(cal.used)}")
         typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
                    f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
+    if cal.model_choice is not None:
+        c = cal.model_choice.chosen_candidate
+        others = ", ".join(f"{o.preset} {o.heldout_rms:.4f}" for o in cal.model_choice.candidates if o is not c)
+        typer.echo(f"model auto: {c.preset} ({','.join(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
+                   f"{others}); the table is in report.md")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
     typer.echo(f"wrote {out}")
