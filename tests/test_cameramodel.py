@@ -107,3 +107,21 @@ def test_results_folder_holds_the_camera_of_camera_yml(tmp_path):
     np.testing.assert_array_equal(m.intrinsics, kmat[[0, 1, 0, 1], [0, 1, 2, 2]])
     np.testing.assert_array_equal(m.coeffs[:5], d)
     assert "camera.cameramodel" in (out / "report.md").read_text()
+
+
+def test_rig_files_put_the_right_camera_at_opencvs_r_t(tmp_path):
+    from dstereo.io.cameramodel import write_rig_cameramodels
+
+    rvec, t = np.array([0.02, -0.15, 0.01]), np.array([-120.3, 1.2, 0.8])
+    R = cv2.Rodrigues(rvec)[0]
+    cams = [(np.array([[800.0, 0, 320], [0, 801, 240], [0, 0, 1]]), COEFFS * (np.arange(8) < 5), PRESETS["default"],
+             (640, 480)), (np.array([[805.0, 0, 318], [0, 806, 242], [0, 0, 1]]), COEFFS, PRESETS["rational"],
+                           (640, 480))]
+    write_rig_cameramodels(tmp_path, cams, R, t)
+    left, right = read_cameramodel(tmp_path / "left.cameramodel"), read_cameramodel(tmp_path / "right.cameramodel")
+    assert (left.lensmodel, right.lensmodel) == ("LENSMODEL_OPENCV5", "LENSMODEL_OPENCV8")
+    assert np.array_equal(left.rt_cam_ref, np.zeros(6))
+    p_left = np.array([10.0, -5.0, 900.0])
+    # mrcal: x_cam = R(r) x_ref + t with the left camera as reference; OpenCV: x_right = R x_left + T
+    p_right = cv2.Rodrigues(right.rt_cam_ref[:3])[0] @ p_left + right.rt_cam_ref[3:]
+    np.testing.assert_allclose(p_right, R @ p_left + t, rtol=0, atol=1e-9)  # Rodrigues round trip, float64

@@ -131,3 +131,20 @@ def _numbers(value, n: int, where: str) -> np.ndarray:
     if len(out) != n or not np.all(np.isfinite(out)):
         raise DstereoError(f"{where}: expected {n} finite numbers, got {len(out)}")
     return out
+
+
+def write_rig_cameramodels(folder: Path, cameras, R, T) -> list[str]:
+    """left.cameramodel and right.cameramodel of a stereo rig, the left camera as mrcal's reference: the left has
+    rt_cam_ref = 0, the right rt_cam_ref = (Rodrigues(R), T), OpenCV's stereo R, T (x_right = R x_left + T is
+    mrcal's reference -> camera transform). `cameras`: ((K 3x3, coeffs (8,), free, (width, height)) left, right).
+    Returns what was done per camera (a fisheye camera: nothing, and why)."""
+    import cv2
+
+    rt_right = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(), np.asarray(T, float).ravel()])
+    done = []
+    for side, (k, coeffs, free, size), rt in zip(("left", "right"), cameras, (np.zeros(6), rt_right)):
+        k = np.asarray(k, float)
+        done.append(write_cameramodel(Path(folder) / f"{side}.cameramodel", free, k[[0, 1, 0, 1], [0, 1, 2, 2]],
+                                      coeffs, size, rt, note=f"written by dstereo calibrate: the rig's {side} camera "
+                                      "(reference: the left camera)"))
+    return done
