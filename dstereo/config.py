@@ -448,10 +448,12 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         if given != sorted(["fx", "fy", "cx", "cy"]):
             raise DstereoError(
                 f"{where}:{line}: camera matrix parameters = {value.strip()}; dstereo always solves fx, fy, cx, cy")
-    model = _DEFAULT_MODEL
+    model, model_auto = _DEFAULT_MODEL, False
     if "distortion coefficients parameters" in calib:
         value, line = calib["distortion coefficients parameters"]
-        model = _model(_ini_list(value), f"{where}:{line}: distortion coefficients parameters")
+        model_auto = [v.lower() for v in _ini_list(value)] == ["auto"]
+        if not model_auto:
+            model = _model(_ini_list(value), f"{where}:{line}: distortion coefficients parameters")
     per_set = get("images per set", int)
     if per_set is not None and per_set < 3:
         raise DstereoError(f"{where}: images per set = {per_set}; a calibration needs m >= 3")
@@ -465,6 +467,7 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         image_format_left=_suffix(get("image format left", str)),
         image_format_right=_suffix(get("image format right", str)),
         model=model,
+        model_auto=model_auto,
         per_set=per_set,
         max_subsets=get("max subsets", int, 2000),
         seed=get("seed", int, 0),

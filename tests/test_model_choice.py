@@ -134,6 +134,31 @@ def test_config_key_round_trip_and_steps_on_coefficients_refused():
         validate(bad)
 
 
+def test_thesis_ini_accepts_auto(tmp_path):
+    from pathlib import Path
+
+    from dstereo.config import load_config
+
+    seed = Path(__file__).resolve().parents[1].parent / "shared" / "seed" / "init-individual.ini"
+    if not seed.exists():
+        pytest.skip(f"{seed} is absent")
+    text = seed.read_text().replace("distortion coefficients parameters = k1, k2, k3, p1, p2",
+                                    "distortion coefficients parameters = auto")
+    assert "= auto" in text
+    (tmp_path / "init.ini").write_text(text)
+    cfg = load_config(tmp_path / "init.ini")
+    assert cfg.model_auto
+    # the thesis file's steps filter k1, k2, k3, p1, p2: the chosen model may not solve them, so refused
+    with pytest.raises(DstereoError, match="model auto"):
+        validate(cfg)
+
+
+def test_too_few_views_is_a_clear_error():
+    obj = _board()
+    with pytest.raises(DstereoError, match="at least 4"):
+        choose_model(obj, np.zeros((3, len(obj), 2)), (640, 480))
+
+
 def test_cli_auto_refused_for_a_stereo_rig(tmp_path):
     (tmp_path / "l").mkdir(), (tmp_path / "r").mkdir()
     code, _, err = run_cli("calibrate", "--left", tmp_path / "l", "--right", tmp_path / "r", "--pattern", "9x6",
