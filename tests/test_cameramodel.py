@@ -80,7 +80,8 @@ def test_fisheye_has_no_twin_and_nothing_is_written(tmp_path):
     ("{'lensmodel': 'LENSMODEL_OPENCV4'", "not a readable"),
     ("[1, 2]", "holds a dict"),
     ("{'lensmodel': 'LENSMODEL_OPENCV4', 'intrinsics': [1, 2, 3, 4, 0, 0, 0, 0]}", "lacks imagersize"),
-    ("{'lensmodel': 'LENSMODEL_CAHVOR', 'intrinsics': [1, 1, 1, 1, 1, 1, 1, 1, 1], 'imagersize': [4, 4]}", "no dstereo twin"),
+    ("{'lensmodel': 'LENSMODEL_CAHVOR', 'intrinsics': [1, 1, 1, 1, 1, 1, 1, 1, 1], 'imagersize': [4, 4]}",
+     "no dstereo twin"),
     ("{'lensmodel': 'LENSMODEL_OPENCV5', 'intrinsics': [1, 2, 3, 4, 0], 'imagersize': [4, 4]}", "expected 9"),
     ("{'lensmodel': 'LENSMODEL_PINHOLE', 'intrinsics': [1, 2, 3, 4], 'imagersize': [4.5, 4]}", "whole numbers"),
 ])

@@ -66,8 +66,8 @@ def calibrate(
     cfg = cfg.with_overrides(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
-        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets, final=final,
+        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set,
+        max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
