@@ -82,7 +82,8 @@ def suggest_model(free: tuple[str, ...], identifiable: bool, weak: Sequence[str]
         return (f"model {','.join(free) or 'none'} is not identifiable from these views (weak: {weak_text}); "
                 "add views that tilt the board and fill the image corners")
     return (f"model {','.join(free)} is not identifiable from these views (weak: {weak_text}); use the simpler "
-            f"model --model {choice} ({','.join(PRESETS[choice])}) or add views that fill the image corners")
+            f"model --model {choice} ({','.join(PRESETS[choice])}), let held-out views choose (--model auto), or "
+            "add views that fill the image corners")
 
 
 @dataclass
@@ -112,6 +113,7 @@ class CameraCalibration:
     # With subsets: the survivors' solve, the thesis's subset mean and how they compare (calib/final_solution.py)
     final_solution: object | None = None
     subset_mean: dict[str, float] | None = None
+    model_choice: object | None = None  # dstereo.calib.model_choice.ModelChoice with --model auto
 
     @property
     def unconverged(self) -> list[int]:
@@ -186,6 +188,10 @@ def calibrate_camera(
     obs = np.stack([det.corners[n] for n in used])
     for name, reason in det.rejected.items():
         warnings.append(f"image {name} rejected: {reason}")
+    choice = None
+    if config.model_auto:  # before the plan: the subsets, steps and files run with the chosen model
+        config, choice = _choose_model(config, det, obs, progress)
+        timings["model_choice_s"] = choice.timings["model_choice_s"]
     plan = None
     if config.per_set is not None:
         from dstereo.calib.subset_runs import check_subset_run
@@ -201,14 +207,26 @@ def calibrate_camera(
     t0 = time.perf_counter()
     if progress is not None:
         progress("full-set solve", 0, 1)
-    full = calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
+    full = choice.chosen_candidate.solution if choice is not None else \
+        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
     if progress is not None:
         progress("full-set solve", 1, 1)
     timings["full_solve_s"] = time.perf_counter() - t0
     if not full.converged:
         warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
     columns = ("re",) + tuple(full.names)
-    advice = suggest_model(tuple(config.model), full.conditioning.identifiable, full.conditioning.weak_parameters)
+    if choice is not None:  # the data chose this model: no advice to swap it, only a note if not identifiable
+        from dstereo.calib.model_choice import choice_warning
+
+        advice = choice_warning(choice)
+    else:
+        from dstereo.calib.model_choice import residual_structure
+
+        advice = suggest_model(tuple(config.model), full.conditioning.identifiable,
+                               full.conditioning.weak_parameters)
+        structure = residual_structure(obs, full.residuals, full.values[:4])
+        if structure:
+            advice = structure if advice is None else f"{advice}; {structure}"
     if advice:
         warnings.append(advice)
 
@@ -252,8 +270,19 @@ def calibrate_camera(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
-        subset_mean=subset_mean,
+        subset_mean=subset_mean, model_choice=choice,
     )
+
+
+def _choose_model(config, det, obs, progress):
+    """--model auto: (the config with the chosen model, the ModelChoice)."""
+    from dataclasses import replace
+
+    from dstereo.calib.model_choice import choose_model
+
+    report = None if progress is None else (lambda i, n: progress("model choice", i, n))
+    choice = choose_model(det.object_points, obs, det.image_size, progress=report)
+    return validate(replace(config, model=choice.chosen_candidate.free, model_auto=False)), choice
 
 
 def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnings):

@@ -23,7 +23,8 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or auto (the model that "
+        "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -65,8 +66,8 @@ def calibrate(
     cfg = cfg.with_overrides(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
-        image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets, final=final,
+        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set,
+        max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
@@ -74,6 +75,10 @@ def calibrate(
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
         from dstereo.models.distortion import lens_model
 
+        if cfg.model_auto:
+            raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
+                               "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
+                               "chosen --model")
         if lens_model(tuple(cfg.model)) == "fisheye":
             raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
                                "calibrate each camera alone with --images DIR")
@@ -186,8 +191,16 @@ def _stereo_view_warnings(job) -> list[str]:
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
+def _auto(spec: Optional[str]):
+    from dstereo.config import is_auto_model
+
+    return None if spec is None else is_auto_model(spec)
+
+
 def _model(spec: Optional[str]):
-    if spec is None:
+    from dstereo.config import is_auto_model
+
+    if spec is None or is_auto_model(spec):
         return None
     from dstereo.models.distortion import parse_model
 
@@ -255,6 +268,11 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"camera.yml: {cal.final_solution.source(cal.used)}")
         typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
                    f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
+    if cal.model_choice is not None:
+        c = cal.model_choice.chosen_candidate
+        others = ", ".join(f"{o.preset} {o.heldout_rms:.4f}" for o in cal.model_choice.candidates if o is not c)
+        typer.echo(f"model auto: {c.preset} ({','.join(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
+                   f"{others}); the table is in report.md")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
     typer.echo(f"wrote {out}")

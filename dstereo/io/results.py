@@ -269,6 +269,7 @@ def summary_dict(cal) -> dict:
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
                      "points": cal.coverage.points},
         "model_advice": cal.model_advice,
+        "model_choice": cal.model_choice.as_dict() if cal.model_choice is not None else None,  # --model auto
         "warnings": list(cal.warnings),
         "timings": dict(cal.timings),
     }
@@ -345,6 +346,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
                      "rms": float(full.rms), "std": summary["full_set"]["std"]}})
+    summary["cameramodel"] = _write_mrcal(folder, cal, K)
     np.savez(folder / "corners.npz", object_points=det.object_points,
              **{name: det.corners[name] for name in cal.used})
     (folder / "config.toml").write_text(to_toml(cal.config, comments=False))
@@ -372,6 +374,14 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     write_json(folder / "summary.json", summary)
     (folder / "report.md").write_text(report_markdown(cal, summary))
     return summary
+
+
+def _write_mrcal(folder: Path, cal, K: np.ndarray) -> str:
+    """camera.cameramodel (mrcal's format, io/cameramodel.py) of what camera.yml holds; what was done, or why not."""
+    from dstereo.io.cameramodel import write_cameramodel
+
+    return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
+                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate")
 
 
 def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
@@ -403,6 +413,17 @@ def _fmt(value: float) -> str:
     return f"{value:.6g}" if value == value else "-"
 
 
+def _model_choice_lines(choice) -> list[str]:
+    """report.md's `--model auto` section: the candidates' table and the rule (calib/model_choice.py)."""
+    kind = "leave one view out" if choice.heldout_views == choice.folds else f"{choice.folds} folds"
+    return ["## Model choice (--model auto)", "",
+            f"Held-out error: {kind} ({choice.heldout_views} views held out); each held-out view's board pose "
+            "refitted for the fold's fixed camera, RMS over its corners. Rule: " + choice.rule + ".", "",
+            *choice.table_markdown(), "",
+            f"Chosen: **{choice.chosen}** ({', '.join(choice.chosen_candidate.free)}); the rest of this report is "
+            "its calibration.", ""]
+
+
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
     full, cfg = cal.full, cal.config
@@ -415,6 +436,8 @@ def report_markdown(cal, summary: dict) -> str:
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
+    if cal.model_choice is not None:
+        lines += _model_choice_lines(cal.model_choice)
     sub = summary["subsets"]
     if sub is not None:
         lines += ["## Subsets and optimisation steps", "",
@@ -450,7 +473,8 @@ def report_markdown(cal, summary: dict) -> str:
                   f"RMS {check['rms_solution_px']:.4f} px, the thesis's subset mean RMS {check['rms_mean_px']:.4f} px "
                   f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
-              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
+              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).",
+              f"For mrcal's tools: {summary.get('cameramodel', '-')}.", ""]
     cov = cal.coverage
     lines += ["## Distortion coverage (thesis section 5.2.1.2)", "", "| image area | % of corners |", "|---|---|"]
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]

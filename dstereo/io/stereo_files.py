@@ -316,6 +316,10 @@ def _fill_stereo_folder(folder: Path, job) -> None:
                      job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
                      cov_names=cov_names, cov_structure=cov_structure)
     summary = stereo_summary(job)
+    from dstereo.io.cameramodel import write_rig_cameramodels  # mrcal's format, the left camera as reference
+
+    summary["cameramodels"] = write_rig_cameramodels(folder, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size)
+                                                              for c in (s.left, s.right)], job.R, job.T)
     summary["calibration_covariance"] = {"names": list(cov_names), "cov": cov, "structure": cov_structure,
                                          "std": dict(zip(cov_names, np.sqrt(np.maximum(np.diag(cov), 0.0))))}
     write_json(folder / "stereo.json", summary)
