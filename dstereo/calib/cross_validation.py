@@ -145,7 +145,7 @@ def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: 
     w, h = image_size
     u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
     q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-    e, ok, pa, pb, t = (np.asarray(x) for x in _compiled(index)(
+    e, ok, pa, pb, t = (np.array(x) for x in _compiled(index)(
         jnp.asarray(a.params), jnp.asarray(b.params), jnp.asarray(q), float(range_), jnp.ones(len(q))))
     c = pa @ a.cov @ pa.T + pb @ b.cov @ pb.T
     n = len(q)
