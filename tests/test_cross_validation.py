@@ -50,3 +50,26 @@ def test_too_few_views_is_refused(honest):
     full, obj, obs, _ = honest
     with pytest.raises(DstereoError, match="at least 8"):
         cv.cross_validate(full, obj, obs[:7], SIZE)
+
+
+def test_calibrate_cross_validate_writes_verdict_map_and_method(tmp_path):
+    from conftest import require_data, run_cli
+
+    data = require_data("opencv_stereo")  # skips with its reason when ../shared/data is absent
+    out = tmp_path / "xv"
+    code, _, err = run_cli("calibrate", "--images", data, "--glob", "left*.jpg", "--pattern", "9x6",
+                           "--cross-validate", "4", "--out", out, "-q")
+    assert code == 0, err
+    import json
+
+    s = json.loads((out / "summary.json").read_text())
+    x = s["cross_validation"]
+    assert x["splits"] == 4 and len(x["ratios"]) == 4 and isinstance(x["trusted"], bool)
+    assert s["projection_uncertainty"]["method"] == "pose-compensated"
+    assert (out / "plots" / "cross_validation.png").stat().st_size > 1000
+    assert x["verdict"] in (out / "report.md").read_text()
+    if not x["trusted"]:  # an untrusted uncertainty is said on stderr too, with its figures
+        assert "can NOT be trusted" in err
+    code, _, err = run_cli("calibrate", "--images", data, "--glob", "left*.jpg", "--pattern", "9x6",
+                           "--projection-method", "mrcal", "--out", tmp_path / "bad")
+    assert code == 1 and "--projection-method mrcal" in err and not (tmp_path / "bad").exists()
