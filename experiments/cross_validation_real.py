@@ -30,9 +30,10 @@ def main(out: Path) -> None:
         subprocess.run(cmd + (["--model", model] if model else []), check=True, capture_output=True)
         s = json.loads((res / "summary.json").read_text())
         x, pu = s["cross_validation"], s["projection_uncertainty"]
+        splits = ", ".join(f"{r:.2f}" for r in x["ratios"])
         print(f"{label}: {len(s['images']['used'])} views, RMS {s['full_set']['rms']:.3f} px; projection std "
               f"({pu['method']}) median {pu['std_px']['median']:.3g} px, {pu['masked_pixels']} masked; ratio "
-              f"{x['ratio_geometric_mean']:.2f} (splits {', '.join(f'{r:.2f}' for r in x['ratios'])}), Mahalanobis "
+              f"{x['ratio_geometric_mean']:.2f}, pooled rms {x['ratio_pooled_rms']:.2f} (splits {splits}), Mahalanobis "
               f"median {x['mahalanobis_median']:.2f}, vs maps {x['ratio_vs_pose_compensated_maps']:.2f}, "
               f"trusted {x['trusted']}")
         c = np.load(res / "corners.npz")
@@ -45,7 +46,7 @@ def main(out: Path) -> None:
         full = calibrate_full(obj, obs[keep], tuple(s["image_size"]), free)
         xv = cross_validate(full, obj, obs[keep], tuple(s["image_size"]), 6, seed=0)
         print(f"  without {int((~keep).sum())} view(s) over 3x the median RMS: RMS {full.rms:.3f} px, ratio "
-              f"{xv.ratio:.2f}, Mahalanobis median {xv.mahalanobis_median:.2f}, trusted {xv.trusted}")
+              f"{xv.ratio:.2f}, pooled rms {xv.ratio_pooled:.2f}, Mahalanobis median {xv.mahalanobis_median:.2f}, trusted {xv.trusted}")
 
 
 if __name__ == "__main__":

@@ -307,6 +307,11 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
              "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
     if fallback:
         entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
+    if pmap.masked:
+        entry["warning"] = (f"projection uncertainty: {pmap.masked} of {pmap.mask.size} grid pixels masked (grey in "
+                            "plots/projection_uncertainty.png): the distortion model cannot be inverted there (not "
+                            "monotonic beyond the field the corners cover); do not use the camera there, or add views "
+                            "that reach those parts of the image")
     return entry
 
 
@@ -347,6 +352,10 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
     summary["projection_uncertainty"] = write_projection_uncertainty(
         folder, cal, projection_range, getattr(cal, "projection_method", "pose-compensated"))
+    for entry in (summary["projection_uncertainty"],):
+        if entry.get("warning"):
+            summary["warnings"].append(entry["warning"])
+            cal.warnings.append(entry["warning"])  # printed after writing, with the others
     if getattr(cal, "cross_validation", None) is not None:
         from dstereo.calib.cross_validation import write_cross_validation
 
