@@ -51,7 +51,11 @@ NOTE = NOTES["intrinsics-only"]  # kept for callers of the old name
 # ~1e-12 px in float64; 1e-6 px leaves room for rounding and catches any iteration stopped short.
 ROUND_TRIP_PX = 1e-6
 NEWTON_ITERATIONS = 40
-RADIAL_SAMPLES = 64  # radii from 0 to the ray's, where d r_distorted / d r must stay positive
+RADIAL_SAMPLES = 64  # radii from 0 to FOLD_MARGIN x the ray's, where d r_distorted / d r must stay positive
+# A fold (or a pole of the rational model's denominator) just beyond the ray makes the pixel's projection
+# infinitely sensitive there and gives the pixel a second ray (mrcal's unprojection found one on the fisheye set,
+# 1.28 px against 1392 px here): the monotonic stretch must reach 10 % past the ray.
+FOLD_MARGIN = 1.1
 
 
 def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
@@ -60,17 +64,21 @@ def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
 
 
 def _invertible(k, coeffs, q, x):
-    """True where x is q's one ray: the round trip holds and the distortion is monotonic out to x (radially, and
-    the 2 x 2 Jacobian keeps its orientation), so no other ray maps to the same pixel from the centre out."""
+    """True where x is q's one ray: the round trip holds and the distortion is monotonic (radially, the rational
+    denominator positive) from the centre to FOLD_MARGIN x the ray's radius, and the 2 x 2 Jacobian keeps its
+    orientation at x, so no other ray nearby maps to the same pixel."""
     back = k[:2] * distort(coeffs, x) + k[2:4]
     ok_trip = jnp.all(jnp.isfinite(back)) & (jnp.linalg.norm(back - q) < ROUND_TRIP_PX)
     r = jnp.linalg.norm(x)
     direction = x / jnp.maximum(r, 1e-300)
     radial = lambda s: jnp.dot(distort(coeffs, s * direction), direction)  # noqa: E731
-    slopes = jax.vmap(jax.grad(radial))(jnp.linspace(0.0, 1.0, RADIAL_SAMPLES) * r)
+    radii = jnp.linspace(0.0, FOLD_MARGIN, RADIAL_SAMPLES) * r
+    slopes = jax.vmap(jax.grad(radial))(radii)
+    r2 = radii ** 2
+    den = 1.0 + coeffs[5] * r2 + coeffs[6] * r2 ** 2 + coeffs[7] * r2 ** 3  # rational model: no pole before it
     a = jax.jacfwd(distort, argnums=1)(coeffs, x)
     det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-    return ok_trip & jnp.all(slopes > 0) & (det > 0) & jnp.all(jnp.isfinite(x))
+    return ok_trip & jnp.all(slopes > 0) & jnp.all(den > 0) & (det > 0) & jnp.all(jnp.isfinite(x))
 
 
 def _point(k, coeffs, q, range_):

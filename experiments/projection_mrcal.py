@@ -83,6 +83,8 @@ def main(res: Path, grid=(8, 6)) -> None:
     mr = np.sqrt(np.linalg.eigvalsh(var)[:, -1])
     ok = ours > 0
     ratio = ours[ok] / mr[ok]
+    for i in np.flatnonzero(ok)[np.abs(ratio - np.median(ratio)) > 0.01]:
+        print(f"  pixel {q[i]}: dstereo {ours[i]:.4g} px, mrcal {mr[i]:.4g} px")
     centre = np.argmin(np.sum((q - np.array(s["image_size"]) / 2.0) ** 2, axis=1))
     io = np.array(d["intrinsics-only"]).ravel()
     n_obs, n_par = obs.size, len(d["values"]) + poses.size
