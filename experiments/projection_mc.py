@@ -64,9 +64,7 @@ def main(n_draws: int = 200, sigma: float = 0.3):
     noisy0 = corners + rng.normal(0, sigma, corners.shape)
     nominal = calibrate_full(obj, noisy0, SIZE, FREE)
     obs_all = corners[None] + rng.normal(0, sigma, (n_draws, *corners.shape))
-    draws = []
-    for o in obs_all:  # one batched problem per draw: all views, fresh noise
-        draws += solve_halves(nominal, obj, o, np.ones((1, len(o))))
+    draws = solve_halves(nominal, obj, obs_all, np.ones((n_draws, len(corners))))  # all views, fresh noise each
     range_ = mean_board_distance(poses, obj)
     maps = {m: solution_map(nominal, SIZE, range_, m, grid=(8, 6)) for m in ("pose-compensated", "intrinsics-only")}
     q = np.stack(np.meshgrid(maps["pose-compensated"].u, maps["pose-compensated"].v), axis=-1).reshape(-1, 2)

@@ -26,8 +26,8 @@ def mc():
     cam, poses, obj, corners = scene(n_views=10)
     rng = np.random.default_rng(7)
     nominal = calibrate_full(obj, corners + rng.normal(0, SIGMA, corners.shape), SIZE, FREE)
-    draws = [d for o in corners[None] + rng.normal(0, SIGMA, (DRAWS, *corners.shape))
-             for d in solve_halves(nominal, obj, o, np.ones((1, len(o))))]
+    noisy = corners[None] + rng.normal(0, SIGMA, (DRAWS, *corners.shape))
+    draws = solve_halves(nominal, obj, noisy, np.ones((DRAWS, len(corners))))  # batched, the full set's compile
     return SimpleNamespace(cam=cam, poses=poses, obj=obj, nominal=nominal, draws=draws, corners=corners,
                            range_=mean_board_distance(poses, obj))
 

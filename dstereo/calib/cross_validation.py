@@ -60,11 +60,12 @@ class HalfSolution:
 
 def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOptions()) -> list[HalfSolution]:
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
-    `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile)."""
+    `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
+    (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
     from dstereo.calib.mono import chunk_rows
 
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
-    n_views, n_pts = obs.shape[:2]
+    n_views, n_pts = obs.shape[-3:-1]
     rows = chunk_rows(n_views, n_pts)
     shared = (obj, np.zeros(8))
     free_idx = [CAMERA_NAMES.index(n) for n in full.names]
@@ -73,7 +74,7 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
         w = np.asarray(weights[c: c + rows], float)
         k = len(w)
         res = _run(full.free, options, np.repeat(full.values[None], k, 0), np.repeat(full.poses[None], k, 0),
-                   np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared)
+                   obs[c: c + k] if obs.ndim == 4 else np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared)
         for i in range(k):
             m = int(np.count_nonzero(w[i]))
             g = len(full.values)
