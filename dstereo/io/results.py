@@ -12,7 +12,10 @@ Layout of `write_camera_results(out, cal)`:
     plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
     plots/coverage.png, per_image_rms.png, residuals.png
     plots/projection_uncertainty.png, projection_uncertainty.npz   std (px) of the projection of a point at a
-                         given range (default the mean board distance) under the intrinsics covariance
+                         given range (default the mean board distance, board unit), pose-compensated (fixed in
+                         the boards' frame; --projection-method intrinsics-only for the camera frame); npz keys u, v,
+                         std, cov, range, mask (False: model not invertible there, NaN), method
+    cross_validation.npz, plots/cross_validation.png   with --cross-validate N: half-split differences vs predicted
     undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
 partial folder, and an existing folder is replaced only with `force`.
