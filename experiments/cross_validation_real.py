@@ -35,7 +35,7 @@ def main(out: Path) -> None:
               f"({pu['method']}) median {pu['std_px']['median']:.3g} px, {pu['masked_pixels']} masked; ratio "
               f"{x['ratio_geometric_mean']:.2f}, pooled rms {x['ratio_pooled_rms']:.2f} (splits {splits}), Mahalanobis "
               f"median {x['mahalanobis_median']:.2f}, vs maps {x['ratio_vs_pose_compensated_maps']:.2f}, "
-              f"trusted {x['trusted']}")
+              f"trusted {x['trusted']}; inside the corners' field: {x['inside_corner_field']}")
         c = np.load(res / "corners.npz")
         obj, obs = c["object_points"], np.stack([c[n] for n in s["images"]["used"]])
         rms = np.array([s["full_set"]["per_image_rms"][n] for n in s["images"]["used"]])
@@ -46,7 +46,8 @@ def main(out: Path) -> None:
         full = calibrate_full(obj, obs[keep], tuple(s["image_size"]), free)
         xv = cross_validate(full, obj, obs[keep], tuple(s["image_size"]), 6, seed=0)
         print(f"  without {int((~keep).sum())} view(s) over 3x the median RMS: RMS {full.rms:.3f} px, ratio "
-              f"{xv.ratio:.2f}, pooled rms {xv.ratio_pooled:.2f}, Mahalanobis median {xv.mahalanobis_median:.2f}, trusted {xv.trusted}")
+              f"{xv.ratio:.2f}, pooled rms {xv.ratio_pooled:.2f}, Mahalanobis median {xv.mahalanobis_median:.2f}, trusted {xv.trusted}; inside the corners' field: "
+              f"{xv.covered_figures()}")
 
 
 if __name__ == "__main__":

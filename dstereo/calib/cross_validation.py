@@ -41,6 +41,7 @@ from dstereo.solver.lm import LMOptions
 RATIO_BAND = (0.67, 1.5)
 MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))
 MAHALANOBIS_MAX = 1.8
+COVERED_PX = 30.0  # a grid pixel this close to an observed corner is inside the calibrated field
 MIN_HALF_VIEWS = 4  # fewer views than this per half do not constrain a camera with distortion
 
 
@@ -138,10 +139,11 @@ class SplitResult:
     ratio: float  # sqrt(mean |e|^2 / mean trace C)
     ratio_vs_maps: float  # sqrt(mean |e|^2 / mean (trace C_A + trace C_B)) of the pose-compensated maps
     transform: np.ndarray  # (6,) rvec, t of T_BA
+    covered: np.ndarray | None = None  # (gh, gw) grid pixels within COVERED_PX of an observed corner
 
 
 def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
-                   grid: tuple[int, int] = (16, 12)) -> SplitResult:
+                   grid: tuple[int, int] = (16, 12), corners: np.ndarray | None = None) -> SplitResult:
     index = tuple(CAMERA_NAMES.index(n) for n in names)
     w, h = image_size
     u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
@@ -166,8 +168,12 @@ def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: 
     ratio_maps = float(np.sqrt(np.mean(np.sum(e[good] ** 2, axis=1)) / np.mean(tr[good]))) if good.any() else np.nan
     e[~ok] = np.nan
     blocks[~ok] = np.nan
+    covered = None
+    if corners is not None:
+        near = np.array([np.min(np.sum((np.asarray(corners) - p) ** 2, axis=1)) for p in q])
+        covered = (near < COVERED_PX ** 2).reshape(grid[1], grid[0])
     return SplitResult(e.reshape(grid[1], grid[0], 2), blocks.reshape(grid[1], grid[0], 2, 2),
-                       maha.reshape(grid[1], grid[0]), ratio, ratio_maps, t)
+                       maha.reshape(grid[1], grid[0]), ratio, ratio_maps, t, covered)
 
 
 @dataclass
@@ -190,6 +196,18 @@ class CrossValidation:
         tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1).ravel() for s in self.splits])
         ok = np.isfinite(e2) & np.isfinite(tr)
         return float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok])))
+
+    def covered_figures(self) -> dict | None:
+        """Pooled ratio and median Mahalanobis over the grid pixels inside the corners' field only (where the
+        calibration has data; outside it the model is extrapolated and first order may fail)."""
+        if self.splits[0].covered is None or not self.splits[0].covered.any():
+            return None
+        c = self.splits[0].covered
+        e2 = np.concatenate([np.sum(s.diff ** 2, axis=-1)[c] for s in self.splits])
+        tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1)[c] for s in self.splits])
+        ok = np.isfinite(e2) & np.isfinite(tr)
+        return {"pixels": int(c.sum()), "ratio_pooled_rms": float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok]))),
+                "mahalanobis_median": float(np.nanmedian(np.concatenate([s.mahalanobis[c] for s in self.splits])))}
 
     @property
     def ratio_vs_maps(self) -> float:
@@ -219,6 +237,7 @@ class CrossValidation:
                 "ratio_vs_pose_compensated_maps": self.ratio_vs_maps,
                 "mahalanobis_median": self.mahalanobis_median,
                 "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
+                "inside_corner_field": self.covered_figures(),
                 "trusted": self.trusted, "verdict": self.verdict(),
                 "halves": [[list(map(int, a)), list(map(int, b))] for a, b in self.halves]}
 
@@ -251,7 +270,8 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     if range_ is None:
         range_ = mean_board_distance(full.poses, obj)
     w, h = image_size
-    results = [compare_halves(sols[2 * i], sols[2 * i + 1], full.names, image_size, range_, grid)
+    corners = np.asarray(obs, float).reshape(-1, 2)
+    results = [compare_halves(sols[2 * i], sols[2 * i + 1], full.names, image_size, range_, grid, corners)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
                            np.linspace(0.0, h - 1.0, grid[1]))
