@@ -75,6 +75,16 @@ def main(res: Path, grid=(8, 6)) -> None:
     model = mrcal.cameramodel(optimization_inputs=inputs, icam_intrinsics=0)
     print(f"{res.name}: mrcal RMS {stats['rms_reproj_error__pixels']:.6f} px vs dstereo {d['rms']:.6f}; "
           f"intrinsics max |diff| {np.max(np.abs(inputs['intrinsics'][0] - intrinsics[0])):.2e}")
+    # diagnostics only: what mrcal's board-warp solve and outlier rejection find on the same corners
+    extra = {**inputs, "intrinsics": inputs["intrinsics"].copy(), "frames_rt_toref": inputs["frames_rt_toref"].copy(),
+             "observations_board": board.copy(), "calobject_warp": np.zeros(2), "do_optimize_calobject_warp": True,
+             "do_apply_outlier_rejection": True}
+    st2 = mrcal.optimize(**extra)
+    n_out = int(np.sum(extra["observations_board"][..., 2] <= 0))
+    print(f"  mrcal with board warp + outlier rejection: warp {extra['calobject_warp']} (board unit), "
+          f"{n_out} outlier corners, RMS {st2['rms_reproj_error__pixels']:.4f} px (per coordinate; "
+          f"{stats['rms_reproj_error__pixels']:.4f} without); fx cx moved by "
+          f"{extra['intrinsics'][0][0] - inputs['intrinsics'][0][0]:+.3f}, {extra['intrinsics'][0][2] - inputs['intrinsics'][0][2]:+.3f} px")
     u, v = np.array(d["u"]), np.array(d["v"])
     q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
     p = mrcal.unproject(q, *model.intrinsics(), normalize=True) * distance
