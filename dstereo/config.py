@@ -25,7 +25,8 @@ from pathlib import Path
 from dstereo.errors import DstereoError
 
 # Parameter names a mono step may filter; `re` is the subset's RMS reprojection error (px, absolute limit).
-MONO_PARAMETERS = ("re", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MONO_PARAMETERS = ("re", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6",
+                   "fk1", "fk2", "fk3", "fk4")  # fk: the fisheye lens (cv2.fisheye k1..k4)
 # Stereo step parameters (filtered by the stereo pipeline): stereo_re is absolute, the rest IQR.
 STEREO_PARAMETERS = ("stereo_re", "Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")
 # Parameters whose max error is an absolute limit in pixels; every other one is an IQR multiple alpha.
@@ -35,6 +36,7 @@ CONFIG_NAMES = ("dstereo.toml", "calibrate.toml", "init-individual.ini", "init.i
 # Top-level TOML tables that belong to other commands and are ignored here.
 FOREIGN_TABLES = ("reconstruct", "sgbm", "recession", "optics", "demo")
 _MODES = ("individual", "stereo")
+_FINAL_CHOICES = ("survivors", "mean")  # dstereo.calib.final_solution.FINAL_CHOICES
 _DEFAULT_MODEL = ("k1", "k2", "p1", "p2", "k3")
 
 
@@ -72,6 +74,9 @@ class Config:
     min_subsets: int | None = None
     steps: tuple[Step, ...] = ()
     stereo_steps: tuple[Step, ...] = ()
+    # What camera.yml / stereo.yml hold with subsets: "survivors" (the solve on the surviving subsets' views, a
+    # consistent calibration) or "mean" (the thesis's per-parameter subset mean); see calib/final_solution.py
+    final: str = "survivors"
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
 
@@ -145,6 +150,8 @@ def validate(cfg: Config) -> Config:
         raise DstereoError(f"{where}: images per set m = {cfg.per_set}; a calibration needs m >= 3")
     if cfg.max_subsets < 1:
         raise DstereoError(f"{where}: max subsets {cfg.max_subsets} must be at least 1")
+    if cfg.final not in _FINAL_CHOICES:
+        raise DstereoError(f"{where}: final {cfg.final!r}; use one of {', '.join(_FINAL_CHOICES)}")
     if cfg.min_subsets is not None and cfg.min_subsets < 1:
         raise DstereoError(f"{where}: minimum subsets {cfg.min_subsets} must be at least 1")
     if cfg.steps and cfg.per_set is None:
@@ -167,7 +174,7 @@ _TOML_KEYS = {
     "": {"mode"},
     "pattern": {"columns", "rows", "square", "unit"},
     "images": {"folder", "format", "format_left", "format_right", "glob"},
-    "calibration": {"model", "per_set", "max_subsets", "seed", "min_subsets"},
+    "calibration": {"model", "per_set", "max_subsets", "seed", "min_subsets", "final"},
 }
 
 
@@ -215,6 +222,7 @@ def config_from_toml(text: str, where: str) -> Config:
         max_subsets=_whole(cal.get("max_subsets", 2000), f"{where}: [calibration] max_subsets", 1),
         seed=_whole(cal.get("seed", 0), f"{where}: [calibration] seed", 0),
         min_subsets=_optional_whole(cal.get("min_subsets"), f"{where}: [calibration] min_subsets", 1),
+        final=str(cal.get("final", "survivors")),
         steps=_toml_steps(data.get("steps", []), f"{where}: steps", stereo=False),
         stereo_steps=_toml_steps(data.get("stereo", {}).get("steps", []), f"{where}: stereo.steps", stereo=True),
         source=where,
@@ -610,6 +618,11 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
         out.append(f"min_subsets = {cfg.min_subsets}" + c("a step stops before it leaves fewer subsets"))
     elif comments:
         out.append("# min_subsets = 50  # a step stops before it leaves fewer subsets")
+    if cfg.final != "survivors":
+        out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the "
+                                                         "survivors' solve"))
+    elif comments:
+        out.append('# final = "mean"  # camera file: the thesis\'s subset mean instead of the survivors\' solve')
     if comments:
         out += ["", "# Optimisation steps, run in order (thesis section 4.2.2.1). Parameters of one step are filtered",
                 "# jointly. re: subsets whose RMS reprojection error exceeds max_error (px) are removed. Others",

@@ -126,7 +126,8 @@ def thesis_config(board: dict, settings: DemoSettings, seed: int):
 
     return validate(Config(mode="stereo", pattern=tuple(board["pattern"]), square=float(board["square"]), unit="mm",
                            model=settings.model, per_set=settings.per_set, max_subsets=settings.max_subsets,
-                           seed=seed, stereo_steps=THESIS_STEREO_STEPS))
+                           seed=seed, stereo_steps=THESIS_STEREO_STEPS,
+                           final="mean"))  # the thesis's answer, shown as such beside the joint refinement
 
 
 def calibrate_thesis(images: Path, folder: Path, board: dict, settings: DemoSettings, seed: int, report):

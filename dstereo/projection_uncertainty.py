@@ -31,12 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, distort
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
 from dstereo.models.pose import rodrigues
 from dstereo.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
+FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
 METHODS = ("pose-compensated", "intrinsics-only")
 NOTES = {
     "pose-compensated": ("pose-compensated (mrcal's mean-frames method): a point at the given range on each pixel's "
@@ -81,29 +83,39 @@ def _invertible(k, coeffs, q, x):
     return ok_trip & jnp.all(slopes > 0) & jnp.all(den > 0) & (det > 0) & jnp.all(jnp.isfinite(x))
 
 
-def _point(k, coeffs, q, range_):
+def _point(k, coeffs, q, range_, model: str = "pinhole"):
+    """The point at `range_` along q's ray and whether the ray was found (fisheye: the model's own inverse, with
+    its convergence check, in front of the camera)."""
+    if model == "fisheye":
+        ray, ok = fisheye.unproject(k, coeffs[:4], q)
+        ok = ok & jnp.all(jnp.isfinite(ray)) & (ray[2] > 0)
+        return range_ * jnp.where(ok, ray, jnp.nan), ok
     x = _undistorted(k, coeffs, q)
     ray = jnp.append(x, 1.0)
     return range_ * ray / jnp.linalg.norm(ray), _invertible(k, coeffs, q, x)
 
 
-def pixel_covariance(params, index: tuple[int, ...], cov, q, range_):
+def _project(k, coeffs, p, model: str = "pinhole"):
+    return fisheye.project(k, coeffs[:4], p) if model == "fisheye" else project(k, coeffs, p)
+
+
+def pixel_covariance(params, index: tuple[int, ...], cov, q, range_, model: str = "pinhole"):
     """Intrinsics-only: 2 x 2 covariance (px^2) of the projection of the point at distance `range_` along pixel
     q's ray, and whether the ray was found. params (12,) = fx fy cx cy k1..k6; `index` (static) the positions of
     the covariance's parameters."""
     k, coeffs = params[:4], params[4:]
-    p, ok = _point(k, coeffs, q, range_)
+    p, ok = _point(k, coeffs, q, range_, model)
     idx = jnp.array(index)
     full = lambda theta: params.at[idx].set(theta)  # noqa: E731
-    jac = jax.jacfwd(lambda theta: project(full(theta)[:4], full(theta)[4:], p))(params[idx])
+    jac = jax.jacfwd(lambda theta: _project(full(theta)[:4], full(theta)[4:], p, model))(params[idx])
     return jac @ cov @ jac.T, ok
 
 
-def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, range_):
+def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, range_, model: str = "pinhole"):
     """Pose-compensated: as `pixel_covariance` with `cov` the joint (G + 6V) covariance of the intrinsics
     (`index`) and the V poses (rvec, tvec of T_cam_board, rows of `poses`) in that order."""
     k, coeffs = params[:4], params[4:]
-    p, ok = _point(k, coeffs, q, range_)
+    p, ok = _point(k, coeffs, q, range_, model)
     rot = jax.vmap(rodrigues)(poses[:, :3])
     p_board = jnp.einsum("vji,vj->vi", rot, p[None] - poses[:, 3:])  # R_i^T (p - t_i): fixed in each board
     idx, g = jnp.array(index), len(index)
@@ -112,7 +124,7 @@ def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, r
         full = params.at[idx].set(theta[:g])
         pv = theta[g:].reshape(-1, 6)
         back = jnp.einsum("vij,vj->vi", jax.vmap(rodrigues)(pv[:, :3]), p_board) + pv[:, 3:]
-        return project(full[:4], full[4:], jnp.mean(back, axis=0))
+        return _project(full[:4], full[4:], jnp.mean(back, axis=0), model)
 
     theta0 = jnp.concatenate([params[idx], jnp.ravel(poses)])
     jac = jax.jacfwd(q_of)(theta0)
@@ -120,11 +132,12 @@ def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, r
 
 
 @functools.lru_cache(maxsize=None)
-def _map_fn(index: tuple[int, ...], method: str = "intrinsics-only"):
+def _map_fn(index: tuple[int, ...], method: str = "intrinsics-only", model: str = "pinhole"):
     if method == "intrinsics-only":
-        one = lambda params, poses, cov, q, r: pixel_covariance(params, index, cov, q, r)  # noqa: E731
+        one = lambda params, poses, cov, q, r: pixel_covariance(params, index, cov, q, r, model)  # noqa: E731
     else:
-        one = lambda params, poses, cov, q, r: pose_compensated_covariance(params, index, poses, cov, q, r)  # noqa
+        one = lambda params, poses, cov, q, r: pose_compensated_covariance(  # noqa: E731
+            params, index, poses, cov, q, r, model)
     return jax.jit(jax.vmap(one, in_axes=(None, None, None, 0, None)))
 
 
@@ -151,6 +164,7 @@ class ProjectionUncertaintyMap:
         good = self.std[np.isfinite(self.std)]
         stats = ({"min": float(good.min()), "median": float(np.median(good)), "max": float(good.max())}
                  if good.size else {"min": None, "median": None, "max": None})
+        stats["pixels_without_ray"] = int(self.std.size - good.size)  # masked, or no finite covariance
         return {"method": self.method, "range": self.range_, "std_px": stats, "grid": [len(self.u), len(self.v)],
                 "masked_pixels": self.masked, "note": self.note}
 
@@ -181,10 +195,13 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
         raise DstereoError(f"projection uncertainty method {method!r}: use one of {', '.join(METHODS)}")
     if not np.isfinite(range_) or range_ <= 0:
         raise DstereoError(f"projection uncertainty range {range_}: give a positive distance (board unit)")
-    unknown = [n for n in names if n not in CAMERA_NAMES]
+    model = lens_model(tuple(names))
+    known = FISHEYE_CAMERA_NAMES if model == "fisheye" else CAMERA_NAMES
+    unknown = [n for n in names if n not in known or not n]
     if unknown:
-        raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)}")
-    index = tuple(CAMERA_NAMES.index(n) for n in names)
+        raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)} "
+                           f"or {list(FISHEYE_CAMERA_NAMES[:8])}")
+    index = tuple(known.index(n) for n in names)
     cov = np.asarray(cov, float)
     if method == "pose-compensated":
         if poses is None:
@@ -197,7 +214,7 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
         poses = np.zeros((1, 6))
     params = jnp.concatenate([jnp.asarray(k, float), jnp.asarray(coeffs, float)])
     u, v, q = _grid(image_size, grid)
-    cov_q, ok = _map_fn(index, method)(params, jnp.asarray(poses), jnp.asarray(cov), jnp.asarray(q), float(range_))
+    cov_q, ok = _map_fn(index, method, model)(params, jnp.asarray(poses), jnp.asarray(cov), jnp.asarray(q), float(range_))
     cov_q, ok = np.array(cov_q), np.asarray(ok) & np.all(np.isfinite(np.asarray(cov_q)), axis=(1, 2))
     cov_q[~ok] = np.nan
     std = np.full(len(q), np.nan)

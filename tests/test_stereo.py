@@ -424,7 +424,12 @@ def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
     np.testing.assert_allclose(back.R, result.stereo.R, atol=1e-12)
     np.testing.assert_allclose(back.K2, result.mono_right.camera_matrix, rtol=1e-12)
     summary = json.loads((res / "stereo.json").read_text())
-    assert summary["full_set"]["baseline"]["std"] == pytest.approx(result.stereo.baseline_std, rel=1e-6)
+    full = summary["full_set"]  # the +- shown is the propagated one (issue 15); the held-intrinsics one beside it
+    assert full["std_intrinsics_exact"]["Tnorm"] == pytest.approx(result.stereo.baseline_std, rel=1e-6)
+    assert "propagated" in full["std_kind"] and full["baseline"]["std"] == full["std"]["Tnorm"]
+    for k in ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"):  # = stereo.yml's covariance (no subsets: same solve)
+        assert full["std"][k] == pytest.approx(summary["calibration_covariance"]["std"][k], rel=1e-12)
+        assert full["std"][k] > full["std_intrinsics_exact"][k]
     assert [p["left"] for p in summary["pairs"]] == [a for a, _ in result.pairs]
     with np.load(res / "corners.npz") as z:
         assert sorted(z.files) == sorted(["object_points"] + [f"left/{a}" for a, _ in result.pairs]

@@ -17,20 +17,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dstereo.calib.init_fisheye import initial_guess_fisheye
 from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subsets import SubsetPlan
 from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
-from dstereo.models.camera import INTRINSIC_NAMES, project, project_jacobian
-from dstereo.models.distortion import COEFF_NAMES, with_free
+from dstereo.models import camera, fisheye
+from dstereo.models.camera import INTRINSIC_NAMES
+from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
 from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
 from dstereo.solver.lm import COMPILE_OPTIONS, STATUS_TEXT, LMOptions, solve_structured_batch
 
 
+def lens_functions(free: tuple[str, ...]):
+    """(project, project_jacobian) of the lens model that `free` names, both on (k, coeffs (8,), p_cam): the
+    fisheye model reads its k1..k4 from the first four slots (`distortion.coeff_slots`)."""
+    if lens_model(free) == "fisheye":
+        return (lambda k, c, p: fisheye.project(k, c[:4], p)), (lambda k, c, p: fisheye.project_jacobian(k, c[:4], p))
+    return camera.project, camera.project_jacobian
+
+
 @functools.lru_cache(maxsize=None)
 def view_residual_for(free: tuple[str, ...]):
     """Residual of one view (2n,) for a given free distortion set; cached so jit sees one function."""
+    project, _ = lens_functions(free)
 
     def view_residual(g, pose, obs_v, shared):
         obj, base_coeffs = shared
@@ -53,7 +64,8 @@ def view_linearize_for(free: tuple[str, ...]):
     twice as fast as per-point vmaps and autodiff (compile time dominates a cold calibration);
     `tests/test_engine.py` checks it against autodiff and finite differences.
     """
-    cols = [COEFF_NAMES.index(n) for n in free]
+    cols = [coeff_slots(free).index(n) for n in free]
+    _, project_jacobian = lens_functions(free)
 
     def linearize(g, pose, obs_v, shared):
         obj, base_coeffs = shared
@@ -64,7 +76,7 @@ def view_linearize_for(free: tuple[str, ...]):
         # more code than these fused loops.
         p_cam = sum(rot[:, j, None] * o[j] for j in range(3)) + pose[3:6, None]  # (3, n)
         dpc_drot = sum(d_rot[:, j, :, None] * o[j] for j in range(3))  # (3 i, 3 k, n): d p_cam_i / d rvec_k
-        q, dk, dc, dp = project_jacobian(g[:4], coeffs, p_cam)  # (2, n), (2, 4, n), (2, 8, n), (2, 3, n)
+        q, dk, dc, dp = project_jacobian(g[:4], coeffs, p_cam)  # (2, n), (2, 4, n), (2, 8 or 4, n), (2, 3, n)
         dp_drot = sum(dp[:, i, None, :] * dpc_drot[None, i] for i in range(3))  # (2, 3, n)
         rows = jnp.concatenate([dk, *(dc[:, c:c + 1] for c in cols), dp_drot, dp, (q - obs_v.T)[:, None]], axis=1)
         # (2, G + 7, n) -> one row per parameter and the residuals last, in the model's order (n, 2)
@@ -138,7 +150,7 @@ class CameraSolution:
     values: np.ndarray  # (G,) shared parameters in `names` order
     std: np.ndarray  # (G,) Jacobian standard deviations
     cov: np.ndarray  # (G, G)
-    coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order
+    coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order (fisheye: cv2.fisheye's D in [:4])
     poses: np.ndarray  # (V, 6) rvec, tvec per view
     rms: float  # sqrt(SSE / points), OpenCV's reprojection error
     per_view_rms: np.ndarray  # (V,)
@@ -154,6 +166,10 @@ class CameraSolution:
     @property
     def converged(self) -> bool:
         return self.status > 0
+
+    @property
+    def lens_model(self) -> str:
+        return lens_model(self.free)
 
     @property
     def status_text(self) -> str:
@@ -189,7 +205,9 @@ def calibrate_full(
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     _check_views(obj, obs)
     t0 = time.perf_counter()
-    k0, p0 = initial_guess(obj, obs, image_size)
+    fish = lens_model(tuple(free)) == "fisheye"
+    # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
+    k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
     g0 = np.concatenate([k0, np.zeros(len(free))])
     shared = (np.asarray(obj, float), np.zeros(8))  # numpy: no eager JAX op (each compiles on first use)
     out = _run(free, options, g0[None], p0[None], obs[None], np.ones((1, len(obs))), np.array([options.lambda0]),
@@ -209,7 +227,7 @@ def _solution_from(out, obj, obs, free, image_size) -> CameraSolution:
     names = INTRINSIC_NAMES + tuple(free)
     g = out.g
     coeffs = np.zeros(8)
-    coeffs[[COEFF_NAMES.index(n) for n in free]] = g[4:]
+    coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:]
     n_params = len(g) + out.p.size
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
     resid = np.asarray(out.residuals).reshape(obs.shape)

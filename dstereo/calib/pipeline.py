@@ -87,8 +87,9 @@ def suggest_model(free: tuple[str, ...], identifiable: bool, weak: Sequence[str]
 
 @dataclass
 class CameraCalibration:
-    """Everything one camera's run produced. `final` is the thesis's answer (mean over surviving subsets)
-    when subsets were solved, else the full-set solve; `full` always holds the full-set solve."""
+    """Everything one camera's run produced. `final` is what the camera file holds: with subsets the solve on
+    the surviving subsets' views (or, with `final = "mean"`, the thesis's mean over surviving subsets, then in
+    `subset_mean` too), else the full-set solve; `full` always holds the full-set solve."""
 
     config: Config
     folder: Path
@@ -108,6 +109,9 @@ class CameraCalibration:
     model_advice: str | None
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    # With subsets: the survivors' solve, the thesis's subset mean and how they compare (calib/final_solution.py)
+    final_solution: object | None = None
+    subset_mean: dict[str, float] | None = None
 
     @property
     def unconverged(self) -> list[int]:
@@ -117,10 +121,11 @@ class CameraCalibration:
 
     @property
     def final_coefficients(self) -> np.ndarray:
-        """(8,) distortion coefficients of `final`, OpenCV order, zeros where not free."""
-        from dstereo.models.distortion import COEFF_NAMES
+        """(8,) distortion coefficients of `final`, OpenCV order (fisheye: cv2.fisheye's D in [:4]), zeros where
+        not free."""
+        from dstereo.models.distortion import coeff_slots
 
-        return np.array([self.final.get(n, 0.0) for n in COEFF_NAMES])
+        return np.array([self.final.get(n, 0.0) if n else 0.0 for n in coeff_slots(tuple(self.config.model))])
 
     @property
     def final_camera_matrix(self) -> np.ndarray:
@@ -207,7 +212,7 @@ def calibrate_camera(
     if advice:
         warnings.append(advice)
 
-    subsets = filtering = None
+    subsets = filtering = final_solution = subset_mean = None
     final = dict(zip(full.names, map(float, full.values)))
     spread = {n: float("nan") for n in full.names}
     if plan is not None:
@@ -235,16 +240,34 @@ def calibrate_camera(
         timings["steps_s"] = time.perf_counter() - t0
         warnings += [s.message for s in filtering.steps if s.stopped_by_minimum]
         stats = filtering.stats(len(filtering.steps))
-        final = {n: stats[n]["mean"] for n in full.names}
+        subset_mean = {n: stats[n]["mean"] for n in full.names}
         spread = {n: stats[n]["std"] for n in full.names}
+        final_solution = _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnings)
+        final = final_solution.final
+        timings["final_s"] = time.perf_counter() - t0 - timings["steps_s"]
 
     coverage = corner_coverage(obs.reshape(-1, 2), det.image_size)
     warnings += list(coverage.warnings)
     return CameraCalibration(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
-        coverage=coverage, model_advice=advice, warnings=warnings, timings=timings,
+        coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
+        subset_mean=subset_mean,
     )
+
+
+def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnings):
+    """`final_solution.camera_final`, and a warning with the figures when the subset mean fits visibly worse."""
+    from dstereo.calib.final_solution import camera_final
+
+    fs = camera_final(config.final, filtering, plan, det.object_points, obs, full, det.image_size, subset_mean)
+    if fs.check.mean_worse:
+        held = ("camera.yml holds it (--final mean); use --final survivors for the consistent solve"
+                if fs.choice == "mean" else "camera.yml holds the solve; the mean is only reported")
+        warnings.append(f"{fs.check.text()}; {held}")
+    if not fs.solution.converged:
+        warnings.append(f"the solve on the surviving views did not converge ({fs.solution.status_text})")
+    return fs
 
 
 def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):

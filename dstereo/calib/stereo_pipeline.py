@@ -127,6 +127,12 @@ class StereoCalibrationJob:
     F: np.ndarray
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    # calib/final_solution.py: the rig solve on the surviving pairs beside the thesis's subset mean, and the
+    # rig's honest +- (fixed mode: intrinsics errors carried into the rig)
+    rig_final: object | None = None
+    subset_mean: dict[str, float] | None = None
+    calibration_covariance: tuple | None = None  # rig_covariance(job) of the written calibration
+    full_set_sigma: object | None = None  # final_solution.RigSigma of the full-set solve
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -231,7 +237,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         warnings.append(f"stereo full-set solve did not converge ({full.status_text}); its values are unreliable")
     final = full.columns()
     spread = {k: float("nan") for k in STEP_COLUMNS}
-    plan = subsets = filtering = None
+    plan = subsets = filtering = rig_fs = subset_mean = None
     if config.per_set is not None:
         t0 = time.perf_counter()
         check_subset_run(len(det.pairs), config.per_set, config.max_subsets, len(STEP_COLUMNS), scratch,
@@ -254,18 +260,32 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
             raise
         warnings += [f"stereo {s.message}" for s in filtering.steps if s.stopped_by_minimum]
         stats = filtering.stats(len(filtering.steps))
-        final = {k: stats[k]["mean"] for k in STEP_COLUMNS}
+        subset_mean = {k: stats[k]["mean"] for k in STEP_COLUMNS}
         spread = {k: stats[k]["std"] for k in STEP_COLUMNS}
+        from dstereo.calib.final_solution import rig_final
+
+        rig_fs = rig_final(config.final, filtering, plan, det.object_points, obs_l, obs_r, full, subset_mean)
+        final = rig_fs.final
+        if rig_fs.check.mean_worse:
+            warnings.append("stereo: " + rig_fs.check.text("rig") + (
+                "; stereo.yml holds it (--final mean)" if rig_fs.choice == "mean" else
+                "; stereo.yml holds the solve; the mean is only reported"))
         timings["stereo_subsets_s"] = time.perf_counter() - t0
     rvec = np.array([final["RVx"], final["RVy"], final["RVz"]])
     T = np.array([final["Tx"], final["Ty"], final["Tz"]])
     E = np.asarray(essential_matrix(rvec, T))
     F = np.asarray(fundamental_matrix(full.left.k, full.right.k, E))
-    return StereoCalibrationJob(
+    job = StereoCalibrationJob(
         config=config, sources=sources, left=cams["left"], right=cams["right"], detection=det, full=full, plan=plan,
         subsets=subsets, filtering=filtering, final=final, spread=spread, R=np.asarray(rodrigues(rvec)), T=T, E=E,
-        F=F, warnings=warnings, timings=timings,
+        F=F, warnings=warnings, timings=timings, rig_final=rig_fs, subset_mean=subset_mean,
     )
+    from dstereo.calib.final_solution import attach_rig_uncertainty
+
+    t0 = time.perf_counter()
+    attach_rig_uncertainty(job)
+    timings["rig_covariance_s"] = time.perf_counter() - t0
+    return job
 
 
 FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance from its individual (mono) full-set "
@@ -273,7 +293,8 @@ FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance 
                    "intrinsics errors carried into the rig (A C_k A^T, A = d rig / d intrinsics at the stereo "
                    "optimum), "
                    "with the cross terms A C_k; assumes the stereo corners' noise independent of the individual "
-                   "solves'. Values in this file are the final ones; the covariance is that of the full-set solves")
+                   "solves'. Values in this file are the final ones; the covariance is that of the solves on the "
+                   "surviving views and pairs (the full-set solves when all survive)")
 BLOCK_STRUCTURE = ("block-diagonal (left, right, rig): each camera's intrinsics from its individual (mono) full-set "
                    "solve, the rig from the stereo solve with the intrinsics held fixed; no correlations")
 JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-set)"
@@ -310,7 +331,8 @@ def rig_sensitivity(obj, obs_left, obs_right, solution) -> np.ndarray:
     return a * scale[:6, None] ** -1 * scale[None, 6:n_g]
 
 
-def rig_covariance(job: StereoCalibrationJob, propagate: bool = True) -> tuple[tuple[str, ...], np.ndarray, str]:
+def rig_covariance(job: StereoCalibrationJob, propagate: bool = True, solution=None, pairs=None,
+                   cameras=None) -> tuple[tuple[str, ...], np.ndarray, str]:
     """(names, covariance, structure) of every parameter stereo.yml carries: left.fx.., right.fx.., RVx..Tz.
 
     Mode "joint": the joint solve's covariance, reordered. Mode "fixed" (the thesis's path): the intrinsics come
@@ -319,7 +341,7 @@ def rig_covariance(job: StereoCalibrationJob, propagate: bool = True) -> tuple[t
     (`propagate=False`, block-diagonal) the rig cannot absorb a principal-point error and the point sigmas come
     out several times too large (measured in the report of this change).
     """
-    s = job.full
+    s = job.full if solution is None else solution
     if s.mode == "joint":
         names = tuple(n for n in s.names if not n.startswith(("left.", "right.")))
         order = [i for i, n in enumerate(s.names) if n.startswith("left.")] + \
@@ -329,10 +351,16 @@ def rig_covariance(job: StereoCalibrationJob, propagate: bool = True) -> tuple[t
 
     names = (tuple(f"left.{n}" for n in job.left.full.names) + tuple(f"right.{n}" for n in job.right.full.names)
              + tuple(s.names))
-    c_k = block_diag(job.left.full.cov, job.right.full.cov)
+    # `cameras`: the CameraSolutions whose covariance goes with the intrinsics used (default the full sets');
+    # `pairs`: (V,) bool of the pairs `solution` was solved on (default all)
+    left, right = cameras if cameras is not None else (job.left.full, job.right.full)
+    c_k = block_diag(left.cov, right.cov)
     if not propagate:
         return names, block_diag(c_k, s.cov), BLOCK_STRUCTURE
-    a = rig_sensitivity(job.detection.object_points, *job.detection.observations(), s)
+    obs_l, obs_r = job.detection.observations()
+    if pairs is not None:
+        obs_l, obs_r = obs_l[pairs], obs_r[pairs]
+    a = rig_sensitivity(job.detection.object_points, obs_l, obs_r, s)
     cross = a @ c_k
     return names, np.block([[c_k, cross.T], [cross, s.cov + cross @ a.T]]), FIXED_STRUCTURE
 
@@ -341,18 +369,29 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     """Console text of a finished job (the CLI prints it)."""
     s, pm = job.full, (lambda v, e: f"{v:.6g} +- {e:.3g}" if e == e else f"{v:.6g}")  # noqa: E731
     unit = job.config.unit
+    full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
+    full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
+    kind = "Jacobian"
+    if job.full_set_sigma is not None:  # the honest +-: intrinsics errors carried into the rig
+        full_std |= job.full_set_sigma.std
+        kind = job.full_set_sigma.label.split(":")[0]
     lines = [f"individual: left RMS {job.left.full.rms:.4f} px ({len(job.left.used)} images), right RMS "
              f"{job.right.full.rms:.4f} px ({len(job.right.used)} images)",
              f"stereo: {len(job.detection.pairs)} pairs ({len(job.detection.dropped)} dropped), RMS {s.rms:.4f} px, "
              f"stereo_re {s.stereo_re:.4f} px, {s.status_text}",
-             f"{'parameter':>9}  {'full set +- std (Jacobian)':>28}  final" + (
-                 f" (mean +- spread of {int(job.filtering.survivors.sum())} subsets)" if job.filtering else "")]
-    full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
-    full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
+             f"{'parameter':>9}  {'full set +- std (' + kind + ')':>28}  " + (
+                 f"subset mean +- spread of {int(job.filtering.survivors.sum())} subsets" if job.filtering
+                 else "final")]
     full_vals = s.columns()
+    shown = job.subset_mean if job.subset_mean is not None else job.final
     for k in STEP_COLUMNS:
-        lines.append(f"{k:>9}  {pm(full_vals[k], full_std[k]):>28}  {pm(job.final[k], job.spread[k])}")
-    lines.append(f"baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (full set, Jacobian)")
+        lines.append(f"{k:>9}  {pm(full_vals[k], full_std[k]):>28}  {pm(shown[k], job.spread[k])}")
+    lines.append(f"baseline |T| = {s.baseline:.6g} +- {full_std['Tnorm']:.3g} {unit} (full set, {kind})")
+    if job.rig_final is not None:
+        c = job.rig_final.check
+        lines.append(f"stereo.yml: {job.rig_final.source()}")
+        lines.append(f"  fit on the surviving pairs (poses refitted): rig solve {c.rms_solution:.4f} px, subset mean "
+                     f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
     structure = JOINT_STRUCTURE if s.mode == "joint" else FIXED_STRUCTURE
     lines.append("stereo.yml carries the calibration covariance: " + structure.split(":")[0])
     if job.filtering is not None:

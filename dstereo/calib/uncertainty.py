@@ -21,10 +21,31 @@ def scaled_inverse(schur: np.ndarray) -> np.ndarray:
     Parameters differ by 10^6 in scale (fx vs k3), so the raw matrix's condition number (up to ~1e16 at narrow
     fields of view) would make a pseudo-inverse cut real, weakly determined directions and report standard
     deviations far too small. Scaled to unit diagonal, only true near-degeneracies remain.
+    A matrix that is not finite (a subset whose solve diverged) or whose decomposition fails gets NaN, so its
+    standard deviations read as unknown instead of stopping the whole batch with LinAlgError.
     """
+    schur = np.asarray(schur, float)
     d = np.sqrt(np.maximum(np.diagonal(schur, axis1=-2, axis2=-1), 1e-300))
     outer = d[..., :, None] * d[..., None, :]
-    return np.linalg.pinv(schur / outer, rcond=1e-15, hermitian=True) / outer
+    with np.errstate(invalid="ignore"):  # inf / inf in a diverged subset: NaN, handled below
+        scaled = schur / outer
+    if np.isfinite(scaled).all():
+        try:
+            return np.linalg.pinv(scaled, rcond=1e-15, hermitian=True) / outer
+        except np.linalg.LinAlgError:
+            pass  # one matrix of the batch failed: invert them one by one below
+    flat = scaled.reshape(-1, *scaled.shape[-2:])
+    inv = np.stack([_pinv_or_nan(m) for m in flat]).reshape(scaled.shape)
+    return inv / outer
+
+
+def _pinv_or_nan(m: np.ndarray) -> np.ndarray:
+    if not np.isfinite(m).all():
+        return np.full_like(m, np.nan)
+    try:
+        return np.linalg.pinv(m, rcond=1e-15, hermitian=True)
+    except np.linalg.LinAlgError:
+        return np.full_like(m, np.nan)
 
 
 def covariance(schur: np.ndarray, sse: float, n_residuals: int, n_params: int) -> np.ndarray:

@@ -23,7 +23,7 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4)."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -34,6 +34,9 @@ def calibrate(
         "Tz, RVnorm, RVx, RVy, RVz, e.g. --step stereo_re=3 --step Tnorm=0.75"),
     min_subsets: Optional[int] = typer.Option(
         None, "--min-subsets", help="A step stops before it would leave fewer subsets."),
+    final: Optional[str] = typer.Option(
+        None, "--final", help="What camera.yml/stereo.yml hold with subsets: survivors (default: the solve on the "
+        "surviving subsets' views) or mean (the thesis's per-parameter subset mean)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -75,7 +78,7 @@ def calibrate(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
         image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets,
+        seed=seed, min_subsets=min_subsets, final=final,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
@@ -84,6 +87,11 @@ def calibrate(
         if cross_validate:
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
+        from dstereo.models.distortion import lens_model
+
+        if lens_model(tuple(cfg.model)) == "fisheye":
+            raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
+                               "calibrate each camera alone with --images DIR")
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
@@ -243,9 +251,10 @@ def _pm(value: float, spread: float) -> str:
 def _render(cal, out: Path) -> None:
     """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
     full = cal.full
-    rows = [(n, _pm(float(v), float(s)), _pm(cal.final[n], cal.spread[n]))
+    mean = cal.subset_mean if cal.subset_mean is not None else cal.final
+    rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
             for n, v, s in zip(full.names, full.values, full.std)]
-    subsets = "final: subset mean +- spread"
+    subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
     try:
@@ -266,6 +275,11 @@ def _render(cal, out: Path) -> None:
     if cal.filtering is not None:
         for s in cal.filtering.steps:
             typer.echo(f"  {s.message}")
+    if cal.final_solution is not None:
+        c = cal.final_solution.check
+        typer.echo(f"camera.yml: {cal.final_solution.source(cal.used)}")
+        typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
+                   f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
     typer.echo(f"wrote {out}")

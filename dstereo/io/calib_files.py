@@ -177,6 +177,9 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
         other = path.with_name(partner + path.suffix)
         if other.is_file():
             data = {**_read_storage(other), **data}
+    if str(data.get("distortion_model") or "pinhole").strip().lower() != "pinhole":
+        raise DstereoError(f"{path}: distortion_model {data['distortion_model']!r}: stereo rigs with fisheye cameras "
+                           "are not supported yet (issue 16); only one camera can be calibrated with --model fisheye")
     missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
     if missing and any(k in data for k in MONO_KEYS):
         raise DstereoError(

@@ -202,24 +202,44 @@ def steps_summary(filtering: FilterResult) -> list[dict]:
 
 
 def distortion_vector(coeffs8: np.ndarray, free: Sequence[str]) -> np.ndarray:
-    """OpenCV's 5-vector (k1 k2 p1 p2 k3), or all 8 when a rational coefficient is free."""
+    """OpenCV's 5-vector (k1 k2 p1 p2 k3), or all 8 when a rational coefficient is free; for the fisheye model
+    cv2.fisheye's D (k1 k2 k3 k4)."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(free)) == "fisheye":
+        return np.asarray(coeffs8, float)[:4]
     return np.asarray(coeffs8, float)[: 8 if set(free) & {"k4", "k5", "k6"} else 5]
 
 
-def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict) -> None:
-    """camera.yml (cv2.FileStorage) and camera.json with the same numbers."""
+def distortion_names(free: Sequence[str], n: int) -> list[str]:
+    """Names of the written distortion vector's entries (fisheye: cv2.fisheye's k1..k4)."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(free)) == "fisheye":
+        return ["k1", "k2", "k3", "k4"]
+    return ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:n]
+
+
+def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict,
+                       model: str = "pinhole") -> None:
+    """camera.yml (cv2.FileStorage) and camera.json with the same numbers. A fisheye camera adds
+    `distortion_model: fisheye` (D is then cv2.fisheye's 4-vector); without the field the camera is OpenCV's
+    pinhole + distortion model, as before."""
     import cv2
 
     fs = cv2.FileStorage(str(folder / "camera.yml"), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("image_width", int(image_size[0]))
         fs.write("image_height", int(image_size[1]))
+        if model != "pinhole":
+            fs.write("distortion_model", model)
         fs.write("camera_matrix", np.asarray(K, np.float64))
         fs.write("distortion_coefficients", np.asarray(D, np.float64).reshape(1, -1))
     finally:
         fs.release()
+    flag = {} if model == "pinhole" else {"distortion_model": model}
     write_json(folder / "camera.json", {"image_width": int(image_size[0]), "image_height": int(image_size[1]),
-                                        "camera_matrix": np.asarray(K).tolist(),
+                                        **flag, "camera_matrix": np.asarray(K).tolist(),
                                         "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
 
 
@@ -246,7 +266,7 @@ def summary_dict(cal) -> dict:
         "final": dict(cal.final),
         "final_source": "full-set solve (no subsets: set images per set to run the subset analysis)",
         "comparison": [{"parameter": n, "full_set": float(v), "full_set_std": float(s),
-                        "subset_mean": cal.final[n] if cal.filtering is not None else None,
+                        "subset_mean": cal.subset_mean[n] if cal.subset_mean is not None else None,
                         "subset_spread": cal.spread[n] if cal.filtering is not None else None}
                        for n, v, s in zip(names, full.values, full.std)],
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
@@ -273,6 +293,12 @@ def summary_dict(cal) -> dict:
         summary["final_source"] = f"mean over the {int(survivors.sum())} surviving subsets (the thesis's answer)"
         summary["final_spread"] = dict(cal.spread)
         summary["final"]["re"] = f.stats(len(f.steps))["re"]["mean"]
+        if cal.final_solution is not None:  # calib/final_solution.py: what camera.yml holds, beside the mean
+            summary["final_source"] = cal.final_solution.source(cal.used)
+            summary["final_check"] = cal.final_solution.as_dict(cal.used)
+            summary["subset_mean"] = dict(cal.subset_mean) | {"re": f.stats(len(f.steps))["re"]["mean"]}
+            if cal.final_solution.choice == "survivors":
+                summary["final"]["re"] = float(cal.final_solution.solution.rms)
     return summary
 
 
@@ -326,8 +352,8 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     full, det = cal.full, cal.detection
     summary = summary_dict(cal)
     K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
-    names = ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][: len(D)]
-    write_camera_files(folder, K, D, det.image_size, {
+    names = distortion_names(full.free, len(D))
+    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, extra={
         "distortion_names": names, "source": summary["final_source"],
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
@@ -384,7 +410,10 @@ def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> 
         image = cv2.imread(str(by_name[name]), cv2.IMREAD_COLOR)
         if image is None:
             continue
-        fixed = cv2.undistort(image, K, coeffs8)
+        if cal.full.lens_model == "fisheye":  # same K for the view: the image circle's rim falls outside it
+            fixed = cv2.fisheye.undistortImage(image, K, np.asarray(coeffs8[:4], float), Knew=K)
+        else:
+            fixed = cv2.undistort(image, K, coeffs8)
         gap = np.full((image.shape[0], 8, 3), 255, np.uint8)
         target = f"{Path(name).stem}_undistorted.png"
         cv2.imwrite(str(folder / target), np.hstack([image, gap, fixed]))
@@ -408,7 +437,7 @@ def report_markdown(cal, summary: dict) -> str:
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
-             f"- distortion model: {', '.join(full.free) or 'none'}",
+             f"- distortion model: {full.lens_model}, {', '.join(full.free) or 'none'}",
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
@@ -430,12 +459,22 @@ def report_markdown(cal, summary: dict) -> str:
                   + ", ".join(f"[{n[10:-4]}](stats/{n})" for n in files if n.startswith("parameter")),
                   "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
     lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
-              "standard deviations, and the spread (standard deviation) across the surviving subsets.", "",
-              "| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
+              "standard deviations, and the thesis's mean and spread (standard deviation) across the surviving "
+              "subsets.", "",
+              "| parameter | final | full set | +- std (Jacobian) | subset mean | subset spread |",
+              "|---|---|---|---|---|---|"]
     for row in summary["comparison"]:
-        spread = row["subset_spread"]
+        spread, mean = row["subset_spread"], row["subset_mean"]
         lines.append(f"| {row['parameter']} | {_fmt(summary['final'][row['parameter']])} | {_fmt(row['full_set'])} | "
-                     f"{_fmt(row['full_set_std'])} | {_fmt(spread) if spread is not None else '-'} |")
+                     f"{_fmt(row['full_set_std'])} | {_fmt(mean) if mean is not None else '-'} | "
+                     f"{_fmt(spread) if spread is not None else '-'} |")
+    check = summary.get("final_check", {}).get("mean_check")
+    if check is not None:
+        verdict = ("**fits worse than the solve**" if check["mean_worse"] else
+                   f"fits as well as the solve (within {100 * check['margin']:g} %)")
+        lines += ["", f"Fit on the {check['views']} surviving views' corners, each board pose refitted: the solve "
+                  f"RMS {check['rms_solution_px']:.4f} px, the thesis's subset mean RMS {check['rms_mean_px']:.4f} px "
+                  f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
               "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
     cov = cal.coverage

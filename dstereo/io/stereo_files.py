@@ -263,6 +263,9 @@ def stereo_summary(job) -> dict:
                    "free": list(c.dist.free), "image_size": list(c.image_size)}
             for side, c in (("left", s.left), ("right", s.right))}
     full_std = dict(zip(s.names, map(float, s.std))) | {"Tnorm": s.baseline_std, "RVnorm": s.angle_std}
+    sigma = getattr(job, "full_set_sigma", None)  # calib/final_solution.py: the honest +- (intrinsics carried)
+    if sigma is not None:
+        full_std |= sigma.std
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
         "cameras": cams, "pattern": {"columns": det.left.pattern[0], "rows": det.left.pattern[1],
@@ -273,7 +276,9 @@ def stereo_summary(job) -> dict:
         "final_source": (f"mean over the {int(job.filtering.survivors.sum())} surviving subsets (the thesis's answer)"
                          if job.filtering is not None else "full-set solve (no subsets: set images per set)"),
         "full_set": {"mode": s.mode, "R": s.R, "rvec": s.rvec, "T": s.T, "E": s.E, "F": s.F, **s.columns(),
-                     "std": full_std, "baseline": {"value": s.baseline, "std": s.baseline_std},
+                     "std": full_std, "std_kind": sigma.label if sigma is not None else "Jacobian",
+                     "std_intrinsics_exact": None if sigma is None else sigma.intrinsics_exact,
+                     "baseline": {"value": s.baseline, "std": full_std["Tnorm"]},
                      "rms": s.rms, "stereo_re": s.stereo_re, "status": s.status_text, "iterations": s.iterations,
                      "conditioning": s.conditioning.message(), "covariance": s.cov, "names": list(s.names)},
         "reprojection_error": "rms: sqrt(SSE / corners) over both cameras (cv2.stereoCalibrate's value); stereo_re: "
@@ -284,6 +289,10 @@ def stereo_summary(job) -> dict:
                        for side, c in (("left", job.left), ("right", job.right))},
         "subsets": None, "warnings": list(job.warnings), "timings": dict(job.timings),
     }
+    if getattr(job, "rig_final", None) is not None:
+        summary["final_source"] = job.rig_final.source()
+        summary["final_check"] = job.rig_final.as_dict(det.pairs)
+        summary["subset_mean"] = dict(job.subset_mean)
     if job.filtering is not None:
         f, plan = job.filtering, job.plan
         summary["subsets"] = {"per_set": int(plan.per_set), "solved": int(len(plan)),
@@ -302,7 +311,7 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     s, det = job.full, job.detection
     from dstereo.calib.stereo_pipeline import rig_covariance
 
-    cov_names, cov, cov_structure = rig_covariance(job)
+    cov_names, cov, cov_structure = job.calibration_covariance or rig_covariance(job)
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
                      job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
                      cov_names=cov_names, cov_structure=cov_structure)
@@ -459,14 +468,23 @@ def report_markdown(job, summary: dict) -> str:
              f"[right](right/report.md) RMS {job.right.full.rms:.4f} px",
              f"- stereo pairs: {len(det.pairs)} used, {len(det.dropped)} dropped; intrinsics fixed at each camera's "
              "final values", f"- full-set solve: RMS {s.rms:.4f} px, stereo_re {s.stereo_re:.4f} px, {s.status_text}",
-             f"- baseline |T| = {s.baseline:.6g} +- {s.baseline_std:.3g} {unit} (Jacobian)",
+             f"- baseline |T| = {s.baseline:.6g} +- {summary['full_set']['baseline']['std']:.3g} {unit} "
+             f"({summary['full_set']['std_kind'].split(':')[0]})",
              f"- calibration covariance in stereo.yml (for `dstereo reconstruct`'s point uncertainties): "
              f"{summary.get('calibration_covariance', {}).get('structure', 'none')}", ""]
-    lines += ["| parameter | final | full set | +- std (Jacobian) | subset spread |", "|---|---|---|---|---|"]
+    mean = job.subset_mean or {}
+    lines += [f"| parameter | final | full set | +- std ({summary['full_set']['std_kind'].split(':')[0]}) | "
+              "subset mean | subset spread |", "|---|---|---|---|---|---|"]
     full_vals, std = s.columns(), summary["full_set"]["std"]
     for k in job.columns:
         lines.append(f"| {k} | {fmt(job.final[k])} | {fmt(full_vals[k])} | {fmt(std.get(k, float('nan')))} | "
-                     f"{fmt(job.spread[k])} |")
+                     f"{fmt(mean.get(k, float('nan')))} | {fmt(job.spread[k])} |")
+    lines += ["", f"+- std: {summary['full_set']['std_kind']}."]
+    check = summary.get("final_check", {}).get("mean_check")
+    if check is not None:
+        lines += ["", f"Fit on the {check['views']} surviving pairs' corners, board poses refitted: the rig solve RMS "
+                  f"{check['rms_solution_px']:.4f} px, the thesis's subset mean rig RMS {check['rms_mean_px']:.4f} px "
+                  f"({check['ratio']:.3f}x)" + (": **the mean fits worse**." if check["mean_worse"] else ".")]
     lines += ["", f"Final values: {summary['final_source']}. Files: [stereo.yml](stereo.yml) (OpenCV), "
               "[stereo.json](stereo.json), [corners.npz](corners.npz), [stereo_pairs.csv](stereo_pairs.csv).", ""]
     if job.filtering is not None:

@@ -13,8 +13,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
+from dstereo.models.fisheye import FISHEYE_NAMES
 
 COEFF_NAMES: tuple[str, ...] = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+# The fisheye lens (dstereo.models.fisheye) keeps cv2.fisheye's D = (k1..k4) in the first four of the same
+# 8 slots, named fk1..fk4 so that a free set says which lens model it belongs to.
+FISHEYE_SLOTS: tuple[str, ...] = FISHEYE_NAMES + ("", "", "", "")
 
 # Named presets accepted wherever a model is asked for (CLI --model, configuration files).
 PRESETS: dict[str, tuple[str, ...]] = {
@@ -25,7 +29,18 @@ PRESETS: dict[str, tuple[str, ...]] = {
     "k1k2k3p1p2": ("k1", "k2", "p1", "p2", "k3"),
     "default": ("k1", "k2", "p1", "p2", "k3"),
     "rational": COEFF_NAMES,
+    "fisheye": FISHEYE_NAMES,
 }
+
+
+def lens_model(free: tuple[str, ...]) -> str:
+    """'fisheye' when the free set names fisheye coefficients (fk1..fk4), else 'pinhole' (OpenCV's rational)."""
+    return "fisheye" if any(n in FISHEYE_NAMES for n in free) else "pinhole"
+
+
+def coeff_slots(free: tuple[str, ...]) -> tuple[str, ...]:
+    """Names of the 8 coefficient slots for the lens model of `free` (OpenCV order, or fisheye k1..k4 + 4 unused)."""
+    return FISHEYE_SLOTS if lens_model(free) == "fisheye" else COEFF_NAMES
 
 
 def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
@@ -37,13 +52,19 @@ def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
         names = [s.strip().lower() for s in key.replace(" ", ",").split(",") if s.strip()]
     else:
         names = [s.strip().lower() for s in spec]
-    bad = [n for n in names if n not in COEFF_NAMES]
+    bad = [n for n in names if n not in COEFF_NAMES + FISHEYE_NAMES]
     if bad:
         raise DstereoError(
             f"model: unknown distortion coefficient(s) {bad}; use a subset of {list(COEFF_NAMES)} "
-            f"or a preset {list(PRESETS)}"
+            f"(pinhole), of {list(FISHEYE_NAMES)} (fisheye), or a preset {list(PRESETS)}"
         )
-    return tuple(n for n in COEFF_NAMES if n in names)
+    if any(n in FISHEYE_NAMES for n in names) and any(n in COEFF_NAMES for n in names):
+        raise DstereoError(
+            f"model: {','.join(names)} mixes pinhole ({list(COEFF_NAMES)}) and fisheye ({list(FISHEYE_NAMES)}) "
+            "coefficients; choose one lens model"
+        )
+    order = FISHEYE_NAMES if any(n in FISHEYE_NAMES for n in names) else COEFF_NAMES
+    return tuple(n for n in order if n in names)
 
 
 def with_free(coeffs: Float[Array, "8"], free: tuple[str, ...], values: Float[Array, " f"]) -> Float[Array, "8"]:
@@ -53,7 +74,7 @@ def with_free(coeffs: Float[Array, "8"], free: tuple[str, ...], values: Float[Ar
     a scatter loop, which costs compile time for nothing when the positions are known at trace time.
     """
     parts = []
-    for i, name in enumerate(COEFF_NAMES):
+    for i, name in enumerate(coeff_slots(free)):
         parts.append(values[free.index(name)][None] if name in free else coeffs[i:i + 1])
     return jnp.concatenate(parts) if free else coeffs
 
@@ -70,7 +91,7 @@ class Distortion(eqx.Module):
 
     @property
     def free_index(self) -> tuple[int, ...]:
-        return tuple(COEFF_NAMES.index(n) for n in self.free)
+        return tuple(coeff_slots(self.free).index(n) for n in self.free)
 
     def free_values(self) -> Float[Array, " nfree"]:
         return self.coeffs[jnp.array(self.free_index, dtype=int)] if self.free else jnp.zeros(0)

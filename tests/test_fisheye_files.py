@@ -1,0 +1,97 @@
+"""`dstereo calibrate --model fisheye` end to end on the real fisheye640 camera, its camera.yml (OpenCV layout
+with `distortion_model: fisheye`) read back, the config key, and the refusals (fisheye rigs, bad files)."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import require_data, run_cli
+from dstereo.config import load_config
+from dstereo.errors import DstereoError
+from dstereo.io.calib_files import read_opencv_stereo
+from dstereo.io.camera_file import read_camera_file
+from dstereo.io.results import write_camera_files
+from dstereo.models.distortion import PRESETS
+
+
+@pytest.fixture(scope="module")
+def fisheye_run(tmp_path_factory):
+    images = require_data("fisheye640")
+    out = tmp_path_factory.mktemp("fe") / "results"
+    code, stdout, err = run_cli("calibrate", "--images", images, "--pattern", "9x6", "--square", "1",
+                                "--model", "fisheye", "--per-set", "12", "--max-subsets", "20", "--step", "re=0.5",
+                                "--step", "fk1=1.5,fk2=1.5", "--out", out, "--quiet")
+    assert code == 0, err
+    return out
+
+
+def test_camera_file_reads_back_and_equals_opencv_fisheye(fisheye_run):
+    cam = read_camera_file(fisheye_run / "camera.yml")
+    summary = json.loads((fisheye_run / "summary.json").read_text())
+    assert cam.model == "fisheye" and cam.D.shape == (4,) and cam.image_size == (640, 640)
+    full, final = summary["full_set"], summary["final"]
+    # the file holds the final answer (the solve on the surviving views), coefficients in cv2.fisheye's order
+    assert summary["subsets"]["final_count"] > 0
+    # The final check refits each view's pose with the fisheye projection: the solve's own refit equals its RMS
+    # up to the pose refit's convergence (a pinhole refit of fisheye corners would be pixels off).
+    refit = summary["final_check"]["mean_check"]["rms_solution_px"]
+    assert abs(refit - full["rms"]) < 1e-3 * full["rms"]
+    assert [st["parameters"] for st in summary["subsets"]["steps"]] == [["re"], ["fk1", "fk2"]]
+    np.testing.assert_allclose(cam.D, [final[n] for n in PRESETS["fisheye"]], rtol=1e-15)
+    np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [final[n] for n in ("fx", "fy", "cx", "cy")],
+                               rtol=1e-15)
+    z = np.load(fisheye_run / "corners.npz")
+    obj = z["object_points"]
+    obs = [z[n][None] for n in z.files if n != "object_points"]
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    rms, k, d, _, _ = cv2.fisheye.calibrate([obj[None]] * len(obs), obs, (640, 640), None, None, flags=flags,
+                                            criteria=crit)
+    # the full-set solve and OpenCV at the same least-squares minimum (ftol ~1e-12 / 1e-15): 1e-6 relative is far
+    # above their disagreement (measured 7e-10 on K, 2.5e-8 absolute on D) yet far below the parameters' standard
+    # deviations (~1e-3 relative on f, ~5e-3 absolute on D)
+    np.testing.assert_allclose([full[n] for n in ("fx", "fy", "cx", "cy")], k[[0, 1, 0, 1], [0, 1, 2, 2]], rtol=1e-6)
+    np.testing.assert_allclose([full[n] for n in PRESETS["fisheye"]], d.ravel(), rtol=1e-5, atol=1e-7)
+    assert abs(full["rms"] - rms) < 1e-6 * rms
+    assert summary["undistorted"] and (fisheye_run / summary["undistorted"][0]).is_file()
+    pu = summary["projection_uncertainty"]
+    assert pu["std_px"]["pixels_without_ray"] == 0 and 0 < pu["std_px"]["median"] < 1.0
+    assert (fisheye_run / "plots" / "projection_uncertainty.png").is_file()
+
+
+def test_pinhole_camera_file_keeps_its_layout(tmp_path):
+    K = np.array([[500.0, 0, 320], [0, 501, 240], [0, 0, 1]])
+    D = np.array([0.1, -0.2, 0.001, 0.002, 0.05])
+    write_camera_files(tmp_path, K, D, (640, 480), {})
+    assert "distortion_model" not in (tmp_path / "camera.yml").read_text()
+    cam = read_camera_file(tmp_path / "camera.yml")
+    assert cam.model == "pinhole"
+    np.testing.assert_allclose(cam.coeffs[:5], D)
+
+
+def test_bad_fisheye_file_is_refused(tmp_path):
+    K = np.array([[300.0, 0, 320], [0, 300, 320], [0, 0, 1]])
+    write_camera_files(tmp_path, K, np.zeros(5), (640, 640), {}, model="fisheye")
+    with pytest.raises(DstereoError, match="needs 4 distortion coefficients"):
+        read_camera_file(tmp_path / "camera.yml")
+    fs = cv2.FileStorage(str(tmp_path / "stereo.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("distortion_model", "fisheye")
+    for name, value in (("M1", K), ("D1", np.zeros(4)), ("M2", K), ("D2", np.zeros(4)), ("R", np.eye(3)),
+                        ("T", np.array([[-100.0], [0], [0]]))):
+        fs.write(name, value)
+    fs.release()
+    with pytest.raises(DstereoError, match="fisheye cameras are not supported yet"):
+        read_opencv_stereo(tmp_path / "stereo.yml")
+
+
+def test_config_key_and_stereo_refusal(tmp_path):
+    (tmp_path / "dstereo.toml").write_text('[calibration]\nmodel = "fisheye"\n')
+    assert tuple(load_config(tmp_path / "dstereo.toml").model) == PRESETS["fisheye"]
+    for side in ("l", "r"):
+        (tmp_path / side).mkdir()
+    code, _, err = run_cli("calibrate", "--left", tmp_path / "l", "--right", tmp_path / "r", "--pattern", "9x6",
+                           "--model", "fisheye", "--out", tmp_path / "out")
+    assert code == 1 and "fisheye cameras are not supported yet" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
