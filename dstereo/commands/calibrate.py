@@ -50,6 +50,12 @@ def calibrate(
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),
+    projection_method: str = typer.Option(
+        "pose-compensated", "--projection-method", help="Projection uncertainty: pose-compensated (a point fixed in "
+        "the boards' frame, as mrcal) or intrinsics-only (fixed in the camera frame)."),
+    cross_validate: int = typer.Option(
+        0, "--cross-validate", help="Split the views in random halves N times (N >= 4 recommended), calibrate each "
+        "half and check the projection difference against the predicted one (report, cross_validation.npz)."),
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
@@ -58,6 +64,12 @@ def calibrate(
     from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
+    from dstereo.projection_uncertainty import METHODS
+
+    if projection_method not in METHODS:
+        raise DstereoError(f"--projection-method {projection_method}: use one of {', '.join(METHODS)}")
+    if cross_validate < 0:
+        raise DstereoError(f"--cross-validate {cross_validate}: give a number of splits (4 or more), or leave it out")
     if projection_range is not None and not projection_range > 0:
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
@@ -73,6 +85,9 @@ def calibrate(
     cfg = validate(cfg)
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
+        if cross_validate:
+            raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
+                               "with --images DIR --cross-validate N")
         from dstereo.models.distortion import lens_model
 
         if cfg.model_auto:
@@ -101,7 +116,7 @@ def calibrate(
 
     check_one_camera(list_camera_images(images, cfg), str(images))
     out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
-    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range)
+    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range, projection_method, cross_validate)
 
 
 def _results_folder(out, project, force: bool, cfg, inputs=()):
@@ -208,13 +223,23 @@ def _model(spec: Optional[str]):
 
 
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,
-         projection_range: float | None = None) -> None:
+         projection_range: float | None = None, projection_method: str = "pose-compensated",
+         cross_validate: int = 0) -> None:
     from dstereo.calib.pipeline import calibrate_camera
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
+        cal.projection_method = projection_method
+        if cross_validate:
+            from dstereo.calib.cross_validation import cross_validate as run_cross_validation
+
+            cal.cross_validation = run_cross_validation(cal.full, cal.detection.object_points, cal.observations,
+                                                        cal.detection.image_size, cross_validate, seed=cfg.seed or 0,
+                                                        range_=projection_range)
+            if not cal.cross_validation.trusted:
+                cal.warnings.append(cal.cross_validation.verdict())
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)

@@ -12,7 +12,10 @@ Layout of `write_camera_results(out, cal)`:
     plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
     plots/coverage.png, per_image_rms.png, residuals.png
     plots/projection_uncertainty.png, projection_uncertainty.npz   std (px) of the projection of a point at a
-                         given range (default the mean board distance) under the intrinsics covariance
+                         given range (default the mean board distance, board unit), pose-compensated (fixed in
+                         the boards' frame; --projection-method intrinsics-only for the camera frame); npz keys u, v,
+                         std, cov, range, mask (False: model not invertible there, NaN), method
+    cross_validation.npz, plots/cross_validation.png   with --cross-validate N: half-split differences vs predicted
     undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
 partial folder, and an existing folder is replaced only with `force`.
@@ -312,24 +315,34 @@ def write_camera_results(out: str | Path, cal, force: bool = False, projection_r
     return out
 
 
-def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None) -> dict:
-    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov) of the full-set solve's
-    intrinsics covariance at `projection_range` (default: the mean board distance); returns the summary entry."""
+def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None,
+                                 method: str = "pose-compensated") -> dict:
+    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
+    the full-set solve at `projection_range` (default: the mean board distance; board unit); returns the summary
+    entry. `method`: pose-compensated (needs the solve's per-view blocks) or intrinsics-only."""
     from dstereo.io.sigma_maps import projection_uncertainty_png
-    from dstereo.projection_uncertainty import mean_board_distance, projection_uncertainty_map
+    from dstereo.projection_uncertainty import mean_board_distance, solution_map
 
     full, det = cal.full, cal.detection
     source = "given" if projection_range is not None else "mean board distance of the full-set solve"
     if projection_range is None:
         projection_range = mean_board_distance(full.poses, det.object_points)
-    pmap = projection_uncertainty_map(full.values[:4], full.coeffs, full.names, full.cov, det.image_size,
-                                      projection_range)
+    fallback = method == "pose-compensated" and getattr(full, "normal", None) is None
+    pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
-             range=pmap.range_)
+             range=pmap.range_, mask=pmap.mask, method=pmap.method)
     projection_uncertainty_png(folder / "plots" / "projection_uncertainty.png", pmap, det.image_size,
-                               "projection uncertainty (full-set intrinsics covariance)", cal.config.unit)
-    return {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
-            "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
+                               f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
+    entry = {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
+             "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
+    if fallback:
+        entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
+    if pmap.masked:
+        entry["warning"] = (f"projection uncertainty: {pmap.masked} of {pmap.mask.size} grid pixels masked (grey in "
+                            "plots/projection_uncertainty.png): the distortion model cannot be inverted there (not "
+                            "monotonic beyond the field the corners cover); do not use the camera there, or add views "
+                            "that reach those parts of the image")
+    return entry
 
 
 def fill_camera_folder(folder: Path, cal, projection_range: float | None = None) -> dict:
@@ -368,7 +381,16 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
     plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
-    summary["projection_uncertainty"] = write_projection_uncertainty(folder, cal, projection_range)
+    summary["projection_uncertainty"] = write_projection_uncertainty(
+        folder, cal, projection_range, getattr(cal, "projection_method", "pose-compensated"))
+    for entry in (summary["projection_uncertainty"],):
+        if entry.get("warning"):
+            summary["warnings"].append(entry["warning"])
+            cal.warnings.append(entry["warning"])  # printed after writing, with the others
+    if getattr(cal, "cross_validation", None) is not None:
+        from dstereo.calib.cross_validation import write_cross_validation
+
+        summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit)
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
         ["summary.json", "report.md"]
     write_json(folder / "summary.json", summary)
@@ -422,6 +444,10 @@ def _model_choice_lines(choice) -> list[str]:
             *choice.table_markdown(), "",
             f"Chosen: **{choice.chosen}** ({', '.join(choice.chosen_candidate.free)}); the rest of this report is "
             "its calibration.", ""]
+
+
+def _fmt_px(value) -> str:
+    return "-" if value is None else f"{value:.3g}"
 
 
 def report_markdown(cal, summary: dict) -> str:
@@ -484,9 +510,14 @@ def report_markdown(cal, summary: dict) -> str:
     if pu is not None:
         lines += ["## Projection uncertainty", "",
                   f"Std of the projected pixel (worst direction) of a point {pu['range']:.4g} {pu['unit']} along each "
-                  f"pixel's ray ({pu['range_source']}) under the full-set intrinsics covariance: median "
-                  f"{pu['std_px']['median']:.3g} px, max {pu['std_px']['max']:.3g} px. {pu['note']}.", "",
+                  f"pixel's ray ({pu['range_source']}), {pu['method']}: median "
+                  f"{_fmt_px(pu['std_px']['median'])} px, max {_fmt_px(pu['std_px']['max'])} px; "
+                  f"{pu['masked_pixels']} grid pixels masked (model not invertible there). {pu['note']}.", "",
                   "![projection uncertainty](plots/projection_uncertainty.png)", ""]
+    xv = summary.get("cross_validation")
+    if xv is not None:
+        lines += ["## Cross-validation", "", xv["verdict"] + ".", "", "![cross-validation](plots/cross_validation.png)",
+                  ""]
     lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
               "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:
