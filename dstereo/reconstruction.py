@@ -181,6 +181,8 @@ def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, l
                                   left_rect.shape[1])
     if estimate is not None:
         return estimate
+    if calib is not None and (found := sr.from_board_depths(calib.extras, Q, left_rect.shape[1])) is not None:
+        return found
     return sr.SearchRange(*sr.DEFAULT_RANGE, "default", f"fewer than {sr.MIN_MATCHES} sparse matches on the "
                           "rectified rows to estimate the range from")
 
