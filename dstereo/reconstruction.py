@@ -161,7 +161,7 @@ def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, l
                   calib: StereoCalibration | None = None, estimate=None):
     """The search range before matching (`dstereo.search_range`, sources in order): the user's depth range or
     SGBM range, a Middlebury file's ndisp, the given sparse `estimate`, sparse matches on the rectified pair,
-    the default."""
+    the calibration's board depths (too few sparse matches), the default."""
     from dstereo import search_range as sr
 
     if config.depth_range is not None:

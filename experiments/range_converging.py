@@ -37,8 +37,9 @@ def one(size, seed: int, yaw: float, tmp: Path) -> dict:
                                      focal_px=(4700.0 * scale, 4900.0 * scale))
     out = tmp / f"out_{size[0]}_{seed}"
     grid = "0.5" if size[0] >= 640 else "1"
-    run = subprocess.run([str(Path(sys.executable).parent / "dstereo"), "recession", str(seq), "--calib", str(seq / "stereo.yml"),
-                          "--out", str(out), "--grid", grid], capture_output=True, text=True)
+    cli = str(Path(sys.executable).parent / "dstereo")
+    run = subprocess.run([cli, "recession", str(seq), "--calib", str(seq / "stereo.yml"), "--out", str(out),
+                          "--grid", grid], capture_output=True, text=True)
     if run.returncode != 0:
         return {"size": f"{size[0]}x{size[1]}", "seed": seed, "error": run.stderr.strip()[-300:]}
     return evaluate(truth, out, run.stdout, run.stderr) | {"size": f"{size[0]}x{size[1]}", "seed": seed}
@@ -58,9 +59,10 @@ def evaluate(truth: dict, out: Path, stdout: str, stderr: str) -> dict:
     ok = np.isfinite(measured)
     rate, true_rate = s["rate"]["rate"], truth["rate_stagnation_mm_s"]
     return {"range_line": next((line for line in stdout.splitlines() if "disparity search range" in line), "(none)"),
-            "face_share": face_share(out, truth, s), "axis_err_deg": angle, "axis_sigma_deg": s["sample"]["axis_sigma_deg"],
-            "point_offset_mm": float(np.linalg.norm(point - true_point)),
-            "rms_mm": float(np.sqrt(np.mean((measured[ok] - true[ok]) ** 2))), "rate_err_pct": 100 * (rate / true_rate - 1),
+            "face_share": face_share(out, truth, s), "axis_err_deg": angle,
+            "axis_sigma_deg": s["sample"]["axis_sigma_deg"], "point_offset_mm": float(np.linalg.norm(point - true_point)),
+            "rms_mm": float(np.sqrt(np.mean((measured[ok] - true[ok]) ** 2))),
+            "rate_err_pct": 100 * (rate / true_rate - 1),
             "truth_in_ci95": bool(s["rate"]["ci95"][0] <= true_rate <= s["rate"]["ci95"][1]),
             "frames_used": s["frames_used"], "warnings": len(s["warnings"]) + stderr.count("warning")}
 

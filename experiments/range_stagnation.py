@@ -30,7 +30,8 @@ CONCLUSION = (
     "for a 4-parameter fit; 4 mm (~50 cells, as 2 mm holds on the 0.5 mm grid) brings the RMS to 0.021-0.027 mm on "
     "all five seeds (0.020-0.034 before, three above 0.03). The larger disc costs a small bias: at 640x480 R4 "
     "gives -0.23..-0.08 % on all five seeds against R2's -0.20..+0.27 % (the quadratic misses the peak's r^4 "
-    "term, ~-0.15 % here for a peak of sigma 8 mm), so it is used only where 2 mm holds too few cells. The rate stays noise-limited at 320x240: seed 3 is off by +1.1 % "
+    "term, ~-0.15 % here for a peak of sigma 8 mm), so it is used only where 2 mm holds too few cells. "
+    "The rate stays noise-limited at 320x240: seed 3 is off by +1.1 % "
     "(R2) or -1.7 % (R4), the truth inside the 95 % interval in every cell. Weights from the random standard "
     "errors and a quartic term bring no consistent gain. Sub-pixel refinement is already on by default "
     "(RecessionConfig.refine_subpixel = True) in all of these.")

@@ -4,7 +4,8 @@ A domed face seen through correlated noise (a smoothed random field: neighbourin
 SGBM's window makes them do), its true axis tilted 12 deg off the camera's: over several noise draws the
 reported sigma (an RMS angle) must cover the axis error in most of them. The noise is made large enough that
 its share dominates the reported sigma, so the test checks the block jackknife, not the fixed matching-bias
-term; a per-point (independent errors) estimate understates it about fivefold here and fails.
+term; the previous per-point (independent errors) sigma was ~10x too small here (error / sigma 2-14, no draw
+covered).
 """
 
 import numpy as np
@@ -63,7 +64,7 @@ def test_noise_part_dominates_the_sigma_here(draws):
         assert parts["noise"] > parts["matching_bias"] and parts["noise"] > 0.6 * sigma, parts
 
 
-def test_block_bootstrap_sees_more_than_independent_points():
+def test_block_jackknife_sees_more_than_independent_points():
     # Same cloud, white noise (no correlation) vs correlated: the per-point count is the same, so a per-point
     # covariance would report the same sigma for both; the block bootstrap must report several times more for
     # the correlated one (a field smoothed over 2 grid steps has ~50x fewer independent errors: ~7x the spread).

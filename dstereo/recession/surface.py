@@ -16,9 +16,9 @@ expects, the quadrature sum of `axis_sigma_parts`: noise by a block jackknife (n
 errors are correlated), the apex's consistency, the axis's dependence on the face's support, and a matching bias
 of one pixel's footprint across the face (the largest part; measured against rendered truth in
 experiments/results/range_axis_sigma.md: z = error / sigma 0.1-1.0 over 18 cases). The stagnation point is
-the centre of the face: the centroid of the face's grid cells, moved onto the quadric. This assumes the face is seen whole and the axis is roughly
-normal to the face's outline (true for the flat and the domed samples of the thesis, also turned 10-15 deg off
-the rig axis with the side wall in view); give the axis and the point otherwise.
+the centre of the face: the centroid of the face's grid cells, moved onto the quadric. This assumes the face is
+seen whole and the axis is roughly normal to the face's outline (true for the flat and the domed samples of the
+thesis, also turned 10-15 deg off the rig axis with the side wall in view); give the axis and the point otherwise.
 """
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ def block_jackknife_axis_deg(uvh: np.ndarray, blocks: int = JACKKNIFE_BLOCKS) ->
     """RMS angle error (deg) of the face's tilt from its noise: a delete-one-block jackknife of the quadric's
     slope at the origin, the face cut into square blocks in (u, v), `blocks` across its larger extent.
     Neighbouring points share SGBM's window and the refinement's kernel, so their errors are correlated: a
-    per-point covariance or bootstrap counts them as independent and understates the spread (fivefold and more
+    per-point covariance or bootstrap counts them as independent and understates the spread (tenfold
     on a synthetic face with noise correlated over ~1 mm, tests/test_recession_axis.py); blocks many matching
     windows wide are close to independent. The quadric, not the plane, is refitted: without a block a plane
     through a domed face tilts with the dome's slope, which is not an error; on a face symmetric about the origin
