@@ -22,7 +22,8 @@ def recession(
         None, "--axis", help="Sample axis x,y,z in the left camera frame (default: estimated from the first frame)."),
     point: Optional[str] = typer.Option(None, "--point", help="Stagnation point x,y,z mm, left camera (with --axis)."),
     grid: float = typer.Option(0.5, "--grid", help="Grid cell size over the front face, mm."),
-    stagnation_radius: float = typer.Option(2.0, "--stagnation-radius", help="Radius of the stagnation disc, mm."),
+    stagnation_radius: Optional[float] = typer.Option(None, "--stagnation-radius", help="Radius of the stagnation disc, mm "
+                                            "(default: 2 mm, or 4 grid cells on a grid coarser than 0.5 mm)."),
     stagnation_fit: str = typer.Option(
         "quadratic", "--stagnation-fit", help="Value at the stagnation point: quadratic (a + b u + c v + d rho^2 over "
         "the disc, unbiased at a peak) or mean."),

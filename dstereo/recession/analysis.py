@@ -19,6 +19,17 @@ from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_poin
 from dstereo.recession.surface import grid_over, valid_points
 
 
+STAGNATION_CELLS_ACROSS = 4  # radius in grid cells: ~50 cells in the disc for the 4-parameter quadratic
+
+
+def stagnation_radius_for(grid_mm: float) -> float:
+    """Default stagnation disc radius (mm): 2 mm, or 4 grid cells on a coarser grid. A fixed 2 mm disc holds 13
+    cells of 1 mm, barely more than the quadratic's 4 parameters: measured on the tilted rendered sample at
+    320x240 (1 mm grid; experiments/results/range_stagnation.md), the stagnation RMS over seeds 0-4 was
+    0.020-0.034 mm with 2 mm and 0.021-0.027 mm with 4 mm; at 640x480 (0.5 mm grid) 2 mm is 4 cells already."""
+    return max(2.0, STAGNATION_CELLS_ACROSS * float(grid_mm)) if grid_mm > 0 else 2.0
+
+
 @dataclass(frozen=True)
 class RecessionConfig:
     """Analysis settings (mm unless stated). `axis`/`point`: the sample axis and stagnation point in the left
@@ -26,10 +37,11 @@ class RecessionConfig:
     face centre). `slab_mm` (in front, behind): points this far in front of the reference face or behind it are
     not the face. A frame whose valid cells fall below `min_face_fraction` of the reference's fails.
     `refine_subpixel`: refine SGBM's pixel-locked disparity (`dstereo.subpixel`) before triangulating
-    (sets the reconstruction's `refine`)."""
+    (sets the reconstruction's `refine`). `stagnation_radius_mm` None: max(2 mm, STAGNATION_CELLS_ACROSS grid
+    cells), so the stagnation disc holds ~50 cells whatever the grid (`stagnation_radius_for`)."""
 
     grid_mm: float = 0.5
-    stagnation_radius_mm: float = 2.0
+    stagnation_radius_mm: float | None = None
     stagnation_model: str = "quadratic"
     axis: tuple[float, float, float] | None = None
     point: tuple[float, float, float] | None = None
@@ -39,6 +51,8 @@ class RecessionConfig:
     refine_subpixel: bool = True
 
     def __post_init__(self):
+        if self.stagnation_radius_mm is None:
+            object.__setattr__(self, "stagnation_radius_mm", stagnation_radius_for(self.grid_mm))
         if not self.stagnation_radius_mm > 0:
             raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm}: need a positive radius in mm")
         if self.stagnation_radius_mm < 2 * self.grid_mm:
