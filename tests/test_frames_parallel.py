@@ -155,3 +155,61 @@ def test_interrupted_run_resumes_to_the_same_summary(sequence, serial, tmp_path,
     assert summary == serial[0]
     _assert_same_maps(maps, serial[1])
     assert not (tmp_path / "out.partial").exists()
+
+
+# --- dstereo reconstruct with several pairs ---------------------------------------------------------------
+
+PAIRS = 3
+
+
+def _reconstruct(sequence, out, *extra):
+    images = []
+    for i in range(PAIRS):
+        images += ["--left", sequence / "images_left" / f"left_{i:03d}.png",
+                   "--right", sequence / "images_right" / f"right_{i:03d}.png"]
+    return run_cli("reconstruct", *images, "--calib", sequence / "stereo.yml", "--out", out, "--z-min", "550",
+                   "--z-max", "650", "--no-uncertainty", *extra)
+
+
+def _pairs_index(out):
+    """The index summary.json, without the timings (how long each step took is no result)."""
+    index = json.loads((out / "summary.json").read_text())
+    for s in index["pairs"]:
+        s.pop("timings_s", None)
+    return index
+
+
+def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_path, monkeypatch):
+    from dstereo.frames import pairs
+
+    serial = tmp_path / "serial"
+    code, _, err = _reconstruct(sequence, serial, "--workers", "1")
+    assert code == 0, err
+    names = [f"left_{i:03d}" for i in range(PAIRS)]
+    assert sorted(p.name for p in serial.iterdir() if p.is_dir()) == names
+
+    real = pairs.reconstruct_pair
+
+    def interrupt_at_pair_2(job, *args, **kwargs):
+        if job[0] == "left_002":
+            raise KeyboardInterrupt
+        return real(job, *args, **kwargs)
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(pairs, "reconstruct_pair", interrupt_at_pair_2)
+    code, _, err = _reconstruct(sequence, out, "--workers", "1")
+    assert code == 130 and "2 finished pair(s)" in err and not out.exists()
+    monkeypatch.setattr(pairs, "reconstruct_pair", real)
+    code, _, err = _reconstruct(sequence, out, "--workers", "2", "--resume")  # the last pair on a 2-worker cluster
+    assert code == 0, err
+    assert not (tmp_path / "out.partial").exists()
+    parallel = tmp_path / "parallel"
+    code, _, err = _reconstruct(sequence, parallel, "--workers", "2")
+    assert code == 0, err
+    for other in (out, parallel):
+        assert _pairs_index(other) == _pairs_index(serial)
+        for name in names:
+            for f in ("points.npy", "disparity.npy", "depth.npy"):
+                a, b = np.load(serial / name / f), np.load(other / name / f)
+                assert np.array_equal(a, b, equal_nan=True), (other.name, name, f)  # same computation: bitwise
+            assert not (other / name / "pair_done.json").exists()

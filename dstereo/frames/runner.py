@@ -55,7 +55,6 @@ def worker_env() -> dict:
 
 def _timed(fn: Callable, arg):
     """Runs on the worker: the task's value, its wall time, this process's peak memory and its name."""
-    import resource
     import socket
 
     if os.environ.get("DSTEREO_WORKER_THREADS") == "1":
@@ -68,8 +67,20 @@ def _timed(fn: Callable, arg):
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     start = time.perf_counter()
     value = fn(arg)
-    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KB on Linux
-    return value, time.perf_counter() - start, peak_kb / 1024.0, f"{socket.gethostname()}:{os.getpid()}"
+    return value, time.perf_counter() - start, _peak_rss_mb(), f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory: VmHWM (ru_maxrss of a spawned process can carry its parent's)."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 class FrameRunner:
