@@ -167,7 +167,7 @@ class FrameRunner:
                         value, seconds, rss, worker = fut.result()
                         task = TaskDone(index, value, "", seconds, rss, worker)
                     except KilledWorker:
-                        task = TaskDone(index, None, f"the worker process running it died {self.retries + 1} "
+                        task = TaskDone(index, None, f"the worker processes holding it died {self.retries + 1} "
                                         "time(s) (killed or out of memory; see the workers' logs); the frame "
                                         "is not in the results; --resume tries it again", float("nan"),
                                         float("nan"), "")
