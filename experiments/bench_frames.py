@@ -103,18 +103,25 @@ def write_report(path: Path, rows: list[dict], loads: dict, cores: int) -> None:
              "other jobs: load averages 1/5/15 min below). The reference frame (frame 0, with compilation) runs "
              "first in the calling process; *mapped* is the rest, on the workers (wall time includes starting the "
              "local cluster and each worker's first-frame start-up).", "",
-             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | mapped wall s | reference s "
-             "| peak RSS per worker MB | stagnation RMS mm | same as serial |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    base = {}
+             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | steady frames/s "
+             "| steady speed-up | mapped wall s | reference s | peak RSS per worker MB | stagnation RMS mm "
+             "| same as serial |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    base, steady_base = {}, {}
     for r in rows:
         base.setdefault(r["size"], r["frames_per_s"])
+        steady = r["workers"] / r["seconds_per_frame_median"]
+        steady_base.setdefault(r["size"], steady)
         rss = ", ".join(f"{v:.0f}" for v in r["worker_peak_rss_mb"].values())
         lines.append(f"| {r['size']} | {r['workers']} | {r['frames_per_s']:.2f} | "
                      f"{r['frames_per_s'] / base[r['size']]:.2f}x | {r['seconds_per_frame_median']:.2f} | "
+                     f"{steady:.2f} | {steady / steady_base[r['size']]:.2f}x | "
                      f"{r['mapped_wall_s']:.1f} | {r['reference_s']:.1f} | {rss} | {r['stagnation_rms_mm']:.4f} | "
                      f"{'yes' if r['equal_to_first'] else 'NO'} |")
     lines += ["", "Load averages (1, 5, 15 min): " + "; ".join(f"{k}: {v}" for k, v in loads.items()), "",
+              "*steady*: workers / median time of a frame on a worker (the workers ran concurrently, so it holds "
+              "the contention between them), the rate once the cluster is up and every worker has done its first "
+              "frame; *mapped* includes that start-up. "
               "Serial (workers 1) runs in the calling process, whose peak RSS is the serial figure. *same as "
               "serial*: every height map equal bit for bit.", ""]
     path.parent.mkdir(parents=True, exist_ok=True)
