@@ -218,3 +218,25 @@ def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_pa
                 a, b = np.load(serial / name / f), np.load(other / name / f)
                 assert np.array_equal(a, b, equal_nan=True), (other.name, name, f)  # same computation: bitwise
             assert not (other / name / "pair_done.json").exists()
+
+
+def test_default_runner_stays_serial_when_a_cluster_would_not_pay(monkeypatch):
+    """workers=None: the first task is timed here; a short remainder runs here too (no cluster started), a long
+    one would start a cluster (checked by the decision alone, the cluster itself replaced)."""
+    from dstereo.frames import runner as runner_mod
+
+    done = []
+    r = runner_mod.FrameRunner()
+    if r.workers < 2:
+        r.workers = 2  # the rule is about a machine with cores to spare
+    r.map(lambda x: x * 2, [(i, i) for i in range(4)], lambda t: done.append(t.value))
+    assert sorted(done) == [0, 2, 4, 6] and r.workers == 1 and r.decision.startswith("auto: serial")
+
+    started = []
+    slow = runner_mod.FrameRunner()
+    slow.workers = 2
+    monkeypatch.setattr(runner_mod, "_timed", lambda fn, arg: (fn(arg), runner_mod.PAYOFF_S, 0.0, "here"))
+    monkeypatch.setattr(runner_mod.FrameRunner, "_map_dask", lambda self, fn, items, on_done, ticker:
+                        started.append(len(items)))
+    slow.map(lambda x: x, [(i, i) for i in range(3)], lambda t: None)
+    assert started == [2] and slow.decision.startswith("auto: local cluster of 2")

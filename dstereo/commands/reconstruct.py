@@ -48,7 +48,8 @@ def reconstruct(
         False, "--full-covariance", help="Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point."),
     workers: Optional[int] = typer.Option(
         None, "--workers", help="Several pairs: in parallel on a local Dask cluster of this many processes "
-        "(default: the machine's cores; 1: one after another in this process)."),
+        "(default: the machine's cores when the pairs, timed on the first, would take over ~30 s serially; else one "
+        "after another here; 1: always one after another in this process)."),
     scheduler: Optional[str] = typer.Option(
         None, "--scheduler", help="Several pairs: address of a running Dask scheduler (tcp://host:8786); its workers "
         "need dstereo, the images at the same paths and OUT's parent folder shared."),

@@ -18,6 +18,13 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
+# Default (`workers=None`): the first task runs here and is timed; a local cluster is started for the rest only
+# when they would take longer serially than PAYOFF_S. Measured (experiments/results/bench_frames*.md, 2 cores):
+# starting the cluster plus each worker's first frame costs about 10 s, 2 workers then run 1.57x the serial rate,
+# so parallel wins once the serial remainder exceeds 10 / (1 - 1 / 1.57) = 27.5 s; rounded up.
+CLUSTER_START_S = 10.0
+PAYOFF_S = 30.0
+
 NOTE_EVERY_S = 30.0  # a line with the per-frame time and the rate at most this often (and after the first frame)
 
 # Each worker runs one frame at a time on one core: XLA's and OpenCV's own thread pools would otherwise fight
@@ -84,7 +91,8 @@ def _peak_rss_mb() -> float:
 
 
 class FrameRunner:
-    """Where the frames run (module docstring). `workers=None`: the machine's cores."""
+    """Where the frames run (module docstring). `workers=None` (auto): the machine's cores when the remaining
+    frames pay for starting a cluster (PAYOFF_S, judged from the first frame's time here), else serial here."""
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None, retries: int = 2):
         from dstereo.errors import DstereoError
@@ -93,8 +101,10 @@ class FrameRunner:
             raise DstereoError(f"--workers {workers}: need 1 or more (1 runs the frames one after another here)")
         if retries < 0:
             raise DstereoError(f"retries {retries}: need 0 or more")
+        self.auto = workers is None and scheduler is None
         self.workers = workers or os.cpu_count() or 1
         self.scheduler, self.retries = scheduler, retries
+        self.decision = ""  # auto: why the frames ran where they did
         self.times: list[float] = []
         self.peak_rss_mb: dict[str, float] = {}
 
@@ -106,6 +116,7 @@ class FrameRunner:
         """What ran where, for summary['run'] (times and memory as measured)."""
         return {"mode": "dask scheduler " + self.scheduler if self.scheduler else
                 ("local dask cluster" if self.workers > 1 else "serial, in process"),
+                "decision": self.decision or None,
                 "workers": None if self.scheduler else self.workers,
                 "retries_after_worker_death": self.retries if self.parallel else None,
                 "frames_timed": len(self.times),
@@ -120,12 +131,33 @@ class FrameRunner:
         ticker = _Ticker(progress, stage, done, total, self)
         if not items:
             return
+        if self.auto and self.workers > 1:
+            items = self._auto_first(fn, items, on_done, ticker)
+        if not items:
+            return
         if not self.parallel:
             for index, arg in items:
                 value, seconds, rss, worker = _timed(fn, arg)
                 self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
             return
         self._map_dask(fn, items, on_done, ticker)
+
+    def _auto_first(self, fn, items, on_done, ticker) -> list:
+        """Run the first task here, timed; keep the rest here too when they would not pay for a cluster."""
+        index, arg = items[0]
+        value, seconds, rss, worker = _timed(fn, arg)
+        self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
+        rest = items[1:]
+        serial_s = seconds * len(rest)
+        if serial_s < PAYOFF_S:
+            self.workers = 1
+            self.decision = (f"auto: serial here; {len(rest)} more frame(s) x {seconds:.2f} s = {serial_s:.1f} s, "
+                             f"below the ~{PAYOFF_S:.0f} s a local cluster needs to pay for its ~{CLUSTER_START_S:.0f} s "
+                             "start (--workers N forces one)")
+        else:
+            self.decision = (f"auto: local cluster of {self.workers}; {len(rest)} more frame(s) x {seconds:.2f} s = "
+                             f"{serial_s:.1f} s serially (first frame timed here)")
+        return rest
 
     def _record(self, task: TaskDone, on_done, ticker) -> None:
         if not task.failed:
