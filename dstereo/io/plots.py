@@ -184,6 +184,13 @@ def draw_parameter_figure(data: dict, path: Path) -> None:
     save(fig, path)
 
 
+def fixed_margins(fig, left: float, right: float, bottom: float, top: float) -> None:
+    """Margins in inches (the labels' room) instead of `tight_layout`, which lays out every text once more
+    before the save draws it (~30 % of such a figure's time, measured)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h)
+
+
 def save(fig, path: Path, dpi: int = 90) -> None:
     """savefig as PNG with zlib level 1 (faster than the default 6; a parameter figure measured 62 kB instead of
     61 kB), then close the figure."""
@@ -236,7 +243,7 @@ def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: d
                  fontsize=10)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
-    fig.tight_layout()
+    fixed_margins(fig, left=0.75, right=1.0, bottom=0.55, top=0.6 if corner_percent is not None else 0.4)
     save(fig, path)
 
 
@@ -275,5 +282,5 @@ def residual_vectors(observed: np.ndarray, residuals: np.ndarray, image_size: tu
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
     ax.set_title(f"residuals (projected - observed), drawn x{scale:.0f}", loc="left")
-    fig.tight_layout()
+    fixed_margins(fig, left=0.75, right=1.0, bottom=0.55, top=0.45)
     save(fig, path)
