@@ -88,9 +88,10 @@ def prepare(work: Path, n_images: int) -> tuple[Path, Path]:
     from dstereo.io.corners import detect_folder
 
     folder = work / f"images{n_images}"
-    folder.mkdir()
-    for p in sorted(DATA.glob("left*.jpg"))[:n_images]:
-        (folder / p.name).symlink_to(p)
+    if not folder.exists():
+        folder.mkdir()
+        for p in sorted(DATA.glob("left*.jpg"))[:n_images]:
+            (folder / p.name).symlink_to(p)
     det = detect_folder(folder, (9, 6), 1.0)
     names = sorted(det.corners)
     corners = work / f"corners{n_images}.npz"
@@ -130,8 +131,7 @@ def main() -> None:
             print(f"C={c}: cold {cold[-1]:.2f} s, warm {warm[-1]:.2f} s, thesis {thesis[-1]:.2f} s", flush=True)
         rows.append((c, n, m, cold, warm, thesis))
     if not args.no_plain:
-        folder, corners = prepare(work, 20) if 20 not in [CASES[c][0] for c in sizes] else (
-            work / "images20", work / "corners20.npz")
+        folder, corners = prepare(work, 20)
         env = dict(env_base, DSTEREO_JAX_CACHE=str(work / "jax-plain"))
         run = [*DSTEREO, "calibrate", "--images", str(folder), "--pattern", "9x6", "--out", str(work / "plain"),
                "--force", "-q"]
