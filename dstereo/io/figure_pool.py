@@ -38,12 +38,13 @@ def _noop() -> None:
 
 
 def workers_wanted() -> int:
-    """DSTEREO_FIGURE_WORKERS (0: draw in the calling process), else one per core beyond the first two, at most 2.
-    A worker costs ~0.5 s of CPU to start (numpy, matplotlib, fonts); on 2 shared cores (load 8-10) a plain run
-    measured 9.7-12.7 s with one worker and 6.7-11.8 s without: it pays only where a core is free."""
+    """DSTEREO_FIGURE_WORKERS (0: draw in the calling process), else 2 (at most one per core). Measured on 2 shared
+    cores, new process, warm compile cache: at load ~3 the plain run 2.9-3.0 s with two workers vs 3.4-3.5 s
+    without (writing 0.6-0.7 vs 1.1 s) and C=4845 6.6-6.7 vs 7.3-9.8 s (writing 1.2-1.4 vs 2.2-2.5 s); at load
+    8-10, no core free, the plain run was slower with them (a worker's start costs ~0.3-0.5 s of CPU)."""
     setting = os.environ.get("DSTEREO_FIGURE_WORKERS", "")
     try:
-        return max(0, int(setting)) if setting else max(0, min(2, (os.cpu_count() or 1) - 2))
+        return max(0, int(setting)) if setting else min(2, os.cpu_count() or 1)
     except ValueError:
         return 0
 
