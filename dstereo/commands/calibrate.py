@@ -83,6 +83,9 @@ def calibrate(
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
+    from dstereo.io import figure_pool
+
+    figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
         if cross_validate:

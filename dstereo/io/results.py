@@ -316,10 +316,15 @@ def write_camera_results(out: str | Path, cal, force: bool = False, projection_r
 
 
 def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None,
-                                 method: str = "pose-compensated") -> dict:
+                                 method: str = "pose-compensated", figures=None) -> dict:
     """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
     the full-set solve at `projection_range` (default: the mean board distance; board unit); returns the summary
-    entry. `method`: pose-compensated (needs the solve's per-view blocks) or intrinsics-only."""
+    entry. `method`: pose-compensated (needs the solve's per-view blocks) or intrinsics-only. `figures`: a
+    `figure_pool.Figures` that draws the PNG (else drawn here)."""
+    from types import SimpleNamespace
+
+    from dstereo.io.figure_pool import Figures
+
     from dstereo.io.sigma_maps import projection_uncertainty_png
     from dstereo.projection_uncertainty import mean_board_distance, solution_map
 
@@ -331,8 +336,13 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
     pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
              range=pmap.range_, mask=pmap.mask, method=pmap.method)
-    projection_uncertainty_png(folder / "plots" / "projection_uncertainty.png", pmap, det.image_size,
-                               f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
+    drawing = figures if figures is not None else Figures()
+    # The map's arrays only, in a namespace: the worker then needs no JAX-importing class to unpickle it.
+    plain = SimpleNamespace(u=np.asarray(pmap.u), v=np.asarray(pmap.v), std=np.asarray(pmap.std), range_=pmap.range_)
+    drawing.draw(projection_uncertainty_png, folder / "plots" / "projection_uncertainty.png", plain, det.image_size,
+                 f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
+    if figures is None:
+        drawing.wait()
     entry = {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
              "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
     if fallback:
@@ -349,9 +359,11 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     """Everything of the results folder into an existing (temporary) folder; returns the summary.
     `projection_range`: distance of the projection-uncertainty map (default: the mean board distance)."""
     from dstereo.io import plots
+    from dstereo.io.figure_pool import Figures
 
     full, det = cal.full, cal.detection
     summary = summary_dict(cal)
+    figures = Figures()  # drawn in the figure workers (when started) while this process writes the rest
     K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
     names = distortion_names(full.free, len(D))
     write_camera_files(folder, K, D, det.image_size, model=full.lens_model, extra={
@@ -365,24 +377,28 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     (folder / "config.toml").write_text(to_toml(cal.config, comments=False))
     plot_dir = folder / "plots"
     plot_dir.mkdir()
-    if cal.filtering is not None:
-        f = cal.filtering
-        summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
-        write_subsets_csv(folder / "subsets.csv", cal.plan, f, f.table.status)
-        for name in f.columns:
-            ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
-            plots.parameter_figure(name, f.values(name, 0), f.values(name, len(f.steps)), plot_dir / f"{name}.png",
-                                   UNITS.get(name, ""), ref)
     pts = cal.observations.reshape(-1, 2)
     from dstereo.calib.pipeline import CORNER_MIN_PERCENT
 
-    plots.coverage_heatmap(pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
-                           cal.coverage.corner_percent, CORNER_MIN_PERCENT)
-    plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
-    plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
+    # The full-set figures first: the workers draw them while the parameter figures' data are reduced here.
+    figures.draw(plots.coverage_heatmap, pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
+                 cal.coverage.corner_percent, CORNER_MIN_PERCENT)
+    figures.draw(plots.residual_vectors, np.asarray(cal.observations), np.asarray(full.residuals), det.image_size,
+                 plot_dir / "residuals.png")
+    figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms), plot_dir / "per_image_rms.png")
+    if cal.filtering is not None:
+        f = cal.filtering
+        for name in f.columns:
+            ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
+            data = plots.parameter_figure_data(name, f.values(name, 0), f.values(name, len(f.steps)),
+                                               UNITS.get(name, ""), ref)
+            figures.draw(plots.draw_parameter_figure, data, plot_dir / f"{name}.png")
+        summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
+        write_subsets_csv(folder / "subsets.csv", cal.plan, f, f.table.status)
+    projection = write_projection_uncertainty(folder, cal, projection_range,
+                                              getattr(cal, "projection_method", "pose-compensated"), figures)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
-    summary["projection_uncertainty"] = write_projection_uncertainty(
-        folder, cal, projection_range, getattr(cal, "projection_method", "pose-compensated"))
+    summary["projection_uncertainty"] = projection
     for entry in (summary["projection_uncertainty"],):
         if entry.get("warning"):
             summary["warnings"].append(entry["warning"])
@@ -391,6 +407,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
         from dstereo.calib.cross_validation import write_cross_validation
 
         summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit)
+    figures.wait()
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
         ["summary.json", "report.md"]
     write_json(folder / "summary.json", summary)
