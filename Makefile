@@ -32,8 +32,11 @@ test: $(STAMP)
 	rc=$$?; if [ $$rc -eq 5 ]; then echo "make test: no test is marked numerics; the second pass checked nothing" >&2; fi; \
 	exit $$rc
 
+# The solver alone (bench_subsets), then whole runs in new processes against the thesis approach and cv2
+# (bench_end_to_end); both write experiments/results/.
 bench: $(STAMP)
 	$(BIN)/python -m experiments.bench_subsets
+	$(BIN)/python -m experiments.bench_end_to_end
 
 # Refresh the lock from pyproject.toml (pip-tools in a throw-away venv; the project venv stays as locked).
 lock:

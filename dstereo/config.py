@@ -68,6 +68,9 @@ class Config:
     image_format_right: str | None = None
     glob: str | None = None  # file-name pattern inside the folder, e.g. "left*.jpg" (overrides the format)
     model: tuple[str, ...] = _DEFAULT_MODEL  # free distortion coefficients, OpenCV order
+    # `model = "auto"` / --model auto: the pipeline chooses the model by held-out views (calib/model_choice.py)
+    # and runs on with it; `model` is then replaced by the chosen one
+    model_auto: bool = False
     per_set: int | None = None  # images per subset m; None: full-set solve only
     max_subsets: int = 2000
     seed: int = 0
@@ -159,6 +162,8 @@ def validate(cfg: Config) -> Config:
     if cfg.steps and cfg.per_set is None:
         raise DstereoError(
             f"{where}: optimisation steps need subsets; set images per set (--per-set m, e.g. 10)")
+    if cfg.model_auto:
+        _check_auto_steps(cfg, where)
     solved = ("re", "fx", "fy", "cx", "cy") + tuple(cfg.model)
     for k, step in enumerate(cfg.steps, 1):
         outside = [p for p in step.parameters if p not in solved]
@@ -168,6 +173,21 @@ def validate(cfg: Config) -> Config:
                 f"({','.join(cfg.model) or 'none'}) does not solve it; add it to the model or drop it from the step"
             )
     return cfg
+
+
+def _check_auto_steps(cfg: Config, where: str) -> None:
+    """With the model chosen by the data, a step can only filter what every candidate solves."""
+    for k, step in enumerate(cfg.steps, 1):
+        coeffs = [p for p in step.parameters if p not in ("re", "fx", "fy", "cx", "cy")]
+        if coeffs:
+            raise DstereoError(
+                f"{where}: step {k} filters {', '.join(coeffs)}, but model auto chooses the distortion model from "
+                "the data, which may not solve it; filter only re, fx, fy, cx, cy, or name the model")
+
+
+def is_auto_model(spec) -> bool:
+    """True for the model spec "auto" (a flag or a configuration value)."""
+    return isinstance(spec, str) and spec.strip().lower() == "auto"
 
 
 # --- TOML ---------------------------------------------------------------------------------------------------
@@ -219,7 +239,8 @@ def config_from_toml(text: str, where: str) -> Config:
         image_format_left=_suffix(img.get("format_left")),
         image_format_right=_suffix(img.get("format_right")),
         glob=img.get("glob"),
-        model=_model(model, f"{where}: [calibration] model"),
+        model=_DEFAULT_MODEL if is_auto_model(model) else _model(model, f"{where}: [calibration] model"),
+        model_auto=is_auto_model(model),
         per_set=_optional_whole(cal.get("per_set"), f"{where}: [calibration] per_set", 3),
         max_subsets=_whole(cal.get("max_subsets", 2000), f"{where}: [calibration] max_subsets", 1),
         seed=_whole(cal.get("seed", 0), f"{where}: [calibration] seed", 0),
@@ -436,10 +457,12 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         if given != sorted(["fx", "fy", "cx", "cy"]):
             raise DstereoError(
                 f"{where}:{line}: camera matrix parameters = {value.strip()}; dstereo always solves fx, fy, cx, cy")
-    model = _DEFAULT_MODEL
+    model, model_auto = _DEFAULT_MODEL, False
     if "distortion coefficients parameters" in calib:
         value, line = calib["distortion coefficients parameters"]
-        model = _model(_ini_list(value), f"{where}:{line}: distortion coefficients parameters")
+        model_auto = [v.lower() for v in _ini_list(value)] == ["auto"]
+        if not model_auto:
+            model = _model(_ini_list(value), f"{where}:{line}: distortion coefficients parameters")
     per_set = get("images per set", int)
     if per_set is not None and per_set < 3:
         raise DstereoError(f"{where}: images per set = {per_set}; a calibration needs m >= 3")
@@ -453,6 +476,7 @@ def config_from_thesis_ini(text: str, where: str) -> Config:
         image_format_left=_suffix(get("image format left", str)),
         image_format_right=_suffix(get("image format right", str)),
         model=model,
+        model_auto=model_auto,
         per_set=per_set,
         max_subsets=get("max subsets", int, 2000),
         seed=get("seed", int, 0),
@@ -615,8 +639,9 @@ def to_toml(cfg: Config, comments: bool = True) -> str:
     if comments and cfg.glob is None:
         out.append('# glob = "left*.jpg"  # only files matching this name pattern')
     out += ["", "[calibration]",
-            f"model = {_toml_list(cfg.model)}" + c("free distortion coefficients; or a preset: "
-                                                  "k1, k1k2, k1k2p1p2, k1k2k3p1p2, rational")]
+            (f"model = {_toml_str('auto')}" if cfg.model_auto else f"model = {_toml_list(cfg.model)}")
+            + c("free distortion coefficients; or a preset: k1, k1k2, k1k2p1p2, k1k2k3p1p2, rational, fisheye; "
+                "or auto (chosen by held-out views)")]
     if cfg.per_set is not None:
         out.append(f"per_set = {cfg.per_set}" + c("images per subset m: C(N, m) subsets are solved"))
     elif comments:

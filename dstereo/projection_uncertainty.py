@@ -1,14 +1,24 @@
-"""Single-camera projection uncertainty: how far the pixel of a point may move under the intrinsics' uncertainty.
+"""Single-camera projection uncertainty: how far the pixel of a point may move under the calibration's uncertainty.
 
-For a pixel q, the point p at distance `range` along q's ray (estimated intrinsics) is held fixed in the camera
-frame, and its projection q(theta) = project(theta, p) is propagated through the covariance S of the intrinsics
-theta (fx fy cx cy and the free distortion coefficients): cov_q = J S J^T with J = d q / d theta (2 x G). The map
-shows the standard deviation in the worst direction, sqrt(largest eigenvalue of cov_q), in px.
+Two methods, both first order in the solve's covariance (sigma^2 (J'J)^-1, sigma^2 the unbiased noise estimate):
 
-INTRINSICS ONLY: the point is fixed in the camera frame. mrcal's projection uncertainty also lets the camera's
-pose (the extrinsics solved with it) absorb part of an intrinsics error (e.g. a principal point shift is largely
-a rotation of the camera); that compensation is NOT included here, so near the image centre, where cx and cy
-dominate, the map is pessimistic compared with mrcal's figure.
+POSE-COMPENSATED (the default; mrcal's "mean-frames" formulation). What a calibration delivers to a user is how a
+point fixed in the world projects, and the world is only known through the boards: an intrinsics error that the
+boards' poses absorb (a principal-point shift is mostly a rotation of the camera) does not move the projection of
+a board-fixed point. For pixel q, the point p at distance `range` along q's estimated ray is mapped into each
+calibration view's board frame with the estimated poses, p_i = T_board_i_cam p (held fixed); under perturbed
+parameters it comes back as the mean over views of T'_cam_board_i p_i and projects through the perturbed
+intrinsics: q'(theta, poses) = project(theta, mean_i T'_cam_board_i p_i). Its covariance is J C J^T with C the
+JOINT covariance of the intrinsics and every view pose (`calib.uncertainty.joint_covariance`, the cross terms
+included) and J = d q' / d (theta, poses).
+
+INTRINSICS-ONLY (the thesis-era map, `method="intrinsics-only"`): p is held fixed in the camera frame and only the
+marginal intrinsics covariance is propagated. Near the image centre it is pessimistic (it counts as projection
+error the part of an intrinsics error that a pose absorbs); cross-validation does not support it.
+
+Pixels whose ray cannot be found are MASKED (NaN std, `mask` False) and counted: where the distortion model is not
+monotonic along the radius (a polynomial fitted to the used field bends back beyond it, so one pixel has two rays)
+or where the Newton inversion does not reproduce the pixel. No unconverged inversion yields a number.
 """
 
 from __future__ import annotations
@@ -23,55 +33,119 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, lens_model
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
+from dstereo.models.pose import rodrigues
 from dstereo.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
-NOTE = ("intrinsics only: a point at the given range on each pixel's ray is held fixed in the camera frame; "
-        "mrcal-style compensation by the camera pose (extrinsics) is not included")
+METHODS = ("pose-compensated", "intrinsics-only")
+NOTES = {
+    "pose-compensated": ("pose-compensated (mrcal's mean-frames method): a point at the given range on each pixel's "
+                         "ray is held fixed in the calibration boards' frame; the joint covariance of intrinsics and "
+                         "board poses is propagated"),
+    "intrinsics-only": ("intrinsics only: a point at the given range on each pixel's ray is held fixed in the camera "
+                        "frame; compensation by the board poses is not included, so the map is pessimistic near "
+                        "the centre"),
+}
+NOTE = NOTES["intrinsics-only"]  # kept for callers of the old name
+# A pixel counts as inverted when its ray projects back within this (px). Newton converges quadratically to
+# ~1e-12 px in float64; 1e-6 px leaves room for rounding and catches any iteration stopped short.
+ROUND_TRIP_PX = 1e-6
+NEWTON_ITERATIONS = 40
+RADIAL_SAMPLES = 64  # radii from 0 to FOLD_MARGIN x the ray's, where d r_distorted / d r must stay positive
+# A fold (or a pole of the rational model's denominator) just beyond the ray makes the pixel's projection
+# infinitely sensitive there and gives the pixel a second ray (mrcal's unprojection found one on the fisheye set,
+# 1.28 px against 1392 px here): the monotonic stretch must reach 10 % past the ray.
+FOLD_MARGIN = 1.1
 
 
-def _undistorted(k, coeffs, q, iterations: int = 12):
+def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
     x0 = (q - k[2:4]) / k[0:2]
     return jax.lax.fori_loop(0, iterations, lambda _, x: newton_step(k, coeffs, q, x), x0)
 
 
-def pixel_covariance(params, index: tuple[int, ...], cov, q, range_):
-    """2 x 2 covariance (px^2) of the projection of the point at distance `range_` along pixel q's ray.
-    params (12,) = fx fy cx cy k1..k6; `index` (static) the positions of the covariance's parameters."""
+def _invertible(k, coeffs, q, x):
+    """True where x is q's one ray: the round trip holds and the distortion is monotonic (radially, the rational
+    denominator positive) from the centre to FOLD_MARGIN x the ray's radius, and the 2 x 2 Jacobian keeps its
+    orientation at x, so no other ray nearby maps to the same pixel."""
+    back = k[:2] * distort(coeffs, x) + k[2:4]
+    ok_trip = jnp.all(jnp.isfinite(back)) & (jnp.linalg.norm(back - q) < ROUND_TRIP_PX)
+    r = jnp.linalg.norm(x)
+    direction = x / jnp.maximum(r, 1e-300)
+    radial = lambda s: jnp.dot(distort(coeffs, s * direction), direction)  # noqa: E731
+    radii = jnp.linspace(0.0, FOLD_MARGIN, RADIAL_SAMPLES) * r
+    slopes = jax.vmap(jax.grad(radial))(radii)
+    r2 = radii ** 2
+    den = 1.0 + coeffs[5] * r2 + coeffs[6] * r2 ** 2 + coeffs[7] * r2 ** 3  # rational model: no pole before it
+    a = jax.jacfwd(distort, argnums=1)(coeffs, x)
+    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    return ok_trip & jnp.all(slopes > 0) & jnp.all(den > 0) & (det > 0) & jnp.all(jnp.isfinite(x))
+
+
+def _point(k, coeffs, q, range_, model: str = "pinhole"):
+    """The point at `range_` along q's ray and whether the ray was found (fisheye: the model's own inverse, with
+    its convergence check, in front of the camera)."""
+    if model == "fisheye":
+        ray, ok = fisheye.unproject(k, coeffs[:4], q)
+        ok = ok & jnp.all(jnp.isfinite(ray)) & (ray[2] > 0)
+        return range_ * jnp.where(ok, ray, jnp.nan), ok
+    x = _undistorted(k, coeffs, q)
+    ray = jnp.append(x, 1.0)
+    return range_ * ray / jnp.linalg.norm(ray), _invertible(k, coeffs, q, x)
+
+
+def _project(k, coeffs, p, model: str = "pinhole"):
+    return fisheye.project(k, coeffs[:4], p) if model == "fisheye" else project(k, coeffs, p)
+
+
+def pixel_covariance(params, index: tuple[int, ...], cov, q, range_, model: str = "pinhole"):
+    """Intrinsics-only: 2 x 2 covariance (px^2) of the projection of the point at distance `range_` along pixel
+    q's ray, and whether the ray was found. params (12,) = fx fy cx cy k1..k6; `index` (static) the positions of
+    the covariance's parameters."""
     k, coeffs = params[:4], params[4:]
-    ray = jnp.append(_undistorted(k, coeffs, q), 1.0)
-    p = range_ * ray / jnp.linalg.norm(ray)
+    p, ok = _point(k, coeffs, q, range_, model)
     idx = jnp.array(index)
     full = lambda theta: params.at[idx].set(theta)  # noqa: E731
-    jac = jax.jacfwd(lambda theta: project(full(theta)[:4], full(theta)[4:], p))(params[idx])
-    return jac @ cov @ jac.T
+    jac = jax.jacfwd(lambda theta: _project(full(theta)[:4], full(theta)[4:], p, model))(params[idx])
+    return jac @ cov @ jac.T, ok
 
 
-def fisheye_pixel_covariance(params, index: tuple[int, ...], cov, q, range_):
-    """`pixel_covariance` for the fisheye lens (params = fx fy cx cy fk1..fk4 + 4 unused); NaN where the pixel
-    has no ray in front of the camera (outside the model's image circle, or beyond 90 degrees)."""
-    k, d = params[:4], params[4:8]
-    ray, _ = fisheye.unproject(k, d, q)  # unit ray, NaN where the inverse did not converge
-    p = range_ * jnp.where(ray[2] > 0, ray, jnp.nan)
-    idx = jnp.array(index)
-    full = lambda theta: params.at[idx].set(theta)  # noqa: E731
-    jac = jax.jacfwd(lambda theta: fisheye.project(full(theta)[:4], full(theta)[4:8], p))(params[idx])
-    return jac @ cov @ jac.T
+def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, range_, model: str = "pinhole"):
+    """Pose-compensated: as `pixel_covariance` with `cov` the joint (G + 6V) covariance of the intrinsics
+    (`index`) and the V poses (rvec, tvec of T_cam_board, rows of `poses`) in that order."""
+    k, coeffs = params[:4], params[4:]
+    p, ok = _point(k, coeffs, q, range_, model)
+    rot = jax.vmap(rodrigues)(poses[:, :3])
+    p_board = jnp.einsum("vji,vj->vi", rot, p[None] - poses[:, 3:])  # R_i^T (p - t_i): fixed in each board
+    idx, g = jnp.array(index), len(index)
+
+    def q_of(theta):
+        full = params.at[idx].set(theta[:g])
+        pv = theta[g:].reshape(-1, 6)
+        back = jnp.einsum("vij,vj->vi", jax.vmap(rodrigues)(pv[:, :3]), p_board) + pv[:, 3:]
+        return _project(full[:4], full[4:], jnp.mean(back, axis=0), model)
+
+    theta0 = jnp.concatenate([params[idx], jnp.ravel(poses)])
+    jac = jax.jacfwd(q_of)(theta0)
+    return jac @ cov @ jac.T, ok
 
 
 @functools.lru_cache(maxsize=None)
-def _map_fn(index: tuple[int, ...], model: str = "pinhole"):
-    cov_fn = fisheye_pixel_covariance if model == "fisheye" else pixel_covariance
-    one = lambda params, cov, q, r: cov_fn(params, index, cov, q, r)  # noqa: E731
-    return jax.jit(jax.vmap(one, in_axes=(None, None, 0, None)))
+def _map_fn(index: tuple[int, ...], method: str = "intrinsics-only", model: str = "pinhole"):
+    if method == "intrinsics-only":
+        one = lambda params, poses, cov, q, r: pixel_covariance(params, index, cov, q, r, model)  # noqa: E731
+    else:
+        one = lambda params, poses, cov, q, r: pose_compensated_covariance(  # noqa: E731
+            params, index, poses, cov, q, r, model)
+    return jax.jit(jax.vmap(one, in_axes=(None, None, None, 0, None)))
 
 
 @dataclass
 class ProjectionUncertaintyMap:
     """Grid over the image: pixel centres `u` (gw,), `v` (gh,), covariances (gh, gw, 2, 2) px^2, worst-direction
-    std (gh, gw) px, at `range_` (the calibration's length unit)."""
+    std (gh, gw) px, at `range_` (the board's length unit); `mask` (gh, gw) True where the ray was found (std and
+    cov are NaN elsewhere)."""
 
     u: np.ndarray
     v: np.ndarray
@@ -79,23 +153,46 @@ class ProjectionUncertaintyMap:
     std: np.ndarray
     range_: float
     note: str = NOTE
+    mask: np.ndarray | None = None
+    method: str = "intrinsics-only"
+
+    @property
+    def masked(self) -> int:
+        return 0 if self.mask is None else int(np.size(self.mask) - np.count_nonzero(self.mask))
 
     def summary(self) -> dict:
-        # NaN marks pixels without a ray (a fisheye's corners beyond its image circle): left out, and counted
-        std = self.std[np.isfinite(self.std)]
-        return {"range": self.range_, "std_px": {"min": float(std.min()), "median": float(np.median(std)),
-                                                 "max": float(std.max()), "pixels_without_ray": int(self.std.size
-                                                                                                    - std.size)},
-                "grid": [len(self.u), len(self.v)], "note": self.note}
+        good = self.std[np.isfinite(self.std)]
+        stats = ({"min": float(good.min()), "median": float(np.median(good)), "max": float(good.max())}
+                 if good.size else {"min": None, "median": None, "max": None})
+        stats["pixels_without_ray"] = int(self.std.size - good.size)  # masked, or no finite covariance
+        return {"method": self.method, "range": self.range_, "std_px": stats, "grid": [len(self.u), len(self.v)],
+                "masked_pixels": self.masked, "note": self.note}
+
+    def at(self, uv) -> float:
+        """Std (px) at the grid pixel nearest to `uv` (NaN where masked)."""
+        return float(self.std[np.argmin(np.abs(self.v - uv[1])), np.argmin(np.abs(self.u - uv[0]))])
+
+
+def _grid(image_size, grid):
+    w, h = image_size
+    u = np.linspace(0.0, w - 1.0, grid[0])
+    v = np.linspace(0.0, h - 1.0, grid[1])
+    return u, v, np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
 
 
 def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int], range_: float,
-                               grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
+                               grid: tuple[int, int] = (32, 24), poses=None,
+                               method: str | None = None) -> ProjectionUncertaintyMap:
     """The map of the module docstring on a `grid` (columns, rows) of pixel centres spanning the image.
 
-    k (4,), coeffs (8,) the camera; `names` its covariance's parameters (fx fy cx cy + free coefficients, as
-    `CameraSolution.names`), `cov` their (G, G) covariance; `range_` > 0 in the calibration's length unit.
+    k (4,), coeffs (8,) the camera; `names` its intrinsics (fx fy cx cy + free coefficients, as
+    `CameraSolution.names`); `range_` > 0 in the board's length unit. Pose-compensated (default when `poses`
+    (V, 6) are given): `cov` is the joint (G + 6V) covariance of the intrinsics and poses; intrinsics-only:
+    `cov` is the (G, G) intrinsics covariance.
     """
+    method = method or ("pose-compensated" if poses is not None else "intrinsics-only")
+    if method not in METHODS:
+        raise DstereoError(f"projection uncertainty method {method!r}: use one of {', '.join(METHODS)}")
     if not np.isfinite(range_) or range_ <= 0:
         raise DstereoError(f"projection uncertainty range {range_}: give a positive distance (board unit)")
     model = lens_model(tuple(names))
@@ -105,17 +202,47 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
         raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)} "
                            f"or {list(FISHEYE_CAMERA_NAMES[:8])}")
     index = tuple(known.index(n) for n in names)
+    cov = np.asarray(cov, float)
+    if method == "pose-compensated":
+        if poses is None:
+            raise DstereoError("pose-compensated projection uncertainty needs the calibration's view poses")
+        poses = np.asarray(poses, float)
+        if cov.shape != (len(index) + 6 * len(poses),) * 2:
+            raise DstereoError(f"pose-compensated projection uncertainty: covariance {cov.shape} does not match "
+                               f"{len(index)} intrinsics + {len(poses)} poses (joint covariance expected)")
+    else:
+        poses = np.zeros((1, 6))
     params = jnp.concatenate([jnp.asarray(k, float), jnp.asarray(coeffs, float)])
-    w, h = image_size
-    u = np.linspace(0.0, w - 1.0, grid[0])
-    v = np.linspace(0.0, h - 1.0, grid[1])
-    q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-    cov_q = np.asarray(_map_fn(index, model)(params, jnp.asarray(cov, float), jnp.asarray(q), float(range_)))
-    ok = np.all(np.isfinite(cov_q), axis=(1, 2))
+    u, v, q = _grid(image_size, grid)
+    cov_q, ok = _map_fn(index, method, model)(params, jnp.asarray(poses), jnp.asarray(cov), jnp.asarray(q), float(range_))
+    cov_q, ok = np.array(cov_q), np.asarray(ok) & np.all(np.isfinite(np.asarray(cov_q)), axis=(1, 2))
+    cov_q[~ok] = np.nan
     std = np.full(len(q), np.nan)
     std[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(cov_q[ok])[:, -1], 0.0))
-    return ProjectionUncertaintyMap(u, v, cov_q.reshape(grid[1], grid[0], 2, 2), std.reshape(grid[1], grid[0]),
-                                    float(range_))
+    gh, gw = grid[1], grid[0]
+    return ProjectionUncertaintyMap(u, v, cov_q.reshape(gh, gw, 2, 2), std.reshape(gh, gw), float(range_),
+                                    NOTES[method], ok.reshape(gh, gw), method)
+
+
+def solution_map(sol, image_size, range_: float, method: str = "pose-compensated",
+                 grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
+    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks)."""
+    if method == "pose-compensated":
+        from dstereo.calib.uncertainty import joint_covariance
+
+        if sol.normal is None:
+            raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
+                               "equations; use --projection-method intrinsics-only")
+        n_obs = int(np.prod(np.shape(sol.residuals)))  # 2 per corner
+        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), n_obs)
+        return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, image_size, range_, grid,
+                                          poses=sol.poses, method=method)
+    return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, sol.cov, image_size, range_, grid,
+                                      method=method)
+
+
+def sse_of(sol) -> float:
+    return float(np.sum(np.asarray(sol.residuals, float) ** 2))
 
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:

@@ -161,7 +161,7 @@ def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, l
                   calib: StereoCalibration | None = None, estimate=None):
     """The search range before matching (`dstereo.search_range`, sources in order): the user's depth range or
     SGBM range, a Middlebury file's ndisp, the given sparse `estimate`, sparse matches on the rectified pair,
-    the default."""
+    the calibration's board depths (too few sparse matches), the default."""
     from dstereo import search_range as sr
 
     if config.depth_range is not None:
@@ -181,6 +181,8 @@ def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, l
                                   left_rect.shape[1])
     if estimate is not None:
         return estimate
+    if calib is not None and (found := sr.from_board_depths(calib.extras, Q, left_rect.shape[1])) is not None:
+        return found
     return sr.SearchRange(*sr.DEFAULT_RANGE, "default", f"fewer than {sr.MIN_MATCHES} sparse matches on the "
                           "rectified rows to estimate the range from")
 

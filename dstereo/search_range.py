@@ -13,7 +13,10 @@ Sources, first that applies wins (`choose_range`):
    their image neighbours' give d_s; the range is
    their 0.5..99.5th percentile widened by a margin (30 % of that span, at least 16 px: sparse features miss
    textureless parts; measured on Middlebury upscaled 2x, the nearest 1 % of Adirondack lies 20 px beyond them);
-4. otherwise the default 0..63 px, with a warning.
+4. with fewer sparse matches, the calibration's board distances (`dstereo calibrate` writes the nearest and
+   farthest board corner depth as `board_depth_min`/`board_depth_max` into stereo.yml): the depth range the rig
+   was calibrated over, widened by BOARD_MARGIN (a prior: the scene need not lie there; saturation still widens);
+5. otherwise the default 0..63 px, with a warning.
 After matching (`saturation`), the share of valid pixels within one px of either end is checked; a range the tool
 chose itself is widened on the saturated side and matched again (`MAX_WIDENINGS` times at most); a user's range is
 kept and the result carries a warning with the figures and the fix; a user's range is also checked against the
@@ -91,6 +94,29 @@ def from_middlebury(extras: dict) -> SearchRange | None:
         return from_bounds(extras["vmin"] - pad, extras["vmax"] + pad, "calib.txt vmin/vmax",
                            f"vmin {extras['vmin']:g}, vmax {extras['vmax']:g}, margin {pad:g} px")
     return None
+
+
+BOARD_MARGIN = 0.5  # the board-distance prior spans depth / (1 + m) .. depth * (1 + m): scenes near the boards
+
+
+def from_board_depths(extras: dict, Q: np.ndarray, width: int) -> SearchRange | None:
+    """Range from the calibration's board depths (`board_depth_min`/`board_depth_max` in the calibration's unit,
+    read into StereoCalibration.extras), widened to depth / (1 + BOARD_MARGIN) .. depth * (1 + BOARD_MARGIN);
+    None when the file has none. Clipped to +-(width - 1) px like the sparse estimate."""
+    near, far = extras.get("board_depth_min"), extras.get("board_depth_max")
+    if near is None or far is None or not 0 < near <= far:
+        return None
+    near_z, far_z = near / (1 + BOARD_MARGIN), far * (1 + BOARD_MARGIN)
+    d_near, d_far = disparity_for(Q, near_z), disparity_for(Q, far_z)
+    lo, hi = max(min(d_near, d_far), -(width - 1)), min(max(d_near, d_far), width - 1)
+    return from_bounds(lo, hi, "calibration board depths",
+                       f"boards at {near:.4g}..{far:.4g} (calibration unit), prior {near_z:.4g}..{far_z:.4g}: "
+                       f"too few sparse matches on the rectified rows")
+
+
+def disparity_for(Q: np.ndarray, z: float) -> float:
+    """Sign-normalised disparity of depth z (the inverse of `depth_for`)."""
+    return float((Q[2, 3] / z - Q[3, 3]) / abs(Q[3, 2]))
 
 
 def sparse_disparities(left_rect: np.ndarray, right_rect: np.ndarray, sign: float) -> np.ndarray:

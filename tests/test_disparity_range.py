@@ -247,3 +247,93 @@ def test_false_matches_on_a_repeated_pattern_are_dropped():
     d[[7, 55, 130]] = 80.0  # one square (30 px) off
     keep = consistent_with_neighbours(q, d)
     assert not keep[[7, 55, 130]].any() and keep.sum() == len(q) - 3
+
+
+# --- issue 14's own case: converging rig fx 4700 / 4900 px, 100 mm, 600 mm, tilted sample, no depth flags ----
+
+def test_converging_rig_of_the_issue_gets_the_whole_face(tmp_path):
+    """At half size (fx 2350 / 2450 px, 320 x 240; 4 frames): `dstereo recession` without depth flags prints its
+    range, reaches the face's negative disparities without saturating, and measures on the whole face. Before
+    issue 14 (fixed 0..63 px) everything behind ~602 mm was dropped: 36 % of the face, the stagnation point
+    2.7-3.7 mm off. The face share is counted on the true face (cells within head radius - 1.5 mm of the true
+    stagnation point, in the tool's face frame), independent of the tool's own face mask."""
+    import json
+
+    from conftest import run_cli
+    from dstereo.recession.synthetic import write_synthetic_sequence
+
+    seq, out = tmp_path / "seq", tmp_path / "out"
+    truth = write_synthetic_sequence(seq, n_frames=4, image_size=(320, 240), yaw_deg=12.0, focal_px=(2350.0, 2450.0))
+    code, stdout, stderr = run_cli("recession", seq, "--calib", seq / "stereo.yml", "--out", out, "--grid", "1")
+    assert code == 0, stderr
+    assert "disparity search range" in stdout and "warning" not in stderr
+    summary = json.loads((out / "summary.json").read_text())
+    search = summary["search_range"]
+    assert search["min_disparity"] < 0 and not search["saturation"]["saturated_low"]
+    assert not search["saturation"]["saturated_high"]
+    maps = np.load(out / "recession_maps.npz")
+    u, v = np.meshgrid(maps["u_mm"], maps["v_mm"])
+    e12 = np.array([summary["sample"]["e1"], summary["sample"]["e2"]])
+    offset = np.array(truth["stagnation_point_mm"]) - np.array(summary["sample"]["stagnation_point_mm"])
+    du, dv = e12 @ offset
+    face = np.hypot(u - du, v - dv) <= truth["sample"]["head_radius"] - 1.5
+    # Measured 99-100 % (experiments/results/range_converging.md); a cut at the far side loses a third.
+    assert np.isfinite(maps["heights_mm"][0][face]).mean() >= 0.95
+    assert np.linalg.norm(offset) < 0.6  # measured 0.3-0.5 mm at 320 x 240 (the cut face: 2.7-3.7 mm)
+
+
+# --- the calibration's board depths as a search-range prior --------------------------------------------------
+
+def test_board_depth_prior_by_hand_and_from_the_file(tmp_path):
+    """Boards at 400..800 mm, f = 1000 px, B = 100 mm (d = f B / Z): the prior spans 400 / 1.5 .. 800 * 1.5 mm
+    = 266.7..1200 mm -> d = 83.3..375 px -> SGBM range 83 .. 83 + 304 - 1 (ceil(293 / 16) blocks of 16). The
+    nodes are written by `append_board_depths` after `write_stereo_yml` and read back into the extras; a file
+    without them gives no prior."""
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.io.stereo_files import append_board_depths, write_stereo_yml
+    from dstereo.search_range import from_board_depths
+
+    q = np.array([[1, 0, 0, -320], [0, 1, 0, -240], [0, 0, 0, 1000.0], [0, 0, 1 / 100.0, 0]])
+    k = np.array([[1000.0, 0, 320], [0, 1000, 240], [0, 0, 1]])
+    path = write_stereo_yml(tmp_path / "stereo.yml", k, np.zeros(5), k, np.zeros(5), np.eye(3),
+                            np.array([-100.0, 0, 0]), np.eye(3), np.eye(3), (640, 480))
+    assert from_board_depths(read_stereo_calibration(path).extras, q, 640) is None
+    append_board_depths(path, {"board_depth_min": 400.0, "board_depth_max": 800.0})
+    calib = read_stereo_calibration(path)
+    assert calib.extras["board_depth_min"] == 400.0 and calib.extras["board_depth_max"] == 800.0
+    found = from_board_depths(calib.extras, q, 640)
+    assert (found.min_disparity, found.num_disparities) == (83, 304)
+    assert found.source == "calibration board depths"
+
+
+def test_board_depth_prior_is_used_when_sparse_matches_are_too_few():
+    """A textureless pair gives no sparse matches: with board depths in the calibration the range comes from
+    them, without it is the default (with its warning)."""
+    from dataclasses import replace
+
+    from dstereo.io.calib_files import StereoCalibration
+    from dstereo.reconstruction import ReconstructionConfig, initial_range
+
+    q = np.array([[1, 0, 0, -320], [0, 1, 0, -240], [0, 0, 0, 1000.0], [0, 0, 1 / 100.0, 0]])
+    flat = np.full((480, 640), 128, np.uint8)
+    k = np.array([[1000.0, 0, 320], [0, 1000, 240], [0, 0, 1]])
+    calib = StereoCalibration(k, np.zeros(8), k, np.zeros(8), np.eye(3), np.array([-100.0, 0, 0]), (640, 480))
+    plain = initial_range(ReconstructionConfig(), set(), q, flat, flat, calib)
+    assert plain.source == "default"
+    with_boards = replace(calib, extras={"board_depth_min": 400.0, "board_depth_max": 800.0})
+    prior = initial_range(ReconstructionConfig(), set(), q, flat, flat, with_boards)
+    assert prior.source == "calibration board depths" and (prior.min_disparity, prior.num_disparities) == (83, 304)
+
+
+def test_board_depth_range_of_known_poses():
+    """Corners 0..100 mm in x and y on the board: one pose 500 mm straight ahead (all at z = 500), one turned
+    30 deg about y at 600 mm (z = 600 - x sin 30 deg = 550..600): the range is 500..600."""
+    from types import SimpleNamespace
+
+    from dstereo.io.stereo_files import board_depth_range
+
+    xs, ys = np.meshgrid(np.linspace(0, 100, 5), np.linspace(0, 100, 4))
+    obj = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    poses = np.array([[0, 0, 0, 0, 0, 500.0], [0, np.pi / 6, 0, 0, 0, 600.0]])
+    found = board_depth_range(SimpleNamespace(poses=poses), obj)
+    assert found["board_depth_min"] == pytest.approx(500.0) and found["board_depth_max"] == pytest.approx(600.0)

@@ -82,7 +82,8 @@ def suggest_model(free: tuple[str, ...], identifiable: bool, weak: Sequence[str]
         return (f"model {','.join(free) or 'none'} is not identifiable from these views (weak: {weak_text}); "
                 "add views that tilt the board and fill the image corners")
     return (f"model {','.join(free)} is not identifiable from these views (weak: {weak_text}); use the simpler "
-            f"model --model {choice} ({','.join(PRESETS[choice])}) or add views that fill the image corners")
+            f"model --model {choice} ({','.join(PRESETS[choice])}), let held-out views choose (--model auto), or "
+            "add views that fill the image corners")
 
 
 @dataclass
@@ -115,6 +116,7 @@ class CameraCalibration:
     outliers: object | None = None  # dstereo.calib.outliers.OutlierReport: corners and views rejected
     residual_pattern: object | None = None  # dstereo.calib.misfit.ResidualPattern of the full-set solve (inliers)
     residual_pattern_all: object | None = None  # ... of the solve on every corner, before outlier rejection
+    model_choice: object | None = None  # dstereo.calib.model_choice.ModelChoice with --model auto
 
     @property
     def unconverged(self) -> list[int]:
@@ -189,6 +191,10 @@ def calibrate_camera(
     obs = np.stack([det.corners[n] for n in used])
     for name, reason in det.rejected.items():
         warnings.append(f"image {name} rejected: {reason}")
+    choice = None
+    if config.model_auto:  # before the plan: the subsets, steps and files run with the chosen model
+        config, choice = _choose_model(config, det, obs, progress)
+        timings["model_choice_s"] = choice.timings["model_choice_s"]
     plan = None
     if config.per_set is not None:
         from dstereo.calib.subset_runs import check_subset_run
@@ -201,7 +207,8 @@ def calibrate_camera(
     t0 = time.perf_counter()
     if progress is not None:
         progress("full-set solve", 0, 1)
-    full = calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
+    full = choice.chosen_candidate.solution if choice is not None else \
+        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
     if progress is not None:
         progress("full-set solve", 1, 1)
     timings["full_solve_s"] = time.perf_counter() - t0
@@ -224,7 +231,18 @@ def calibrate_camera(
     if not full.converged:
         warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
     columns = ("re",) + tuple(full.names)
-    advice = suggest_model(tuple(config.model), full.conditioning.identifiable, full.conditioning.weak_parameters)
+    if choice is not None:  # the data chose this model: no advice to swap it, only a note if not identifiable
+        from dstereo.calib.model_choice import choice_warning
+
+        advice = choice_warning(choice)
+    else:
+        from dstereo.calib.model_choice import residual_structure
+
+        advice = suggest_model(tuple(config.model), full.conditioning.identifiable,
+                               full.conditioning.weak_parameters)
+        structure = residual_structure(obs, full.residuals, full.values[:4])
+        if structure:
+            advice = structure if advice is None else f"{advice}; {structure}"
     if advice:
         warnings.append(advice)
     if full.conditioning.wild:
@@ -276,7 +294,7 @@ def calibrate_camera(
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
         subset_mean=subset_mean, outliers=outliers, residual_pattern=pattern,
-        residual_pattern_all=pattern_all,
+        residual_pattern_all=pattern_all, model_choice=choice,
     )
 
 
@@ -289,6 +307,17 @@ def _reject_outliers(config, det, used, obs, full, warnings):
     full, keep, report = reject_outliers(det.object_points, obs, det.image_size, tuple(config.model), used, full)
     warnings += report.warnings()
     return full, [used[i] for i in keep], obs[keep], report
+
+
+def _choose_model(config, det, obs, progress):
+    """--model auto: (the config with the chosen model, the ModelChoice)."""
+    from dataclasses import replace
+
+    from dstereo.calib.model_choice import choose_model
+
+    report = None if progress is None else (lambda i, n: progress("model choice", i, n))
+    choice = choose_model(det.object_points, obs, det.image_size, progress=report)
+    return validate(replace(config, model=choice.chosen_candidate.free, model_auto=False)), choice
 
 
 def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnings):

@@ -108,12 +108,12 @@ class Conditioning:
             wild = f"wild fit: {figures}. These values are not determined by the views (cancelling parameters)"
         if self.condition_number <= ILL_CONDITIONED:
             return (f"{wild}, at scaled condition number {self.condition_number:.2g}; use a smaller distortion "
-                    "model (or --model auto once it exists), or add views that fill the image corners")
+                    "model (or --model auto, which chooses by held-out error), or add views that fill the image corners")
         return (
             f"not identifiable from these views: scaled condition number {self.condition_number:.2g} "
             f"(> {ILL_CONDITIONED:.0e}); weakly determined: {', '.join(self.weak_parameters)}. "
             + (f"{wild}. " if wild else "") + "Their standard deviations are not meaningful; use a simpler "
-            "distortion model (or --model auto once it exists) or add views that fill the image corners"
+            "distortion model (or --model auto, which chooses by held-out error) or add views that fill the image corners"
         )
 
 
@@ -134,3 +134,31 @@ def conditioning(schur: np.ndarray, names: tuple[str, ...], values=None, std=Non
     weak += [w[0] for w in wild if w[0] not in weak]
     return Conditioning(cond, cond <= ILL_CONDITIONED and not wild, weak, (names[i], names[j], float(corr[i, j])),
                         wild)
+
+
+def joint_normal(normal: np.ndarray, n_shared: int, weight: np.ndarray | None = None) -> np.ndarray:
+    """J'J of (shared parameters, pose of view 0, pose of view 1, ...) assembled from the solver's per-view blocks.
+
+    `normal` (V, P+1, P+1) is each view's [J r]'[J r] (P = n_shared + 6; the last row/column is the residual):
+    the shared block is the sum over views, each view adds its own 6 x 6 pose block and its shared-pose cross
+    terms, and poses of different views never share a residual (zero blocks). Views with `weight` 0 are left out.
+    """
+    normal = np.asarray(normal, float)
+    keep = np.arange(len(normal)) if weight is None else np.flatnonzero(np.asarray(weight) > 0)
+    g, n = n_shared, len(keep)
+    out = np.zeros((g + 6 * n, g + 6 * n))
+    for j, v in enumerate(keep):
+        w = 1.0 if weight is None else float(weight[v])
+        m = w * normal[v, : g + 6, : g + 6]
+        s = slice(g + 6 * j, g + 6 * j + 6)
+        out[:g, :g] += m[:g, :g]
+        out[:g, s], out[s, :g], out[s, s] = m[:g, g:], m[g:, :g], m[g:, g:]
+    return out
+
+
+def joint_covariance(normal: np.ndarray, n_shared: int, sse: float, n_residuals: int,
+                     weight: np.ndarray | None = None) -> np.ndarray:
+    """Covariance of (shared parameters, all view poses) of a solve, sigma^2 (J'J)^-1 with the unbiased sigma^2
+    of `covariance`; its shared block equals `covariance(schur, ...)` (the Schur complement's inverse)."""
+    jtj = joint_normal(normal, n_shared, weight)
+    return covariance(jtj, sse, n_residuals, len(jtj))

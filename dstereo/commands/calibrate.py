@@ -23,7 +23,8 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or auto (the model that "
+        "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -52,6 +53,12 @@ def calibrate(
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),
+    projection_method: str = typer.Option(
+        "pose-compensated", "--projection-method", help="Projection uncertainty: pose-compensated (a point fixed in "
+        "the boards' frame, as mrcal) or intrinsics-only (fixed in the camera frame)."),
+    cross_validate: int = typer.Option(
+        0, "--cross-validate", help="Split the views in random halves N times (N >= 4 recommended), calibrate each "
+        "half and check the projection difference against the predicted one (report, cross_validation.npz)."),
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
@@ -60,6 +67,12 @@ def calibrate(
     from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
+    from dstereo.projection_uncertainty import METHODS
+
+    if projection_method not in METHODS:
+        raise DstereoError(f"--projection-method {projection_method}: use one of {', '.join(METHODS)}")
+    if cross_validate < 0:
+        raise DstereoError(f"--cross-validate {cross_validate}: give a number of splits (4 or more), or leave it out")
     if projection_range is not None and not projection_range > 0:
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
@@ -68,15 +81,26 @@ def calibrate(
     cfg = cfg.with_overrides(
         pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
         unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
-        image_format=image_format, glob=glob, model=_model(model), per_set=per_set, max_subsets=max_subsets,
-        seed=seed, min_subsets=min_subsets, final=final, outlier_rejection=False if no_outlier_rejection else None,
+        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set,
+        max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
+        outlier_rejection=False if no_outlier_rejection else None,
         steps=mono_steps, stereo_steps=stereo_steps,
     )
     cfg = validate(cfg)
+    from dstereo.io import figure_pool
+
+    figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
+        if cross_validate:
+            raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
+                               "with --images DIR --cross-validate N")
         from dstereo.models.distortion import lens_model
 
+        if cfg.model_auto:
+            raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
+                               "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
+                               "chosen --model")
         if lens_model(tuple(cfg.model)) == "fisheye":
             raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
                                "calibrate each camera alone with --images DIR")
@@ -99,7 +123,7 @@ def calibrate(
 
     check_one_camera(list_camera_images(images, cfg), str(images))
     out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
-    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range)
+    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range, projection_method, cross_validate)
 
 
 def _results_folder(out, project, force: bool, cfg, inputs=()):
@@ -190,8 +214,16 @@ def _stereo_view_warnings(job) -> list[str]:
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
+def _auto(spec: Optional[str]):
+    from dstereo.config import is_auto_model
+
+    return None if spec is None else is_auto_model(spec)
+
+
 def _model(spec: Optional[str]):
-    if spec is None:
+    from dstereo.config import is_auto_model
+
+    if spec is None or is_auto_model(spec):
         return None
     from dstereo.models.distortion import parse_model
 
@@ -199,13 +231,23 @@ def _model(spec: Optional[str]):
 
 
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,
-         projection_range: float | None = None) -> None:
+         projection_range: float | None = None, projection_method: str = "pose-compensated",
+         cross_validate: int = 0) -> None:
     from dstereo.calib.pipeline import calibrate_camera
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
+        cal.projection_method = projection_method
+        if cross_validate:
+            from dstereo.calib.cross_validation import cross_validate as run_cross_validation
+
+            cal.cross_validation = run_cross_validation(cal.full, cal.detection.object_points, cal.observations,
+                                                        cal.detection.image_size, cross_validate, seed=cfg.seed or 0,
+                                                        range_=projection_range)
+            if not cal.cross_validation.trusted:
+                cal.warnings.append(cal.cross_validation.verdict())
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
@@ -265,6 +307,11 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"camera.yml: {cal.final_solution.source(cal.used)}")
         typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
                    f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
+    if cal.model_choice is not None:
+        c = cal.model_choice.chosen_candidate
+        others = ", ".join(f"{o.preset} {o.heldout_rms:.4f}" for o in cal.model_choice.candidates if o is not c)
+        typer.echo(f"model auto: {c.preset} ({','.join(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
+                   f"{others}); the table is in report.md")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))
     typer.echo(f"wrote {out}")

@@ -22,7 +22,8 @@ def recession(
         None, "--axis", help="Sample axis x,y,z in the left camera frame (default: estimated from the first frame)."),
     point: Optional[str] = typer.Option(None, "--point", help="Stagnation point x,y,z mm, left camera (with --axis)."),
     grid: float = typer.Option(0.5, "--grid", help="Grid cell size over the front face, mm."),
-    stagnation_radius: float = typer.Option(2.0, "--stagnation-radius", help="Radius of the stagnation disc, mm."),
+    stagnation_radius: Optional[float] = typer.Option(None, "--stagnation-radius", help="Radius of the stagnation disc, mm "
+                                            "(default: 2 mm, or 4 grid cells on a grid coarser than 0.5 mm)."),
     stagnation_fit: str = typer.Option(
         "quadratic", "--stagnation-fit", help="Value at the stagnation point: quadratic (a + b u + c v + d rho^2 over "
         "the disc, unbiased at a peak) or mean."),
@@ -33,12 +34,26 @@ def recession(
     z_min: Optional[float] = typer.Option(None, "--z-min", help="Nearest depth of the sample, mm (sets the range)."),
     z_max: Optional[float] = typer.Option(None, "--z-max", help="Farthest depth of the sample, mm."),
     roi: Optional[str] = typer.Option(None, "--roi", help="x,y,w,h on the rectified left image: keep points inside."),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Frames in parallel on a local Dask cluster of this many processes (default: the "
+        "machine's cores when the frames, timed on the first, would take over ~30 s serially; else one after "
+        "another here; 1: always one after another in this process)."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", help="Address of a running Dask scheduler (tcp://host:8786): its workers run the "
+        "frames (they need dstereo installed and the images at the same paths)."),
+    resume: bool = typer.Option(
+        False, "--resume", help="Continue an interrupted run from the frames kept in OUT.partial (same inputs and "
+        "options required)."),
+    retries: int = typer.Option(2, "--retries", help="Reruns of a frame whose worker process died, then it fails."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary."),
 ) -> None:
     """Recession of a sample's front face over time: a surface per stereo pair, recession along the sample axis
     on a grid over the face, at the stagnation point and as maps, and recession rates with 95 % intervals."""
-    from dataclasses import replace
+    from dataclasses import asdict, replace
+
+    from dstereo import __version__
+    from dstereo.frames import FrameRunner, PartialStore, fingerprint
 
     from dstereo.commands.progress import progress_bars
     from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
@@ -72,12 +87,33 @@ def recession(
     for frame in frames:  # same file or byte copy (decoding every frame twice more would cost a long sequence)
         check_distinct_images(frame.left, frame.right, decode=False)
     check_sizes(frames, calibration.image_size, str(calib))
-    with progress_bars(quiet) as progress:
-        result = run_recession(frames, calibration, cfg, recon, progress=progress)
-        summary = write_results(out, result, calib, sequence, force)
+    runner = FrameRunner(workers, scheduler, retries)
+    inputs = [p for f in frames for p in (f.left, f.right)]
+    settings = (asdict(cfg), repr(recon), [(f.key, f.time_s) for f in frames], __version__)
+    store = PartialStore(out, fingerprint([calib], inputs, settings)).open(resume, force)
+    try:
+        with progress_bars(quiet) as progress:
+            result = run_recession(frames, calibration, cfg, recon, progress=progress, runner=runner, store=store)
+            summary = write_results(out, result, calib, sequence, force, extra={"run": runner.describe()})
+    except KeyboardInterrupt:
+        typer.echo(f"dstereo: interrupted: {store.count()} finished frame(s) kept in {store.folder}; run the same "
+                   "command with --resume to continue from them", err=True)
+        raise typer.Exit(130)
+    except DstereoError:
+        if store.count() == 0:  # nothing worth keeping: leave no work folder behind
+            store.remove()
+        raise
+    if runner.decision and not quiet:
+        typer.echo(runner.decision)
+    failed = [f for f in result.frames if f.status == "failed"]
+    if failed:
+        typer.echo(f"dstereo: warning: {len(failed)} frame(s) failed; the other frames are kept in {store.folder}: "
+                   "`--resume --force` measures the failed ones and rewrites the results", err=True)
+    else:
+        store.remove()
     for f in result.frames:
         if not f.ok:
-            typer.echo(f"dstereo: warning: frame {f.name} (t = {f.time_s:g} s) skipped: {f.reason}", err=True)
+            typer.echo(f"dstereo: warning: frame {f.name} (t = {f.time_s:g} s) {f.status}: {f.reason}", err=True)
     for w in result.warnings:
         typer.echo(f"dstereo: warning: {w}", err=True)
     if quiet:

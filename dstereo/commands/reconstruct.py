@@ -46,6 +46,15 @@ def reconstruct(
     no_uncertainty: bool = typer.Option(False, "--no-uncertainty", help="Skip the point uncertainties (sigma_*)."),
     full_covariance: bool = typer.Option(
         False, "--full-covariance", help="Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point."),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", help="Several pairs: in parallel on a local Dask cluster of this many processes "
+        "(default: the machine's cores when the pairs, timed on the first, would take over ~30 s serially; else one "
+        "after another here; 1: always one after another in this process)."),
+    scheduler: Optional[str] = typer.Option(
+        None, "--scheduler", help="Several pairs: address of a running Dask scheduler (tcp://host:8786); its workers "
+        "need dstereo, the images at the same paths and OUT's parent folder shared."),
+    resume: bool = typer.Option(False, "--resume", help="Several pairs: continue from the pairs kept in OUT.partial."),
+    retries: int = typer.Option(2, "--retries", help="Reruns of a pair whose worker process died, then it fails."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
@@ -101,7 +110,11 @@ def reconstruct(
     cfg = replace(cfg, **changes)
     check_reconstruction_config(cfg, _width(left[0]))
 
-    results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
+    if len(left) == 1:
+        results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
+    else:
+        results = _several_pairs(list(zip(left, right)), out, calib, config, cfg, force, workers, scheduler, resume,
+                                 retries)
     for r in results:
         s = r.summary
         depth = s.get("depth_mm") or {}
@@ -127,6 +140,33 @@ def reconstruct(
         for w in r.warnings:
             typer.echo(f"dstereo: warning: {w}", err=True)
     typer.echo(f"wrote {out}")
+
+
+def _several_pairs(pairs, out, calib, config_file, cfg, force, workers, scheduler, resume, retries):
+    """Each pair a task (`dstereo.frames.pairs`); Ctrl-C keeps the finished pairs for --resume."""
+    from dstereo import __version__
+    from dstereo.commands.progress import progress_bars
+    from dstereo.errors import DstereoError
+    from dstereo.frames import FrameRunner, PartialStore, fingerprint
+    from dstereo.frames.pairs import reconstruct_pairs
+    from dstereo.io.results import check_output
+
+    check_output(out, force)
+    runner = FrameRunner(workers, scheduler, retries)
+    key = fingerprint([calib, config_file], [p for pair in pairs for p in pair], (repr(cfg), __version__))
+    store = PartialStore(out, key).open(resume, force)
+    try:
+        with progress_bars(False) as progress:
+            return reconstruct_pairs(pairs, out, calib, cfg, force, runner, store, progress)
+    except KeyboardInterrupt:
+        kept = len(list((store.folder / "pairs").glob("*/pair_done.json")))
+        typer.echo(f"dstereo: interrupted: {kept} finished pair(s) kept in {store.folder}; run the same command "
+                   "with --resume to continue from them", err=True)
+        raise typer.Exit(130)
+    except DstereoError:
+        if not any((store.folder / "pairs").glob("*/pair_done.json")):
+            store.remove()  # nothing worth keeping: leave no work folder behind
+        raise
 
 
 def _width(path: Path) -> int | None:

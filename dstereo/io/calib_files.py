@@ -209,7 +209,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     return StereoCalibration(
-        extras=_covariance_extras(data, path),
+        extras=_covariance_extras(data, path) | _board_depth_extras(data),
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
         D1=_coeffs8(_pick(data, "D1"), f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
@@ -236,6 +236,13 @@ def _covariance_extras(data: dict, path: Path) -> dict:
         raise DstereoError(f"{path}: cov is {cov.shape[0]}x{cov.shape[1] if cov.ndim > 1 else 1} but cov_names lists "
                            f"{len(names)} parameters; rewrite the file or remove cov and cov_names")
     return {"cov": cov, "cov_names": names, "cov_structure": str(data.get("cov_structure", ""))}
+
+
+def _board_depth_extras(data: dict) -> dict:
+    """{'board_depth_min', 'board_depth_max'} (the calibration boards' depth range, dstereo's stereo.yml) when
+    both are there as numbers, else {}."""
+    values = {k: data.get(k) for k in ("board_depth_min", "board_depth_max")}
+    return {k: float(v) for k, v in values.items()} if all(isinstance(v, float) for v in values.values()) else {}
 
 
 # Official calib.txt files round cx0, cx1 and doffs to 3 decimals each: cx1 - cx0 may differ from doffs by up to

@@ -12,7 +12,10 @@ Layout of `write_camera_results(out, cal)`:
     plots/<param>.png    thesis Figure 5.9: histogram, KDE, box plot of initial and final subsets
     plots/coverage.png, per_image_rms.png, residuals.png
     plots/projection_uncertainty.png, projection_uncertainty.npz   std (px) of the projection of a point at a
-                         given range (default the mean board distance) under the intrinsics covariance
+                         given range (default the mean board distance, board unit), pose-compensated (fixed in
+                         the boards' frame; --projection-method intrinsics-only for the camera frame); npz keys u, v,
+                         std, cov, range, mask (False: model not invertible there, NaN), method
+    cross_validation.npz, plots/cross_validation.png   with --cross-validate N: half-split differences vs predicted
     undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
 partial folder, and an existing folder is replaced only with `force`.
@@ -275,6 +278,7 @@ def summary_dict(cal) -> dict:
         "residual_pattern": None if getattr(cal, "residual_pattern", None) is None else cal.residual_pattern.as_dict(),
         "residual_pattern_all_corners": None if getattr(cal, "residual_pattern_all", None) is None
         else cal.residual_pattern_all.as_dict(),
+        "model_choice": cal.model_choice.as_dict() if cal.model_choice is not None else None,  # --model auto
         "warnings": list(cal.warnings),
         "timings": dict(cal.timings),
     }
@@ -317,33 +321,55 @@ def write_camera_results(out: str | Path, cal, force: bool = False, projection_r
     return out
 
 
-def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None) -> dict:
-    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov) of the full-set solve's
-    intrinsics covariance at `projection_range` (default: the mean board distance); returns the summary entry."""
+def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None,
+                                 method: str = "pose-compensated", figures=None) -> dict:
+    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
+    the full-set solve at `projection_range` (default: the mean board distance; board unit); returns the summary
+    entry. `method`: pose-compensated (needs the solve's per-view blocks) or intrinsics-only. `figures`: a
+    `figure_pool.Figures` that draws the PNG (else drawn here)."""
+    from types import SimpleNamespace
+
+    from dstereo.io.figure_pool import Figures
+
     from dstereo.io.sigma_maps import projection_uncertainty_png
-    from dstereo.projection_uncertainty import mean_board_distance, projection_uncertainty_map
+    from dstereo.projection_uncertainty import mean_board_distance, solution_map
 
     full, det = cal.full, cal.detection
     source = "given" if projection_range is not None else "mean board distance of the full-set solve"
     if projection_range is None:
         projection_range = mean_board_distance(full.poses, det.object_points)
-    pmap = projection_uncertainty_map(full.values[:4], full.coeffs, full.names, full.cov, det.image_size,
-                                      projection_range)
+    fallback = method == "pose-compensated" and getattr(full, "normal", None) is None
+    pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
-             range=pmap.range_)
-    projection_uncertainty_png(folder / "plots" / "projection_uncertainty.png", pmap, det.image_size,
-                               "projection uncertainty (full-set intrinsics covariance)", cal.config.unit)
-    return {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
-            "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
+             range=pmap.range_, mask=pmap.mask, method=pmap.method)
+    drawing = figures if figures is not None else Figures()
+    # The map's arrays only, in a namespace: the worker then needs no JAX-importing class to unpickle it.
+    plain = SimpleNamespace(u=np.asarray(pmap.u), v=np.asarray(pmap.v), std=np.asarray(pmap.std), range_=pmap.range_)
+    drawing.draw(projection_uncertainty_png, folder / "plots" / "projection_uncertainty.png", plain, det.image_size,
+                 f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
+    if figures is None:
+        drawing.wait()
+    entry = {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
+             "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
+    if fallback:
+        entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
+    if pmap.masked:
+        entry["warning"] = (f"projection uncertainty: {pmap.masked} of {pmap.mask.size} grid pixels masked (grey in "
+                            "plots/projection_uncertainty.png): the distortion model cannot be inverted there (not "
+                            "monotonic beyond the field the corners cover); do not use the camera there, or add views "
+                            "that reach those parts of the image")
+    return entry
 
 
 def fill_camera_folder(folder: Path, cal, projection_range: float | None = None) -> dict:
     """Everything of the results folder into an existing (temporary) folder; returns the summary.
     `projection_range`: distance of the projection-uncertainty map (default: the mean board distance)."""
     from dstereo.io import plots
+    from dstereo.io.figure_pool import Figures
 
     full, det = cal.full, cal.detection
     summary = summary_dict(cal)
+    figures = Figures()  # drawn in the figure workers (when started) while this process writes the rest
     K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
     names = distortion_names(full.free, len(D))
     write_camera_files(folder, K, D, det.image_size, model=full.lens_model, extra={
@@ -351,33 +377,56 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
                      "rms": float(full.rms), "std": summary["full_set"]["std"]}})
+    summary["cameramodel"] = _write_mrcal(folder, cal, K)
     np.savez(folder / "corners.npz", object_points=det.object_points,
              **{name: det.corners[name] for name in cal.used})
     (folder / "config.toml").write_text(to_toml(cal.config, comments=False))
     plot_dir = folder / "plots"
     plot_dir.mkdir()
-    if cal.filtering is not None:
-        f = cal.filtering
-        summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
-        write_subsets_csv(folder / "subsets.csv", cal.plan, f, f.table.status)
-        for name in f.columns:
-            ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
-            plots.parameter_figure(name, f.values(name, 0), f.values(name, len(f.steps)), plot_dir / f"{name}.png",
-                                   UNITS.get(name, ""), ref)
     pts = cal.observations.reshape(-1, 2)
     from dstereo.calib.pipeline import CORNER_MIN_PERCENT
 
-    plots.coverage_heatmap(pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
-                           cal.coverage.corner_percent, CORNER_MIN_PERCENT)
-    plots.per_image_rms(cal.used, full.per_view_rms, plot_dir / "per_image_rms.png")
-    plots.residual_vectors(cal.observations, full.residuals, det.image_size, plot_dir / "residuals.png")
+    # The full-set figures first: the workers draw them while the parameter figures' data are reduced here.
+    figures.draw(plots.coverage_heatmap, pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
+                 cal.coverage.corner_percent, CORNER_MIN_PERCENT)
+    figures.draw(plots.residual_vectors, np.asarray(cal.observations), np.asarray(full.residuals), det.image_size,
+                 plot_dir / "residuals.png")
+    figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms), plot_dir / "per_image_rms.png")
+    if cal.filtering is not None:
+        f = cal.filtering
+        for name in f.columns:
+            ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
+            data = plots.parameter_figure_data(name, f.values(name, 0), f.values(name, len(f.steps)),
+                                               UNITS.get(name, ""), ref)
+            figures.draw(plots.draw_parameter_figure, data, plot_dir / f"{name}.png")
+        summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
+        write_subsets_csv(folder / "subsets.csv", cal.plan, f, f.table.status)
+    projection = write_projection_uncertainty(folder, cal, projection_range,
+                                              getattr(cal, "projection_method", "pose-compensated"), figures)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
-    summary["projection_uncertainty"] = write_projection_uncertainty(folder, cal, projection_range)
+    summary["projection_uncertainty"] = projection
+    for entry in (summary["projection_uncertainty"],):
+        if entry.get("warning"):
+            summary["warnings"].append(entry["warning"])
+            cal.warnings.append(entry["warning"])  # printed after writing, with the others
+    if getattr(cal, "cross_validation", None) is not None:
+        from dstereo.calib.cross_validation import write_cross_validation
+
+        summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit)
+    figures.wait()
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
         ["summary.json", "report.md"]
     write_json(folder / "summary.json", summary)
     (folder / "report.md").write_text(report_markdown(cal, summary))
     return summary
+
+
+def _write_mrcal(folder: Path, cal, K: np.ndarray) -> str:
+    """camera.cameramodel (mrcal's format, io/cameramodel.py) of what camera.yml holds; what was done, or why not."""
+    from dstereo.io.cameramodel import write_cameramodel
+
+    return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
+                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate")
 
 
 def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
@@ -427,6 +476,21 @@ def outlier_lines(report) -> list[str]:
     return lines
 
 
+def _model_choice_lines(choice) -> list[str]:
+    """report.md's `--model auto` section: the candidates' table and the rule (calib/model_choice.py)."""
+    kind = "leave one view out" if choice.heldout_views == choice.folds else f"{choice.folds} folds"
+    return ["## Model choice (--model auto)", "",
+            f"Held-out error: {kind} ({choice.heldout_views} views held out); each held-out view's board pose "
+            "refitted for the fold's fixed camera, RMS over its corners. Rule: " + choice.rule + ".", "",
+            *choice.table_markdown(), "",
+            f"Chosen: **{choice.chosen}** ({', '.join(choice.chosen_candidate.free)}); the rest of this report is "
+            "its calibration.", ""]
+
+
+def _fmt_px(value) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
     full, cfg = cal.full, cal.config
@@ -447,6 +511,8 @@ def report_markdown(cal, summary: dict) -> str:
                   f"p = {pattern.p_value:.2g}"
                   f" ({'significant: the model is too simple' if pattern.significant else 'no significant pattern'})",
                   ""]
+    if cal.model_choice is not None:
+        lines += _model_choice_lines(cal.model_choice)
     sub = summary["subsets"]
     if sub is not None:
         lines += ["## Subsets and optimisation steps", "",
@@ -482,7 +548,8 @@ def report_markdown(cal, summary: dict) -> str:
                   f"RMS {check['rms_solution_px']:.4f} px, the thesis's subset mean RMS {check['rms_mean_px']:.4f} px "
                   f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
-              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).", ""]
+              "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).",
+              f"For mrcal's tools: {summary.get('cameramodel', '-')}.", ""]
     cov = cal.coverage
     lines += ["## Distortion coverage (thesis section 5.2.1.2)", "", "| image area | % of corners |", "|---|---|"]
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]
@@ -492,9 +559,14 @@ def report_markdown(cal, summary: dict) -> str:
     if pu is not None:
         lines += ["## Projection uncertainty", "",
                   f"Std of the projected pixel (worst direction) of a point {pu['range']:.4g} {pu['unit']} along each "
-                  f"pixel's ray ({pu['range_source']}) under the full-set intrinsics covariance: median "
-                  f"{pu['std_px']['median']:.3g} px, max {pu['std_px']['max']:.3g} px. {pu['note']}.", "",
+                  f"pixel's ray ({pu['range_source']}), {pu['method']}: median "
+                  f"{_fmt_px(pu['std_px']['median'])} px, max {_fmt_px(pu['std_px']['max'])} px; "
+                  f"{pu['masked_pixels']} grid pixels masked (model not invertible there). {pu['note']}.", "",
                   "![projection uncertainty](plots/projection_uncertainty.png)", ""]
+    xv = summary.get("cross_validation")
+    if xv is not None:
+        lines += ["## Cross-validation", "", xv["verdict"] + ".", "", "![cross-validation](plots/cross_validation.png)",
+                  ""]
     lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
               "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:

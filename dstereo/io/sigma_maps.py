@@ -132,9 +132,11 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
         notes.append(f"red: above the scale ({ROBUST_PERCENTILE:g}th percentile {vmax:.3g} px; max "
                      f"{float(finite.max()):.3g} px)")
     if np.ma.count_masked(std):
-        notes.append("grey: not finite (outside the model's valid range)")
-    ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray; intrinsics only (no extrinsics "
-                 "compensation)" + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
+        notes.append("grey: masked (the model cannot be inverted there)")
+    held = ("fixed in the boards' frame (pose-compensated)" if getattr(pmap, "method", "") == "pose-compensated"
+            else "fixed in the camera frame (intrinsics only, no pose compensation)")
+    ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray, {held}"
+                 + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -186,6 +186,23 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
     return _replace_atomically(Path(path), write)
 
 
+def board_depth_range(solution, object_points: np.ndarray) -> dict:
+    """Nearest and farthest board corner depth (left camera z, the calibration's unit) over the solution's
+    board poses: `reconstruct` uses it as a search-range prior when a pair has too few sparse matches."""
+    from scipy.spatial.transform import Rotation
+
+    obj = np.asarray(object_points, float).reshape(-1, 3)
+    z = np.concatenate([Rotation.from_rotvec(p[:3]).apply(obj)[:, 2] + p[5] for p in np.asarray(solution.poses)])
+    return {"board_depth_min": float(z.min()), "board_depth_max": float(z.max())}
+
+
+def append_board_depths(path: Path, depths: dict) -> None:
+    """Add `board_depth_range`'s two scalars to a written stereo.yml (top-level OpenCV YAML nodes, optional:
+    readers that do not know them ignore them)."""
+    with Path(path).open("a") as fh:
+        fh.writelines(f"{key}: {value!r}\n" for key, value in depths.items())
+
+
 def _jsonable(value):
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
@@ -316,6 +333,12 @@ def _fill_stereo_folder(folder: Path, job) -> None:
                      job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
                      cov_names=cov_names, cov_structure=cov_structure)
     summary = stereo_summary(job)
+    from dstereo.io.cameramodel import write_rig_cameramodels  # mrcal's format, the left camera as reference
+
+    summary["cameramodels"] = write_rig_cameramodels(folder, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size)
+                                                              for c in (s.left, s.right)], job.R, job.T)
+    summary["board_depth_range"] = board_depth_range(s, det.object_points)
+    append_board_depths(folder / "stereo.yml", summary["board_depth_range"])
     summary["calibration_covariance"] = {"names": list(cov_names), "cov": cov, "structure": cov_structure,
                                          "std": dict(zip(cov_names, np.sqrt(np.maximum(np.diag(cov), 0.0))))}
     write_json(folder / "stereo.json", summary)

@@ -19,6 +19,17 @@ from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_poin
 from dstereo.recession.surface import grid_over, valid_points
 
 
+STAGNATION_CELLS_ACROSS = 4  # radius in grid cells: ~50 cells in the disc for the 4-parameter quadratic
+
+
+def stagnation_radius_for(grid_mm: float) -> float:
+    """Default stagnation disc radius (mm): 2 mm, or 4 grid cells on a coarser grid. A fixed 2 mm disc holds 13
+    cells of 1 mm, barely more than the quadratic's 4 parameters: measured on the tilted rendered sample at
+    320x240 (1 mm grid; experiments/results/range_stagnation.md), the stagnation RMS over seeds 0-4 was
+    0.020-0.034 mm with 2 mm and 0.021-0.027 mm with 4 mm; at 640x480 (0.5 mm grid) 2 mm is 4 cells already."""
+    return max(2.0, STAGNATION_CELLS_ACROSS * float(grid_mm)) if grid_mm > 0 else 2.0
+
+
 @dataclass(frozen=True)
 class RecessionConfig:
     """Analysis settings (mm unless stated). `axis`/`point`: the sample axis and stagnation point in the left
@@ -26,10 +37,11 @@ class RecessionConfig:
     face centre). `slab_mm` (in front, behind): points this far in front of the reference face or behind it are
     not the face. A frame whose valid cells fall below `min_face_fraction` of the reference's fails.
     `refine_subpixel`: refine SGBM's pixel-locked disparity (`dstereo.subpixel`) before triangulating
-    (sets the reconstruction's `refine`)."""
+    (sets the reconstruction's `refine`). `stagnation_radius_mm` None: max(2 mm, STAGNATION_CELLS_ACROSS grid
+    cells), so the stagnation disc holds ~50 cells whatever the grid (`stagnation_radius_for`)."""
 
     grid_mm: float = 0.5
-    stagnation_radius_mm: float = 2.0
+    stagnation_radius_mm: float | None = None
     stagnation_model: str = "quadratic"
     axis: tuple[float, float, float] | None = None
     point: tuple[float, float, float] | None = None
@@ -39,6 +51,8 @@ class RecessionConfig:
     refine_subpixel: bool = True
 
     def __post_init__(self):
+        if self.stagnation_radius_mm is None:
+            object.__setattr__(self, "stagnation_radius_mm", stagnation_radius_for(self.grid_mm))
         if not self.stagnation_radius_mm > 0:
             raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm}: need a positive radius in mm")
         if self.stagnation_radius_mm < 2 * self.grid_mm:
@@ -190,45 +204,139 @@ def _frame_heights(points: np.ndarray, ref: _Reference, config: RecessionConfig)
     return height, se, count
 
 
+@dataclass
+class FrameOutcome:
+    """One frame measured on the reference's grid (a task's result; stored as it finishes): status 'ok',
+    'skipped' (a DstereoError: the frame is unusable) or 'failed' (its worker died: not measured), the cell
+    heights and standard errors, the per-cell random sigmas, the noise check and the reconstructor's log entry
+    (search range and warnings)."""
+
+    status: str = "ok"
+    reason: str = ""
+    valid_fraction: float = float("nan")
+    heights: np.ndarray | None = None
+    se: np.ndarray | None = None
+    sigma: np.ndarray | None = None
+    sigma_se: np.ndarray | None = None
+    check: dict | None = None
+    log: dict | None = None
+
+    ARRAYS = ("heights", "se", "sigma", "sigma_se")
+
+    def to_store(self, key: str) -> tuple[dict, dict]:
+        arrays = {k: getattr(self, k) for k in self.ARRAYS if getattr(self, k) is not None}
+        meta = {"key": key, "status": self.status, "reason": self.reason, "valid_fraction": self.valid_fraction,
+                "check": self.check, "log": self.log}
+        return arrays, meta
+
+    @classmethod
+    def from_store(cls, arrays: dict, meta: dict) -> "FrameOutcome":
+        return cls(meta["status"], meta["reason"], meta["valid_fraction"], check=meta["check"], log=meta["log"],
+                   **{k: arrays.get(k) for k in cls.ARRAYS})
+
+
+def measure_frame(frame: Frame, reconstruct, ref: _Reference, config: RecessionConfig) -> FrameOutcome:
+    """The task of one frame after the reference: reconstruct it and measure it on the reference's grid."""
+    return _measure(frame, reconstruct, config, ref)[0]
+
+
+def _measure(frame: Frame, reconstruct, config: RecessionConfig, ref: _Reference | None = None):
+    """(outcome, reference): without `ref` the frame is tried as the reference (its own grid, checked)."""
+    out = FrameOutcome()
+    try:
+        points, sigma_vectors, check = _points_and_sigmas(reconstruct(frame))
+        out.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
+        current = ref if ref is not None else _Reference(points, config)
+        heights, se, _ = _frame_heights(points, current, config)
+        if ref is None:
+            _check_reference(heights, config)
+    except DstereoError as exc:
+        out.status, out.reason, current = "skipped", str(exc), None
+    else:
+        out.heights, out.se, out.check = heights, se, check
+        if sigma_vectors is not None:
+            out.sigma, out.sigma_se = _cell_random_sigma(points, sigma_vectors, current, config)
+    out.log = getattr(reconstruct, "log", {}).get(frame.key)
+    return out, current
+
+
 def run_recession(frames: list[Frame], calib, config: RecessionConfig = RecessionConfig(), recon_config=None,
-                  progress=None, reconstruct=None) -> RecessionResult:
+                  progress=None, reconstruct=None, runner=None, store=None) -> RecessionResult:
     """Reconstruct every frame with `calib` (a StereoCalibration) and measure the recession (module docstring).
 
+    The reference (the first frame that gives a surface) is found here, frame after frame; it fixes the grid
+    and the disparity search range, and the frames after it are independent tasks on `runner`
+    (`dstereo.frames.FrameRunner`; default: one after another in this process). `store`
+    (`dstereo.frames.PartialStore`): each finished frame is saved at once and frames already there are reused.
     `progress(stage, done, total)` is called once per frame. `reconstruct(frame) -> points (h, w, 3)` replaces
     the image reading and stereo matching (tests, other matchers); it raises DstereoError for a failed frame.
     """
+    from functools import partial
+
+    from dstereo.frames import FrameRunner
     from dstereo.reconstruction import ReconstructionConfig
 
     recon_config = recon_config or ReconstructionConfig()
     report = progress or (lambda stage, done, total: None)
     reconstruct = reconstruct or _reconstructor(calib, recon_config, config.refine_subpixel)
+    runner = runner or FrameRunner(workers=1)
     results = [FrameResult(i, f.key.strip("_-. ") or f.left.stem, f.time_s) for i, f in enumerate(frames)]
-    ref, ref_index, maps, ses, sigmas, checks = None, -1, {}, {}, {}, {}
+    outcomes: dict[int, FrameOutcome] = {}
+    ref, ref_index = None, -1
     report("frames", 0, len(frames))
-    for i, frame in enumerate(frames):
-        res = results[i]
-        try:
-            points, sigma_vectors, check = _points_and_sigmas(reconstruct(frame))
-            res.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
-            current = ref if ref is not None else _Reference(points, config)
-            heights, se, _ = _frame_heights(points, current, config)
-            if ref is None:
-                _check_reference(heights, config)
-                ref, ref_index = current, i
-        except DstereoError as exc:
-            res.status, res.reason = "skipped", str(exc)
-            report("frames", i + 1, len(frames))
-            continue
-        maps[i], ses[i] = heights, se
-        if sigma_vectors is not None:
-            sigmas[i] = _cell_random_sigma(points, sigma_vectors, current, config)
-        if check is not None:
-            checks[i] = check
+    for i, frame in enumerate(frames):  # in order: the first frame that gives a surface is the reference
+        outcomes[i], ref = _measure(frame, reconstruct, config)
         report("frames", i + 1, len(frames))
+        if ref is not None:
+            ref_index = i
+            break
     if ref is None:
         raise DstereoError("no frame of the sequence gave a surface to measure from; first failure: "
-                           f"{results[0].reason}")
+                           f"{outcomes[0].reason}")
+    todo = []
+    for i in range(ref_index + 1, len(frames)):
+        stored = store.load(f"{i:06d}") if store is not None else None
+        if stored is not None and stored[1].get("key") == frames[i].key and stored[1]["status"] != "failed":
+            outcomes[i] = FrameOutcome.from_store(*stored)
+        else:
+            todo.append((i, frames[i]))
+
+    def finished(task):
+        if task.failed:
+            outcomes[task.index] = FrameOutcome("failed", task.failed)
+            return
+        outcomes[task.index] = task.value
+        if store is not None:
+            store.save(f"{task.index:06d}", *task.value.to_store(frames[task.index].key))
+
+    done = len(frames) - len(todo)
+    report("frames", done, len(frames))
+    runner.map(partial(measure_frame, reconstruct=reconstruct, ref=ref, config=config), todo, finished, progress,
+               "frames", done, len(frames))
+    return _collect(results, outcomes, ref, ref_index, config)
+
+
+def _collect(results, outcomes: dict, ref: _Reference, ref_index: int, config) -> RecessionResult:
+    """The per-frame outcomes (in frame order, wherever they ran) into the result: maps, fits, warnings."""
+    maps, ses, sigmas, checks, log = {}, {}, {}, {}, {}
+    for i, res in enumerate(results):
+        o = outcomes[i]
+        res.status, res.reason, res.valid_fraction = o.status, o.reason, o.valid_fraction
+        if o.log is not None:
+            log[i] = o.log
+        if not res.ok:
+            continue
+        maps[i], ses[i] = o.heights, o.se
+        if o.sigma is not None:
+            sigmas[i] = (o.sigma, o.sigma_se)
+        if o.check is not None:
+            checks[i] = o.check
+    failed = [r for r in results if r.status == "failed"]
     out = _assemble(results, ref, ref_index, maps, ses, config)
+    if failed:
+        out.warnings.append(f"{len(failed)} frame(s) failed (their worker process died): "
+                            + ", ".join(r.name for r in failed[:10]) + "; they are left out of every fit and "
+                            "map; rerun with --resume to measure them")
     out.noise_checks = checks
     off = {results[i].name: c["ratio"] for i, c in checks.items()
            if c.get("ratio") is not None and not 0.67 <= c["ratio"] <= 1.5}
@@ -241,9 +349,7 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
         for i, (m, se) in sigmas.items():
             out.random_sigma[i] = np.where(np.isfinite(out.heights[i]), m, np.nan)
             out.random_se[i] = np.where(np.isfinite(out.heights[i]), se, np.nan)
-    log = getattr(reconstruct, "log", {})
-    log = {i: log[f.key] for i, f in enumerate(frames) if f.key in log}
-    out.search_ranges = {i: entry["search_range"] for i, entry in log.items()}
+    out.search_ranges = {i: entry["search_range"] for i, entry in sorted(log.items())}
     out.warnings += [w for i in sorted(log) for w in log[i]["warnings"]]
     return out
 
@@ -311,38 +417,43 @@ def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: in
 
 
 def _reconstructor(calib, recon_config, refine: bool):
-    from dataclasses import replace
+    return FrameReconstructor(calib, recon_config, refine)
 
-    from dstereo.reconstruction import read_image, reconstruct_calibrated
 
-    # The points and their random (disparity-noise) sigmas: the calibration's share is common to all frames and
-    # cancels in a recession, so its propagation is skipped.
-    recon_config = replace(recon_config, refine=refine, uncertainty=False)
+class FrameReconstructor:
+    """frame -> (points, per-point random sigma vectors, noise check): the images read and matched with
+    `calib`. An object (not a closure) so that it travels to Dask workers. `log`: frame key -> the search range
+    and warnings of every frame that matched here. After the first frame that matched, `config` holds that
+    frame's search range, and every later frame is matched over it (the same matcher for the whole sequence,
+    and no sparse matching per frame); it is still widened where a frame runs off it."""
 
-    def run(frame: Frame):
+    def __init__(self, calib, recon_config, refine: bool):
+        from dataclasses import replace
+
+        # The points and their random (disparity-noise) sigmas: the calibration's share is common to all frames
+        # and cancels in a recession, so its propagation is skipped.
+        self.calib, self.config, self.log = calib, replace(recon_config, refine=refine, uncertainty=False), {}
+
+    def __call__(self, frame: Frame):
+        from dataclasses import replace
+
         from dstereo.disparity_noise import point_sigma_vectors
-        from dstereo.reconstruction import disparity_sigma_hook
+        from dstereo.reconstruction import disparity_sigma_hook, read_image, reconstruct_calibrated
 
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            r = reconstruct_calibrated(calib, left, right, run.config, name=str(frame.left))
-            sigma_d, _ = disparity_sigma_hook(r, run.config, originals=(left, right))
+            r = reconstruct_calibrated(self.calib, left, right, self.config, name=str(frame.left))
+            sigma_d, _ = disparity_sigma_hook(r, self.config, originals=(left, right))
             vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
             raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
         search = r.summary["search_range"]
-        run.log[frame.key] = {"search_range": search, "warnings": r.warnings}
-        if not search["user"] and run.config.search_range is None:
-            # Every later frame is matched over the first frame's range (the same matcher for the whole sequence,
-            # and no sparse matching per frame); it is still widened where a frame runs off it.
-            run.config = replace(run.config, search_range=(search["min_disparity"], search["num_disparities"]))
+        self.log[frame.key] = {"search_range": search, "warnings": r.warnings}
+        if not search["user"] and self.config.search_range is None:
+            self.config = replace(self.config, search_range=(search["min_disparity"], search["num_disparities"]))
         return r.points, vectors, r.summary["disparity_noise"]["plane_check"]
-
-    run.log = {}  # frame key -> the search range and warnings of every frame that matched
-    run.config = recon_config
-    return run
 
 
 def _assemble(results, ref: _Reference, ref_index: int, maps: dict, ses: dict, config) -> RecessionResult:

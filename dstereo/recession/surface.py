@@ -11,12 +11,14 @@ points and keep the points within k robust sigma of a quadric h(u, v) in that pl
 face found so far (a domed face is not trimmed at its top or rim; a side wall does not widen the tolerance that
 is to reject it), that form the largest connected region of grid cells in (u, v) (background and stray matches
 apart from the face are cut off). After FREE_PASSES passes a dropped point stays dropped (points at the threshold
-could otherwise make the fit cycle). The plane's normal is the axis; `axis_sigma_deg` combines the quadric fit's
-slope noise with the angle between the axis and the quadric's normal at the face centre (a lower bound: it does
-not see a bias the matching shares over the face). The stagnation point is the centre of the face: the centroid
-of the face's grid cells, moved onto the quadric. This assumes the face is seen whole and the axis is roughly
-normal to the face's outline (true for the flat and the domed samples of the thesis, also turned 10-15 deg off
-the rig axis with the side wall in view); give the axis and the point otherwise.
+could otherwise make the fit cycle). The plane's normal is the axis; `axis_sigma_deg` is the RMS angle error it
+expects, the quadrature sum of `axis_sigma_parts`: noise by a block jackknife (neighbouring points'
+errors are correlated), the apex's consistency, the axis's dependence on the face's support, and a matching bias
+of one pixel's footprint across the face (the largest part; measured against rendered truth in
+experiments/results/range_axis_sigma.md: z = error / sigma 0.1-1.0 over 18 cases). The stagnation point is
+the centre of the face: the centroid of the face's grid cells, moved onto the quadric. This assumes the face is
+seen whole and the axis is roughly normal to the face's outline (true for the flat and the domed samples of the
+thesis, also turned 10-15 deg off the rig axis with the side wall in view); give the axis and the point otherwise.
 """
 
 from __future__ import annotations
@@ -37,8 +39,9 @@ class SampleFrame:
     point: np.ndarray
     axes: np.ndarray
     source: str = "auto"
-    axis_sigma_deg: float | None = None  # auto axis: noise and apex consistency only, a lower bound (as_dict)
+    axis_sigma_deg: float | None = None  # auto axis: RMS angle error it expects (`axis_sigma_parts`, as_dict)
     passes: int | None = None  # plane fits the auto axis took to settle
+    axis_sigma_parts: dict | None = None  # its parts (deg), combined in quadrature
 
     @property
     def axis(self) -> np.ndarray:
@@ -55,9 +58,11 @@ class SampleFrame:
         return {"stagnation_point_mm": self.point.tolist(), "axis": self.axis.tolist(), "e1": self.axes[0].tolist(),
                 "e2": self.axes[1].tolist(), "source": self.source,
                 "axis_sigma_deg": self.axis_sigma_deg, "axis_passes": self.passes,
-                "axis_sigma_note": "auto axis: the plane fit's noise and its disagreement with the quadric's normal at "
-                                   "the face centre; a lower bound (on renders turned 12 deg the axis was off by "
-                                   "0.15 deg at 640x480 and 0.2-0.3 deg at 320x240 with sigmas of 0.01-0.06 deg)",
+                "axis_sigma_parts_deg": self.axis_sigma_parts,
+                "axis_sigma_note": "auto axis: expected RMS angle error, quadrature sum of its parts (noise by block "
+                                   "jackknife, apex consistency, dependence on the face's support, one pixel's "
+                                   "footprint of depth bias across the face); checked against rendered truth: error "
+                                   "/ sigma 0.1-1.0 over 18 renders",
                 "frame": "left camera (x right, y down, z forward), mm; axis points away from the cameras"}
 
 
@@ -136,13 +141,74 @@ def face_points(uvh: np.ndarray, grid_mm: float, k: float = 4.0,
     return largest_region(uvh[:, :2], keep, grid_mm), coef
 
 
-def _slope_sigma_deg(uvh: np.ndarray, coef: np.ndarray) -> float:
-    """Standard deviation (deg) of the face normal from the quadric fit: its slopes' covariance at the origin."""
-    a = _quadric_design(uvh[:, 0], uvh[:, 1])
-    res = uvh[:, 2] - a @ coef
-    sigma2 = float(res @ res) / max(len(res) - 6, 1)
-    cov = sigma2 * np.linalg.pinv(a.T @ a)
-    return float(np.degrees(np.sqrt(cov[1, 1] + cov[2, 2])))
+JACKKNIFE_BLOCKS = 6  # blocks across the face's larger extent (~28 over a round face)
+SUPPORT_SHARES = (0.95, 0.9, 0.8)  # inner shares of the face (by distance from its centre) refitted
+
+
+def block_jackknife_axis_deg(uvh: np.ndarray, blocks: int = JACKKNIFE_BLOCKS) -> float:
+    """RMS angle error (deg) of the face's tilt from its noise: a delete-one-block jackknife of the quadric's
+    slope at the origin, the face cut into square blocks in (u, v), `blocks` across its larger extent.
+    Neighbouring points share SGBM's window and the refinement's kernel, so their errors are correlated: a
+    per-point covariance or bootstrap counts them as independent and understates the spread (tenfold
+    on a synthetic face with noise correlated over ~1 mm, tests/test_recession_axis.py); blocks many matching
+    windows wide are close to independent. The quadric, not the plane, is refitted: without a block a plane
+    through a domed face tilts with the dome's slope, which is not an error; on a face symmetric about the origin
+    the quadric's slope and the plane's coincide. Measured on that synthetic face: error / this sigma has an RMS
+    of 1.2-1.4 over 12 draws (blocks still share errors at their edges), hence few, large blocks."""
+    uv = uvh[:, :2]
+    size = max(float((uv.max(axis=0) - uv.min(axis=0)).max()) / blocks, 1e-9)
+    ids = np.unique(np.floor((uv - uv.min(axis=0)) / size).astype(np.int64), axis=0, return_inverse=True)[1]
+    ids = ids.ravel()
+    nb = int(ids.max()) + 1
+    if nb < 4:
+        return float("nan")
+    a = _quadric_design(uv[:, 0], uv[:, 1])
+    ata = np.zeros((nb, 6, 6))
+    np.add.at(ata, ids, a[:, :, None] * a[:, None, :])
+    ath = np.zeros((nb, 6))
+    np.add.at(ath, ids, a * uvh[:, 2:3])
+    without = np.linalg.solve(ata.sum(axis=0)[None] - ata, (ath.sum(axis=0)[None] - ath)[..., None])[..., 0]
+    slopes = without[:, 1:3]
+    spread = slopes - slopes.mean(axis=0)
+    return float(np.degrees(np.sqrt((nb - 1) / nb * np.sum(spread**2))))
+
+
+def support_axis_deg(face: np.ndarray, frame: "SampleFrame", centre_uv) -> float:
+    """RMS angle (deg) between the axis and the plane normals of the face's inner SUPPORT_SHARES (points
+    nearest the face centre): how much the axis depends on which part of the face is kept (the rim's matches,
+    the face's trimmed edge, a dome seen unevenly)."""
+    uv = frame.coordinates(face)[:, :2] - np.asarray(centre_uv)
+    r = np.hypot(uv[:, 0], uv[:, 1])
+    angles = []
+    for share in SUPPORT_SHARES:
+        inner = _plane_frame(face[r <= np.quantile(r, share)])
+        angles.append(np.degrees(np.arccos(min(1.0, abs(float(inner.axis @ frame.axis))))))
+    return float(np.sqrt(np.mean(np.square(angles))))
+
+
+def footprint_axis_deg(n_points: int, area_mm2: float) -> float:
+    """The tilt (deg) of a depth bias that differs by one pixel's footprint (sqrt(area / points) mm) across the
+    face's diameter. Not seen by any resampling: it is the matching's systematic share. Measured on renders of
+    a domed sample turned 12 deg (experiments/results/range_axis_sigma.md): axis errors of 0.11-0.13 deg at
+    640x480 (footprint 0.13 mm) and 0.20-0.28 deg at 320x240 (0.25 mm), 0.8-1.0 such footprints over the face,
+    the same on every noise seed; the resampled noise was 0.005-0.016 deg."""
+    footprint = np.sqrt(area_mm2 / max(n_points, 1))
+    diameter = 2.0 * np.sqrt(area_mm2 / np.pi)
+    return float(np.degrees(np.arctan(footprint / max(diameter, 1e-9))))
+
+
+def axis_sigma_parts(face: np.ndarray, frame: "SampleFrame", coef: np.ndarray, centre_uv, area_mm2: float) -> dict:
+    """The auto axis's expected RMS angle error (deg) in parts, combined in quadrature by `fit_face`:
+    `noise` (block jackknife), `apex` (the angle between the plane's normal and the quadric's
+    normal at the face centre: the apex of a symmetric face lies on the axis, so they differ when the face is
+    seen unevenly), `support` (refits on the inner face) and `matching_bias` (one pixel footprint of depth bias
+    across the face)."""
+    u0, v0 = centre_uv
+    slope = np.array([coef[1] + 2 * coef[3] * u0 + coef[4] * v0, coef[2] + coef[4] * u0 + 2 * coef[5] * v0])
+    return {"noise": block_jackknife_axis_deg(frame.coordinates(face)),
+            "apex": float(np.degrees(np.arctan(np.linalg.norm(slope)))),
+            "support": support_axis_deg(face, frame, centre_uv),
+            "matching_bias": footprint_axis_deg(len(face), area_mm2)}
 
 
 def _ransac_start(p: np.ndarray, grid_mm: float, tries: int = 256, seed: int = 0) -> np.ndarray:
@@ -220,12 +286,10 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
     u0, v0 = cells.mean(axis=0)
     h0 = float((_quadric_design(np.array([u0]), np.array([v0])) @ coef)[0])
     centre = frame.to_camera(np.array([u0, v0, h0]))
-    # The quadric's normal at the face centre is a second estimate of the axis (the apex of a symmetric face
-    # lies on it); their disagreement bounds what the noise figure cannot see (a face seen unevenly).
-    slope = np.array([coef[1] + 2 * coef[3] * u0 + coef[4] * v0, coef[2] + coef[4] * u0 + 2 * coef[5] * v0])
-    sigma = float(np.hypot(_slope_sigma_deg(uvh, coef), np.degrees(np.arctan(np.linalg.norm(slope)))))
+    parts = axis_sigma_parts(p[new_keep], frame, coef, (u0, v0), len(cells) * grid_mm**2)
+    sigma = float(np.sqrt(sum(v * v for v in parts.values())))
     sample = SampleFrame(centre, frame.axes, f"auto: robust plane fit of the first frame's face ({passes} fits, "
-                         f"settled to {AXIS_TOLERANCE_DEG} deg), face centre", sigma, passes)
+                         f"settled to {AXIS_TOLERANCE_DEG} deg), face centre", sigma, passes, parts)
     return FaceFit(sample, new_keep)
 
 

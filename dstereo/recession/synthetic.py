@@ -39,14 +39,35 @@ def sample_truth(rig, sample, T_world_sample) -> dict:
     return {"axis": (-m[:3, 2]).tolist(), "stagnation_point_mm": p.tolist()}
 
 
+def converging_rig(image_size: tuple[int, int], focal_px: tuple[float, float], baseline_mm: float = 100.0,
+                   distance_mm: float = 600.0):
+    """The reduced Plasmatron rig (`synth.rig.plasmatron_rig`: cameras aimed at (0, 0, distance), its lenses and
+    principal points) with different focal lengths left and right (fx; fy 0.05 % more), as in issue 14's case
+    (fx 4700 / 4900 px at 640 x 480): rectification then rescales one image, and the zero-disparity plane
+    sits near the aim distance, so the far side of a face has negative disparities."""
+    from dstereo.models.camera import Camera
+    from dstereo.synth import plasmatron_rig
+    from dstereo.synth.rig import StereoRig
+
+    base = plasmatron_rig(tuple(image_size), float(focal_px[0]), baseline_mm, distance_mm)
+    (w, h), (fl, fr) = image_size, focal_px
+    left = Camera.create(fl, fl * 1.0005, (w - 1) / 2 + 2.5, (h - 1) / 2 - 1.5, base.left.coeffs(),
+                         image_size=tuple(image_size))
+    right = Camera.create(fr, fr * 1.0005, (w - 1) / 2 - 3.0, (h - 1) / 2 + 2.0, base.right.coeffs(),
+                          image_size=tuple(image_size))
+    return StereoRig(left, right, base.T_right_left, base.T_left_world)
+
+
 def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.0, total_mm: float = 2.0,
                              peak_share: float = 0.6, sigma_mm: float = 8.0, image_size: tuple[int, int] = (640, 480),
                              seed: int = 0, flat: bool = False, options=None, force: bool = False,
-                             yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> dict:
+                             yaw_deg: float = 0.0, pitch_deg: float = 0.0,
+                             focal_px: tuple[float, float] | None = None) -> dict:
     """Render and write a sequence (module docstring); returns the truth. `image_size` scales the reduced rig
     (the focal length with it, so the field of view is kept); `flat` renders a flat front face instead of the
     domed one; `options` are the RenderOptions (default `synth.scenes.OBJECT_OPTIONS`); `yaw_deg`/`pitch_deg` tilt the
-    sample's axis off the rig's (`synth.rig.sample_pose`): its side wall comes into view."""
+    sample's axis off the rig's (`synth.rig.sample_pose`): its side wall comes into view. `focal_px` (left, right):
+    the focal lengths of `converging_rig` instead (at this `image_size`, not scaled)."""
     from dstereo.synth import Sample, plasmatron_rig, recession_sequence, sample_pose
     from dstereo.synth.recession import profile_for_total
     from dstereo.synth.scenes import OBJECT_OPTIONS
@@ -55,7 +76,10 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
     if n_frames < 2:
         raise DstereoError(f"n_frames={n_frames}: a sequence needs at least 2 frames")
     folder = Path(folder)
-    rig = plasmatron_rig(tuple(image_size), 4800.0 * image_size[0] / 640.0)
+    if focal_px is None:
+        rig = plasmatron_rig(tuple(image_size), 4800.0 * image_size[0] / 640.0)
+    else:
+        rig = converging_rig(tuple(image_size), focal_px)
     sample = Sample.flat() if flat else Sample()
     profile = profile_for_total(total_mm, duration_s, peak_share, sigma_mm)
     pose = sample_pose(sample.length, yaw_deg=yaw_deg, pitch_deg=pitch_deg)
@@ -68,6 +92,7 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
              "profile": profile.to_truth(), "rate_stagnation_mm_s": profile.uniform_rate + profile.peak_rate,
              "sample": sample.truth(), "image_size": list(image_size), "seed": seed,
              "yaw_deg": yaw_deg, "pitch_deg": pitch_deg,
+             "focal_px": [float(np.asarray(rig.left.matrix())[0, 0]), float(np.asarray(rig.right.matrix())[0, 0])],
              **sample_truth(rig, sample, pose)}
     (folder / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth

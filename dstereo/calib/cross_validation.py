@@ -1,0 +1,328 @@
+"""Cross-validation of a camera calibration's uncertainty: disjoint halves of the views, calibrated separately.
+
+If the uncertainty is honest, two calibrations from disjoint halves differ by about what their covariances
+predict. For a grid of pixels q, the point at `range` along q's ray of half A is moved by the rigid transform
+that best maps half A's camera onto half B's (a camera-frame difference between two calibrations is only defined
+up to that transform: the boards fix the world, not the camera; at a finite range fit rotation AND translation,
+as mrcal does, since the boards' distance absorbs a focal difference) and projected by B:
+e(q) = project_B(T_BA p_A(q)) - q, with T_BA the least-squares fit over the grid.
+
+Prediction, first order: e = P (F_A dA + F_B dB), F_X = d e / d theta_X (intrinsics), P the projection that
+removes what the transform fit absorbs (I - J_T (J_T' J_T)^-1 J_T'), dA and dB independent with the halves'
+marginal intrinsics covariances. Per pixel the 2 x 2 block of that covariance gives the Mahalanobis distance
+sqrt(e' C^-1 e), which is sqrt(chi^2_2) if the prediction is right: median sqrt(2 ln 2) = 1.18. The ratio
+observed / predicted is sqrt(mean |e|^2 / mean trace C) (1 if right). One split is a noisy statistic (a few
+dominant directions): `cross_validate` repeats it over random splits and pools them (geometric mean of the
+ratios, median of all Mahalanobis distances). The pose-compensated projection maps of the two halves give a
+second prediction, sqrt(sigma_A^2 + sigma_B^2) per pixel (`ratio_vs_maps`), which checks those maps directly.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dstereo.calib.mono import _run
+from dstereo.calib.uncertainty import covariance, joint_covariance
+from dstereo.errors import DstereoError
+from dstereo.models.camera import project
+from dstereo.models.distortion import COEFF_NAMES
+from dstereo.models.pose import rodrigues
+from dstereo.point_jacobians import newton_step
+from dstereo.projection_uncertainty import (CAMERA_NAMES, _invertible, _undistorted, mean_board_distance,
+                                            projection_uncertainty_map)
+from dstereo.solver.lm import LMOptions
+
+# The band the issue asks for, and the Mahalanobis median of a right prediction (median of sqrt(chi^2_2)).
+RATIO_BAND = (0.67, 1.5)
+MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))
+MAHALANOBIS_MAX = 1.8
+COVERED_PX = 30.0  # a grid pixel this close to an observed corner is inside the calibrated field
+MIN_HALF_VIEWS = 4  # fewer views than this per half do not constrain a camera with distortion
+
+
+@dataclass
+class HalfSolution:
+    """One half's solve: intrinsics (`CAMERA_NAMES` order, 12), its free-parameter values, marginal and joint
+    covariances, its views' poses, convergence."""
+
+    params: np.ndarray
+    values: np.ndarray
+    cov: np.ndarray
+    joint: np.ndarray
+    poses: np.ndarray
+    converged: bool
+    rms: float
+
+
+def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOptions()) -> list[HalfSolution]:
+    """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
+    `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
+    (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
+    from dstereo.calib.mono import chunk_rows
+
+    obj, obs = np.asarray(obj, float), np.asarray(obs, float)
+    n_views, n_pts = obs.shape[-3:-1]
+    rows = chunk_rows(n_views, n_pts)
+    shared = (obj, np.zeros(8))
+    free_idx = [CAMERA_NAMES.index(n) for n in full.names]
+    out = []
+    for c in range(0, len(weights), rows):
+        w = np.asarray(weights[c: c + rows], float)
+        k = len(w)
+        res = _run(full.free, options, np.repeat(full.values[None], k, 0), np.repeat(full.poses[None], k, 0),
+                   obs[c: c + k] if obs.ndim == 4 else np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared)
+        for i in range(k):
+            m = int(np.count_nonzero(w[i]))
+            g = len(full.values)
+            sse, n_res = float(res.sse[i]), 2 * m * n_pts
+            params = np.zeros(12)
+            params[free_idx] = res.g[i]
+            out.append(HalfSolution(
+                params=params, values=np.asarray(res.g[i]),
+                cov=covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m),
+                joint=joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i]),
+                poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
+                rms=float(np.sqrt(sse / (m * n_pts)))))
+    return out
+
+
+def _ray_point(params, q, range_):
+    k, c = params[:4], params[4:]
+    x_conv = jax.lax.stop_gradient(_undistorted(k, c, q))
+    x = newton_step(k, c, q, x_conv)  # exact at the root; derivative is the implicit-function one
+    ray = jnp.append(x, 1.0)
+    return range_ * ray / jnp.linalg.norm(ray), _invertible(k, c, q, x_conv)
+
+
+def _diff(params_a, params_b, transform, q, range_):
+    """e(q) (N, 2) for all grid pixels q (N, 2)."""
+    p_a = jax.vmap(lambda qq: _ray_point(params_a, qq, range_)[0])(q)
+    p_b = p_a @ rodrigues(transform[:3]).T + transform[3:]
+    return jax.vmap(lambda p: project(params_b[:4], params_b[4:], p))(p_b) - q
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(index: tuple[int, ...]):
+    idx = np.array(index)
+
+    def fit_and_linearise(params_a, params_b, q, range_, weight):
+        ok = jax.vmap(lambda qq: _ray_point(params_a, qq, range_)[1])(q) & \
+            jax.vmap(lambda qq: _ray_point(params_b, qq, range_)[1])(q) & (weight > 0)
+        w = jnp.repeat(ok.astype(float), 2)
+
+        def gn(_, t):  # Gauss-Newton on the 6 transform parameters (a small, smooth problem; 10 steps converge)
+            r = _diff(params_a, params_b, t, q, range_).ravel() * w
+            jt = jax.jacfwd(lambda tt: _diff(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
+            return t - jnp.linalg.solve(jt.T @ jt + 1e-12 * jnp.eye(6), jt.T @ r)
+
+        t = jax.lax.fori_loop(0, 10, gn, jnp.zeros(6))
+        e = _diff(params_a, params_b, t, q, range_)
+        jt = jax.jacfwd(lambda tt: _diff(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
+        fa = jax.jacfwd(lambda th: _diff(params_a.at[idx].set(th), params_b, t, q, range_).ravel())(params_a[idx])
+        fb = jax.jacfwd(lambda th: _diff(params_a, params_b.at[idx].set(th), t, q, range_).ravel())(params_b[idx])
+        proj = jnp.eye(len(w)) - jt @ jnp.linalg.pinv(jt.T @ jt) @ jt.T
+        return e, ok, proj @ (fa * w[:, None]), proj @ (fb * w[:, None]), t
+
+    return jax.jit(fit_and_linearise)
+
+
+@dataclass
+class SplitResult:
+    diff: np.ndarray  # (gh, gw, 2) px, NaN where masked
+    cov: np.ndarray  # (gh, gw, 2, 2) px^2 predicted
+    mahalanobis: np.ndarray  # (gh, gw)
+    ratio: float  # sqrt(mean |e|^2 / mean trace C)
+    ratio_vs_maps: float  # sqrt(mean |e|^2 / mean (trace C_A + trace C_B)) of the pose-compensated maps
+    transform: np.ndarray  # (6,) rvec, t of T_BA
+    covered: np.ndarray | None = None  # (gh, gw) grid pixels within COVERED_PX of an observed corner
+
+
+def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
+                   grid: tuple[int, int] = (16, 12), corners: np.ndarray | None = None) -> SplitResult:
+    index = tuple(CAMERA_NAMES.index(n) for n in names)
+    w, h = image_size
+    u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
+    q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+    e, ok, pa, pb, t = (np.array(x) for x in _compiled(index)(
+        jnp.asarray(a.params), jnp.asarray(b.params), jnp.asarray(q), float(range_), jnp.ones(len(q))))
+    c = pa @ a.cov @ pa.T + pb @ b.cov @ pb.T
+    n = len(q)
+    blocks = np.stack([c[2 * i: 2 * i + 2, 2 * i: 2 * i + 2] for i in range(n)])
+    ok = ok & np.all(np.isfinite(e), axis=1)
+    maha = np.full(n, np.nan)
+    for i in np.flatnonzero(ok):
+        maha[i] = float(np.sqrt(max(e[i] @ np.linalg.pinv(blocks[i], hermitian=True) @ e[i], 0.0)))
+    if not ok.any():
+        raise DstereoError("cross-validation: no pixel of the grid can be unprojected by both halves' cameras")
+    e2 = float(np.mean(np.sum(e[ok] ** 2, axis=1)))
+    ratio = float(np.sqrt(e2 / np.mean(np.trace(blocks[ok], axis1=1, axis2=2))))
+    maps = [projection_uncertainty_map(s.params[:4], s.params[4:], names, s.joint, image_size, range_, grid,
+                                       poses=s.poses) for s in (a, b)]
+    tr = sum(np.trace(m.cov.reshape(-1, 2, 2), axis1=1, axis2=2) for m in maps)
+    good = ok & np.isfinite(tr)
+    ratio_maps = float(np.sqrt(np.mean(np.sum(e[good] ** 2, axis=1)) / np.mean(tr[good]))) if good.any() else np.nan
+    e[~ok] = np.nan
+    blocks[~ok] = np.nan
+    covered = None
+    if corners is not None:
+        near = np.array([np.min(np.sum((np.asarray(corners) - p) ** 2, axis=1)) for p in q])
+        covered = (near < COVERED_PX ** 2).reshape(grid[1], grid[0])
+    return SplitResult(e.reshape(grid[1], grid[0], 2), blocks.reshape(grid[1], grid[0], 2, 2),
+                       maha.reshape(grid[1], grid[0]), ratio, ratio_maps, t, covered)
+
+
+@dataclass
+class CrossValidation:
+    splits: list[SplitResult]
+    range_: float
+    halves: list[tuple[list[int], list[int]]]
+    u: np.ndarray
+    v: np.ndarray
+
+    @property
+    def ratio(self) -> float:  # geometric mean over splits
+        return float(np.exp(np.mean(np.log([s.ratio for s in self.splits]))))
+
+    @property
+    def ratio_pooled(self) -> float:
+        """sqrt(mean |e|^2 / mean trace C) over all splits' pixels: unbiased in the squares, where the geometric
+        mean of per-split ratios of a few dominant modes sits below 1 even when the prediction is right."""
+        e2 = np.concatenate([np.sum(s.diff ** 2, axis=-1).ravel() for s in self.splits])
+        tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1).ravel() for s in self.splits])
+        ok = np.isfinite(e2) & np.isfinite(tr)
+        return float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok])))
+
+    def covered_figures(self) -> dict | None:
+        """Pooled ratio and median Mahalanobis over the grid pixels inside the corners' field only (where the
+        calibration has data; outside it the model is extrapolated and first order may fail)."""
+        if self.splits[0].covered is None or not self.splits[0].covered.any():
+            return None
+        c = self.splits[0].covered
+        e2 = np.concatenate([np.sum(s.diff ** 2, axis=-1)[c] for s in self.splits])
+        tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1)[c] for s in self.splits])
+        ok = np.isfinite(e2) & np.isfinite(tr)
+        return {"pixels": int(c.sum()), "ratio_pooled_rms": float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok]))),
+                "mahalanobis_median": float(np.nanmedian(np.concatenate([s.mahalanobis[c] for s in self.splits])))}
+
+    @property
+    def ratio_vs_maps(self) -> float:
+        return float(np.exp(np.nanmean(np.log([s.ratio_vs_maps for s in self.splits]))))
+
+    @property
+    def mahalanobis_median(self) -> float:
+        return float(np.nanmedian(np.concatenate([s.mahalanobis.ravel() for s in self.splits])))
+
+    @property
+    def trusted(self) -> bool:
+        return RATIO_BAND[0] <= self.ratio <= RATIO_BAND[1] and self.mahalanobis_median <= MAHALANOBIS_MAX
+
+    def verdict(self) -> str:
+        head = (f"cross-validation over {len(self.splits)} random half splits: observed/predicted difference "
+                f"{self.ratio:.2f} (geometric mean; band {RATIO_BAND[0]}-{RATIO_BAND[1]}), median Mahalanobis "
+                f"{self.mahalanobis_median:.2f} (1.18 if right, limit {MAHALANOBIS_MAX})")
+        if self.trusted:
+            return head + ": the uncertainty can be trusted"
+        side = "optimistic (errors larger than predicted)" if self.ratio > 1 else "pessimistic"
+        return (head + f": the uncertainty can NOT be trusted, it is {side}; likely causes: outlier corners, a "
+                "non-flat board, a distortion model that does not fit the lens, or too few views per half")
+
+    def summary(self) -> dict:
+        return {"splits": len(self.splits), "range": self.range_, "ratio_geometric_mean": self.ratio,
+                "ratios": [s.ratio for s in self.splits], "ratio_pooled_rms": self.ratio_pooled,
+                "ratio_vs_pose_compensated_maps": self.ratio_vs_maps,
+                "mahalanobis_median": self.mahalanobis_median,
+                "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
+                "inside_corner_field": self.covered_figures(),
+                "trusted": self.trusted, "verdict": self.verdict(),
+                "halves": [[list(map(int, a)), list(map(int, b))] for a, b in self.halves]}
+
+
+def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, range_: float | None = None,
+                   grid: tuple[int, int] = (16, 12)) -> CrossValidation:
+    """`splits` random halvings of the views of the full-set solve `full`, each half calibrated from the
+    full-set start; see the module docstring."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(full.free)) == "fisheye":
+        raise DstereoError("--cross-validate: not available for the fisheye model yet; use it with the pinhole "
+                           "models (e.g. --model rational)")
+    n_views = len(obs)
+    if n_views < 2 * MIN_HALF_VIEWS:
+        raise DstereoError(f"--cross-validate: {n_views} views; two disjoint halves need at least "
+                           f"{2 * MIN_HALF_VIEWS} (add views or leave out --cross-validate)")
+    if splits < 1:
+        raise DstereoError(f"cross-validation splits {splits}: give at least 1 (4 or more to pool)")
+    rng = np.random.default_rng(seed)
+    halves, weights = [], []
+    for _ in range(splits):
+        perm = rng.permutation(n_views)
+        a, b = np.sort(perm[: n_views // 2]), np.sort(perm[n_views // 2:])
+        halves.append((a, b))
+        for part in (a, b):
+            w = np.zeros(n_views)
+            w[part] = 1.0
+            weights.append(w)
+    sols = solve_halves(full, obj, obs, np.array(weights))
+    bad = [i for i, s in enumerate(sols) if not s.converged]
+    if bad:
+        raise DstereoError(f"cross-validation: {len(bad)} half calibration(s) did not converge; the views do not "
+                           "constrain the model in halves (add views or use a simpler --model)")
+    if range_ is None:
+        range_ = mean_board_distance(full.poses, obj)
+    w, h = image_size
+    corners = np.asarray(obs, float).reshape(-1, 2)
+    results = [compare_halves(sols[2 * i], sols[2 * i + 1], full.names, image_size, range_, grid, corners)
+               for i in range(splits)]
+    return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
+                           np.linspace(0.0, h - 1.0, grid[1]))
+
+
+def write_cross_validation(folder, xval: CrossValidation, unit: str) -> dict:
+    """cross_validation.npz (per split: diff, predicted cov, Mahalanobis) and plots/cross_validation.png."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    np.savez(folder / "cross_validation.npz", u=xval.u, v=xval.v, range=xval.range_,
+             diff=np.stack([s.diff for s in xval.splits]), cov=np.stack([s.cov for s in xval.splits]),
+             mahalanobis=np.stack([s.mahalanobis for s in xval.splits]))
+    _plot(folder / "plots" / "cross_validation.png", xval, unit)
+    return {**xval.summary(), "unit": unit, "files": ["cross_validation.npz", "plots/cross_validation.png"]}
+
+
+def _plot(path, xval: CrossValidation, unit: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    s = xval.splits[0]
+    obs = np.sqrt(np.nanmedian(np.stack([np.sum(x.diff ** 2, axis=-1) for x in xval.splits]), axis=0))
+    pred = np.sqrt(np.nanmedian(np.stack([np.trace(x.cov, axis1=-2, axis2=-1) for x in xval.splits]), axis=0))
+    maha = np.nanmedian(np.stack([x.mahalanobis for x in xval.splits]), axis=0)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    ext = (xval.u[0], xval.u[-1], xval.v[-1], xval.v[0])
+    both = np.concatenate([obs[np.isfinite(obs)], pred[np.isfinite(pred)]])
+    # the 95th percentile, not the maximum: extrapolated image corners would flatten the rest into one colour
+    top = float(np.percentile(both, 95)) if both.size else 1.0
+    for ax, data, title, vmax in ((axes[0], obs, "observed |difference| (px), median over splits", top),
+                                  (axes[1], pred, "predicted rms difference (px)", top),
+                                  (axes[2], maha, "Mahalanobis distance (1.18 if right)", 4.0)):
+        cmap = matplotlib.colormaps["viridis"].with_extremes(over="tab:red", bad="0.6")
+        im = ax.imshow(np.ma.masked_invalid(data), extent=ext, vmin=0, vmax=vmax, cmap=cmap)
+        ax.set_title(title, fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.04, extend="max")
+    q = np.stack(np.meshgrid(xval.u, xval.v), axis=-1)
+    spacing = xval.u[1] - xval.u[0] if len(xval.u) > 1 else 1.0
+    axes[0].quiver(q[..., 0], q[..., 1], s.diff[..., 0], -s.diff[..., 1], color="w", scale_units="xy",
+                   scale=max(top, 1e-12) / (0.8 * spacing))  # the 95th-percentile length spans 0.8 grid steps
+    verdict = xval.verdict()
+    cut = verdict.find(": the uncertainty")
+    fig.suptitle(f"at {xval.range_:.4g} {unit} (arrows: split 1's difference); {verdict[:cut]}\n{verdict[cut + 2:]}",
+                 fontsize=8)
+    fig.savefig(path, bbox_inches="tight", dpi=80)
+    plt.close(fig)

@@ -1,0 +1,150 @@
+"""mrcal's `.cameramodel` file: write the models mrcal shares with dstereo, and read them back.
+
+The format (mrcal's doc/cameramodels.org) is the text of a Python dict, read with `ast.literal_eval`:
+`lensmodel` ('LENSMODEL_...'), `intrinsics` [fx, fy, cx, cy, distortion...], `rt_cam_ref` (6: the reference
+-> camera transform, Rodrigues r then t; mrcal < 2.5 calls it `extrinsics`, and both are written), `imagersize`
+[width, height]. mrcal's OpenCV models take OpenCV's coefficient order, so dstereo's 8 slots map directly:
+LENSMODEL_OPENCV4 = k1 k2 p1 p2, OPENCV5 adds k3, OPENCV8 adds k4 k5 k6; a camera with no free coefficient is
+LENSMODEL_PINHOLE. Pixel coordinates are OpenCV's in both (pixel (0, 0) is the centre of the top-left pixel).
+
+dstereo's fisheye model (Kannala-Brandt, cv2.fisheye) has no mrcal twin: mrcal's lens models are PINHOLE,
+STEREOGRAPHIC, LONLAT, LATLON, OPENCV4/5/8/12, CAHVOR, CAHVORE and SPLINED_STEREOGRAPHIC (mrcal master,
+mrcal-lensmodel-genericparams.h, read 2026-12), none of them Kannala-Brandt. No file is written for it:
+`lensmodel_for` says why, and the report carries that sentence.
+
+Numbers are written with repr (17 significant digits), so a file reads back bit for bit (mrcal writes 10).
+"""
+
+from __future__ import annotations
+
+import ast
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+
+# mrcal lens model -> how many of dstereo's 8 OpenCV-order coefficient slots it holds
+OPENCV_MODELS = {"LENSMODEL_PINHOLE": 0, "LENSMODEL_OPENCV4": 4, "LENSMODEL_OPENCV5": 5, "LENSMODEL_OPENCV8": 8}
+NO_TWIN = ("the fisheye model (Kannala-Brandt, cv2.fisheye) has no mrcal twin (mrcal's models: PINHOLE, "
+           "STEREOGRAPHIC, LONLAT, LATLON, OPENCV4/5/8/12, CAHVOR, CAHVORE, SPLINED_STEREOGRAPHIC): no "
+           "camera.cameramodel written")
+
+
+@dataclass(frozen=True)
+class CameraModelFile:
+    """One camera as a .cameramodel holds it."""
+
+    lensmodel: str
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy
+    coeffs: np.ndarray  # (8,) OpenCV order, zeros beyond what the lens model holds
+    image_size: tuple[int, int]  # (width, height)
+    rt_cam_ref: np.ndarray  # (6,) reference -> camera: Rodrigues vector, translation
+
+    @property
+    def free(self) -> tuple[str, ...]:
+        """dstereo's free coefficient names that this lens model holds (OpenCV order)."""
+        from dstereo.models.distortion import COEFF_NAMES
+
+        return COEFF_NAMES[:OPENCV_MODELS[self.lensmodel]]
+
+
+def lensmodel_for(free: Sequence[str]) -> tuple[str | None, str]:
+    """(mrcal lens model name or None, why): the smallest of mrcal's OpenCV models holding every free coefficient."""
+    from dstereo.models.distortion import lens_model
+
+    free = set(free)
+    if lens_model(tuple(free)) == "fisheye":
+        return None, NO_TWIN
+    for name, n in OPENCV_MODELS.items():
+        if free <= set(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")[:n]):
+            return name, f"{name}: the OpenCV model holding {', '.join(sorted(free)) or 'no distortion'}"
+    raise AssertionError("unreachable: OPENCV8 holds every OpenCV coefficient")
+
+
+def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref=np.zeros(6), note: str = "") -> str:
+    """The .cameramodel text of one camera (k (4,), coeffs (8,) OpenCV order, (width, height))."""
+    if lensmodel not in OPENCV_MODELS:
+        raise DstereoError(f"cameramodel: lens model {lensmodel!r} is not one dstereo writes; use one of "
+                           f"{list(OPENCV_MODELS)}")
+    coeffs8 = np.asarray(coeffs8, float)
+    n = OPENCV_MODELS[lensmodel]
+    if np.any(coeffs8[n:] != 0):
+        raise DstereoError(f"cameramodel: {lensmodel} holds {n} coefficients, but coefficients beyond them are "
+                           "non-zero; choose a larger lens model")
+    nums = lambda a: "[" + ", ".join(repr(float(x)) for x in a) + "]"  # noqa: E731
+    rt = np.asarray(rt_cam_ref, float)
+    lines = [f"# {line}" for line in note.splitlines()] + [
+        "{", f"    'lensmodel': '{lensmodel}',", "",
+        "    # intrinsics are fx,fy,cx,cy,distortion0,distortion1,.... (OpenCV's order)",
+        f"    'intrinsics': {nums(np.concatenate([np.asarray(intrinsics, float), coeffs8[:n]]))},", "",
+        f"    'rt_cam_ref': {nums(rt)},", f"    'extrinsics': {nums(rt)},  # for mrcal < 2.5", "",
+        f"    'imagersize': [{int(image_size[0])}, {int(image_size[1])}],", "}", ""]
+    return "\n".join(lines)
+
+
+def write_cameramodel(path: Path, free: Sequence[str], intrinsics, coeffs8, image_size,
+                      rt_cam_ref=np.zeros(6), note: str = "") -> str:
+    """Write `path` for a camera of free set `free`; returns what was done (the fisheye: nothing, and why)."""
+    lensmodel, why = lensmodel_for(free)
+    if lensmodel is None:
+        return why
+    Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note))
+    return f"{Path(path).name}: {why} (mrcal's .cameramodel)"
+
+
+def read_cameramodel(path: Path) -> CameraModelFile:
+    """Read a .cameramodel of one of mrcal's OpenCV models (or PINHOLE); a clear error for anything else."""
+    path = Path(path)
+    try:
+        data = ast.literal_eval(path.read_text())
+    except (OSError, ValueError, SyntaxError, MemoryError, RecursionError) as exc:
+        raise DstereoError(f"{path}: not a readable mrcal .cameramodel (a Python dict literal): "
+                           f"{type(exc).__name__}") from None
+    if not isinstance(data, dict):
+        raise DstereoError(f"{path}: a .cameramodel holds a dict {{'lensmodel': ..., 'intrinsics': ...}}")
+    missing = [k for k in ("lensmodel", "intrinsics", "imagersize") if k not in data]
+    if missing:
+        raise DstereoError(f"{path}: .cameramodel lacks {', '.join(missing)}")
+    model = str(data["lensmodel"])
+    if model not in OPENCV_MODELS:
+        raise DstereoError(f"{path}: lens model {model} has no dstereo twin; dstereo reads "
+                           f"{', '.join(OPENCV_MODELS)}")
+    n = OPENCV_MODELS[model]
+    values = _numbers(data["intrinsics"], 4 + n, f"{path}: intrinsics of {model}")
+    size = _numbers(data["imagersize"], 2, f"{path}: imagersize")
+    rt = _numbers(data.get("rt_cam_ref", data.get("extrinsics", [0.0] * 6)), 6, f"{path}: rt_cam_ref")
+    if not (np.all(size > 0) and np.all(size == np.round(size))):
+        raise DstereoError(f"{path}: imagersize {size.tolist()} must be two positive whole numbers")
+    coeffs = np.zeros(8)
+    coeffs[:n] = values[4:]
+    return CameraModelFile(model, values[:4], coeffs, (int(size[0]), int(size[1])), rt)
+
+
+def _numbers(value, n: int, where: str) -> np.ndarray:
+    try:
+        out = np.asarray(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise DstereoError(f"{where}: not a list of numbers") from None
+    if len(out) != n or not np.all(np.isfinite(out)):
+        raise DstereoError(f"{where}: expected {n} finite numbers, got {len(out)}")
+    return out
+
+
+def write_rig_cameramodels(folder: Path, cameras, R, T) -> list[str]:
+    """left.cameramodel and right.cameramodel of a stereo rig, the left camera as mrcal's reference: the left has
+    rt_cam_ref = 0, the right rt_cam_ref = (Rodrigues(R), T), OpenCV's stereo R, T (x_right = R x_left + T is
+    mrcal's reference -> camera transform). `cameras`: ((K 3x3, coeffs (8,), free, (width, height)) left, right).
+    Returns what was done per camera (a fisheye camera: nothing, and why)."""
+    import cv2
+
+    rt_right = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(), np.asarray(T, float).ravel()])
+    done = []
+    for side, (k, coeffs, free, size), rt in zip(("left", "right"), cameras, (np.zeros(6), rt_right)):
+        k = np.asarray(k, float)
+        done.append(write_cameramodel(Path(folder) / f"{side}.cameramodel", free, k[[0, 1, 0, 1], [0, 1, 2, 2]],
+                                      coeffs, size, rt, note=f"written by dstereo calibrate: the rig's {side} camera "
+                                      "(reference: the left camera)"))
+    return done

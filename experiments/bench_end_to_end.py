@@ -1,0 +1,167 @@
+"""End-to-end benchmark: a whole `dstereo calibrate` run in a new process vs the thesis approach, and the plain
+calibration vs a fresh Python process that calls cv2.calibrateCamera and writes its yml.
+
+Same machine, same run, cases back to back, the same corners (../shared/data/rig640 left images, detected once
+beforehand and cached, so neither side pays detection):
+  - dstereo: `dstereo calibrate --images DIR --per-set m --max-subsets C --out OUT --force -q` in a new process,
+    results folder and every figure included; "cold" = an empty JAX compilation cache, "warm" = the cache the
+    cold run left;
+  - thesis approach: a new process that runs cv2.calibrateCamera on every subset with one process per core
+    (cv2.setNumThreads(1) in each worker), then writes its results (one CSV row per subset and a yml of the
+    subset means), as the thesis's tool did per subset; no figures (in its favour);
+  - plain: `dstereo calibrate` without subsets (warm cache, results folder included) vs a new Python process that
+    loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage.
+Each case runs `--repeat` times (best and all times printed); `uptime` before and after says the load.
+`python -m experiments.bench_end_to_end [--sizes 286,1140,4845] [--repeat 2]`; writes
+experiments/results/bench_end_to_end.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "rig640"
+CASES = {286: (13, 10), 1140: (20, 17), 4845: (20, 16)}  # C: (images, m), every combination
+DSTEREO = [str(Path(sys.executable).with_name("dstereo"))]
+
+THESIS = r'''
+import csv, itertools, os, sys, multiprocessing as mp
+import numpy as np, cv2
+d = np.load(sys.argv[1]); obj, obs, size = d["obj"].astype(np.float32), d["obs"].astype(np.float32), tuple(d["size"])
+m, out = int(sys.argv[2]), sys.argv[3]
+def init():
+    cv2.setNumThreads(1)
+def one(idx):
+    rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(idx), [obs[i] for i in idx], size, None, None)
+    return [*idx], [k[0, 0], k[1, 1], k[0, 2], k[1, 2], *dist.ravel()[:5], rms]
+if __name__ == "__main__":
+    subsets = list(itertools.combinations(range(len(obs)), m))
+    with mp.get_context("fork").Pool(os.cpu_count(), initializer=init) as pool:
+        rows = pool.map(one, subsets, chunksize=8)
+    os.makedirs(out, exist_ok=True)
+    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "rms"]
+    with open(os.path.join(out, "subsets.csv"), "w", newline="") as fh:
+        w = csv.writer(fh); w.writerow(["images", *names])
+        for idx, vals in rows:
+            w.writerow([" ".join(map(str, idx)), *map(repr, vals)])
+    mean = np.mean([v for _, v in rows], axis=0)
+    fs = cv2.FileStorage(os.path.join(out, "camera.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("camera_matrix", np.array([[mean[0], 0, mean[2]], [0, mean[1], mean[3]], [0, 0, 1]]))
+    fs.write("distortion_coefficients", mean[4:9].reshape(1, -1)); fs.release()
+'''
+
+PLAIN_CV2 = r'''
+import sys, numpy as np, cv2
+d = np.load(sys.argv[1]); obj, obs, size = d["obj"].astype(np.float32), d["obs"].astype(np.float32), tuple(d["size"])
+rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(obs), list(obs), size, None, None)
+fs = cv2.FileStorage(sys.argv[2], cv2.FILE_STORAGE_WRITE)
+fs.write("image_width", int(size[0])); fs.write("image_height", int(size[1]))
+fs.write("camera_matrix", k); fs.write("distortion_coefficients", dist.reshape(1, -1)); fs.release()
+'''
+
+
+def uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def timed(cmd: list[str], env: dict | None = None) -> float:
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    elapsed = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise SystemExit(f"failed: {' '.join(cmd)}\n{done.stderr[-2000:]}")
+    return elapsed
+
+
+def prepare(work: Path, n_images: int) -> tuple[Path, Path]:
+    """A folder of symlinks to the first n left images, and their corners (detected and cached now)."""
+    from dstereo.io.corners import detect_folder
+
+    folder = work / f"images{n_images}"
+    if not folder.exists():
+        folder.mkdir()
+        for p in sorted(DATA.glob("left*.jpg"))[:n_images]:
+            (folder / p.name).symlink_to(p)
+    det = detect_folder(folder, (9, 6), 1.0)
+    names = sorted(det.corners)
+    corners = work / f"corners{n_images}.npz"
+    np.savez(corners, obj=det.object_points, obs=np.stack([det.corners[n] for n in names]),
+             size=np.array(det.image_size))
+    return folder, corners
+
+
+def best(times: list[float]) -> str:
+    return f"{min(times):.2f} s" + (f" ({', '.join(f'{t:.2f}' for t in times)})" if len(times) > 1 else "")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sizes", default="286,1140,4845")
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--no-plain", action="store_true")
+    args = ap.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",")]
+    work = Path(tempfile.mkdtemp(prefix="dstereo-e2e-"))
+    (work / "thesis.py").write_text(THESIS)
+    (work / "plain_cv2.py").write_text(PLAIN_CV2)
+    load = [f"before: {uptime()}"]
+    rows, plain_row = [], None
+    env_base = dict(os.environ)
+    for c in sizes:
+        n, m = CASES[c]
+        folder, corners = prepare(work, n)
+        cold, warm, thesis = [], [], []
+        for r in range(args.repeat):
+            env = dict(env_base, DSTEREO_JAX_CACHE=str(work / f"jax{c}-{r}"))  # a new empty cache each repeat
+            run = [*DSTEREO, "calibrate", "--images", str(folder), "--pattern", "9x6", "--per-set", str(m),
+                   "--max-subsets", str(c), "--out", str(work / "out"), "--force", "-q"]
+            cold.append(timed(run, env))
+            warm.append(timed(run, env))
+            thesis.append(timed([sys.executable, str(work / "thesis.py"), str(corners), str(m), str(work / "th")]))
+            print(f"C={c}: cold {cold[-1]:.2f} s, warm {warm[-1]:.2f} s, thesis {thesis[-1]:.2f} s", flush=True)
+        rows.append((c, n, m, cold, warm, thesis))
+    if not args.no_plain:
+        folder, corners = prepare(work, 20)
+        env = dict(env_base, DSTEREO_JAX_CACHE=str(work / "jax-plain"))
+        run = [*DSTEREO, "calibrate", "--images", str(folder), "--pattern", "9x6", "--out", str(work / "plain"),
+               "--force", "-q"]
+        timed(run, env)  # fills the compile cache: the plain case is measured warm
+        ds, cv = [], []
+        for _ in range(max(args.repeat, 3)):
+            ds.append(timed(run, env))
+            cv.append(timed([sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]))
+            print(f"plain: dstereo {ds[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
+        plain_row = (ds, cv)
+    load.append(f"after: {uptime()}")
+    lines = ["# End-to-end benchmark (`make bench`, experiments/bench_end_to_end.py)", "",
+             f"Machine: {os.cpu_count()} cores (shared with other jobs); load {load[0]}; {load[1]}.", "",
+             "| C (images, m) | dstereo cold (empty compile cache) | dstereo warm | thesis approach, "
+             f"{os.cpu_count()} processes | cold: x thesis | warm: x thesis |", "|---|---|---|---|---|---|"]
+    for c, n, m, cold, warm, thesis in rows:
+        lines.append(f"| {c} ({n}, {m}) | {best(cold)} | {best(warm)} | {best(thesis)} | "
+                     f"{min(thesis) / min(cold):.2f}x | {min(thesis) / min(warm):.2f}x |")
+    if plain_row is not None:
+        ds, cv = plain_row
+        lines += ["", "| plain calibration, 20 views | dstereo calibrate (warm cache, results folder) | "
+                  "python + cv2.calibrateCamera + yml | ratio |", "|---|---|---|---|",
+                  f"| whole run, new process | {best(ds)} | {best(cv)} | {min(ds) / min(cv):.2f}x |"]
+    lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out = ROOT / "experiments" / "results" / "bench_end_to_end.md"
+    out.write_text(text)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

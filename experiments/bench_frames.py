@@ -1,0 +1,134 @@
+"""Frames per second against Dask workers for `dstereo recession` (issue 19).
+
+A rendered recession sequence (`dstereo.recession.synthetic`, the reduced Plasmatron rig) per size is measured
+serially in this process and on local clusters of N workers, side by side in one run (the machine's load is
+recorded before and after: on a shared machine the speed-up is only as good as the load was steady). Reported
+per size and worker count: the wall time of the frames after the reference (the parallel part; the reference
+runs first, here), frames/s over it, the median time of one frame on a worker, the cluster's start-up (in the
+wall time), the peak resident memory per worker process, and whether the results equal the serial ones.
+
+    python -m experiments.bench_frames [--sizes 640x480 320x240] [--frames 20] [--workers 1 2]
+        [--out experiments/results/bench_frames.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def measure(folder: Path, workers: int, grid: float) -> dict:
+    from dstereo.frames import FrameRunner
+    from dstereo.frames.runner import _peak_rss_mb
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.recession import RecessionConfig, discover, run_recession
+    from dstereo.reconstruction import ReconstructionConfig
+
+    frames = discover(folder)
+    calib = read_stereo_calibration(folder / "stereo.yml")
+    runner = FrameRunner(workers)
+    marks = {}
+
+    def progress(stage, done, total):  # the reference is frame 0 here: the parallel part starts after it
+        marks.setdefault(done, time.perf_counter())
+
+    t0 = time.perf_counter()
+    result = run_recession(frames, calib, RecessionConfig(grid_mm=grid), ReconstructionConfig(), progress=progress,
+                           runner=runner)
+    end = time.perf_counter()
+    mapped = len(frames) - 1
+    wall = end - marks[1]
+    run = runner.describe()
+    return {"workers": workers, "frames": len(frames), "total_s": end - t0, "reference_s": marks[1] - t0,
+            "mapped_wall_s": wall, "frames_per_s": mapped / wall,
+            "seconds_per_frame_median": run["seconds_per_frame_median"],
+            "worker_peak_rss_mb": run["worker_peak_rss_mb"],
+            "this_process_peak_rss_mb": _peak_rss_mb(),
+            "heights": result.heights, "recession_stagnation": [f.recession.value for f in result.frames]}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="+", default=["640x480", "320x240"])
+    parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "bench_frames.md")
+    args = parser.parse_args(argv)
+    from dstereo.recession.synthetic import write_synthetic_sequence
+
+    rows, loads = [], {"start": load()}
+    with tempfile.TemporaryDirectory(prefix="bench_frames_") as tmp:
+        for text in args.sizes:
+            size = tuple(int(v) for v in text.split("x"))
+            folder = Path(tmp) / f"seq_{text}"
+            truth = write_synthetic_sequence(folder, n_frames=args.frames, duration_s=40.0, total_mm=2.0,
+                                             image_size=size)
+            grid = 0.5 if size[0] >= 640 else 1.0
+            serial = None
+            for w in args.workers:
+                loads[f"{text} w={w} before"] = load()
+                row = measure(folder, w, grid)
+                row["size"] = text
+                rms = np.sqrt(np.nanmean((np.array(row["recession_stagnation"])
+                                          - np.array(truth["recession_stagnation_mm"])) ** 2))
+                row["stagnation_rms_mm"] = float(rms)
+                heights = row.pop("heights")
+                row.pop("recession_stagnation")
+                if serial is None:
+                    serial, row["equal_to_first"] = heights, True
+                else:
+                    row["equal_to_first"] = bool(np.array_equal(heights, serial, equal_nan=True))
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+        loads["end"] = load()
+    write_report(args.out, rows, loads, os.cpu_count())
+
+
+def write_report(path: Path, rows: list[dict], loads: dict, cores: int) -> None:
+    lines = ["# Frames in parallel: `dstereo recession` frames/s against Dask workers (issue 19)", "",
+             f"Rendered sequences (reduced Plasmatron rig, {rows[0]['frames']} frames, 0 -> 2 mm), measured side by "
+             f"side in one run of `python -m experiments.bench_frames` on this machine ({cores} cores, shared with "
+             "other jobs: load averages 1/5/15 min below). The reference frame (frame 0, with compilation) runs "
+             "first in the calling process; *mapped* is the rest, on the workers (wall time includes starting the "
+             "local cluster and each worker's first-frame start-up).", "",
+             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | steady frames/s "
+             "| steady speed-up | mapped wall s | reference s | peak RSS per worker MB | stagnation RMS mm "
+             "| same as serial |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    base, steady_base = {}, {}
+    for r in rows:
+        base.setdefault(r["size"], r["frames_per_s"])
+        steady = r["workers"] / r["seconds_per_frame_median"]
+        steady_base.setdefault(r["size"], steady)
+        rss = ", ".join(f"{v:.0f}" for v in r["worker_peak_rss_mb"].values())
+        lines.append(f"| {r['size']} | {r['workers']} | {r['frames_per_s']:.2f} | "
+                     f"{r['frames_per_s'] / base[r['size']]:.2f}x | {r['seconds_per_frame_median']:.2f} | "
+                     f"{steady:.2f} | {steady / steady_base[r['size']]:.2f}x | "
+                     f"{r['mapped_wall_s']:.1f} | {r['reference_s']:.1f} | {rss} | {r['stagnation_rms_mm']:.4f} | "
+                     f"{'yes' if r['equal_to_first'] else 'NO'} |")
+    lines += ["", "Load averages (1, 5, 15 min): " + "; ".join(f"{k}: {v}" for k, v in loads.items()), "",
+              "*steady*: workers / median time of a frame on a worker (the workers ran concurrently, so it holds "
+              "the contention between them), the rate once the cluster is up and every worker has done its first "
+              "frame; *mapped* includes that start-up. "
+              "Serial (workers 1) runs in the calling process, whose peak RSS is the serial figure. *same as "
+              "serial*: every height map equal bit for bit.", ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines))
+    path.with_suffix(".json").write_text(json.dumps({"rows": rows, "loads": loads, "cores": cores}, indent=2) + "\n")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

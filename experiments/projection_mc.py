@@ -1,0 +1,84 @@
+"""Pose-compensated projection uncertainty against a Monte Carlo of re-noised synthetic calibrations.
+
+A synthetic camera (f 800 px, 640 x 480, k1 k2 p1 p2 k3) sees a 9 x 6 board in V views; every draw adds fresh
+N(0, sigma) corner noise to the true corners and re-solves (the batched structured solver). For grid pixels, the
+point at the mean board distance along the TRUE ray is mapped into each TRUE board frame and brought back with
+the draw's solved poses (mean over views) and projected by the draw's intrinsics: the spread over draws is the
+projection uncertainty of a board-fixed point, which the pose-compensated map predicts. The intrinsics-only map
+(point fixed in the camera frame) is shown against the same spread. Run: .venv/bin/python experiments/projection_mc.py
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from dstereo.calib.cross_validation import solve_halves
+from dstereo.calib.mono import calibrate_full
+from dstereo.models.camera import Camera
+from dstereo.projection_uncertainty import mean_board_distance, solution_map
+from dstereo.synth import Board, board_pose_set, object_points, true_corners
+from dstereo.synth.poses import compose, invert
+
+SIZE, PATTERN, SQUARE = (640, 480), (9, 6), 25.0
+FREE = ("k1", "k2", "p1", "p2", "k3")
+
+
+def scene(n_views: int = 12, seed: int = 0):
+    cam = Camera.create(800.0, 805.0, 322.0, 238.0, [-0.25, 0.1, 1e-3, -5e-4, -0.02], FREE, SIZE)
+    poses = board_pose_set([cam], [np.zeros(6)], Board(PATTERN, SQUARE, SQUARE), n_views, seed)
+    obj = object_points(PATTERN, SQUARE)
+    corners = np.stack([true_corners(cam, p, PATTERN, SQUARE) for p in poses])
+    return cam, poses, obj, corners
+
+
+def board_fixed_spread(cam, true_poses, draws, q, range_):
+    """(D, N, 2) projections minus q of the board-fixed points through each draw's solution."""
+    import cv2
+
+    k = np.asarray(cam.k)
+    K = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1.0]])
+    rays = np.c_[cv2.undistortPoints(q.reshape(-1, 1, 2), K, np.asarray(cam.coeffs()),
+                                     criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)).reshape(-1, 2),
+                 np.ones(len(q))]
+    p = range_ * rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    from scipy.spatial.transform import Rotation
+
+    def apply(pose, pts):
+        return Rotation.from_rotvec(pose[:3]).apply(pts) + pose[3:]
+
+    p_board = [apply(invert(t), p) for t in true_poses]
+    out = []
+    for d in draws:
+        back = np.mean([apply(pd, pb) for pd, pb in zip(d.poses, p_board)], axis=0)
+        kd = d.params[:4]
+        Kd = np.array([[kd[0], 0, kd[2]], [0, kd[1], kd[3]], [0, 0, 1.0]])
+        out.append(cv2.projectPoints(back, np.zeros(3), np.zeros(3), Kd, d.params[4:])[0].reshape(-1, 2) - q)
+    return np.array(out)
+
+
+def main(n_draws: int = 200, sigma: float = 0.3):
+    cam, poses, obj, corners = scene()
+    rng = np.random.default_rng(1)
+    noisy0 = corners + rng.normal(0, sigma, corners.shape)
+    nominal = calibrate_full(obj, noisy0, SIZE, FREE)
+    obs_all = corners[None] + rng.normal(0, sigma, (n_draws, *corners.shape))
+    draws = solve_halves(nominal, obj, obs_all, np.ones((n_draws, len(corners))))  # all views, fresh noise each
+    range_ = mean_board_distance(poses, obj)
+    maps = {m: solution_map(nominal, SIZE, range_, m, grid=(8, 6)) for m in ("pose-compensated", "intrinsics-only")}
+    q = np.stack(np.meshgrid(maps["pose-compensated"].u, maps["pose-compensated"].v), axis=-1).reshape(-1, 2)
+    spread = board_fixed_spread(cam, poses, draws, q, range_)
+    spread -= spread.mean(axis=0)
+    emp = np.sqrt(np.linalg.eigvalsh(np.einsum("dpi,dpj->pij", spread, spread) / len(spread))[:, -1])
+    print(f"{n_draws} draws, sigma {sigma} px, {len(poses)} views, range {range_:.0f} mm")
+    for m, pm in maps.items():
+        ratio = pm.std.ravel() / emp
+        print(f"{m:17s}: predicted {np.nanmin(pm.std):.4f}..{np.nanmax(pm.std):.4f} px, MC {emp.min():.4f}.."
+              f"{emp.max():.4f} px, predicted/MC {np.nanmin(ratio):.3f}..{np.nanmax(ratio):.3f} "
+              f"(median {np.nanmedian(ratio):.3f}), centre {pm.at((320, 240)):.4f} px")
+    return maps, emp
+
+
+if __name__ == "__main__":
+    main(*(int(a) if i == 0 else float(a) for i, a in enumerate(sys.argv[1:])))

@@ -1,0 +1,128 @@
+"""mrcal's .cameramodel (dstereo.io.cameramodel): lens model per free set, round trip bit for bit, mrcal's own
+sample file, the fisheye (no mrcal twin), bad files as one-line errors, and the file in a results folder."""
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import require_data, run_cli
+from dstereo.errors import DstereoError
+from dstereo.io.cameramodel import NO_TWIN, lensmodel_for, read_cameramodel, write_cameramodel
+from dstereo.models.distortion import PRESETS
+
+K = np.array([1766.07, 1765.89, 1944.07, 1064.52])
+COEFFS = np.array([-0.21, 0.08, 1e-4, -3e-4, -0.012, 0.3, -0.05, 0.01])  # OpenCV order k1 k2 p1 p2 k3 k4 k5 k6
+
+# mrcal's own sample (mrcal/cameramodel.py docstring): written by mrcal, not by dstereo
+MRCAL_SAMPLE = """# generated with ...
+{ 'lensmodel': 'LENSMODEL_OPENCV8',
+
+  # intrinsics are fx,fy,cx,cy,distortion0,distortion1,....
+  'intrinsics': [1766.0712405930, 1765.8925266865, 1944.0664501036, 1064.5231421210, 2.1648025156,
+                 -1.1851581377, -0.0000931342, 0.0007782462, -0.2351910903, 2.4460295029, -0.6697132481,
+                 -0.6284355415],
+
+  'extrinsics': [0,0,0,0,0,0],
+  'imagersize': [3840,2160]
+}
+"""
+
+
+@pytest.mark.parametrize("preset, expected", [("none", "LENSMODEL_PINHOLE"), ("k1k2", "LENSMODEL_OPENCV4"),
+                                              ("k1k2p1p2", "LENSMODEL_OPENCV4"), ("default", "LENSMODEL_OPENCV5"),
+                                              ("rational", "LENSMODEL_OPENCV8"), ("fisheye", None)])
+def test_lens_model_per_free_set(preset, expected):
+    assert lensmodel_for(PRESETS[preset])[0] == expected
+
+
+@pytest.mark.parametrize("preset", ["none", "k1k2", "default", "rational"])
+def test_round_trip_is_exact(tmp_path, preset):
+    free = PRESETS[preset]
+    coeffs = np.array([c if n in free else 0.0 for n, c in zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+                                                               COEFFS)])
+    k, coeffs = K * np.pi / 3, coeffs * np.e / 2  # all 17 digits significant
+    rt = np.array([0.01, -0.2, 0.003, -120.5, 0.7, 3.25]) * np.sqrt(2)
+    path = tmp_path / "camera.cameramodel"
+    write_cameramodel(path, free, k, coeffs, (3840, 2160), rt, note="test\nsecond line")
+    back = read_cameramodel(path)
+    assert back.lensmodel == lensmodel_for(free)[0] and back.image_size == (3840, 2160)
+    # repr writes 17 significant digits: float64 reads back bit for bit
+    assert np.array_equal(back.intrinsics, k) and np.array_equal(back.coeffs, coeffs)
+    assert np.array_equal(back.rt_cam_ref, rt) and set(free) <= set(back.free)
+
+
+def test_reads_mrcals_sample_in_opencv_order(tmp_path):
+    path = tmp_path / "sample.cameramodel"
+    path.write_text(MRCAL_SAMPLE)
+    m = read_cameramodel(path)
+    assert m.lensmodel == "LENSMODEL_OPENCV8" and m.image_size == (3840, 2160)
+    # mrcal's k0..k7 are OpenCV's k1 k2 p1 p2 k3 k4 k5 k6: projecting with OpenCV must equal mrcal's equations
+    # (doc/lensmodels.org, written out here independently)
+    p = np.array([[0.3, -0.2, 1.0], [-0.5, 0.4, 2.0]])
+    kmat = np.array([[m.intrinsics[0], 0, m.intrinsics[2]], [0, m.intrinsics[1], m.intrinsics[3]], [0, 0, 1]])
+    q_cv = cv2.projectPoints(p, np.zeros(3), np.zeros(3), kmat, m.coeffs)[0][:, 0]
+    k = m.coeffs
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    r2 = x * x + y * y
+    rad = (1 + k[0] * r2 + k[1] * r2 ** 2 + k[4] * r2 ** 3) / (1 + k[5] * r2 + k[6] * r2 ** 2 + k[7] * r2 ** 3)
+    xd = x * rad + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+    yd = y * rad + 2 * k[3] * x * y + k[2] * (r2 + 2 * y * y)
+    q_mrcal = np.column_stack([m.intrinsics[0] * xd + m.intrinsics[2], m.intrinsics[1] * yd + m.intrinsics[3]])
+    np.testing.assert_allclose(q_cv, q_mrcal, rtol=0, atol=1e-8)  # float64 rounding of ~1e3 px values
+
+
+def test_fisheye_has_no_twin_and_nothing_is_written(tmp_path):
+    what = write_cameramodel(tmp_path / "camera.cameramodel", PRESETS["fisheye"], K, np.zeros(8), (640, 640))
+    assert what == NO_TWIN and "no mrcal twin" in what and not (tmp_path / "camera.cameramodel").exists()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{'lensmodel': 'LENSMODEL_OPENCV4'", "not a readable"),
+    ("[1, 2]", "holds a dict"),
+    ("{'lensmodel': 'LENSMODEL_OPENCV4', 'intrinsics': [1, 2, 3, 4, 0, 0, 0, 0]}", "lacks imagersize"),
+    ("{'lensmodel': 'LENSMODEL_CAHVOR', 'intrinsics': [1, 1, 1, 1, 1, 1, 1, 1, 1], 'imagersize': [4, 4]}",
+     "no dstereo twin"),
+    ("{'lensmodel': 'LENSMODEL_OPENCV5', 'intrinsics': [1, 2, 3, 4, 0], 'imagersize': [4, 4]}", "expected 9"),
+    ("{'lensmodel': 'LENSMODEL_PINHOLE', 'intrinsics': [1, 2, 3, 4], 'imagersize': [4.5, 4]}", "whole numbers"),
+])
+def test_bad_files_are_one_line_errors(tmp_path, text, message):
+    path = tmp_path / "bad.cameramodel"
+    path.write_text(text)
+    with pytest.raises(DstereoError, match=message) as err:
+        read_cameramodel(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_results_folder_holds_the_camera_of_camera_yml(tmp_path):
+    """OpenCV's left sample images, full set, 5 coefficients: camera.cameramodel holds camera.yml's numbers."""
+    images = require_data("opencv_stereo")
+    out = tmp_path / "out"
+    code, _, err = run_cli("calibrate", "--images", images, "--glob", "left*.jpg", "--pattern", "9x6", "--model",
+                           "default", "--out", out, "-q")
+    assert code == 0, err
+    fs = cv2.FileStorage(str(out / "camera.yml"), cv2.FILE_STORAGE_READ)
+    kmat, d = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
+    fs.release()
+    m = read_cameramodel(out / "camera.cameramodel")
+    assert m.lensmodel == "LENSMODEL_OPENCV5" and m.image_size == (640, 480)
+    np.testing.assert_array_equal(m.intrinsics, kmat[[0, 1, 0, 1], [0, 1, 2, 2]])
+    np.testing.assert_array_equal(m.coeffs[:5], d)
+    assert "camera.cameramodel" in (out / "report.md").read_text()
+
+
+def test_rig_files_put_the_right_camera_at_opencvs_r_t(tmp_path):
+    from dstereo.io.cameramodel import write_rig_cameramodels
+
+    rvec, t = np.array([0.02, -0.15, 0.01]), np.array([-120.3, 1.2, 0.8])
+    R = cv2.Rodrigues(rvec)[0]
+    cams = [(np.array([[800.0, 0, 320], [0, 801, 240], [0, 0, 1]]), COEFFS * (np.arange(8) < 5), PRESETS["default"],
+             (640, 480)), (np.array([[805.0, 0, 318], [0, 806, 242], [0, 0, 1]]), COEFFS, PRESETS["rational"],
+                           (640, 480))]
+    write_rig_cameramodels(tmp_path, cams, R, t)
+    left, right = read_cameramodel(tmp_path / "left.cameramodel"), read_cameramodel(tmp_path / "right.cameramodel")
+    assert (left.lensmodel, right.lensmodel) == ("LENSMODEL_OPENCV5", "LENSMODEL_OPENCV8")
+    assert np.array_equal(left.rt_cam_ref, np.zeros(6))
+    p_left = np.array([10.0, -5.0, 900.0])
+    # mrcal: x_cam = R(r) x_ref + t with the left camera as reference; OpenCV: x_right = R x_left + T
+    p_right = cv2.Rodrigues(right.rt_cam_ref[:3])[0] @ p_left + right.rt_cam_ref[3:]
+    np.testing.assert_allclose(p_right, R @ p_left + t, rtol=0, atol=1e-9)  # Rodrigues round trip, float64

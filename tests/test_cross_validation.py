@@ -1,0 +1,75 @@
+"""Cross-validation over random half splits: on a synthetic camera with independent corner noise (the premise of
+the covariance) the prediction holds; a covariance 3x too optimistic is flagged; too few views is refused."""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
+
+from dstereo.calib import cross_validation as cv  # noqa: E402
+from dstereo.calib.mono import calibrate_full  # noqa: E402
+from dstereo.errors import DstereoError  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def honest():
+    cam, poses, obj, corners = scene(n_views=16, seed=0)
+    obs = corners + np.random.default_rng(0).normal(0, 0.3, corners.shape)
+    full = calibrate_full(obj, obs, SIZE, FREE)
+    return full, obj, obs, cv.cross_validate(full, obj, obs, SIZE, splits=6, seed=0)
+
+
+def test_honest_noise_passes_cross_validation(honest):
+    *_, xv = honest
+    print("\n" + xv.verdict(), [round(s.ratio, 2) for s in xv.splits])
+    assert len(xv.splits) == 6 and all(len(a) == len(b) == 8 and not set(a) & set(b) for a, b in xv.halves)
+    assert xv.trusted and "can be trusted" in xv.verdict()
+    # median of sqrt(chi^2_2) is 1.18; 6 splits x 192 correlated pixels pin it to about +-0.3 (seeds 0, 1: 1.34, 1.20)
+    assert abs(xv.mahalanobis_median - cv.MAHALANOBIS_PERFECT) < 0.35
+
+
+def test_optimistic_covariance_is_flagged(honest):
+    full, obj, obs, _ = honest
+    weights = np.zeros((2, len(obs)))
+    weights[0, ::2], weights[1, 1::2] = 1.0, 1.0
+    a, b = cv.solve_halves(full, obj, obs, weights)
+    fine = cv.compare_halves(a, b, full.names, SIZE, 1000.0)
+    shrink = lambda s: dataclasses.replace(s, cov=s.cov / 9.0)  # noqa: E731  (stds 3x too small)
+    bad = cv.compare_halves(shrink(a), shrink(b), full.names, SIZE, 1000.0)
+    np.testing.assert_allclose(bad.ratio, 3.0 * fine.ratio, rtol=1e-9)  # the ratio scales as 1/std exactly
+    xv = cv.CrossValidation([bad] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2), np.zeros(2))
+    assert not xv.trusted and "can NOT be trusted" in xv.verdict() and "optimistic" in xv.verdict()
+
+
+def test_too_few_views_is_refused(honest):
+    full, obj, obs, _ = honest
+    with pytest.raises(DstereoError, match="at least 8"):
+        cv.cross_validate(full, obj, obs[:7], SIZE)
+
+
+def test_calibrate_cross_validate_writes_verdict_map_and_method(tmp_path):
+    from conftest import require_data, run_cli
+
+    data = require_data("opencv_stereo")  # skips with its reason when ../shared/data is absent
+    out = tmp_path / "xv"
+    code, _, err = run_cli("calibrate", "--images", data, "--glob", "left*.jpg", "--pattern", "9x6",
+                           "--cross-validate", "4", "--out", out, "-q")
+    assert code == 0, err
+    import json
+
+    s = json.loads((out / "summary.json").read_text())
+    x = s["cross_validation"]
+    assert x["splits"] == 4 and len(x["ratios"]) == 4 and isinstance(x["trusted"], bool)
+    assert s["projection_uncertainty"]["method"] == "pose-compensated"
+    assert (out / "plots" / "cross_validation.png").stat().st_size > 1000
+    assert x["verdict"] in (out / "report.md").read_text()
+    if not x["trusted"]:  # an untrusted uncertainty is said on stderr too, with its figures
+        assert "can NOT be trusted" in err
+    code, _, err = run_cli("calibrate", "--images", data, "--glob", "left*.jpg", "--pattern", "9x6",
+                           "--projection-method", "mrcal", "--out", tmp_path / "bad")
+    assert code == 1 and "--projection-method mrcal" in err and not (tmp_path / "bad").exists()
