@@ -133,8 +133,9 @@ def mc():
     values, covs = [], []
     for _ in range(DRAWS // CHUNK):
         noisy = data[None] + rng.normal(0.0, CORNER_NOISE, (CHUNK,) + data.shape)
+        every_corner = jnp.ones((CHUNK, VIEWS, data.shape[-2] * 4))  # residual weights: no outlier masked
         out = jax.tree_util.tree_map(np.asarray, solver(jnp.asarray(truth), jnp.broadcast_to(
-            jnp.asarray(poses), (CHUNK,) + poses.shape), jnp.asarray(noisy), shared))
+            jnp.asarray(poses), (CHUNK,) + poses.shape), jnp.asarray(noisy), shared, every_corner))
         assert np.all(out.status > 0)
         sigma2 = out.sse / (out.n_residuals - (len(truth) + 6 * VIEWS))
         values.append(out.g)

@@ -63,11 +63,13 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
     `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
     (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
-    from dstereo.calib.mono import chunk_rows
+    from dstereo.calib.mono import _residual_weights, chunk_rows
 
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     n_views, n_pts = obs.shape[-3:-1]
     rows = chunk_rows(n_views, n_pts)
+    # The halves fit the corners the full set fitted: outliers rejected there weigh 0 here too.
+    inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
     shared = (obj, np.zeros(8))
     free_idx = [CAMERA_NAMES.index(n) for n in full.names]
     out = []
@@ -75,11 +77,12 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
         w = np.asarray(weights[c: c + rows], float)
         k = len(w)
         res = _run(full.free, options, np.repeat(full.values[None], k, 0), np.repeat(full.poses[None], k, 0),
-                   obs[c: c + k] if obs.ndim == 4 else np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared)
+                   obs[c: c + k] if obs.ndim == 4 else np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared,
+                   r_weight=np.repeat(_residual_weights(inliers)[None], k, 0))
         for i in range(k):
             m = int(np.count_nonzero(w[i]))
             g = len(full.values)
-            sse, n_res = float(res.sse[i]), 2 * m * n_pts
+            sse, n_res = float(res.sse[i]), 2 * int(inliers[w[i] > 0].sum())
             params = np.zeros(12)
             params[free_idx] = res.g[i]
             out.append(HalfSolution(
