@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.io.results import json_default  # numpy/Path -> JSON, exact for float64
 
 
 def partial_folder(out: str | Path) -> Path:
@@ -54,17 +55,6 @@ def _write_atomic(path: Path, write) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-def _plain(value):
-    """numpy scalars and arrays as Python numbers and lists (exact for float64: JSON keeps repr's 17 digits)."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value)}")
 
 
 class PartialStore:
@@ -102,7 +92,7 @@ class PartialStore:
                 np.savez(fh, **arrays)
 
         _write_atomic(self.frames / f"{name}.npz", write_npz)
-        _write_atomic(self.frames / f"{name}.json", lambda p: p.write_text(json.dumps(meta, default=_plain)))
+        _write_atomic(self.frames / f"{name}.json", lambda p: p.write_text(json.dumps(meta, default=json_default)))
 
     def load(self, name: str) -> tuple[dict, dict] | None:
         """(arrays, meta) of a stored frame, or None when it is not (wholly) there."""
