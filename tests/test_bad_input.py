@@ -492,3 +492,22 @@ def test_one_camera_calibration_of_both_cameras_images_is_refused(tmp_path):
 
     assert [camera_side(n) for n in ("left05.jpg", "R_05.png", "im0.png", "cam1_7.png", "view05.png")] == \
         ["left", "right", "left", "right", None]
+
+
+def test_calibrating_unreadable_images_says_so(tmp_path):
+    """Every image of the folder fails to decode: the message says that, not 'no full board'."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(3):
+        (images / f"view{i}.jpg").write_bytes(b"not a jpeg at all")
+    line = _refused(["calibrate", "--images", images, "--pattern", "9x6", "--out", tmp_path / "out"], tmp_path / "out",
+                    str(images), "decoded")
+    assert "full 9x6 board" not in line
+
+
+def test_calibrating_a_single_file_as_the_images_folder_says_it_is_a_file(tmp_path):
+    image = _image(tmp_path / "view.png", 3)
+    _refused(["calibrate", "--images", image, "--pattern", "9x6", "--out", tmp_path / "out"], tmp_path / "out",
+             str(image), "is a file")
+    _refused(["calibrate", "--images", image, "--glob", "*.png", "--pattern", "9x6", "--out", tmp_path / "out"],
+             tmp_path / "out", "is a file")

@@ -146,7 +146,7 @@ def list_camera_images(folder: Path, config: Config, image_format: str | None = 
     if config.glob is None:
         return list_images(folder, image_format or config.image_format)
     if not folder.is_dir():
-        raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
+        list_images(folder)  # the one message for a file or a missing folder
     files = sorted(p for p in folder.glob(config.glob) if p.is_file())
     if not files:
         raise DstereoError(f"images: no file in {folder} matches {config.glob!r}; check --glob")

@@ -58,6 +58,9 @@ def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
 
 def list_images(folder: Path, suffix: str | None = None) -> list[Path]:
     folder = Path(folder)
+    if folder.is_file():
+        raise DstereoError(f"images: {folder} is a file; point --images at the folder that holds the chessboard "
+                           "images (or the folder plus --glob 'name*.jpg')")
     if not folder.is_dir():
         raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
     suffixes = (("." + suffix.lstrip(".").lower()),) if suffix else IMAGE_SUFFIXES
@@ -137,10 +140,15 @@ def detect_folder(
     if len(sizes) > 1:
         listing = ", ".join(f"{w}x{h} (e.g. {name})" for (w, h), name in sizes.items())
         raise DstereoError(f"images: {folder} mixes image sizes {listing}; one camera's images must share one size")
+    unreadable = [name for name, why in rejected.items() if why.startswith("unreadable")]
+    if unreadable and len(unreadable) == len(files):
+        raise DstereoError(f"images: none of the {len(files)} images in {folder} can be decoded (e.g. {unreadable[0]}); "
+                           "they are not image files OpenCV reads (damaged, empty, or another format)")
     if not corners:
         raise DstereoError(
-            f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board; "
-            "check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+            f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board"
+            + (f" ({len(unreadable)} of {len(files)} could not be decoded)" if unreadable else "")
+            + "; check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
         )
     size = next(iter(sizes))
     return Detection(corners, rejected, size, board_points(pattern, square), pattern, square, str(folder), hits,
