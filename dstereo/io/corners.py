@@ -146,9 +146,9 @@ def detect_folder(
                            "they are not image files OpenCV reads (damaged, empty, or another format)")
     if not corners:
         raise DstereoError(
-            f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board"
-            + (f" ({len(unreadable)} of {len(files)} could not be decoded)" if unreadable else "")
-            + "; check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+            f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board; "
+            "check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+            + (f" ({len(unreadable)} of the {len(files)} images could not be decoded)" if unreadable else "")
         )
     size = next(iter(sizes))
     return Detection(corners, rejected, size, board_points(pattern, square), pattern, square, str(folder), hits,
