@@ -27,6 +27,20 @@ def require_data(sub: str) -> Path:
     return path
 
 
+SEED = DATA.parent / "seed"
+
+
+def require_seed(name: str) -> Path:
+    """Path to ../shared/seed/<name> (the thesis and its .ini files), with require_data's rule: skip only where
+    it is absent on a developer's machine, fail under CI=true."""
+    path = SEED / name
+    if not path.is_file():
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"thesis file {path} is absent, and CI=true requires it (put ../shared/seed in place)")
+        pytest.skip(f"thesis file {path} is absent on this machine (it is present in CI)")
+    return path
+
+
 def lm_agreement(std, n_residuals: int, n_params: int, ftol: float | None = None):
     """How far apart two LM solves of one problem may end, per parameter (same units as `std`).
 

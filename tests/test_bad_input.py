@@ -200,14 +200,10 @@ def test_reconstruct_refuses_one_image_as_both_cameras(tmp_path, pair, copy):
 
 # --- 6. thesis .ini files missing a section -----------------------------------------------------------------------
 
-SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
-
-
 def _seed_text(name: str) -> str:
-    path = SEED / name
-    if not path.is_file():
-        pytest.skip(f"thesis seed {path} is absent on this machine")
-    return path.read_text()
+    from conftest import require_seed
+
+    return require_seed(name).read_text()
 
 
 def _without_section(text: str, title: str) -> str:

@@ -38,9 +38,9 @@ def left_images():
 @pytest.fixture(scope="module")
 def thesis_run(tmp_path_factory, left_images):
     """PROJECT = init-individual.ini + images/ (links to the 13 left images); `dstereo calibrate PROJECT`."""
-    ini = SEED / "init-individual.ini"
-    if not ini.exists():
-        pytest.skip(f"{ini} is absent")
+    from conftest import require_seed
+
+    ini = require_seed("init-individual.ini")
     project = tmp_path_factory.mktemp("thesis")
     _link_images(project / "images", left_images)
     shutil.copy(ini, project)

@@ -17,10 +17,9 @@ FIGURE_5_5_STEPS = (
 
 
 def _seed(name: str) -> Path:
-    path = SEED / name
-    if not path.exists():
-        pytest.skip(f"seed file {path} is absent on this machine")
-    return path
+    from conftest import require_seed
+
+    return require_seed(name)
 
 
 def test_figure_5_5_file_loads_as_written():

@@ -139,9 +139,9 @@ def test_thesis_ini_accepts_auto(tmp_path):
 
     from dstereo.config import load_config
 
-    seed = Path(__file__).resolve().parents[1].parent / "shared" / "seed" / "init-individual.ini"
-    if not seed.exists():
-        pytest.skip(f"{seed} is absent")
+    from conftest import require_seed
+
+    seed = require_seed("init-individual.ini")
     text = seed.read_text().replace("distortion coefficients parameters = k1, k2, k3, p1, p2",
                                     "distortion coefficients parameters = auto")
     assert "= auto" in text

@@ -155,9 +155,9 @@ def test_generic_over_stereo_columns():
     """The stereo steps of Figure 5.14 run on a stereo table with the same code."""
     from pathlib import Path
 
-    seed = Path(__file__).resolve().parents[1].parent / "shared" / "seed" / "init-stereo.ini"
-    if not seed.exists():
-        pytest.skip(f"{seed} is absent")
+    from conftest import require_seed
+
+    seed = require_seed("init-stereo.ini")
     steps = load_config(seed).stereo_steps
     columns = ("stereo_re", "Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")
     rng = np.random.default_rng(5)
