@@ -145,6 +145,7 @@ def test_cli_final_mean_writes_the_thesis_mean(tmp_path):
     km, dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
     fs.release()
     mean = lambda n: np.mean([float(r[n]) for r in rows])  # noqa: E731
+    # CSV rows at 17 digits, averaged by np.mean in another order than the pipeline: ~10-term sums, rounding ~1e-15.
     np.testing.assert_allclose([km[0, 0], km[1, 1], km[0, 2], km[1, 2]],
                                [mean(n) for n in ("fx", "fy", "cx", "cy")], rtol=1e-12)
     np.testing.assert_allclose(dist, [mean(n) for n in FIVE[:2] + ("p1", "p2", "k3")], rtol=1e-12, atol=1e-15)
@@ -259,6 +260,7 @@ def test_cli_stereo_final_mean_writes_the_thesis_rig(tmp_path):
     rows = [r for r in csv.DictReader(open(out / "stereo_subsets.csv")) if r["survives"] == "1"]
     mean = lambda n: np.mean([float(r[n]) for r in rows])  # noqa: E731
     back = read_stereo_calibration(out / "stereo.yml")
+    # CSV rows at 17 digits, averaged by np.mean in another order than the pipeline: rounding ~1e-15.
     np.testing.assert_allclose(back.T, [mean(n) for n in ("Tx", "Ty", "Tz")], rtol=1e-12)
     np.testing.assert_allclose(cv2.Rodrigues(back.R)[0].ravel(), [mean(n) for n in ("RVx", "RVy", "RVz")],
                                rtol=1e-9, atol=1e-15)  # R written as a matrix: Rodrigues round trip

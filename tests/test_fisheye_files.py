@@ -40,6 +40,7 @@ def test_camera_file_reads_back_and_equals_opencv_fisheye(fisheye_run):
     refit = summary["final_check"]["mean_check"]["rms_solution_px"]
     assert abs(refit - full["rms"]) < 1e-3 * full["rms"]
     assert [st["parameters"] for st in summary["subsets"]["steps"]] == [["re"], ["fk1", "fk2"]]
+    # camera.yml holds summary.json's numbers at 17 significant digits: a round trip, exact.
     np.testing.assert_allclose(cam.D, [final[n] for n in PRESETS["fisheye"]], rtol=1e-15)
     np.testing.assert_allclose(cam.K[[0, 1, 0, 1], [0, 1, 2, 2]], [final[n] for n in ("fx", "fy", "cx", "cy")],
                                rtol=1e-15)

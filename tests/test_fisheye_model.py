@@ -68,6 +68,7 @@ def test_jacobian_at_axis_matches_autodiff_limit():
     k, d = jnp.asarray(K), jnp.asarray(D)
     _, dk, dd, dp = fisheye.project_jacobian(k, d, jnp.array([0.0, 0.0, 2.0]))
     assert np.all(np.isfinite(np.asarray(dp)))
+    # On the axis the series branch is exact: dq/dp = f / z, no rounding beyond one division.
     np.testing.assert_allclose(np.asarray(dp)[:, :2], np.diag(K[:2] / 2.0), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(dd), 0.0, atol=1e-300)
     # either side of the series switch agree with forward-mode autodiff of the exact expression

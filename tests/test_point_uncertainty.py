@@ -99,6 +99,7 @@ def test_point_jacobians_match_central_differences_of_the_pipeline():
         assert np.abs(fd[:, 24:27]).max() > 1.0 and np.abs(fd[:, 14]).max() > 1.0  # rotation, right cx matter
         np.testing.assert_allclose(j_d, (reproject(u, v, d + 1e-4) - reproject(u, v, d - 1e-4)) / 2e-4, rtol=1e-6)
         np.testing.assert_allclose(cal, fd @ cov @ fd.T, rtol=1e-4, atol=1e-6 * np.abs(cal).max())
+        # The same product sigma_d^2 j j' formed in another order: rounding only (~1e-16 relative).
         np.testing.assert_allclose(dis, 0.09 * np.outer(j_d, j_d), rtol=1e-12)
     # k1's column is tested where distortion acts (the corners): relative agreement there
     assert np.abs(fd[:, 4]).max() > 1.0
@@ -260,6 +261,7 @@ def test_stereo_yml_carries_the_covariance_and_old_files_still_read(mc, tmp_path
                             cov_structure="joint: test")
     back = read_stereo_calibration(path)
     assert back.extras["cov_names"] == names and back.extras["cov_structure"] == "joint: test"
+    # Written with 17 significant digits and read back: exact to the last bit on any processor.
     np.testing.assert_allclose(back.extras["cov"], cov, rtol=1e-15)
     plain = write_stereo_yml(tmp_path / "plain.yml", mc.left.matrix(), mc.left.coeffs(), mc.left.matrix(),
                              mc.left.coeffs(), R, T, np.eye(3), np.eye(3), SIZE)

@@ -111,6 +111,7 @@ def test_line_fit_matches_scipy_linregress():
     assert line_fit(t, r, np.full(t.size, 0.3)).rate == pytest.approx(fit.rate, rel=1e-12)
     maps = np.stack([r, 2 * r]).T[:, None, :]
     m = rate_map(t, maps)
+    # The same least-squares line, vectorised over cells: rounding only.
     np.testing.assert_allclose(m["rate"][0], [fit.rate, 2 * fit.rate], rtol=1e-12)
     np.testing.assert_allclose(m["ci95_half"][0], [half, 2 * half], rtol=1e-10)
 
@@ -172,6 +173,7 @@ def test_cell_heights_of_a_tilted_plane_with_outliers():
 def test_given_axis_points_away_from_the_cameras():
     frame = frame_from_axis((0, 0, -2), (0, 0, 600))
     np.testing.assert_allclose(frame.axis, [0, 0, 1])
+    # An orthonormal frame from normalised cross products: orthogonal to rounding (~1e-16).
     np.testing.assert_allclose(frame.axes @ frame.axes.T, np.eye(3), atol=1e-12)
 
 

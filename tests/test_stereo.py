@@ -115,6 +115,7 @@ def test_essential_and_fundamental_satisfy_epipolar_constraint():
     left, right, rig, pose = _random_rig(4)
     obj = object_points(PATTERN, 15.0)
     E = np.asarray(essential_matrix(jnp.asarray(rig[:3]), jnp.asarray(rig[3:])))
+    # E = [T]x R by the same formula with OpenCV's rotation: rounding of O(1) products (~1e-15).
     np.testing.assert_allclose(E, np.asarray(skew(jnp.asarray(rig[3:]))) @ cv2.Rodrigues(rig[:3])[0], atol=1e-12)
     F = np.asarray(fundamental_matrix(left.k, right.k, jnp.asarray(E)))
     assert F[2, 2] == pytest.approx(1.0)
@@ -424,6 +425,7 @@ def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
         assert (res / f).is_file(), f
     back = read_stereo_calibration(res / "stereo.yml")
     np.testing.assert_allclose(back.T, result.stereo.T, rtol=1e-9)  # no subsets: intrinsics = full-set solves
+    # stereo.yml written with 17 significant digits and read back: exact up to the last bit.
     np.testing.assert_allclose(back.R, result.stereo.R, atol=1e-12)
     np.testing.assert_allclose(back.K2, result.mono_right.camera_matrix, rtol=1e-12)
     summary = json.loads((res / "stereo.json").read_text())
