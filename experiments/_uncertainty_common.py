@@ -157,7 +157,7 @@ def sandwich_std(sol, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
     eliminating the pose) and S the Schur complement. It is the infinitesimal (delete-1) jackknife: no assumption
     that corner errors are independent within a view, only between views."""
     from dstereo.calib.mono import view_linearize_for
-    from dstereo.calib.uncertainty import scaled_inverse
+    from dstereo.uncertainty.covariance import scaled_inverse
 
     lin = jax.jit(jax.vmap(view_linearize_for(sol.free), in_axes=(None, 0, 0, None)))
     shared = (jnp.asarray(obj, float), jnp.zeros(8))

@@ -34,7 +34,7 @@ def measure(folder: Path, workers: int, grid: float) -> dict:
     from dstereo.frames.runner import _peak_rss_mb
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.recession import RecessionConfig, discover, run_recession
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
 
     frames = discover(folder)
     calib = read_stereo_calibration(folder / "stereo.yml")

@@ -36,7 +36,7 @@ MODEL = ("k1", "k2", "p1", "p2", "k3")
 
 
 def thesis_config(cap: int, per_set: int | None = 10):
-    from dstereo.config import Config, Step
+    from dstereo.config.calibration import Config, Step
 
     steps = (Step(("re",), (0.5,)), Step(("p1", "p2"), (1.5, 1.5)), Step(("k1", "k2", "k3"), (1.5,) * 3),
              Step(("fx", "fy", "cx", "cy"), (1.0,) * 4)) if per_set else ()

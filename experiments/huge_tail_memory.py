@@ -17,7 +17,7 @@ import numpy as np
 from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subset_table import SubsetTable
 from dstereo.calib.subsets import plan_subsets
-from dstereo.config import Step
+from dstereo.config.calibration import Step
 from dstereo.io import plots
 from dstereo.io.results import write_stats_files, write_subsets_csv
 

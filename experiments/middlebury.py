@@ -7,7 +7,7 @@ Reported per scene: bad-2.0 (% of valid estimates off by > 2 px, and counting mi
 Acceptance: median relative depth error <= 1 % and density >= 80 % on at least four of the five scenes.
 
     python -m experiments.middlebury [--data ../shared/data/middlebury2014q] [--out results/middlebury.md]
-        [--no-refine]   (SGBM's disparity as it is, without the sub-pixel refinement of dstereo.subpixel)
+        [--no-refine]   (SGBM's disparity as it is, without the sub-pixel refinement of dstereo.stereo.subpixel)
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.disparity import SGBMParams
+from dstereo.stereo.disparity import SGBMParams
 from dstereo.io.calib_files import read_middlebury_calib, read_pfm
-from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated
+from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"

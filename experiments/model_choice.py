@@ -2,7 +2,7 @@
 
 For each model of the ladder none; k1; k1,k2; k1,k2,p1,p2; k1,k2,p1,p2,k3; rational k1..k6,p1,p2:
 - the full-set solve gives the training RMS and the identifiability flag (scale-free condition number of the
-  Schur complement, `dstereo.calib.uncertainty`);
+  Schur complement, `dstereo.uncertainty.covariance`);
 - the N leave-one-out training sets are solved in one batched call of the engine's subset solver
   (`mono.solve_subsets` with the plan of all C(N, N-1) subsets);
 - each held-out view's pose is solved with that fold's intrinsics and distortion fixed (optimistix LM, vmapped

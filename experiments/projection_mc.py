@@ -17,7 +17,7 @@ import numpy as np
 from dstereo.calib.cross_validation import solve_halves
 from dstereo.calib.mono import calibrate_full
 from dstereo.models.camera import Camera
-from dstereo.projection_uncertainty import mean_board_distance, solution_map
+from dstereo.uncertainty.projection import mean_board_distance, solution_map
 from dstereo.synth import Board, board_pose_set, object_points, true_corners
 from dstereo.synth.poses import compose, invert
 

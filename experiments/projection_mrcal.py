@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 DSTEREO_SIDE = r"""
 import json, sys, numpy as np
 from dstereo.calib.mono import calibrate_full
-from dstereo.projection_uncertainty import solution_map
+from dstereo.uncertainty.projection import solution_map
 res, gw, gh, rng = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
 s = json.load(open(res + "/summary.json")); c = np.load(res + "/corners.npz")
 obs = np.stack([c[n] for n in s["images"]["used"]])

@@ -32,7 +32,7 @@ def first_frame_points(size, seed: int, yaw: float, pitch: float, cache: Path) -
         data = np.load(path)
         return data["points"], json.loads(str(data["truth"]))
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
     from dstereo.recession import discover
     from dstereo.recession.analysis import _reconstructor
     from dstereo.recession.synthetic import write_synthetic_sequence

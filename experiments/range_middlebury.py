@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.io.calib_files import read_middlebury_calib, read_pfm
-from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated
+from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"

@@ -30,7 +30,7 @@ RIG_COLUMNS = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz", "|rv|", "|T|")
 
 
 def thesis_steps():
-    from dstereo.config import Step
+    from dstereo.config.calibration import Step
 
     return [Step(("re",), (0.5,)), Step(("p1", "p2"), (1.5, 1.5)), Step(("k1", "k2", "k3"), (1.5,) * 3),
             Step(("fx", "fy", "cx", "cy"), (1.0,) * 4)]

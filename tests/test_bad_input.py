@@ -230,7 +230,7 @@ def test_ini_without_calibration_section_is_refused(tmp_path):
 @pytest.mark.parametrize("name, section", [("init-individual.ini", "Optimization"),
                                            ("init-stereo.ini", "Stereo Optimization")])
 def test_ini_without_its_optimisation_section_says_so(name, section):
-    from dstereo.config import config_from_thesis_ini
+    from dstereo.config.calibration import config_from_thesis_ini
 
     full = config_from_thesis_ini(_seed_text(name), name)
     assert not [w for w in full.warnings if "section" in w]
@@ -281,7 +281,7 @@ def test_help_keeps_bracketed_text(command, text):
 # --- 9. stereo optimisation steps from the command line and the template -------------------------------------------
 
 def test_stereo_steps_from_flags_reach_the_stereo_run(tmp_path):
-    from dstereo.config import Step, parse_step_flags
+    from dstereo.config.calibration import Step, parse_step_flags
 
     mono, stereo = parse_step_flags(["re=0.5", "stereo_re=3", "Tnorm=0.75,RV_norm=1"])
     assert mono == (Step(("re",), (0.5,)),)
@@ -301,7 +301,7 @@ def test_stereo_steps_from_flags_reach_the_stereo_run(tmp_path):
 
 
 def test_init_template_carries_the_stereo_steps(tmp_path):
-    from dstereo.config import config_from_thesis_ini, load_config
+    from dstereo.config.calibration import config_from_thesis_ini, load_config
 
     assert run_cli("init", tmp_path / "p")[0] == 0
     text = (tmp_path / "p" / "dstereo.toml").read_text()
@@ -418,7 +418,7 @@ def test_opencv_and_file_system_failures_give_one_line(monkeypatch):
 
     args = ("optics", "--focus-distance", "1000", "--focal-length", "50", "--crop-factor", "1.5", "--f-number", "8")
     for failure, needle in ((opencv_fails, "Insufficient memory"), (disk_full, "/data/out/plot.png")):
-        monkeypatch.setattr("dstereo.optics.compute_optics", failure)
+        monkeypatch.setattr("dstereo.optics.calculator.compute_optics", failure)
         _refused(args, None, needle)
 
 

@@ -77,7 +77,7 @@ def test_thesis_file_run_and_console(thesis_run):
 
 
 def test_survivors_equal_an_independent_reimplementation(thesis_run):
-    from dstereo.config import load_config
+    from dstereo.config.calibration import load_config
 
     results = thesis_run[0]
     rows = _subsets(results)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from dstereo.config import (Config, Step, config_from_thesis_ini, config_from_toml, find_project_config,
+from dstereo.config.calibration import (Config, Step, config_from_thesis_ini, config_from_toml, find_project_config,
                             load_config, parse_step_flag, template, to_toml, validate)
 from dstereo.errors import DstereoError
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from dstereo import demo
+from dstereo.demo import run as demo
 from dstereo.calib.stereo import calibrate_stereo
 from dstereo.cli import app
 from dstereo.errors import DstereoError

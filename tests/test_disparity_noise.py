@@ -1,4 +1,4 @@
-"""Per-pixel disparity noise (`dstereo.disparity_noise`): the predicted sigma follows the measured scatter over
+"""Per-pixel disparity noise (`dstereo.stereo.disparity_noise`): the predicted sigma follows the measured scatter over
 two textures of different contrast, the image noise estimate, and the plane check that flags (and scales) a
 wrong noise level."""
 
@@ -11,9 +11,9 @@ import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from conftest import run_cli
-from dstereo import disparity_noise as dn
+from dstereo.stereo import disparity_noise as dn
 from dstereo.io.calib_files import StereoCalibration, write_opencv_stereo
-from dstereo.subpixel import refine_disparity
+from dstereo.stereo.subpixel import refine_disparity
 
 W, H, SHIFT, NOISE = 320, 240, 12.4, 2.0
 LOW = 0.15  # contrast of the right half against the left half
@@ -134,7 +134,7 @@ def test_point_sigma_vectors_and_the_recession_cells_random_sigma():
     the Q reprojection), and a recession cell's random sigma is the RMS of its points' component along the
     sample axis."""
     from dstereo.recession.analysis import RecessionConfig, _cell_random_sigma, _Reference
-    from dstereo.triangulate import reproject_disparity
+    from dstereo.stereo.triangulate import reproject_disparity
 
     f, b = 300.0, 60.0
     Q = np.array([[1.0, 0, 0, -(W - 1) / 2], [0, 1.0, 0, -(H - 1) / 2], [0, 0, 0, f], [0, 0, 1 / b, 0]])

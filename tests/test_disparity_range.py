@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from conftest import require_data
-from dstereo.disparity import disparity_range
+from dstereo.stereo.disparity import disparity_range
 from dstereo.errors import DstereoError
-from dstereo.search_range import (SearchRange, from_bounds, from_middlebury, from_sparse, saturation,
+from dstereo.stereo.search_range import (SearchRange, from_bounds, from_middlebury, from_sparse, saturation,
                                   sparse_disparities, widened)
 
 # --- disparity_range: expected values worked out by hand (d = f B / Z - doffs) --------------------------------
@@ -106,7 +106,7 @@ def _true_disparities(render, calib, result):
 
 
 def test_converging_rig_range_holds_its_negative_disparities(converging_pair):
-    from dstereo.reconstruction import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
 
     render, calib, _ = converging_pair
     result = reconstruct_calibrated(calib, render.left, render.right, ReconstructionConfig(uncertainty=False))
@@ -128,7 +128,7 @@ def test_middlebury_upscaled_2x_range_from_the_pair():
     import cv2
 
     from dstereo.io.calib_files import read_pfm
-    from dstereo.reconstruction import read_image
+    from dstereo.stereo.pipeline import read_image
 
     scene = require_data("middlebury2014q") / "Adirondack"
     up = [cv2.resize(read_image(scene / n), None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
@@ -147,15 +147,15 @@ def test_middlebury_upscaled_2x_range_from_the_pair():
 @pytest.fixture(scope="module")
 def teddy():
     from dstereo.io.calib_files import read_middlebury_calib
-    from dstereo.reconstruction import read_image
+    from dstereo.stereo.pipeline import read_image
 
     scene = require_data("middlebury2014q") / "Teddy"  # ground truth 15..53 px
     return read_middlebury_calib(scene / "calib.txt"), read_image(scene / "im0.png"), read_image(scene / "im1.png")
 
 
 def test_a_users_short_range_is_kept_with_a_warning(teddy):
-    from dstereo.reconstruction import ReconstructionConfig, reconstruct_calibrated
-    from dstereo.disparity import SGBMParams
+    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.disparity import SGBMParams
 
     calib, left, right = teddy
     config = ReconstructionConfig(sgbm=SGBMParams(num_disparities=32), sgbm_user=("num_disparities",),
@@ -171,7 +171,7 @@ def test_a_users_short_range_is_kept_with_a_warning(teddy):
 
 
 def test_a_short_estimated_range_is_widened(teddy):
-    from dstereo.reconstruction import ReconstructionConfig, match_in_range
+    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range
 
     calib, left, right = teddy
     Q = np.array([[1, 0, 0, -calib.K1[0, 2]], [0, 1, 0, -calib.K1[1, 2]], [0, 0, 0, calib.K1[0, 0]],
@@ -205,8 +205,8 @@ def test_doffs_within_the_files_rounding_is_accepted_and_used(tmp_path):
 
 
 def test_sgbm_settings_follow_the_image_unless_set():
-    from dstereo.disparity import PRESETS, SGBMParams
-    from dstereo.reconstruction import ReconstructionConfig, sized_sgbm, user_sgbm_names
+    from dstereo.stereo.disparity import PRESETS, SGBMParams
+    from dstereo.stereo.pipeline import ReconstructionConfig, sized_sgbm, user_sgbm_names
 
     default = ReconstructionConfig()
     webcam = sized_sgbm(default.sgbm, user_sgbm_names(default), (480, 640))
@@ -226,8 +226,8 @@ def test_sgbm_settings_follow_the_image_unless_set():
 
 def test_cli_and_config_files_record_what_the_user_set(tmp_path):
     from dstereo.commands.matching_options import matching_changes
-    from dstereo.disparity import PRESETS
-    from dstereo.reconstruction import load_config
+    from dstereo.stereo.disparity import PRESETS
+    from dstereo.stereo.pipeline import load_config
 
     changes = matching_changes(PRESETS["default"], None, ["blockSize=5", "num_disparities=64"], None, None, None)
     assert changes["sgbm_user"] == ("block_size", "num_disparities")
@@ -240,7 +240,7 @@ def test_cli_and_config_files_record_what_the_user_set(tmp_path):
 def test_false_matches_on_a_repeated_pattern_are_dropped():
     """A chessboard's repeated squares give same-row matches one square off: their disparity disagrees with their
     image neighbours' and they leave the estimate (otherwise the range would reach 30 px too far)."""
-    from dstereo.search_range import consistent_with_neighbours
+    from dstereo.stereo.search_range import consistent_with_neighbours
 
     q = np.stack(np.meshgrid(np.arange(0, 200, 10.0), np.arange(0, 100, 10.0)), axis=-1).reshape(-1, 2)
     d = np.full(len(q), 50.0) + 0.01 * q[:, 0]  # a slanted board: 50..52 px
@@ -291,7 +291,7 @@ def test_board_depth_prior_by_hand_and_from_the_file(tmp_path):
     without them gives no prior."""
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.stereo_files import append_board_depths, write_stereo_yml
-    from dstereo.search_range import from_board_depths
+    from dstereo.stereo.search_range import from_board_depths
 
     q = np.array([[1, 0, 0, -320], [0, 1, 0, -240], [0, 0, 0, 1000.0], [0, 0, 1 / 100.0, 0]])
     k = np.array([[1000.0, 0, 320], [0, 1000, 240], [0, 0, 1]])
@@ -312,7 +312,7 @@ def test_board_depth_prior_is_used_when_sparse_matches_are_too_few():
     from dataclasses import replace
 
     from dstereo.io.calib_files import StereoCalibration
-    from dstereo.reconstruction import ReconstructionConfig, initial_range
+    from dstereo.stereo.pipeline import ReconstructionConfig, initial_range
 
     q = np.array([[1, 0, 0, -320], [0, 1, 0, -240], [0, 0, 0, 1000.0], [0, 0, 1 / 100.0, 0]])
     flat = np.full((480, 640), 128, np.uint8)

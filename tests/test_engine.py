@@ -330,7 +330,7 @@ def test_too_few_views_is_an_error():
 
 def test_covariance_survives_badly_scaled_parameters():
     """fx ~ 1e4 px next to k3 ~ 1e-3: the raw matrix's condition number (~1e19) must not cut real directions."""
-    from dstereo.calib.uncertainty import scaled_inverse
+    from dstereo.uncertainty.covariance import scaled_inverse
 
     rng = np.random.default_rng(4)
     a = rng.normal(size=(9, 9))
@@ -356,7 +356,7 @@ def test_covariance_counts_every_free_parameter_on_a_linear_problem():
     The noise e is drawn orthogonal to the design's columns and scaled to |e|^2 = (40 - 10) sigma^2, so the
     exact answers are known: the solution is the truth, SSE / (n - p) = sigma^2 and cov(g) = sigma^2 times the
     g-block of (A'A)^-1. Counting only the shared parameters (n - 2) would shrink sigma^2 by 25 %."""
-    from dstereo.calib.uncertainty import covariance
+    from dstereo.uncertainty.covariance import covariance
     from dstereo.solver.lm import solve_structured
 
     rng = np.random.default_rng(7)

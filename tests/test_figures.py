@@ -13,7 +13,7 @@ from dstereo.io import plots
 from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches, log_ticks, tick_label
 from dstereo.io.sigma_maps import colour_limits, projection_uncertainty_png
 from dstereo.io.stereo_files import frustum_depth
-from dstereo.projection_uncertainty import ProjectionUncertaintyMap
+from dstereo.uncertainty.projection import ProjectionUncertaintyMap
 
 
 @pytest.fixture

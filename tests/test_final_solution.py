@@ -18,7 +18,7 @@ from dstereo.calib import mono
 from dstereo.calib.final_solution import RIG, attach_rig_uncertainty, camera_final, surviving_views, view_survival
 from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subsets import plan_subsets
-from dstereo.config import Step
+from dstereo.config.calibration import Step
 from dstereo.models.camera import project_view
 
 K = np.array([500.0, 500.0, 320.0, 240.0])
@@ -234,7 +234,7 @@ def test_fixed_mode_rig_sigma_is_the_propagated_one(rig_job):
 
 
 def test_final_option_in_toml_and_its_errors():
-    from dstereo.config import Config, config_from_toml, to_toml, validate
+    from dstereo.config.calibration import Config, config_from_toml, to_toml, validate
     from dstereo.errors import DstereoError
 
     cfg = config_from_toml('[pattern]\ncolumns = 9\nrows = 6\n[calibration]\nfinal = "mean"\n', "t.toml")

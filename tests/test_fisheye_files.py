@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import require_data, run_cli
-from dstereo.config import load_config
+from dstereo.config.calibration import load_config
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_opencv_stereo
 from dstereo.io.camera_file import read_camera_file

@@ -114,7 +114,7 @@ def test_undistortion_reports_non_invertible_pixels():
 
 
 def test_projection_uncertainty_map_of_a_fisheye():
-    from dstereo.projection_uncertainty import projection_uncertainty_map
+    from dstereo.uncertainty.projection import projection_uncertainty_map
 
     names = ("fx", "fy", "cx", "cy", "fk1", "fk2", "fk3", "fk4")
     a = np.random.default_rng(2).normal(size=(8, 8)) * np.array([0.3, 0.3, 0.2, 0.2, 4e-3, 1e-2, 2e-2, 1e-2])

@@ -103,7 +103,7 @@ def test_a_killed_worker_has_its_frame_retried_then_reported(sequence, serial, t
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.recession import RecessionConfig, discover, run_recession
     from dstereo.recession.analysis import FrameReconstructor
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
     frames = discover(sequence)

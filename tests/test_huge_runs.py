@@ -19,7 +19,7 @@ from dstereo.calib.subset_runs import estimate_run, solve_in_blocks
 from dstereo.calib.subset_table import SubsetTable
 from dstereo.calib.subsets import REJECTION_MAX, plan_subsets, unrank
 from dstereo.commands.progress import eta_text
-from dstereo.config import Step
+from dstereo.config.calibration import Step
 from dstereo.errors import DstereoError
 
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from dstereo.disparity import left_right_check
+from dstereo.stereo.disparity import left_right_check
 
 NAN = np.nan
 

@@ -5,7 +5,7 @@ import pytest
 
 from dstereo.calib import mono
 from dstereo.calib.misfit import residual_pattern, solution_pattern
-from dstereo.calib.uncertainty import conditioning, wild_parameters
+from dstereo.uncertainty.covariance import conditioning, wild_parameters
 from dstereo.models.distortion import PRESETS
 from test_outliers import _views
 

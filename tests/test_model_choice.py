@@ -9,7 +9,7 @@ import pytest
 
 from conftest import require_data, run_cli
 from dstereo.calib.model_choice import Candidate, choose, choose_model, fold_plan, residual_structure
-from dstereo.config import Config, config_from_toml, to_toml, validate
+from dstereo.config.calibration import Config, config_from_toml, to_toml, validate
 from dstereo.errors import DstereoError
 
 N_VIEWS, SIGMA = 12, 0.1  # the same view count and board for both lenses: one compile per model for the file
@@ -127,7 +127,7 @@ def test_config_key_round_trip_and_steps_on_coefficients_refused():
     cfg = config_from_toml(text, "dstereo.toml")
     assert cfg.model_auto and validate(cfg) is cfg
     assert config_from_toml(to_toml(cfg), "again.toml").model_auto
-    from dstereo.config import make_step
+    from dstereo.config.calibration import make_step
 
     bad = Config(pattern=(9, 6), model_auto=True, per_set=5, steps=(make_step(["k3"], [2.0], "step"),))
     with pytest.raises(DstereoError, match="model auto"):
@@ -137,7 +137,7 @@ def test_config_key_round_trip_and_steps_on_coefficients_refused():
 def test_thesis_ini_accepts_auto(tmp_path):
     from pathlib import Path
 
-    from dstereo.config import load_config
+    from dstereo.config.calibration import load_config
 
     from conftest import require_seed
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from dstereo import optics
+from dstereo.optics import calculator as optics
 from dstereo.cli import app, main
 from dstereo.errors import DstereoError
 

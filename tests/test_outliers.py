@@ -41,7 +41,7 @@ def test_zero_residual_weights_leave_residuals_out_of_the_fit_and_the_dof():
     """A linear problem (as test_engine's dof test) with 6 of 40 residuals weighted 0: the solution, sigma^2
     and covariance are those of least squares on the other 34 rows, dof = 34 - 10; the zeroed rows may hold
     anything (here gross errors) without effect."""
-    from dstereo.calib.uncertainty import covariance
+    from dstereo.uncertainty.covariance import covariance
     from dstereo.solver.lm import solve_structured
 
     rng = np.random.default_rng(3)
@@ -162,7 +162,7 @@ def test_config_key_and_the_pipeline_switch():
     OpenCV sample's left camera loses its stray corners (measured: 15 of 702, RMS 0.41 -> 0.18 px)."""
     from conftest import require_data
     from dstereo.calib.pipeline import calibrate_camera
-    from dstereo.config import Config, config_from_toml
+    from dstereo.config.calibration import Config, config_from_toml
     from dstereo.errors import DstereoError
 
     assert config_from_toml("[calibration]\noutlier_rejection = false\n", "t.toml").outlier_rejection is False

@@ -14,9 +14,9 @@ import pytest
 import trimesh
 
 from conftest import run_cli
-from dstereo import point_uncertainty as pu
+from dstereo.uncertainty import points as pu
 from dstereo.calib import stereo as st
-from dstereo.calib.uncertainty import scaled_inverse
+from dstereo.uncertainty.covariance import scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration, write_opencv_stereo
 from dstereo.io.stereo_files import write_stereo_yml
@@ -24,8 +24,8 @@ from dstereo.models.camera import Camera
 from dstereo.models.distortion import Distortion
 from dstereo.models.distortion import undistort
 from dstereo.models.pose import rodrigues
-from dstereo.projection_uncertainty import mean_board_distance, projection_uncertainty_map
-from dstereo.rectify import stereo_rectify
+from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map
+from dstereo.stereo.rectify import stereo_rectify
 from dstereo.solver.lm import LMOptions
 from dstereo.synth import Board, board_pose_set, compose, object_points, plasmatron_rig, true_corners
 
@@ -405,7 +405,7 @@ def test_reconstruct_cli_writes_sigma_maps_and_ply_attributes(tmp_path):
     full = json.loads((out / "summary.json").read_text())
     summary, noise = full["uncertainty"], full["disparity_noise"]
     assert "configured" in summary["sigma_d_source"] and noise["configured_px"] == 0.2
-    # the configured constant is checked on the data and scaled to the level they show (dstereo.disparity_noise)
+    # the configured constant is checked on the data and scaled to the level they show (dstereo.stereo.disparity_noise)
     sigma_d = np.load(out / "sigma_d.npy").astype(float)
     np.testing.assert_allclose(sigma_d[valid], 0.2 * noise["scaled_by"], rtol=1e-6)
     assert summary["sigma_d_px"] == pytest.approx(0.2 * noise["scaled_by"], rel=1e-6)

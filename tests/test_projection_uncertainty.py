@@ -14,8 +14,8 @@ from experiments.projection_mc import FREE, SIZE, board_fixed_spread, scene  # n
 
 from dstereo.calib.cross_validation import solve_halves  # noqa: E402
 from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.calib.uncertainty import joint_covariance  # noqa: E402
-from dstereo.projection_uncertainty import mean_board_distance, projection_uncertainty_map, solution_map  # noqa: E402
+from dstereo.uncertainty.covariance import joint_covariance  # noqa: E402
+from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map, solution_map  # noqa: E402
 
 SIGMA = 0.3  # px corner noise
 DRAWS = 120  # the std of a std estimated from D draws is ~1/sqrt(2D) = 6.5 %: the 0.8-1.25 band is > 3 of them

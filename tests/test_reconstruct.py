@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from conftest import require_data
-from dstereo.disparity import PRESETS, SGBMParams, parse_overrides
+from dstereo.stereo.disparity import PRESETS, SGBMParams, parse_overrides
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import (
     StereoCalibration,
@@ -23,7 +23,7 @@ from dstereo.io.calib_files import (
 )
 from dstereo.io.pointcloud import grid_faces, remove_statistical_outliers
 from dstereo.models.camera import Camera
-from dstereo.reconstruction import (
+from dstereo.stereo.pipeline import (
     ReconstructionConfig,
     load_config,
     read_image,
@@ -54,8 +54,8 @@ def test_middlebury_calib_is_parsed_tolerantly(scene):
     assert c.rectified and c.image_size == read_image(folder / "im0.png").shape[1::-1]
     assert c.extras["doffs"] == pytest.approx(c.K2[0, 2] - c.K1[0, 2], abs=1e-3)
     assert f"{c.baseline:g}" in text.replace(" ", "")
-    from dstereo.rectify import rectified_from_projections
-    from dstereo.triangulate import depth_from_disparity
+    from dstereo.stereo.rectify import rectified_from_projections
+    from dstereo.stereo.triangulate import depth_from_disparity
 
     r = rectified_from_projections(*c.projections(), c.image_size)
     z = depth_from_disparity(jnp.array([[20.0]]), r.Q)[0, 0]

@@ -11,10 +11,10 @@ import pytest
 
 from conftest import require_data
 from dstereo.errors import DstereoError
-from dstereo.features import eight_point, match_sift, ransac_fundamental, sampson_distance
+from dstereo.stereo.features import eight_point, match_sift, ransac_fundamental, sampson_distance
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.models.pose import rodrigues
-from dstereo.rectify import (
+from dstereo.stereo.rectify import (
     focal_px,
     log_rotation,
     rectify_map,

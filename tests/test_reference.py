@@ -216,7 +216,7 @@ SPHERE_POINTS = 2000  # matches per solve (the library default is 4000): halves 
 @pytest.fixture(scope="module")
 def all_sphere_matches(sphere_view, truth):
     """Every dense match on the sphere pair (~46,000), rectified with the calibration 1 % long in baseline."""
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
     from dstereo.reference.dense import dense_matches
 
     start = perturbed(truth, 0.01, 0.0)
@@ -239,7 +239,7 @@ def sphere_matches(all_sphere_matches):
 def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
     """Dense SGBM matches on a rendered 120 mm sphere: the baseline scale from +1 % to within 0.3 % (measured:
     -0.18 %); a sphere does not determine the rest of the rig (second solve)."""
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
     from dstereo.reference.dense import refine_dense
 
     start, (q_l, q_r) = sphere_matches

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, run_steps, thesis_quartiles
-from dstereo.config import Step, load_config
+from dstereo.config.calibration import Step, load_config
 from dstereo.errors import DstereoError
 
 ABSOLUTE = ("re", "stereo_re")

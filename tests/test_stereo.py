@@ -454,7 +454,7 @@ def test_cli_stereo_errors_exit_1_and_write_nothing(tmp_path):
 
 def test_box_plots_of_initial_and_optimised_subsets(tmp_path):
     from dstereo.calib.robust_steps import run_steps
-    from dstereo.config import Step
+    from dstereo.config.calibration import Step
 
     rng = np.random.default_rng(0)
     table = np.column_stack([rng.uniform(0.1, 0.2, 40), rng.normal(3.3, 0.01, (40, 8))])

@@ -1,4 +1,4 @@
-"""dstereo.subpixel: pixels the refinement cannot refine are dropped (NaN), the right map is refined like the
+"""dstereo.stereo.subpixel: pixels the refinement cannot refine are dropped (NaN), the right map is refined like the
 left one, and the homography maps resample as cv2.warpPerspective does. The gain on a rendered pair:
 tests/test_reconstruct.py::test_subpixel_refinement_cuts_the_surface_error; a known shift:
 tests/test_recession.py::test_subpixel_refinement_recovers_a_known_shift."""
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import fourier_shift, gaussian_filter
 
-from dstereo.subpixel import dropped_fraction, homography_maps, rectify_exact, refine_disparity, refine_right_disparity
+from dstereo.stereo.subpixel import dropped_fraction, homography_maps, rectify_exact, refine_disparity, refine_right_disparity
 
 D_TRUE = 3.3
 

@@ -10,7 +10,7 @@ from conftest import require_data
 from dstereo.calib import mono
 from dstereo.calib import stereo_pipeline
 from dstereo.calib.pipeline import calibrate_camera
-from dstereo.config import Config
+from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.solver.lm import LMOptions
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from conftest import require_data
-from dstereo.disparity import disparity_range
+from dstereo.stereo.disparity import disparity_range
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.models.camera import project
 from dstereo.models.pose import rodrigues
-from dstereo.rectify import q_matrix, rectify_map, stereo_rectify
-from dstereo.triangulate import (
+from dstereo.stereo.rectify import q_matrix, rectify_map, stereo_rectify
+from dstereo.stereo.triangulate import (
     depth_from_disparity,
     reproject_disparity,
     to_original_left,

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from dstereo.calib.uncertainty import scaled_inverse
+from dstereo.uncertainty.covariance import scaled_inverse
 
 
 def test_a_non_finite_matrix_in_a_batch_gives_nan_not_linalgerror():

@@ -27,13 +27,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.calib.mono import _run
-from dstereo.calib.uncertainty import covariance, joint_covariance
+from dstereo.uncertainty.covariance import covariance, joint_covariance
 from dstereo.errors import DstereoError
 from dstereo.models.camera import project
 from dstereo.models.distortion import COEFF_NAMES
 from dstereo.models.pose import rodrigues
-from dstereo.point_jacobians import newton_step
-from dstereo.projection_uncertainty import (CAMERA_NAMES, _invertible, _undistorted, mean_board_distance,
+from dstereo.uncertainty.point_jacobians import newton_step
+from dstereo.uncertainty.projection import (CAMERA_NAMES, _invertible, _undistorted, mean_board_distance,
                                             projection_uncertainty_map)
 from dstereo.solver.lm import LMOptions
 

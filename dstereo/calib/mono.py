@@ -20,7 +20,7 @@ import numpy as np
 from dstereo.calib.init_fisheye import initial_guess_fisheye
 from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subsets import SubsetPlan
-from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
+from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.models import camera, fisheye
 from dstereo.models.camera import INTRINSIC_NAMES

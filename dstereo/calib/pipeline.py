@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from dstereo.calib.robust_steps import FilterResult, run_steps
-from dstereo.config import Config, Step, validate
+from dstereo.config.calibration import Config, Step, validate
 from dstereo.errors import DstereoError
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)

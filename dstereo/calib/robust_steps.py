@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from dstereo.calib.subset_table import SubsetTable
-from dstereo.config import ABSOLUTE_PARAMETERS, Step
+from dstereo.config.calibration import ABSOLUTE_PARAMETERS, Step
 from dstereo.errors import DstereoError
 
 SURVIVES = 0  # `removed_at` value of a subset that passed every step

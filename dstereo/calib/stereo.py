@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.init_zhang import homography, pose_from_homography
 from dstereo.calib.mono import CameraSolution, calibrate_full
 from dstereo.calib.subsets import SubsetPlan, plan_subsets
-from dstereo.calib.uncertainty import Conditioning, conditioning, covariance, scaled_inverse
+from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files

@@ -27,7 +27,7 @@ from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
     solve_stereo_subsets
-from dstereo.config import Config
+from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.io.corners import list_images
 from dstereo.io.stereo_files import StereoDetection, detect_pairs

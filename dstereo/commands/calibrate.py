@@ -62,12 +62,12 @@ def calibrate(
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    from dstereo.config import Config, find_project_config, load_config, parse_step_flags, validate
+    from dstereo.config.calibration import Config, find_project_config, load_config, parse_step_flags, validate
     from dstereo.errors import DstereoError
     from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
-    from dstereo.projection_uncertainty import METHODS
+    from dstereo.uncertainty.projection import METHODS
 
     if projection_method not in METHODS:
         raise DstereoError(f"--projection-method {projection_method}: use one of {', '.join(METHODS)}")
@@ -215,13 +215,13 @@ def _stereo_view_warnings(job) -> list[str]:
 
 
 def _auto(spec: Optional[str]):
-    from dstereo.config import is_auto_model
+    from dstereo.config.calibration import is_auto_model
 
     return None if spec is None else is_auto_model(spec)
 
 
 def _model(spec: Optional[str]):
-    from dstereo.config import is_auto_model
+    from dstereo.config.calibration import is_auto_model
 
     if spec is None or is_auto_model(spec):
         return None

@@ -21,7 +21,7 @@ def demo(
     from dstereo.io.results import check_output
 
     check_output(out, force)  # before any rendering
-    from dstereo.demo import run_demo
+    from dstereo.demo.run import run_demo
 
     started = time.perf_counter()
     comparison = run_demo(out, force, quick, seed, progress=_StageLines(started))
@@ -41,7 +41,7 @@ class _StageLines:
 
 
 def _print(comparison: dict, out: Path, elapsed: float) -> None:
-    from dstereo.demo import TABLE_HEADER, notes, surface_lines, table_rows
+    from dstereo.demo.run import TABLE_HEADER, notes, surface_lines, table_rows
 
     rows = [TABLE_HEADER] + table_rows(comparison)
     widths = [max(len(r[j]) for r in rows) for j in range(len(TABLE_HEADER))]

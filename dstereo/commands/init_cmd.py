@@ -12,7 +12,7 @@ def init(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing dstereo.toml."),
 ) -> None:
     """Write PROJECT/dstereo.toml (the thesis's Figure 5.5 set-up, commented) and create PROJECT/images/."""
-    from dstereo.config import template, to_toml
+    from dstereo.config.calibration import template, to_toml
     from dstereo.errors import DstereoError
 
     if project.exists() and not project.is_dir():

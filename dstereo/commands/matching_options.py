@@ -8,7 +8,7 @@ from __future__ import annotations
 def matching_changes(base_sgbm, preset: str | None, sgbm: list[str] | None, z_min: float | None,
                      z_max: float | None, roi: str | None) -> dict:
     """ReconstructionConfig fields set by these options (only those given), validated with one-line errors."""
-    from dstereo.disparity import PRESETS, parse_overrides
+    from dstereo.stereo.disparity import PRESETS, parse_overrides
     from dstereo.errors import DstereoError
 
     params = base_sgbm
@@ -66,7 +66,7 @@ def check_reconstruction_config(cfg, image_width: int | None = None) -> None:
 
 
 def _field_names(overrides: dict) -> tuple[str, ...]:
-    from dstereo.disparity import CV_NAMES
+    from dstereo.stereo.disparity import CV_NAMES
 
     return tuple(CV_NAMES.get(k, k).strip().lower().replace("-", "_") for k in overrides)
 

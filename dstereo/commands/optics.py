@@ -91,7 +91,7 @@ def optics(
     json_output: bool = typer.Option(False, "--json", help="Print only JSON (lengths in mm)."),
 ) -> None:
     """Depth of field, hyperfocal distance, diffraction check and stereo depth resolution for a capture set-up."""
-    from dstereo import optics as lib
+    from dstereo.optics import calculator as lib
     from dstereo.io.output_location import check_creatable
 
     if plots is not None:

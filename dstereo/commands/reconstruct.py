@@ -62,7 +62,7 @@ def reconstruct(
 
     from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
     from dstereo.errors import DstereoError
-    from dstereo.reconstruction import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
+    from dstereo.stereo.pipeline import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")

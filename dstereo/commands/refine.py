@@ -55,7 +55,7 @@ def refine(
     elif sphere_diameter is not None:
         reference = Sphere(float(sphere_diameter))
         if z_min is not None:
-            from dstereo.reconstruction import ReconstructionConfig
+            from dstereo.stereo.pipeline import ReconstructionConfig
 
             config = ReconstructionConfig(depth_range=(z_min, z_max))
     else:

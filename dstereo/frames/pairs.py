@@ -36,7 +36,7 @@ def pair_names(pairs) -> list[str]:
 def reconstruct_pair(job, calib, config, folder: str) -> PairDone:
     """Task: reconstruct one pair and write its folder under `folder` (atomically)."""
     from dstereo.io.reconstruction_files import json_default, write_pair
-    from dstereo.reconstruction import check_pair, read_image, reconstruct_calibrated, reconstruct_uncalibrated
+    from dstereo.stereo.pipeline import check_pair, read_image, reconstruct_calibrated, reconstruct_uncalibrated
 
     name, left_path, right_path = job
     left, right = read_image(left_path), read_image(right_path)

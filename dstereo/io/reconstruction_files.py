@@ -13,7 +13,7 @@ import numpy as np
 from dstereo.io.results import atomic_folder, json_default
 
 if TYPE_CHECKING:
-    from dstereo.reconstruction import PairResult, ReconstructionConfig
+    from dstereo.stereo.pipeline import PairResult, ReconstructionConfig
 
 
 def _epipolar_image(left: np.ndarray, right: np.ndarray, step: int = 32) -> np.ndarray:
@@ -47,7 +47,7 @@ def _disparity_png(path: Path, disparity: np.ndarray, title: str) -> None:
 def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | None = None) -> None:
     """All outputs of one pair into `folder` (which exists)."""
     if config is None:
-        from dstereo.reconstruction import ReconstructionConfig
+        from dstereo.stereo.pipeline import ReconstructionConfig
 
         config = ReconstructionConfig()
     import cv2

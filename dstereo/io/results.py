@@ -35,7 +35,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, FilterResult
-from dstereo.config import ABSOLUTE_PARAMETERS, as_dict, to_toml
+from dstereo.config.calibration import ABSOLUTE_PARAMETERS, as_dict, to_toml
 from dstereo.errors import DstereoError
 
 UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
@@ -332,7 +332,7 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
     from dstereo.io.figure_pool import Figures
 
     from dstereo.io.sigma_maps import projection_uncertainty_png
-    from dstereo.projection_uncertainty import mean_board_distance, solution_map
+    from dstereo.uncertainty.projection import mean_board_distance, solution_map
 
     full, det = cal.full, cal.detection
     source = "given" if projection_range is not None else "mean board distance of the full-set solve"

@@ -272,7 +272,7 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
 
 def stereo_summary(job) -> dict:
     """summary.json / stereo.json of a stereo job."""
-    from dstereo.config import as_dict
+    from dstereo.config.calibration import as_dict
     from dstereo.models.distortion import COEFF_NAMES
 
     s, det = job.full, job.detection

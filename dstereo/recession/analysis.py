@@ -36,7 +36,7 @@ class RecessionConfig:
     camera frame (None: estimated from the reference frame; a given axis without a point keeps the estimated
     face centre). `slab_mm` (in front, behind): points this far in front of the reference face or behind it are
     not the face. A frame whose valid cells fall below `min_face_fraction` of the reference's fails.
-    `refine_subpixel`: refine SGBM's pixel-locked disparity (`dstereo.subpixel`) before triangulating
+    `refine_subpixel`: refine SGBM's pixel-locked disparity (`dstereo.stereo.subpixel`) before triangulating
     (sets the reconstruction's `refine`). `stagnation_radius_mm` None: max(2 mm, STAGNATION_CELLS_ACROSS grid
     cells), so the stagnation disc holds ~50 cells whatever the grid (`stagnation_radius_for`)."""
 
@@ -274,7 +274,7 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     from functools import partial
 
     from dstereo.frames import FrameRunner
-    from dstereo.reconstruction import ReconstructionConfig
+    from dstereo.stereo.pipeline import ReconstructionConfig
 
     recon_config = recon_config or ReconstructionConfig()
     report = progress or (lambda stage, done, total: None)
@@ -354,7 +354,7 @@ def _collect(results, outcomes: dict, ref: _Reference, ref_index: int, config) -
     return out
 
 
-# --- random (disparity-noise) uncertainty per cell, from the per-point sigmas (dstereo.disparity_noise) --------
+# --- random (disparity-noise) uncertainty per cell, from the per-point sigmas (dstereo.stereo.disparity_noise) --------
 
 CORRELATION_AREA_PX = 14.0  # (sum F)^2 / sum F^2 of the refinement's iterated kernel: pixels per independent error
 
@@ -404,7 +404,7 @@ def _random_summary(result) -> dict | None:
             "cell_random_se_mm_median": float(np.nanmedian(result.random_se)),
             "cell_fit_se_mm_median": float(np.nanmedian(result.height_se)),
             "note": "per-point random std along the sample axis from the per-pixel disparity noise "
-                    "(dstereo.disparity_noise, level checked on each frame); per cell: recession_maps.npz random_sigma_mm and "
+                    "(dstereo.stereo.disparity_noise, level checked on each frame); per cell: recession_maps.npz random_sigma_mm and "
                     "random_se_mm (the cell height's random standard error), beside the fit's own height_se_mm"}
 
 
@@ -437,8 +437,8 @@ class FrameReconstructor:
     def __call__(self, frame: Frame):
         from dataclasses import replace
 
-        from dstereo.disparity_noise import point_sigma_vectors
-        from dstereo.reconstruction import disparity_sigma_hook, read_image, reconstruct_calibrated
+        from dstereo.stereo.disparity_noise import point_sigma_vectors
+        from dstereo.stereo.pipeline import disparity_sigma_hook, read_image, reconstruct_calibrated
 
         left, right = read_image(frame.left), read_image(frame.right)
         try:

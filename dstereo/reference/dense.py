@@ -6,7 +6,7 @@ original (distorted) images. Those raw pixel pairs are then triangulated with th
 along rectified rows only, so its matches carry no information on the vertical (epipolar) misalignment a
 rotation error causes: a dense reference constrains the rig through the reconstructed shape only, and rounds of
 re-rectification with the corrected rig let the matcher follow the correction. The search range is the
-reconstruction's (`dstereo.search_range`); a pair whose scene still runs off it is refused, not matched short.
+reconstruction's (`dstereo.stereo.search_range`); a pair whose scene still runs off it is refused, not matched short.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def _to_raw(k, coeffs, R, P, uv):
 def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, config=None,
                   max_points: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(q_left, q_right) raw pixel pairs (n, 2) of up to `max_points` valid SGBM matches (a seeded random subset)."""
-    from dstereo.reconstruction import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
 
     if calib.rectified:
         raise DstereoError(f"calibration {calib.source}: an already rectified (Middlebury) pair has no rig to refine")
@@ -56,7 +56,7 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
 def _trusted(result) -> np.ndarray:
     """Valid pixels fit for a refinement: not within 1 px of either end of the search range (where SGBM pins what it
     cannot match) and not in the left band of max-disparity columns that SGBM only matches because the pair was
-    padded (`dstereo.disparity._sgbm`; its matches there are mostly the background's). Density matters less here
+    padded (`dstereo.stereo.disparity._sgbm`; its matches there are mostly the background's). Density matters less here
     than outliers: the refinement's fit is least squares."""
     d = result.disparity
     s = result.summary["search_range"]

@@ -75,7 +75,7 @@ def undistorted(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array,
 
 def triangulate(k_l, c_l, k_r, c_r, R, T, q_l: Float[Array, "n 2"], q_r: Float[Array, "n 2"],
                 xy0_l=None, xy0_r=None, focal: bool = True) -> Float[Array, "n 3"]:
-    """Midpoint triangulation of raw pixel pairs in the left camera frame (as `dstereo.triangulate`, traceable).
+    """Midpoint triangulation of raw pixel pairs in the left camera frame (as `dstereo.stereo.triangulate`, traceable).
 
     With `xy0_l`, `xy0_r` (`undistorted` under the uncorrected calibration) the rays start from them, and are
     them when the focal lengths are not corrected (`focal=False`, static): the intrinsics are then constant."""

@@ -6,7 +6,7 @@ Measured reason for not using optimistix here (which the project otherwise prefe
 `optx.least_squares` on the one-view board problem took ~25 s on 2 cores, the residual-and-Jacobian function
 ~1.4 s; a solve then takes < 40 ms either way. The Jacobian at the solution gives the covariance
 sigma^2 (J'J)^-1, whose rig block is the correction's covariance, and the Schur complement of the nuisance
-block (the rig block's inverse) gives the conditioning flag of `dstereo.calib.uncertainty`.
+block (the rig block's inverse) gives the conditioning flag of `dstereo.uncertainty.covariance`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dstereo.calib.uncertainty import Conditioning, conditioning, scaled_inverse
+from dstereo.uncertainty.covariance import Conditioning, conditioning, scaled_inverse
 
 MIN_DOF_FOR_POSTERIOR = 10  # fewer redundant residuals: use the stated (whitened) noise, sigma = 1
 

@@ -1,7 +1,7 @@
 """Uncertainty of every point of a disparity map (`point_covariances`, with a per-pixel disparity noise map
-from `dstereo.disparity_noise`), the calibration covariance a stereo file carries (`calibration_covariance`),
+from `dstereo.stereo.disparity_noise`), the calibration covariance a stereo file carries (`calibration_covariance`),
 and the disparity noise of a left-right check (`disparity_noise_from_lr`: a lower bound, no longer used by the
-pipeline, kept as a diagnostic). The per-point model and why it is right: `dstereo.point_jacobians`.
+pipeline, kept as a diagnostic). The per-point model and why it is right: `dstereo.uncertainty.point_jacobians`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.point_jacobians import (  # re-exported: the public names of the propagation
+from dstereo.uncertainty.point_jacobians import (  # re-exported: the public names of the propagation
     PARAMETER_NAMES,
     RIG_NAMES,
     RectGeometry,
@@ -103,7 +103,7 @@ def rect_geometry(matrices: dict) -> RectGeometry:
 def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *, matrices: dict | None = None,
                       sigma_d_source: str = "given", chunk: int = 8192) -> PointUncertainty:
     """Covariance of every point of a disparity map from the calibration covariance (if the file has one) and
-    disparity noise `sigma_d` (rectified px): one value, or an (h, w) map (`dstereo.disparity_noise`).
+    disparity noise `sigma_d` (rectified px): one value, or an (h, w) map (`dstereo.stereo.disparity_noise`).
 
     `result_or_disparity`: a `reconstruction.PairResult` (its disparity, points' validity and rectification) or
     an (h, w) disparity on the rectified grid of `matrices` (R1 R2 P1 P2 Q; default: `stereo_rectify` of the
@@ -118,7 +118,7 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
         disparity = np.asarray(result_or_disparity, float)
         valid = np.isfinite(disparity)
     if matrices is None:
-        from dstereo.rectify import stereo_rectify
+        from dstereo.stereo.rectify import stereo_rectify
 
         r = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, (disparity.shape[1], disparity.shape[0]), calib.R,
                            calib.T, zero_disparity=False)

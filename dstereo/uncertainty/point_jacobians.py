@@ -19,7 +19,7 @@ derivative is the implicit-function one (-J_distort^-1 d residual / d theta).
 `tests/test_point_uncertainty.py` checks J_theta against central differences of the actual pipeline (re-run
 `stereo_rectify` with theta, rectify the two pixels, reproject through Q).
 
-Disparity noise sigma_d (rectified px, along the row; each point its own, `dstereo.disparity_noise`): the point
+Disparity noise sigma_d (rectified px, along the row; each point its own, `dstereo.stereo.disparity_noise`): the point
 moves along the left ray by dp/dd of the Q reprojection; cov = J_theta S J_theta^T + sigma_d^2 (dp/dd)(dp/dd)^T,
 per point, in the original left frame.
 """
@@ -44,7 +44,7 @@ PARAMETER_NAMES: tuple[str, ...] = (tuple(f"left.{n}" for n in INTRINSIC_NAMES +
 
 
 class RectGeometry(NamedTuple):
-    """The nominal rectification the disparity map lives on (as `dstereo.rectify.Rectification`)."""
+    """The nominal rectification the disparity map lives on (as `dstereo.stereo.rectify.Rectification`)."""
 
     R1: Float[Array, "3 3"]
     R2: Float[Array, "3 3"]

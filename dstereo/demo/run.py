@@ -18,7 +18,7 @@ pins its focal length to ~0.1 % and its principal point to ~10 px, while the two
 distance triangulated by the rig) reach ~0.02 % and a few px. The joint refinement is the one held to the
 bounds (`BOUNDS`: fixed, or 3 Jacobian standard deviations for the principal points and the rotation) and the
 one the reconstruction uses; the thesis's path is shown beside it. The reconstruction refines SGBM's disparity
-(`dstereo.subpixel`); the surface error without the refinement is reported beside it, and the median predicted
+(`dstereo.stereo.subpixel`); the surface error without the refinement is reported beside it, and the median predicted
 depth std (joint covariance + per-pixel disparity noise) beside the measured error. Library code: nothing here
 prints.
 """
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dstereo.config import Step
+from dstereo.config.calibration import Step
 
 # Thesis Figure 5.14: stereo_re <= 3 px, then Tnorm and RVnorm within 0.75 IQR.
 THESIS_STEREO_STEPS = (Step(("stereo_re",), (3.0,)), Step(("Tnorm",), (0.75,)), Step(("RVnorm",), (0.75,)))
@@ -122,7 +122,7 @@ def render_scenes(folder: Path, rig, settings: DemoSettings, seed: int, report):
 
 def thesis_config(board: dict, settings: DemoSettings, seed: int):
     """The calibration configuration of the thesis's stereo file (Figure 5.14) for the rendered board."""
-    from dstereo.config import Config, validate
+    from dstereo.config.calibration import Config, validate
 
     return validate(Config(mode="stereo", pattern=tuple(board["pattern"]), square=float(board["square"]), unit="mm",
                            model=settings.model, per_set=settings.per_set, max_subsets=settings.max_subsets,
@@ -208,7 +208,7 @@ def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> 
     reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
     from dstereo.io.reconstruction_files import write_atomically, write_pair
-    from dstereo.reconstruction import ReconstructionConfig, read_image, reconstruct_calibrated
+    from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
 
     d = settings.distance_mm
     config = ReconstructionConfig(depth_range=(d - 50.0, d + 50.0), refine=True)

@@ -125,7 +125,7 @@ def dropped_fraction(before: np.ndarray, after: np.ndarray) -> float:
 
 def refinement_terms(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window_sigma: float = 2.0):
     """The per-pixel quantities of `refine_disparity`'s last Gauss-Newton step at `disparity`, for its noise
-    model (`dstereo.disparity_noise`): the residual e = L(x) - R(x - d) and the gradient g of the normalised
+    model (`dstereo.stereo.disparity_noise`): the residual e = L(x) - R(x - d) and the gradient g of the normalised
     images at x - d, and the local standard deviations (grey levels) the left image and the warped right image
     were divided by. NaN-free; where `disparity` is NaN the values are taken at d = 0 (the caller masks them)."""
     from scipy.ndimage import gaussian_filter, spline_filter1d

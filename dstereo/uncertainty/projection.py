@@ -9,7 +9,7 @@ a board-fixed point. For pixel q, the point p at distance `range` along q's esti
 calibration view's board frame with the estimated poses, p_i = T_board_i_cam p (held fixed); under perturbed
 parameters it comes back as the mean over views of T'_cam_board_i p_i and projects through the perturbed
 intrinsics: q'(theta, poses) = project(theta, mean_i T'_cam_board_i p_i). Its covariance is J C J^T with C the
-JOINT covariance of the intrinsics and every view pose (`calib.uncertainty.joint_covariance`, the cross terms
+JOINT covariance of the intrinsics and every view pose (`uncertainty.covariance.joint_covariance`, the cross terms
 included) and J = d q' / d (theta, poses).
 
 INTRINSICS-ONLY (the thesis-era map, `method="intrinsics-only"`): p is held fixed in the camera frame and only the
@@ -35,7 +35,7 @@ from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
 from dstereo.models.pose import rodrigues
-from dstereo.point_jacobians import newton_step
+from dstereo.uncertainty.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
@@ -228,7 +228,7 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
                  grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
     """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks)."""
     if method == "pose-compensated":
-        from dstereo.calib.uncertainty import joint_covariance
+        from dstereo.uncertainty.covariance import joint_covariance
 
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "

@@ -1,7 +1,7 @@
 """The reconstruction pipeline: rectify, match (SGBM), triangulate, and write a results folder atomically.
 
-Calibrated path: Bouguet rectification in JAX (`dstereo.rectify`), images resampled by `cv2.remap` on maps
-computed in JAX, SGBM disparity, optionally refined to sub-pixel accuracy (`dstereo.subpixel`: the originals resampled again
+Calibrated path: Bouguet rectification in JAX (`dstereo.stereo.rectify`), images resampled by `cv2.remap` on maps
+computed in JAX, SGBM disparity, optionally refined to sub-pixel accuracy (`dstereo.stereo.subpixel`: the originals resampled again
 by cubic B-spline at the exact map positions, Lucas-Kanade along the rows; `refine`), points from Q in the
 original left camera frame (mm). A Middlebury-style calibration of an already rectified pair skips the
 resampling.
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
+from dstereo.stereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration
 from dstereo.io.results import check_output
@@ -32,13 +32,13 @@ class ReconstructionConfig:
     """Everything a reconstruction can be told (the CLI and configuration files fill it).
 
     depth_range (mm) sets the SGBM search range; without it (and without min/num_disparities in `sgbm_user`)
-    the range comes from the data (`dstereo.search_range`, `match_in_range`; `search_range` (min, num) is a range a
+    the range comes from the data (`dstereo.stereo.search_range`, `match_in_range`; `search_range` (min, num) is a range a
     program chose, widened like an estimate when saturated), as do block size and speckle window
     unless named in `sgbm_user`; alpha / zero_disparity are stereoRectify's (the default
     zero_disparity=False keeps each rectified image centred on its own view, as converging rigs need); roi
     (x, y, w, h) on the rectified left image keeps points inside it only; outlier_neighbours > 0 turns on
     statistical outlier removal; max_jump is the relative depth step that breaks the mesh. refine: SGBM's
-    pixel-locked sub-pixel disparity is refined (`dstereo.subpixel`); a pixel the refinement cannot refine
+    pixel-locked sub-pixel disparity is refined (`dstereo.stereo.subpixel`); a pixel the refinement cannot refine
     is dropped (NaN), not kept at SGBM's value. Off by default: on rendered speckle it cuts the surface error
     2.6x, but on Middlebury 2014 (slanted, occluding, real images) it drops 4-10 % of the pixels and does not
     improve the good ones (experiments/results/middlebury.md).
@@ -159,10 +159,10 @@ def sized_sgbm(params: SGBMParams, user: set[str], shape: tuple[int, ...]) -> SG
 
 def initial_range(config: ReconstructionConfig, user: set[str], Q: np.ndarray, left_rect, right_rect,
                   calib: StereoCalibration | None = None, estimate=None):
-    """The search range before matching (`dstereo.search_range`, sources in order): the user's depth range or
+    """The search range before matching (`dstereo.stereo.search_range`, sources in order): the user's depth range or
     SGBM range, a Middlebury file's ndisp, the given sparse `estimate`, sparse matches on the rectified pair,
     the calibration's board depths (too few sparse matches), the default."""
-    from dstereo import search_range as sr
+    from dstereo.stereo import search_range as sr
 
     if config.depth_range is not None:
         b = 1.0 / abs(Q[3, 2])
@@ -192,7 +192,7 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
     """SGBM with settings sized to the image over a search range from the data, checked for saturation: a range
     the tool chose is widened on the side the scene runs off and matched again (bounded); a user's range is
     kept, with a warning. Returns (disparity, params, summary['search_range'], warnings)."""
-    from dstereo import search_range as sr
+    from dstereo.stereo import search_range as sr
 
     user = user_sgbm_names(config)
     base = sized_sgbm(config.sgbm, user, left_rect.shape)
@@ -226,7 +226,7 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
 def _sparse_check(name: str, rng, left_rect, right_rect, sign: float, Q: np.ndarray, warnings: list) -> dict:
     """A user's range checked against sparse matches on the rectified pair (independent of SGBM, which does not
     always pile up at a range end when the scene runs past it): a warning when over 2 % of them lie outside."""
-    from dstereo import search_range as sr
+    from dstereo.stereo import search_range as sr
 
     d_s = sr.sparse_disparities(left_rect, right_rect, sign)
     if len(d_s) < sr.MIN_MATCHES:
@@ -263,9 +263,9 @@ def _require_disparity(name: str, disparity: np.ndarray, summary: dict) -> None:
 
 
 def _refine(name: str, left, right, maps, disparity: np.ndarray, summary: dict, timings: dict, warnings: list):
-    """Refined disparity and the exact rectified grey pair (`dstereo.subpixel`); summary['refine'] says how
+    """Refined disparity and the exact rectified grey pair (`dstereo.stereo.subpixel`); summary['refine'] says how
     many of SGBM's pixels it dropped (a warning when more than half)."""
-    from dstereo.subpixel import dropped_fraction, exact_pair, refine_disparity
+    from dstereo.stereo.subpixel import dropped_fraction, exact_pair, refine_disparity
 
     _require_disparity(name, disparity, summary)
     t0 = time.perf_counter()
@@ -273,7 +273,7 @@ def _refine(name: str, left, right, maps, disparity: np.ndarray, summary: dict, 
     refined = refine_disparity(*exact, disparity)
     timings["refine_s"] = time.perf_counter() - t0
     summary["refine"] = {"enabled": True, "dropped_fraction": dropped_fraction(disparity, refined),
-                         "method": "cubic B-spline re-rectification + Lucas-Kanade along rows (dstereo.subpixel); "
+                         "method": "cubic B-spline re-rectification + Lucas-Kanade along rows (dstereo.stereo.subpixel); "
                                    "dropped_fraction: share of SGBM's pixels the refinement could not refine (NaN)"}
     if summary["refine"]["dropped_fraction"] > 0.5:
         warnings.append(f"{name}: the sub-pixel refinement dropped {100 * summary['refine']['dropped_fraction']:.0f}% "
@@ -286,7 +286,7 @@ def _finish(name, left_rect, right_rect, disparity, Q, R1, config: Reconstructio
             timings, warnings) -> PairResult:
     """Disparity -> points in the left frame, ROI, outliers, density checks and the summary."""
     from dstereo.io.pointcloud import remove_statistical_outliers
-    from dstereo.triangulate import reproject_disparity, to_original_left
+    from dstereo.stereo.triangulate import reproject_disparity, to_original_left
 
     t0 = time.perf_counter()
     if not summary["refine"]["enabled"]:  # refined: checked on SGBM's map before the refinement
@@ -334,7 +334,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
     import cv2
 
-    from dstereo.rectify import rectified_from_projections, rectify_map, stereo_rectify
+    from dstereo.stereo.rectify import rectified_from_projections, rectify_map, stereo_rectify
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
@@ -384,9 +384,9 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
 
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
                     params: SGBMParams | None = None, originals=None) -> PairResult:
-    """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.point_uncertainty`) with the
+    """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.uncertainty.points`) with the
     per-pixel disparity noise of `disparity_sigma_hook`."""
-    from dstereo.point_uncertainty import point_covariances
+    from dstereo.uncertainty.points import point_covariances
 
     t0 = time.perf_counter()
     sigma_d, source = disparity_sigma_hook(result, config, params, originals)
@@ -402,10 +402,10 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
 
 def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, params: SGBMParams | None = None,
                          originals=None):
-    """(sigma_d (h, w) px, source) of the result's disparity: the per-pixel model of `dstereo.disparity_noise`
+    """(sigma_d (h, w) px, source) of the result's disparity: the per-pixel model of `dstereo.stereo.disparity_noise`
     (or the configured constant), its level set by the scatter on smooth parts of the map (plane check);
     the check goes to summary['disparity_noise'], its warnings to the result's."""
-    from dstereo.disparity_noise import disparity_sigma_map
+    from dstereo.stereo.disparity_noise import disparity_sigma_map
 
     refined = result.exact_rect is not None
     rectified = result.exact_rect if refined else tuple(_grey(x).astype(np.float64) for x in
@@ -439,10 +439,10 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
     """Thesis 4.2.2.4: SIFT + robust F + Hartley rectification; Q from the focal length and baseline."""
     import cv2
 
-    from dstereo.features import match_sift, ransac_fundamental, relative_pose
-    from dstereo.rectify import focal_px, rectify_uncalibrated
-    from dstereo.subpixel import homography_maps
-    from dstereo.triangulate import triangulate_rays
+    from dstereo.stereo.features import match_sift, ransac_fundamental, relative_pose
+    from dstereo.stereo.rectify import focal_px, rectify_uncalibrated
+    from dstereo.stereo.subpixel import homography_maps
+    from dstereo.stereo.triangulate import triangulate_rays
 
     check_pair(left, right, None)
     size = (left.shape[1], left.shape[0])
@@ -480,7 +480,7 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
         raise DstereoError(f"{name}: fewer than 8 matches triangulate in front of the cameras; check the focal length")
     Q = uncalibrated_q(f, size, baseline, d_sparse[front], z[front])
     timings["rectify_s"] = time.perf_counter() - t0
-    from dstereo.search_range import from_sparse
+    from dstereo.stereo.search_range import from_sparse
 
     t0 = time.perf_counter()
     # The sparse matches that fitted F (warped onto the rectified rows) give the range estimate here.
@@ -556,7 +556,7 @@ def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionC
     SGBM starting point, 'z_min'/'z_max' give the depth range in mm."""
     from dataclasses import fields, replace
 
-    from dstereo.disparity import CV_NAMES
+    from dstereo.stereo.disparity import CV_NAMES
 
     section = dict(data.get("reconstruct", {}))
     sgbm = base.sgbm

@@ -145,7 +145,7 @@ def ransac_fundamental(
 def relative_pose(F: np.ndarray, K1: np.ndarray, K2: np.ndarray, p1: np.ndarray, p2: np.ndarray):
     """(R, t) with x_right = R x_left + t, |t| = 1, from F and both camera matrices: the decomposition of
     E = K2^T F K1 that puts the most matches in front of both cameras (distortion ignored)."""
-    from dstereo.triangulate import triangulate_rays
+    from dstereo.stereo.triangulate import triangulate_rays
 
     E = K2.T @ F @ K1
     U, _, Vt = np.linalg.svd(E)

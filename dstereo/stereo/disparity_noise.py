@@ -1,6 +1,6 @@
 """Per-pixel disparity noise (rectified px) and a check of it against the scatter of the data themselves.
 
-Model (`disparity_sigma_map`). The sub-pixel refinement (`dstereo.subpixel`) estimates d by weighted least
+Model (`disparity_sigma_map`). The sub-pixel refinement (`dstereo.stereo.subpixel`) estimates d by weighted least
 squares over a Gaussian window w: delta = -sum(w e g) / sum(w g^2), e = L(x) - R(x - d) on images normalised
 by their local std, g = dR/dx. Both images' noise enters the residual (var(e) is twice one image's), and the
 estimate's variance is the weighted least-squares sandwich
@@ -188,7 +188,7 @@ def refined_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, wi
     estimated from each image alone (`image_noise`) gives only the noise's part of it (and the variance of
     the gradient's noise that is removed); on renders it overestimates the noise of fully textured images
     (1.9 DN for 1 DN: fine texture passes Immerkaer's operator), so it is not used as a floor."""
-    from dstereo.subpixel import refinement_terms
+    from dstereo.stereo.subpixel import refinement_terms
 
     e, g, s_l, s_r = refinement_terms(left, right, disparity, window_sigma)
     spread = iterated_kernel(window_sigma, iterations)
@@ -232,7 +232,7 @@ def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block
     errors; SGBM's smoothness penalties keep it apart from the refinement's noise on weak texture), the local
     mean over a Gaussian of `block_size` px, at least SGBM's 1/16 px steps. Where the refinement drops pixels, the mean comes from the
     neighbours, else the map's median deviation is used (with the refined model's sigma at SGBM's d)."""
-    from dstereo.subpixel import refine_disparity
+    from dstereo.stereo.subpixel import refine_disparity
 
     refined = refine_disparity(left, right, disparity)
     ok = np.isfinite(refined) & np.isfinite(disparity)
@@ -345,11 +345,11 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
         sigma = refined_sigma(*rectified, disparity)
         basis = ("per pixel: weighted least-squares sandwich of the sub-pixel refinement's Gauss-Newton step "
                  "(Gaussian window sigma 2 px, 6 passes) with the residual variance of both images "
-                 "(dstereo.disparity_noise)")
+                 "(dstereo.stereo.disparity_noise)")
     else:
         sigma = sgbm_sigma(*rectified, disparity, block_size)
         basis = ("per pixel: SGBM's local RMS deviation from the sub-pixel refinement run as a reference, with "
-                 "the refinement's own sandwich sigma in quadrature (dstereo.disparity_noise)")
+                 "the refinement's own sandwich sigma in quadrature (dstereo.stereo.disparity_noise)")
     sigma = np.where(valid, sigma, np.nan)
     kind, scale = ("iterated", 2.0) if refined else ("box", float(block_size))
     check = plane_check(disparity, sigma, kind, scale)

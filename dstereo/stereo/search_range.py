@@ -124,7 +124,7 @@ def sparse_disparities(left_rect: np.ndarray, right_rect: np.ndarray, sign: floa
     import cv2
 
     from dstereo.errors import DstereoError
-    from dstereo.features import match_sift
+    from dstereo.stereo.features import match_sift
 
     h, w = left_rect.shape[:2]
     scale = min(1.0, math.sqrt(SPARSE_MAX_PIXELS / (h * w)))

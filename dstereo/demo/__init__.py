@@ -1,0 +1,1 @@
+"""The demo: a synthetic rig and sample, calibrated and reconstructed end to end."""

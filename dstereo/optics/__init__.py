@@ -1,0 +1,1 @@
+"""The depth-of-field and optics calculator."""
