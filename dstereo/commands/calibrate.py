@@ -81,6 +81,8 @@ def calibrate(
         raise DstereoError(f"--cross-validate {cross_validate}: give a number of splits (4 or more), or leave it out")
     if projection_range is not None and not projection_range > 0:
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
+    if pair is not None and cameras is None:
+        raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     cfg = load_config(config_path) if config_path is not None else Config()
     mono_steps, stereo_steps = parse_step_flags(step)
@@ -96,8 +98,6 @@ def calibrate(
     from dstereo.io import figure_pool
 
     figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
-    if pair is not None and cameras is None:
-        raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")

@@ -91,6 +91,9 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
                      ca.image_size, cb.image_size, rms=float(sol.rms))
+    if tuple(ca.image_size) != tuple(cb.image_size):
+        return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
+                      "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")
     return name, None
 
 
@@ -146,7 +149,10 @@ def write_multiview_results(out, job, force: bool = False, pairs=None, projectio
             summary["stereo_files"], summary["stereo_notes"] = [], []
             for a, b in job.pairs(pairs):
                 name, note = _write_pair(tmp, job, a, b)
-                (summary["stereo_files"].append(name) if name else summary["stereo_notes"].append(note))
+                if name:
+                    summary["stereo_files"].append(name)
+                if note:
+                    summary["stereo_notes"].append(note)
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)
             write_json(tmp / "summary.json", summary)
