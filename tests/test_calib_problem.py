@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from conftest import lm_agreement
 from dstereo.calib.multiview import calibrate_views, solve_view_subsets
-from dstereo.calib.problem import Problem, frame_linearize, frame_residual, shared_data
+from dstereo.calib.problem import Problem, frame_linearize, frame_residual, lens_functions, shared_data
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
 from dstereo.models.distortion import PRESETS
@@ -193,3 +193,35 @@ def test_frame_subsets_equal_their_own_full_solves(rig_frames, m):
         own = calibrate_views(obj, noisy[row], vis[row], sizes, mode="fixed", cameras=CAMERAS)
         n_res = 2 * int(vis[row].sum()) * obj.shape[0]
         assert np.all(np.abs(values - own.values) <= lm_agreement(own.std, n_res, len(own.values) + 6 * m))
+
+
+def _corners(cam, pose, obj):
+    """Exact corners through the camera's own lens model (synth's true_corners is pinhole + distortion only)."""
+    project = lens_functions(tuple(cam.dist.free))[0]
+    p = obj @ Rotation.from_rotvec(pose[:3]).as_matrix().T + pose[3:]
+    return np.asarray(jax.vmap(project, in_axes=(None, None, 0))(cam.k, jnp.asarray(cam.dist.coeffs), jnp.asarray(p)))
+
+
+def test_each_camera_its_own_lens_model_a_fisheye_among_pinholes():
+    """Camera 2 a Kannala-Brandt fisheye, the others pinhole: the start (board poses through each camera's own
+    lens) and the joint solve handle the mix; exact corners are fitted to rounding, the truth recovered."""
+    fish = Camera.create(500.0, 501.0, 322.0, 243.0, np.r_[0.05, -0.02, 0.004, -0.001, 0, 0, 0, 0], FISH, (640, 480))
+    cameras = [CAMERAS[0], CAMERAS[1], fish]
+    rng = np.random.default_rng(7)
+    obj = object_points(PATTERN, SQUARE)
+    obs, vis = [], []
+    while len(obs) < 30:
+        rv = Rotation.from_euler("xyz", rng.uniform([-35, -35, -15], [35, 35, 15]), degrees=True).as_rotvec()
+        pose = np.r_[rv, rng.uniform(-200, 100), rng.uniform(-120, 60), rng.uniform(650, 900)]
+        q = np.stack([_corners(c, compose(e, pose), obj) for c, e in zip(cameras, EXT)])
+        seen = np.array([np.all((q[c] > 5) & (q[c] < np.array(cam.image_size) - 5)) for c, cam in enumerate(cameras)])
+        seen &= rng.random(3) > 0.25
+        if seen.sum() >= 2:
+            obs.append(q)
+            vis.append(seen)
+    obs, vis = np.stack(obs), np.stack(vis)
+    sol = calibrate_views(obj, obs, vis, [c.image_size for c in cameras], [FIVE, FIVE, FISH])
+    assert sol.converged and sol.rms < 1e-6
+    np.testing.assert_allclose(np.asarray(sol.cameras[2].free_vector()), np.asarray(fish.free_vector()), rtol=1e-6,
+                               atol=1e-8)
+    np.testing.assert_allclose(np.c_[sol.rvecs, sol.T], EXT, atol=1e-6)

@@ -33,7 +33,7 @@ from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
-from dstereo.models.distortion import COEFF_NAMES, PRESETS, undistort
+from dstereo.models.distortion import COEFF_NAMES, PRESETS, lens_model, undistort
 from dstereo.models.pose import rodrigues
 from dstereo.models.rig import essential_matrix, fundamental_matrix
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
@@ -94,9 +94,23 @@ def _normalised_points():
 # --- start ---------------------------------------------------------------------------------------------------
 
 
+@functools.lru_cache(maxsize=None)
+def _normalised_fisheye_points():
+    from dstereo.models.fisheye import undistort_points
+
+    return jax.jit(jax.vmap(lambda k, d, q: undistort_points(k, d, q)[0], in_axes=(None, None, 0)))
+
+
 def board_poses(camera: Camera, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
-    """(V, 6) T_cam_board of each view for a known camera: homography of the undistorted, normalised corners."""
-    xy = np.asarray(_normalised_points()(camera.k, camera.dist.coeffs, jnp.asarray(obs, float)))
+    """(V, 6) T_cam_board of each view for a known camera: homography of the undistorted, normalised corners
+    (through the camera's own lens model: pinhole + distortion, or fisheye)."""
+    if lens_model(tuple(camera.dist.free)) == "fisheye":
+        xy = np.asarray(_normalised_fisheye_points()(camera.k, camera.dist.coeffs[:4], jnp.asarray(obs, float)))
+        if not np.isfinite(xy).all():
+            raise DstereoError("board pose: corners at or beyond 90 degrees from the fisheye camera's axis; leave "
+                               "those views out")
+    else:
+        xy = np.asarray(_normalised_points()(camera.k, camera.dist.coeffs, jnp.asarray(obs, float)))
     return np.stack([pose_from_homography(homography(obj[:, :2], v), np.eye(3)) for v in xy])
 
 
