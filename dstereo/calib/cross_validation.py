@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.calib.mono import _run
+from dstereo.calib.problem import WARP_NAMES
 from dstereo.uncertainty.covariance import covariance, joint_covariance
 from dstereo.errors import DstereoError
 from dstereo.models.camera import project
@@ -59,6 +60,11 @@ class HalfSolution:
     rms: float
 
 
+def _lens_names(full) -> tuple[str, ...]:
+    """The solve's intrinsics and distortion names (a board sag, when solved, is not the camera's)."""
+    return tuple(n for n in full.names if n not in WARP_NAMES)
+
+
 def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOptions()) -> list[HalfSolution]:
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
     `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
@@ -71,7 +77,9 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
     # The halves fit the corners the full set fitted: outliers rejected there weigh 0 here too.
     inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
     shared = _shared(obj)
-    free_idx = [CAMERA_NAMES.index(n) for n in full.names]
+    lens = _lens_names(full)
+    free_idx = [CAMERA_NAMES.index(n) for n in lens]
+    keep = np.arange(len(lens))  # the lens parameters lead the shared vector; a board sag (last) is marginalised
     out = []
     for c in range(0, len(weights), rows):
         w = np.asarray(weights[c: c + rows], float)
@@ -84,11 +92,13 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             g = len(full.values)
             sse, n_res = float(res.sse[i]), 2 * int(inliers[w[i] > 0].sum())
             params = np.zeros(12)
-            params[free_idx] = res.g[i]
+            params[free_idx] = res.g[i][keep]
+            cov = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
+            joint = joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
+            # marginalising the sag = dropping its rows and columns (shared first, then the poses)
+            rows = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
-                params=params, values=np.asarray(res.g[i]),
-                cov=covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m),
-                joint=joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i]),
+                params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(rows, rows)],
                 poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
                 rms=float(np.sqrt(sse / (m * n_pts)))))
     return out
@@ -279,7 +289,7 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
         range_ = mean_board_distance(full.poses, obj)
     w, h = image_size
     corners = np.asarray(obs, float).reshape(-1, 2)
-    results = [compare_halves(sols[2 * i], sols[2 * i + 1], full.names, image_size, range_, grid, corners)
+    results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid, corners)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
                            np.linspace(0.0, h - 1.0, grid[1]))

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.calib.mono import calibrate_full
-from dstereo.calib.problem import POSE_SIZE, Problem, residual_weights, run, shared_data
+from dstereo.calib.problem import POSE_SIZE, WARP_NAMES, WARP_SIZE, Problem, residual_weights, run, shared_data
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
@@ -65,6 +65,11 @@ class MultiviewSolution:
     @property
     def status_text(self) -> str:
         return STATUS_TEXT[self.status]
+
+    @property
+    def board_sag(self) -> np.ndarray | None:
+        """(2,) the board's sag (x, y) in the board unit when solved, else None."""
+        return self.values[-WARP_SIZE:] if self.names[-1] == WARP_NAMES[-1] else None
 
     @property
     def R(self) -> np.ndarray:
@@ -214,7 +219,7 @@ def _names(problem: Problem, labels) -> tuple[str, ...]:
     for label, spec in zip(labels, problem.cameras):
         if spec.refined:
             names += tuple(f"{label}.{n}" for n in INTRINSIC_NAMES + spec.free)
-    return names
+    return names + (WARP_NAMES if problem.board_warp else ())
 
 
 def _shared(obj, cameras):
@@ -222,9 +227,11 @@ def _shared(obj, cameras):
                        np.stack([np.asarray(c.dist.coeffs) for c in cameras]))
 
 
-def _g0(problem: Problem, ext: np.ndarray, cameras) -> np.ndarray:
+def _g0(problem: Problem, ext: np.ndarray, cameras, sag=None) -> np.ndarray:
     parts = [ext[1:].ravel()]
     parts += [np.asarray(c.free_vector()) for c, s in zip(cameras, problem.cameras) if s.refined]
+    if problem.board_warp:
+        parts.append(np.zeros(WARP_SIZE) if sag is None else sag)
     return np.concatenate(parts)
 
 
@@ -252,12 +259,14 @@ def calibrate_views(
     options: LMOptions = LMOptions(),
     inliers: np.ndarray | None = None,
     labels: tuple[str, ...] | None = None,
+    board_warp: bool = False,
 ) -> MultiviewSolution:
     """Calibrate K cameras from frames of one board: obj (n, 3), obs (F, K, n, 2), visible (F, K) bool.
 
     `free`: one free-coefficient set for every camera or a list of K (each camera its own lens model).
     `cameras`: the cameras to start from (required in "fixed" mode, which holds them); else each camera is first
-    calibrated alone on the frames it saw (at least 3). `inliers` (F, K, n) bool: corners that count."""
+    calibrated alone on the frames it saw (at least 3). `inliers` (F, K, n) bool: corners that count.
+    `board_warp`: solve the board's sag with the rest (two parameters, last in `names`)."""
     t0 = time.perf_counter()
     obj, obs, visible = np.asarray(obj, float), np.asarray(obs, float), np.asarray(visible, bool)
     _check(obj, obs, visible, image_sizes)
@@ -286,13 +295,14 @@ def calibrate_views(
     ext, poses0, obs, flips = initial_state(obj, obs, visible, cameras, own)
     data, r_w = _data(obs, visible, inliers)
     shared = _shared(obj, cameras)
-    held = Problem.of([tuple(c.dist.free) for c in cameras], refined=False)
+    held = Problem.of([tuple(c.dist.free) for c in cameras], refined=False, board_warp=board_warp)
     out = _solve(held, options, _g0(held, ext, cameras), poses0, data, r_w, shared)
     iterations, problem = int(out.iterations), held
     if mode == "joint":
-        problem = Problem.of([tuple(c.dist.free) for c in cameras], refined=True)
+        problem = Problem.of([tuple(c.dist.free) for c in cameras], refined=True, board_warp=board_warp)
         ext_fit = np.vstack([np.zeros(6), out.g[:held.n_extrinsic].reshape(-1, 6)])
-        out = _solve(problem, options, _g0(problem, ext_fit, cameras), out.p, data, r_w, shared)
+        sag = out.g[held.warp_slice] if board_warp else None
+        out = _solve(problem, options, _g0(problem, ext_fit, cameras, sag), out.p, data, r_w, shared)
         iterations += int(out.iterations)
     sol = _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iterations)
     sol.flipped = flips
@@ -360,7 +370,8 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
     obs = obs.copy()
     for f, c in start.flipped:
         obs[f, c] = obs[f, c][::-1]
-    problem = Problem.of([tuple(c.dist.free) for c in start.cameras], refined=start.mode == "joint")
+    problem = Problem.of([tuple(c.dist.free) for c in start.cameras], refined=start.mode == "joint",
+                         board_warp=start.names[-1] == WARP_NAMES[-1])
     # in fixed mode the held cameras are the solution's; in joint mode they only fill non-free coefficients
     data, r_w = _data(obs, visible, inliers)
     out = solve_frame_subsets(problem, data, r_w, _shared(obj, start.cameras), index,
