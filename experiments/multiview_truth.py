@@ -37,9 +37,11 @@ def render_case(n_cameras: int, seed: int, folder: Path):
 
 
 def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
-    """Angle (deg) of the rotation r_a r_b^T, from its trace (clipped against rounding)."""
-    c = (np.trace(r_a @ r_b.T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle (deg) of the rotation r_a r_b^T, as its rotation vector's norm: exact to rounding near zero, where
+    the trace's arccos cannot resolve angles below ~2e-8 rad."""
+    from scipy.spatial.transform import Rotation
+
+    return float(np.degrees(Rotation.from_matrix(r_a @ r_b.T).magnitude()))
 
 
 def rig_errors(truth: dict, focals: np.ndarray, R: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
