@@ -44,10 +44,11 @@ def test_rig_has_the_visibility_the_issue_asks(case):
 
 def test_corners_mean_the_same_board_points_in_every_camera(case):
     """Detected corners within a fraction of a square (20 mm squares span 15-30 px here) of the true ones."""
-    truth, folders, _ = case
+    truth, folders, solved = case
     seen = folders.visible
     err = np.linalg.norm(folders.obs[seen] - truth["corners"][seen], axis=-1)
     assert err.max() < 0.5, err.max()
+    assert solved["joint"].flipped == []  # calibrate_views found no view to re-read reversed
 
 
 def test_joint_mode_recovers_the_truth(case):
