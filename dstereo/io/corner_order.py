@@ -6,8 +6,10 @@ which physical corner is corner 0, or a multi-camera solve joins wrong points. T
 0 (bounded by corners 0, 1, cols, cols + 1) has the colour of the square diagonally outside it (checker parity),
 and lies wholly within the detected grid, so it is sampled there, on a lattice spanned by its own four corners
 (the grid's own spacing, perspective included). It is compared with its two neighbours (the other colour) at both
-ends of the board; the canonical order starts at the dark end, as `synth.board` prints it and as OpenCV 5.0's
-`findChessboardCorners` numbered every render and real image we checked (tests/test_corner_order.py).
+ends of the board; the canonical order starts at the dark end, as `synth.board` prints it and as OpenCV 5.0.0's
+`findChessboardCorners` numbered all 164 views of a rendered K = 4 rig and every image of the shared real sets
+(opencv_stereo, rig640, fisheye640); turned 180 degrees, the 10 real images and 8 renders tried kept their
+physical numbering (measured once; tests/test_corner_order.py keeps a render and left01.jpg).
 
 A pattern whose opposite corner squares share a colour (a square board, or both counts of one parity), or an image
 whose squares cannot be told apart at both ends (blur, darkness, glare), is refused with a DstereoError naming the
@@ -27,7 +29,7 @@ from dstereo.io.corners import Detection
 
 # Least local contrast (8-bit grey levels) between a corner square and its neighbours. Measured on OpenCV 5.0's
 # detections: renders 215, the shared real sets 60-222 (opencv_stereo, rig640, fisheye640, every image and both
-# ends); 25 is well below that and far above sensor noise in the median of a square's 25 samples.
+# ends); 25 is well below that, and a render blurred over a square's width falls under it (test_corner_order).
 MIN_CONTRAST = 25.0
 _LATTICE = np.linspace(0.3, 0.7, 5)  # inner part of a square: clear of the blurred edges around it
 
