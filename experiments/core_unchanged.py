@@ -48,6 +48,8 @@ def measure(out: Path) -> None:
                 sub = mono.solve_subsets(d.object_points, obs, plan, full)
                 res[f"{key}.subsets{m}"] = sub.values
                 res[f"{key}.subsets{m}.rms"] = sub.rms
+                res[f"std:{key}.subsets{m}"] = sub.std
+                res[f"dof:{key}.subsets{m}"] = np.array([2 * m * d.object_points.shape[0] - sub.values.shape[1] - 6 * m])
             if model == "default":
                 cams[(folder, prefix)] = (camera_from_solution(full), d, names)
     for folder in ("opencv_stereo", "rig640"):
@@ -64,14 +66,24 @@ def measure(out: Path) -> None:
                 sub = st.solve_stereo_subsets(dl.object_points, ql, qr, plan, sol)
                 res[f"{folder}.stereo.{mode}.subsets{m}"] = sub.values
                 res[f"{folder}.stereo.{mode}.subsets{m}.re"] = sub.stereo_re
+                res[f"std:{folder}.stereo.{mode}.subsets{m}"] = sub.std
+                res[f"dof:{folder}.stereo.{mode}.subsets{m}"] = np.array([4 * m * dl.object_points.shape[0]
+                                                                          - sub.values.shape[1] - 6 * m])
     np.savez(out, **res)
     print("wrote", out, len(res), "arrays")
 
 
 def compare(a: Path, b: Path) -> None:
     A, B = np.load(a), np.load(b)
-    worst = 0.0
-    for k in sorted(A.files):
+    worst, worst_std = 0.0, 0.0
+    for k in sorted(f for f in A.files if f.startswith("std:")):
+        name = k[4:]
+        # two LM solves that stop on ftol end within 2 sqrt(ftol (n - p)) std of each other (tests/conftest.py)
+        bound = 2 * np.sqrt(1e-12 * float(A["dof:" + name][0]))
+        z = np.abs(A[name] - B[name]) / A[k]
+        worst_std = max(worst_std, float(z.max()))
+        print(f"{name:48s} max |diff| / std {z.max():.2e}  (ftol bound {bound:.1e}){'  OVER' if z.max() > bound else ''}")
+    for k in sorted(f for f in A.files if ":" not in f):
         x, y = A[k], B[k]
         scale = np.maximum(np.abs(x), np.abs(y))
         rel = np.abs(x - y) / np.where(scale > 0, scale, 1)
@@ -80,7 +92,7 @@ def compare(a: Path, b: Path) -> None:
         rel_col = np.abs(x - y) / np.where(col > 0, col, 1)
         worst = max(worst, float(rel_col.max()))
         print(f"{k:48s} max rel {rel.max():.2e}  (of column scale {rel_col.max():.2e})")
-    print(f"largest difference relative to each quantity's scale: {worst:.2e}")
+    print(f"largest difference relative to each quantity's scale: {worst:.2e}; largest in subset std: {worst_std:.2e}")
 
 
 if __name__ == "__main__":

@@ -63,14 +63,14 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
     `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
     (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
-    from dstereo.calib.mono import _residual_weights, chunk_rows
+    from dstereo.calib.mono import _residual_weights, _shared, chunk_rows
 
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     n_views, n_pts = obs.shape[-3:-1]
     rows = chunk_rows(n_views, n_pts)
     # The halves fit the corners the full set fitted: outliers rejected there weigh 0 here too.
     inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
-    shared = (obj, np.zeros(8))
+    shared = _shared(obj)
     free_idx = [CAMERA_NAMES.index(n) for n in full.names]
     out = []
     for c in range(0, len(weights), rows):
