@@ -58,11 +58,10 @@ def reconstruct(
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
-    from dataclasses import replace
-
-    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
+    from dstereo.commands.matching_options import search_range_line
+    from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
-    from dstereo.stereo.pipeline import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
+    from dstereo.stereo.pipeline import run_reconstruction
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
@@ -74,41 +73,25 @@ def reconstruct(
     check_order_agrees_with_names(left, right)
     for a, b in zip(left, right):
         check_distinct_images(a, b)
-    cfg = ReconstructionConfig()
+    layers = []  # defaults < the project's file < --config < flags
     if project is not None:
         if not project.is_dir():
             raise DstereoError(f"project folder {project} does not exist")
         if calib is None:
             calib = next((project / n for n in ("stereo.yml", "stereo.yaml", "calib.txt") if (project / n).is_file()),
                          None)
-        found = next((project / n for n in CONFIG_NAMES if (project / n).is_file()), None)
-        if found is not None:
-            cfg = load_config(found, cfg)
+        found = settings.project_file(project)
+        layers += [settings.file_layer(found)] if found is not None else []
     if config is not None:
-        cfg = load_config(config, cfg)
-    changes = matching_changes(cfg.sgbm, preset, sgbm, z_min, z_max, roi)
-    if lr_check is not None:
-        changes["sgbm"] = changes["sgbm"].with_overrides({"lr_check": lr_check})
-    changes |= {k: v for k, v in dict(
-        alpha=alpha, zero_disparity=zero_disparity, refine=refine, outlier_neighbours=outliers, outlier_std=outlier_std,
-        max_jump=max_jump, focal_mm=focal_mm, pixel_size_mm=pixel_size_mm, crop_factor=crop_factor,
-        focal_px=focal_px, baseline_mm=baseline_mm).items() if v is not None}
-    if no_uncertainty:
-        changes["uncertainty"] = False
-    if full_covariance:
-        changes["full_covariance"] = True
-    if disparity_sigma is not None and disparity_sigma.strip().lower() != "auto":
-        try:
-            changes["disparity_sigma"] = float(disparity_sigma)
-        except ValueError:
-            raise DstereoError(f"--disparity-sigma {disparity_sigma!r}: give a number of px (e.g. 0.2) or "
-                               "'auto'") from None
-        if not changes["disparity_sigma"] >= 0:
-            raise DstereoError(f"--disparity-sigma {disparity_sigma}: must be >= 0 px")
-    elif disparity_sigma is not None:
-        changes["disparity_sigma"] = None
-    cfg = replace(cfg, **changes)
-    check_reconstruction_config(cfg, _width(left[0]))
+        layers.append(settings.file_layer(config))
+    layers.append(settings.flag_layer({  # parameter -> flag value (dstereo.config.options.RECONSTRUCT)
+        "preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max, "roi": roi, "sgbm.lr_check": lr_check,
+        "alpha": alpha, "zero_disparity": zero_disparity, "refine": refine, "outlier_neighbours": outliers,
+        "outlier_std": outlier_std, "max_jump": max_jump, "focal_mm": focal_mm, "pixel_size_mm": pixel_size_mm,
+        "crop_factor": crop_factor, "focal_px": focal_px, "baseline_mm": baseline_mm, "uncertainty": no_uncertainty,
+        "full_covariance": full_covariance, "disparity_sigma": disparity_sigma}))
+    cfg = settings.build(*layers)
+    settings.check(cfg, _width(left[0]))
 
     if len(left) == 1:
         results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
