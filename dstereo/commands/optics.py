@@ -102,8 +102,10 @@ def optics(
         "wavelength": wavelength, "baseline": baseline, "disparity_precision": disparity_precision,
         "dof_focal_length": dof_focal_length,
     }
-    file_values = lib.load_config_file(config) if config is not None else {}
-    setup = lib.make_config(lib.merge_settings(file_values, flags))
+    from dstereo.config import optics as settings
+
+    file_layer = settings.file_layer(config) if config is not None else {}
+    setup = lib.make_config(settings.settings(file_layer, flags))
     results = lib.compute_optics(setup)
     if plots is not None:
         results["plots"] = [str(p) for p in lib.write_plots(setup, plots)]

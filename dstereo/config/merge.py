@@ -20,7 +20,7 @@ def given(values: Mapping[str, Any]) -> dict[str, Any]:
 
 def _dropped(table: OptionTable, layer: Mapping[str, Any]) -> tuple[str, ...]:
     names = set(table.names())
-    return tuple(r for key in layer if key in names for r in table[key].replaces)
+    return tuple(r for key in given(layer) if key in names for r in table[key].replaces)
 
 
 def _is_dropped(key: str, dropped: tuple[str, ...]) -> bool:
