@@ -117,13 +117,17 @@ RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:Reconstruction
     _opt("alpha", "reconstruct.alpha", "--alpha", "Rectification free scaling: -1 default, 0..1.", float),
     _opt("zero_disparity", "reconstruct.zero_disparity", "--zero-disparity/--own-centres",
          "Share one principal point (OpenCV's default) or centre each view.", bool),
-    _opt("sgbm.lr_check", "sgbm.lr_check", "--lr-check", "Left-right consistency tolerance, px.", float, in_config=False),
+    _opt("sgbm.lr_check", "sgbm.lr_check", "--lr-check", "Left-right consistency tolerance, px.", float,
+         in_config=False),
     _opt("roi", "reconstruct.roi", "--roi", "x,y,w,h on the rectified left image: keep points inside."),
     _opt("outlier_neighbours", "reconstruct.outlier_neighbours", "--outliers",
          "Statistical outlier removal: neighbours (0 off).", int),
     _opt("outlier_std", "reconstruct.outlier_std", "--outlier-std", "Outlier threshold in std devs.", float),
     _opt("max_jump", "reconstruct.max_jump", "--max-jump", "Relative depth step that breaks the mesh.", float),
-    _opt("refine", "reconstruct.refine", "--refine/--no-refine", type=bool),
+    _opt("refine", "reconstruct.refine", "--refine/--no-refine",
+         "Refine SGBM's pixel-locked sub-pixel disparity (cubic re-rectification + Lucas-Kanade); pixels it cannot "
+         "refine are dropped. Default off: it helps on well-textured, smooth surfaces (speckle), not on scenes "
+         "with many slanted or occluding edges.", bool),
     _opt("undistort", "reconstruct.undistort"),
     _opt("color_matching", "reconstruct.color_matching", type=bool),
     _opt("focal_mm", "reconstruct.focal_mm", "--focal-mm", "Uncalibrated: lens focal length, mm.", float),
@@ -134,21 +138,32 @@ RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:Reconstruction
          "Uncalibrated: baseline, mm (without it the output is unscaled).", float),
     _opt("ratio", "reconstruct.ratio", type=float),
     _opt("f_threshold", "reconstruct.f_threshold", type=float),
-    _opt("uncertainty", "reconstruct.uncertainty", "--no-uncertainty", type=bool),
-    _opt("disparity_sigma", "reconstruct.disparity_sigma", "--disparity-sigma"),
-    _opt("full_covariance", "reconstruct.full_covariance", "--full-covariance", type=bool),
+    _opt("uncertainty", "reconstruct.uncertainty", "--no-uncertainty", "Skip the point uncertainties (sigma_*).",
+         bool),
+    _opt("disparity_sigma", "reconstruct.disparity_sigma", "--disparity-sigma",
+         "Disparity noise in rectified px for the point uncertainties, or 'auto' (default: per pixel from the "
+         "image gradients and the image noise, checked on smooth parts of the map)."),
+    _opt("full_covariance", "reconstruct.full_covariance", "--full-covariance",
+         "Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point.", bool),
     # run settings
-    _opt("calib", (), "--calib", in_config=False),
-    _opt("project", (), "--project", in_config=False),
+    _opt("left", (), "--left", "Left image (repeat for several pairs).", list, in_config=False),
+    _opt("right", (), "--right", "Right image, in the same order as --left.", list, in_config=False),
+    _opt("out", (), "--out", "Results folder (refused if it exists, unless --force).", in_config=False),
+    _opt("calib", (), "--calib", "stereo.yml, OpenCV YAML with M1 D1 M2 D2 R T, or Middlebury calib.txt. Without "
+         "it the uncalibrated path runs (needs --focal-mm or --focal-px).", in_config=False),
+    _opt("project", (), "--project", "Project folder: its stereo.yml/calib.txt and dstereo.toml are used as "
+         "defaults.", in_config=False),
     _opt("config", (), "--config", "TOML/JSON file with [reconstruct] and [sgbm].", in_config=False),
-    _opt("left", (), "--left", in_config=False),
-    _opt("right", (), "--right", in_config=False),
-    _opt("out", (), "--out", in_config=False),
-    _opt("force", (), "--force", type=bool, in_config=False),
-    _opt("workers", (), "--workers", type=int, in_config=False),
-    _opt("scheduler", (), "--scheduler", in_config=False),
-    _opt("resume", (), "--resume", type=bool, in_config=False),
-    _opt("retries", (), "--retries", type=int, in_config=False),
+    _opt("workers", (), "--workers", "Several pairs: in parallel on a local Dask cluster of this many processes "
+         "(default: the machine's cores when the pairs, timed on the first, would take over ~30 s serially; else "
+         "one after another here; 1: always one after another in this process).", int, in_config=False),
+    _opt("scheduler", (), "--scheduler", "Several pairs: address of a running Dask scheduler (tcp://host:8786); its "
+         "workers need dstereo, the images at the same paths and OUT's parent folder shared.", in_config=False),
+    _opt("resume", (), "--resume", "Several pairs: continue from the pairs kept in OUT.partial.", bool,
+         in_config=False),
+    _opt("retries", (), "--retries", "Reruns of a pair whose worker process died, then it fails.", int,
+         in_config=False),
+    _opt("force", (), "--force", "Replace an existing results folder.", bool, in_config=False),
 ))
 
 OPTICS = OptionTable("optics", "dstereo.optics.calculator:OpticsConfig", (
