@@ -192,7 +192,9 @@ RUN_FLAGS = {
                   "point": "--point", "stagnation_radius": "--stagnation-radius", "min_points": "--min-points",
                   "workers": "--workers", "scheduler": "--scheduler", "resume": "--resume", "force": "--force",
                   "out": "--out", "calib": "--calib", "left": "--left", "right": "--right"},
-    "refine": {"board": "--board", "out": "--out", "force": "--force", "depth_range": "--z-min/--z-max"},
+    "refine": {"board": "--board", "square": "--square", "out": "--out", "force": "--force", "calib": "--calib",
+               "left": "--left", "right": "--right", "depth_range": "--z-min/--z-max", "z_min": "--z-min",
+               "z_max": "--z-max"},
     "demo": {"out": "--out", "force": "--force"},
 }
 
