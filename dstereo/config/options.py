@@ -104,6 +104,8 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("projection_range", (), "--projection-range", type=float, in_config=False),
     _opt("projection_method", (), "--projection-method", in_config=False),
     _opt("cross_validate", (), "--cross-validate", type=int, in_config=False),
+    _opt("cameras", (), "--cameras", in_config=False),
+    _opt("pair", (), "--pair", in_config=False),
 ))
 
 RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:ReconstructionConfig", (
