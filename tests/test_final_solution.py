@@ -240,7 +240,7 @@ def test_final_option_in_toml_and_its_errors():
     cfg = config_from_toml('[pattern]\ncolumns = 9\nrows = 6\n[calibration]\nfinal = "mean"\n', "t.toml")
     assert cfg.final == "mean" and Config().final == "survivors"
     assert config_from_toml(to_toml(cfg), "back.toml").final == "mean"  # the results folder's config.toml
-    with pytest.raises(DstereoError, match="final 'median'; use one of survivors, mean"):
+    with pytest.raises(DstereoError, match="`final` 'median'; use one of survivors, mean"):
         validate(cfg.with_overrides(final="median"))
 
 

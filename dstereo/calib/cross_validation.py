@@ -262,12 +262,12 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     from dstereo.models.distortion import lens_model
 
     if lens_model(tuple(full.free)) == "fisheye":
-        raise DstereoError("--cross-validate: not available for the fisheye model yet; use it with the pinhole "
-                           "models (e.g. --model rational)")
+        raise DstereoError("`cross_validate`: not available for the fisheye model yet; use it with the pinhole "
+                           "models (e.g. `model` rational)")
     n_views = len(obs)
     if n_views < 2 * MIN_HALF_VIEWS:
-        raise DstereoError(f"--cross-validate: {n_views} views; two disjoint halves need at least "
-                           f"{2 * MIN_HALF_VIEWS} (add views or leave out --cross-validate)")
+        raise DstereoError(f"`cross_validate`: {n_views} views; two disjoint halves need at least "
+                           f"{2 * MIN_HALF_VIEWS} (add views or leave out `cross_validate`)")
     if splits < 1:
         raise DstereoError(f"cross-validation splits {splits}: give at least 1 (4 or more to pool)")
     rng = np.random.default_rng(seed)
@@ -284,7 +284,7 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     bad = [i for i, s in enumerate(sols) if not s.converged]
     if bad:
         raise DstereoError(f"cross-validation: {len(bad)} half calibration(s) did not converge; the views do not "
-                           "constrain the model in halves (add views or use a simpler --model)")
+                           "constrain the model in halves (add views or use a simpler `model`)")
     if range_ is None:
         range_ = mean_board_distance(full.poses, obj)
     w, h = image_size

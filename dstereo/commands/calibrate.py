@@ -68,9 +68,9 @@ def calibrate(
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    from dstereo.config.calibration import Config, find_project_config, load_config, parse_step_flags, validate
+    from dstereo.config.calibration import build_config, file_layer, find_project_config, parse_step_flags, validate
+    from dstereo.config.calibration_flags import flag_layer
     from dstereo.errors import DstereoError
-    from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
     from dstereo.uncertainty.projection import METHODS
@@ -84,16 +84,12 @@ def calibrate(
     if pair is not None and cameras is None:
         raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
-    cfg = load_config(config_path) if config_path is not None else Config()
-    mono_steps, stereo_steps = parse_step_flags(step)
-    cfg = cfg.with_overrides(
-        pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
-        unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
-        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set,
-        max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
-        outlier_rejection=False if no_outlier_rejection else None,
-        steps=mono_steps, stereo_steps=stereo_steps,
-    )
+    flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
+        pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
+        per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
+        outlier_rejection=no_outlier_rejection, steps=step))
+    cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
+    stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
     from dstereo.io import figure_pool
 
@@ -267,22 +263,6 @@ def _stereo_view_warnings(job) -> list[str]:
     out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
            for w in _view_warnings(cal)]
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
-
-
-def _auto(spec: Optional[str]):
-    from dstereo.config.calibration import is_auto_model
-
-    return None if spec is None else is_auto_model(spec)
-
-
-def _model(spec: Optional[str]):
-    from dstereo.config.calibration import is_auto_model
-
-    if spec is None or is_auto_model(spec):
-        return None
-    from dstereo.models.distortion import parse_model
-
-    return parse_model(spec)
 
 
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,

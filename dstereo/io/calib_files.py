@@ -179,7 +179,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
             data = {**_read_storage(other), **data}
     if str(data.get("distortion_model") or "pinhole").strip().lower() != "pinhole":
         raise DstereoError(f"{path}: distortion_model {data['distortion_model']!r}: stereo rigs with fisheye cameras "
-                           "are not supported yet (issue 16); only one camera can be calibrated with --model fisheye")
+                           "are not supported yet (issue 16); only one camera can be calibrated with `model` fisheye")
     missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
     if missing and any(k in data for k in MONO_KEYS):
         raise DstereoError(
@@ -296,7 +296,7 @@ def read_stereo_calibration(path: str | Path) -> StereoCalibration:
     """Any supported stereo calibration file (see the module docstring), by content."""
     path = Path(path)
     if not path.is_file():
-        raise DstereoError(f"calibration file {path} does not exist; give --calib a stereo.yml, OpenCV YAML or calib.txt")
+        raise DstereoError(f"calibration file {path} does not exist; give `calib` a stereo.yml, OpenCV YAML or calib.txt")
     head = path.read_text(errors="replace")[:4000]
     if re.search(r"^\s*cam0\s*=", head, flags=re.MULTILINE):
         return read_middlebury_calib(path)

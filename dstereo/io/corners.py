@@ -59,10 +59,10 @@ def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
 def list_images(folder: Path, suffix: str | None = None) -> list[Path]:
     folder = Path(folder)
     if folder.is_file():
-        raise DstereoError(f"images: {folder} is a file; point --images at the folder that holds the chessboard "
-                           "images (or the folder plus --glob 'name*.jpg')")
+        raise DstereoError(f"images: {folder} is a file; point `images` at the folder that holds the chessboard "
+                           "images (or the folder plus `glob` 'name*.jpg')")
     if not folder.is_dir():
-        raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
+        raise DstereoError(f"images: folder {folder} does not exist; point `images` at the chessboard images")
     suffixes = (("." + suffix.lstrip(".").lower()),) if suffix else IMAGE_SUFFIXES
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
     if not files:
@@ -147,7 +147,7 @@ def detect_folder(
     if not corners:
         raise DstereoError(
             f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board; "
-            "check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+            "check `pattern` (inner corners, COLSxROWS, e.g. 9x6)"
             + (f" ({len(unreadable)} of the {len(files)} images could not be decoded)" if unreadable else "")
         )
     size = next(iter(sizes))

@@ -49,9 +49,9 @@ def check_output(out: str | Path, force: bool) -> Path:
 
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise DstereoError(f"results: {out} exists and is not a folder; choose another --out")
+        raise DstereoError(f"results: {out} exists and is not a folder; choose another `out`")
     if out.exists() and not force:
-        raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
+        raise DstereoError(f"results folder {out} already exists; choose another `out` or pass `force` to replace it")
     return check_creatable(out)
 
 

@@ -78,7 +78,7 @@ def detect_pairs(left, right, pattern: tuple[int, int], square: float, suffix: s
     if same:
         raise DstereoError(f"stereo images: {same[0]} is given as both the left and the right image"
                            + (f" ({len(same) - 1} more)" if len(same) > 1 else "")
-                           + "; give each camera's own images (--left and --right point at different files)")
+                           + "; give each camera's own images (`left` and `right` point at different files)")
     files_l, files_r = [a for a, _ in named.pairs], [b for _, b in named.pairs]
     det_l = detect_folder(files_l[0].parent, pattern, square, files=files_l, use_cache=use_cache, progress=progress)
     det_r = detect_folder(files_r[0].parent, pattern, square, files=files_r, use_cache=use_cache, progress=progress)

@@ -27,7 +27,7 @@ def board_corners(image: np.ndarray, board: Board, name: str) -> np.ndarray:
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     corners, reason = _detect_one(grey, tuple(board.pattern))
     if corners is None:
-        raise DstereoError(f"{name}: {reason}; check --board (inner corners, COLSxROWS, e.g. 9x6) and that the whole "
+        raise DstereoError(f"{name}: {reason}; check `board` (inner corners, COLSxROWS, e.g. 9x6) and that the whole "
                            "board is in view")
     return corners
 

@@ -546,54 +546,6 @@ def run_reconstruction(
     return results
 
 
-# --- configuration files --------------------------------------------------------------------------------------
-
-CONFIG_NAMES = ("dstereo.toml", "reconstruct.toml", "dstereo.json", "reconstruct.json")
-
-
-def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionConfig(), where: str = "config"):
-    """ReconstructionConfig from {'reconstruct': {...}, 'sgbm': {...}} (TOML/JSON layout); 'preset' picks the
-    SGBM starting point, 'z_min'/'z_max' give the depth range in mm."""
-    from dataclasses import fields, replace
-
-    from dstereo.stereo.disparity import CV_NAMES
-
-    section = dict(data.get("reconstruct", {}))
-    sgbm = base.sgbm
-    preset = section.pop("preset", data.get("sgbm", {}).get("preset"))
-    if preset is not None:
-        if preset not in PRESETS:
-            raise DstereoError(f"{where}: unknown SGBM preset {preset!r}; use one of {sorted(PRESETS)}")
-        sgbm = PRESETS[preset]
-    sgbm_items = {k: v for k, v in data.get("sgbm", {}).items() if k != "preset"}
-    sgbm = sgbm.with_overrides(sgbm_items)
-    user = tuple(base.sgbm_user) + (("preset",) if preset is not None else ()) + tuple(
-        CV_NAMES.get(k, k).strip().lower().replace("-", "_") for k in sgbm_items)
-    z = (section.pop("z_min", None), section.pop("z_max", None))
-    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm", "sgbm_user", "search_range"}
-    unknown = sorted(set(section) - known)
-    if unknown:
-        raise DstereoError(f"{where}: unknown [reconstruct] key(s) {unknown}; known: {sorted(known)} + z_min, z_max")
-    if "roi" in section and section["roi"] is not None:
-        section["roi"] = tuple(int(v) for v in section["roi"])
-    if "depth_range" in section and section["depth_range"] is not None:
-        section["depth_range"] = tuple(float(v) for v in section["depth_range"])
-    if any(v is not None for v in z):
-        if None in z:
-            raise DstereoError(f"{where}: give both z_min and z_max (mm)")
-        section["depth_range"] = (float(z[0]), float(z[1]))
-    return replace(base, sgbm=sgbm, sgbm_user=user, **section)
-
-
-def load_config(path: str | Path, base: ReconstructionConfig = ReconstructionConfig()) -> ReconstructionConfig:
-    """ReconstructionConfig from a TOML or JSON file (see `config_from_mapping`)."""
-    import tomllib
-
-    path = Path(path)
-    if not path.is_file():
-        raise DstereoError(f"configuration file {path} does not exist")
-    try:
-        data = json.loads(path.read_text()) if path.suffix == ".json" else tomllib.loads(path.read_text())
-    except (ValueError, tomllib.TOMLDecodeError) as exc:
-        raise DstereoError(f"{path}: cannot be parsed ({exc})") from None
-    return config_from_mapping(data, base, str(path))
+# The configuration files' loader lives in dstereo.config.reconstruction (one configuration system for every
+# command); these names stay importable from here.
+from dstereo.config.reconstruction import CONFIG_NAMES, config_from_mapping, load_config  # noqa: E402,F401

@@ -232,7 +232,7 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
 
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
-                               "equations; use --projection-method intrinsics-only")
+                               "equations; use `projection_method` intrinsics-only")
         n_obs = int(np.prod(np.shape(sol.residuals)))  # 2 per corner
         joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), n_obs)
         return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, image_size, range_, grid,
