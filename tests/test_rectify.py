@@ -16,7 +16,6 @@ from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.models.pose import rodrigues
 from dstereo.stereo.rectify import (
     focal_px,
-    log_rotation,
     rectify_map,
     rectify_uncalibrated,
     stereo_rectify,
@@ -188,12 +187,6 @@ def test_rectification_gradients_match_finite_differences():
     aligned = jax.jacfwd(lambda R: stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), R, jnp.array([-100.0, 0, 0]),
                                                   vertical=False).P1)(jnp.eye(3))
     assert np.all(np.isfinite(aligned))
-
-
-def test_log_rotation_accurate_at_small_angles():
-    for w in (np.array([1e-9, -2e-9, 3e-9]), np.array([0.01, 0.02, -0.03]), np.array([0.5, -1.0, 1.5])):
-        # log(exp(w)) with the small-angle series: relative error ~1e-15 at every scale (atol only guards w ~ 1e-9).
-        assert np.allclose(log_rotation(rodrigues(jnp.asarray(w))), w, rtol=1e-9, atol=1e-18)
 
 
 def test_zero_baseline_is_refused():

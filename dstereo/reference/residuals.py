@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dstereo.models.camera import project
-from dstereo.models.distortion import distort, undistort
+from dstereo.models.distortion import undistort
 from dstereo.models.pose import rodrigues
 from dstereo.reference.correction import PARAM_NAMES, RIG_NAMES, apply
 
@@ -59,11 +59,7 @@ def _ray_from(k, coeffs, q, xy0):
     focal correction of ~1e-3 (error ~1e-12), and its derivative at the start is the implicit-function one.
     Compiles and differentiates far faster than the full Newton loop (measured: 6.5 s -> ~1 s to compile the
     sphere problem)."""
-    xy_d = (q - k[2:4]) / k[0:2]
-    xy = xy0
-    for _ in range(2):
-        jac = jax.jacfwd(distort, argnums=1)(coeffs, xy)
-        xy = xy - _solve2(jac, distort(coeffs, xy) - xy_d)
+    xy = undistort(coeffs, (q - k[2:4]) / k[0:2], iterations=2, start=xy0)
     return jnp.array([xy[0], xy[1], 1.0])
 
 

@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 from dstereo.errors import DstereoError
 from dstereo.models.camera import project
 from dstereo.models.distortion import undistort as undistort_newton
-from dstereo.models.pose import rodrigues
+from dstereo.models.pose import log_rotation, rodrigues
 
 GRID = 9  # border sampling of OpenCV's getUndistortRectangles: a 9 x 9 grid of pixels
 
@@ -48,16 +48,6 @@ class Rectification(eqx.Module):
     roi2: Float[Array, "4"]
     size: tuple[int, int] = eqx.field(static=True)
     vertical: bool = eqx.field(static=True, default=False)
-
-
-def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
-    """Axis-angle vector of a rotation (angle < pi), accurate at small angles (atan2 rather than arccos)."""
-    w = 0.5 * jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
-    s2 = w @ w
-    small = s2 < 1e-24  # series of theta / sin(theta); the double `where` keeps gradients finite at identity
-    s = jnp.sqrt(jnp.where(small, 1.0, s2))
-    theta = jnp.arctan2(s, 0.5 * (jnp.trace(rmat) - 1.0))
-    return w * jnp.where(small, 1.0 + s2 / 6.0, theta / s)
 
 
 def undistort_fixed_point(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 5) -> Float[Array, "2"]:

@@ -35,7 +35,8 @@ from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, distort
+from dstereo.models.distortion import COEFF_NAMES
+from dstereo.models.distortion import newton_step as distortion_newton_step
 from dstereo.models.pose import rodrigues
 
 RIG_NAMES: tuple[str, ...] = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
@@ -76,13 +77,8 @@ def _unpack(params):
 
 
 def newton_step(k, coeffs, q, x0):
-    """One Newton step of distort(coeffs, x) = (q - c) / f from x0, the 2 x 2 system solved in closed form
-    (jaxlib 0.10.2's CPU LAPACK call, vmapped over large chunks, deadlocked intermittently here)."""
-    qn = (q - k[2:4]) / k[0:2]
-    a = jax.jacfwd(distort, argnums=1)(coeffs, x0)
-    r = distort(coeffs, x0) - qn
-    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]  # 2 x 2 inverse written out: no LAPACK call per point
-    return x0 - jnp.array([a[1, 1] * r[0] - a[0, 1] * r[1], a[0, 0] * r[1] - a[1, 0] * r[0]]) / det
+    """One Newton step (`dstereo.models.distortion.newton_step`) towards pixel q's undistorted point from x0."""
+    return distortion_newton_step(coeffs, (q - k[2:4]) / k[0:2], x0)
 
 
 def point_from_pixels(params, q_left, q_right, x_left0, x_right0, axis) -> Float[Array, "3"]:

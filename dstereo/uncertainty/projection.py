@@ -33,9 +33,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
 from dstereo.models.pose import rodrigues
-from dstereo.uncertainty.point_jacobians import newton_step
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
@@ -61,8 +60,7 @@ FOLD_MARGIN = 1.1
 
 
 def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
-    x0 = (q - k[2:4]) / k[0:2]
-    return jax.lax.fori_loop(0, iterations, lambda _, x: newton_step(k, coeffs, q, x), x0)
+    return undistort(coeffs, (q - k[2:4]) / k[0:2], iterations)
 
 
 def _invertible(k, coeffs, q, x):
