@@ -74,8 +74,8 @@ def _linearised(params, uvd, rect, cov):
 def test_point_jacobians_match_central_differences_of_the_pipeline():
     rig = plasmatron_rig(focal_px=1500.0)  # two different cameras, 5 distortion coefficients each, converging
     R, T = rig.rotation_translation()
-    params = jnp.asarray(pu.parameter_vector(rig.left.matrix(), rig.left.coeffs(), rig.right.matrix(),
-                                             rig.right.coeffs(), R, T))
+    params = jnp.asarray(pu.parameter_vector(StereoCalibration(rig.left.matrix(), rig.left.coeffs(),
+                                                               rig.right.matrix(), rig.right.coeffs(), R, T)))
     r = stereo_rectify(rig.left.k, rig.left.coeffs(), rig.right.k, rig.right.coeffs(), SIZE, R, T,
                        zero_disparity=False)
     rect = pu.RectGeometry(r.R1, r.R2, r.P1, r.P2, r.Q)
@@ -144,7 +144,7 @@ def mc():
     values, covs = np.concatenate(values), np.concatenate(covs)
     names = spec.names()
     index = pu.theta_index(names)
-    base = pu.parameter_vector(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0)
+    base = pu.parameter_vector(StereoCalibration(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0))
     # test points: pixels across the left image, depths 460..540 mm, seen by both cameras
     prs = np.random.default_rng(1)
     q = prs.uniform([30, 30], [610, 450], (400, 2))

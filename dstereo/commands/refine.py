@@ -51,7 +51,7 @@ def refine(
     if board is not None:
         from dstereo.io.corners import parse_pattern
 
-        reference = Board(parse_pattern(board), float(square))
+        reference = Board.from_pattern(parse_pattern(board), float(square))
     elif sphere_diameter is not None:
         reference = Sphere(float(sphere_diameter))
         if z_min is not None:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models.rig import Rig
 
 ALIASES = {
     "K1": ("M1", "K1", "cameraMatrix1", "camera_matrix_1", "cameraMatrixL"),
@@ -65,6 +66,11 @@ class StereoCalibration:
     @property
     def baseline(self) -> float:
         return float(np.linalg.norm(self.T))
+
+    @property
+    def rig(self) -> Rig:
+        """R, T as the one rig type (`dstereo.models.rig.Rig`); R and T stay as the file gave them."""
+        return Rig.from_matrix(self.R, self.T)
 
     def projections(self) -> tuple[np.ndarray, np.ndarray]:
         """P1, P2 of an already rectified pair (only meaningful when `rectified`)."""

@@ -21,6 +21,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder, list_images
 from dstereo.io.pairing import check_enough_pairs, pair_by_name
+from dstereo.models.board import Board
+
 
 @dataclass(frozen=True)
 class DroppedPair:
@@ -40,8 +42,12 @@ class StereoDetection:
     warnings: list[str] = field(default_factory=list)  # images left out for want of a partner named like them
 
     @property
+    def board(self) -> Board:
+        return self.left.board  # both cameras were detected on the one board
+
+    @property
     def object_points(self) -> np.ndarray:
-        return self.left.object_points
+        return self.board.object_points()
 
     def observations(self) -> tuple[np.ndarray, np.ndarray]:
         """(V, n, 2) left and right corners of the pairs, in pair order."""
@@ -285,8 +291,8 @@ def stereo_summary(job) -> dict:
         full_std |= sigma.std
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
-        "cameras": cams, "pattern": {"columns": det.left.pattern[0], "rows": det.left.pattern[1],
-                                     "square": det.left.square, "unit": job.config.unit},
+        "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
+                                     "square": det.board.square, "unit": job.config.unit},
         "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
                   "F": job.F, **job.final},
         "final_spread": job.spread,
@@ -421,7 +427,7 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
 
     plt = _pyplot()
     obj = detection.object_points
-    cols, rows = detection.left.pattern
+    cols, rows = detection.board.pattern
     outline = obj[[0, cols - 1, cols * rows - 1, cols * (rows - 1), 0]]
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")

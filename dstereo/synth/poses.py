@@ -76,8 +76,7 @@ def _board_samples(board: Board, per_edge: int = 12) -> np.ndarray:
     outline = board.outline()
     t = np.linspace(0.0, 1.0, per_edge, endpoint=False)[:, None]
     edges = [outline[i] + t * (outline[(i + 1) % 4] - outline[i]) for i in range(4)]
-    cols, rows = board.pattern
-    inner = np.array([(x * board.square, y * board.square, 0.0) for y in range(rows) for x in range(cols)])
+    inner = board.geometry.object_points()
     return np.concatenate(edges + [inner])
 
 

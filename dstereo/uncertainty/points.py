@@ -129,7 +129,7 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
         raise DstereoError(f"disparity noise sigma_d={sigma_d if np.ndim(sigma_d) == 0 else 'map'} px: give a "
                            "finite value >= 0 (or 'auto')")
     found = calibration_covariance(calib)
-    params = jnp.asarray(parameter_vector(calib.K1, calib.D1, calib.K2, calib.D2, calib.R, calib.T))
+    params = jnp.asarray(parameter_vector(calib))
     names, cov, structure = found if found is not None else ((), np.zeros((0, 0)), "")
     index = theta_index(names)
     rect = rect_geometry(matrices)
