@@ -15,9 +15,12 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models.camera import Camera
+from dstereo.models.distortion import Distortion
 from dstereo.models.rig import Rig
 
 ALIASES = {
@@ -66,6 +69,12 @@ class StereoCalibration:
     @property
     def baseline(self) -> float:
         return float(np.linalg.norm(self.T))
+
+    def cameras(self) -> tuple[Camera, Camera]:
+        """(left, right) as `dstereo.models.camera.Camera`, no coefficient free (a calibration being used)."""
+        size = tuple(self.image_size) if self.image_size is not None else (0, 0)
+        return tuple(Camera(jnp.asarray(self.k_vector(K)), Distortion(jnp.asarray(np.asarray(D, float).ravel()[:8]), ()),
+                            size) for K, D in ((self.K1, self.D1), (self.K2, self.D2)))
 
     @property
     def rig(self) -> Rig:

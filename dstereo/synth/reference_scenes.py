@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.models.camera import Camera
+from dstereo.models.rig import Rig
 from dstereo.synth.board import Board
 from dstereo.synth.poses import compose, invert, look_at
 from dstereo.synth.render import render_board
@@ -37,7 +38,7 @@ def reference_rig(image_size: tuple[int, int] = (640, 480), focal_px: float = 80
     target = np.array([0.0, 0.0, distance_mm])
     t_left = look_at([-baseline_mm / 2, 0.0, 0.0], target)
     t_right = look_at([baseline_mm / 2, 0.0, 0.0], target)
-    return StereoRig(left, right, compose(t_right, invert(t_left)), t_left)
+    return StereoRig(left, right, Rig.from_vector(compose(t_right, invert(t_left))), t_left)
 
 
 @dataclass
