@@ -97,7 +97,7 @@ def corrected_calibration(calib: StereoCalibration, theta: np.ndarray) -> Stereo
     K1, K2 = calib.K1.copy(), calib.K2.copy()
     K1[0, 0], K1[1, 1], K2[0, 0], K2[1, 1] = (float(v) for v in (left.k[0], left.k[1], right.k[0], right.k[1]))
     source = calib.source if calib.source.endswith("(refined)") else f"{calib.source} (refined)".strip()
-    return replace(calib, K1=K1, K2=K2, R=np.asarray(rig.rotation()), T=np.asarray(rig.tvec), source=source)
+    return replace(calib, K1=K1, K2=K2, R=np.array(rig.rotation(), float), T=np.array(rig.tvec, float), source=source)
 
 
 def rig_error(calib: StereoCalibration, truth: StereoCalibration) -> dict:

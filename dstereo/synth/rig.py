@@ -39,7 +39,7 @@ class StereoRig:
     @property
     def T_right_left(self) -> np.ndarray:
         """The rig as a 6-vector (rvec, tvec), the form `dstereo.synth.poses` composes."""
-        return np.asarray(self.rig.as_vector())
+        return np.array(self.rig.as_vector(), float)  # a writable copy: scipy refuses read-only views of JAX arrays
 
     @property
     def T_right_world(self) -> np.ndarray:
@@ -47,7 +47,7 @@ class StereoRig:
 
     def rotation_translation(self) -> tuple[np.ndarray, np.ndarray]:
         """(R, T) of T_right_left as OpenCV's stereoCalibrate returns them."""
-        return np.asarray(self.rig.rotation()), np.asarray(self.rig.tvec)
+        return np.array(self.rig.rotation(), float), np.array(self.rig.tvec, float)
 
     def to_truth(self) -> dict:
         r, t = self.rotation_translation()
