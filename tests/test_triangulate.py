@@ -11,7 +11,7 @@ from dstereo.stereo.disparity import disparity_range
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.models.camera import project
 from dstereo.models.pose import rodrigues
-from dstereo.stereo.rectify import q_matrix, rectify_map, stereo_rectify
+from dstereo.stereo.rectify import q_matrix, rectify_calibration, rectify_map
 from dstereo.stereo.triangulate import (
     depth_from_disparity,
     reproject_disparity,
@@ -23,7 +23,7 @@ from dstereo.stereo.triangulate import (
 
 def _rectification():
     c = read_stereo_calibration(require_data("opencv_stereo") / "intrinsics.yml")
-    return c, stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), c.R, c.T, alpha=0.0)
+    return c, rectify_calibration(c, (640, 480), alpha=0.0)
 
 
 @pytest.mark.numerics
