@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.models.camera import Camera
+from dstereo.models.pose import rotation_vector
 from dstereo.models.rig import Rig
 from dstereo.synth.poses import compose, invert, look_at
 from dstereo.synth.truth import camera_truth
@@ -93,4 +94,4 @@ def sample_pose(length_mm: float = 50.0, distance_mm: float = 600.0, yaw_deg: fl
     rmat = r_turn @ r_face
     head = np.array([0.0, 0.0, distance_mm])
     tvec = head - rmat @ np.array([0.0, 0.0, length_mm])
-    return np.concatenate([Rotation.from_matrix(rmat).as_rotvec(), tvec])
+    return np.concatenate([rotation_vector(rmat), tvec])
