@@ -54,7 +54,8 @@ def test_essential_and_fundamental_hold_the_epipolar_constraint_of_cv2_projectio
     t = TVEC
     np.testing.assert_allclose(E, np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
                                @ cv2.Rodrigues(RVEC)[0], atol=ATOL_MM)
-    F = np.asarray(rig.fundamental(jnp.array([1200.0, 1201.0, 318.0, 241.0]), jnp.array([1210.0, 1208.0, 322.0, 236.0])))
+    F = np.asarray(rig.fundamental(jnp.array([1200.0, 1201.0, 318.0, 241.0]),
+                                   jnp.array([1210.0, 1208.0, 322.0, 236.0])))
     assert F[2, 2] == pytest.approx(1.0)
     pts = np.random.default_rng(0).uniform([-100, -80, 500], [100, 80, 800], (30, 3))
     ql = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K1, None)[0].reshape(-1, 2)

@@ -73,8 +73,11 @@ class StereoCalibration:
     def cameras(self) -> tuple[Camera, Camera]:
         """(left, right) as `dstereo.models.camera.Camera`, no coefficient free (a calibration being used)."""
         size = tuple(self.image_size) if self.image_size is not None else (0, 0)
-        return tuple(Camera(jnp.asarray(self.k_vector(K)), Distortion(jnp.asarray(np.asarray(D, float).ravel()[:8]), ()),
-                            size) for K, D in ((self.K1, self.D1), (self.K2, self.D2)))
+        def camera(K, D):
+            coeffs = jnp.asarray(np.asarray(D, float).ravel()[:8])
+            return Camera(jnp.asarray(self.k_vector(K)), Distortion(coeffs, ()), size)
+
+        return camera(self.K1, self.D1), camera(self.K2, self.D2)
 
     @property
     def rig(self) -> Rig:

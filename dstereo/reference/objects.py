@@ -2,7 +2,8 @@
 
 Each is a small immutable pytree holding only what is known about the object (lengths in mm). Which
 observations go with which object: a Board (`dstereo.models.board.Board`, the calibration's board) with its inner
-corners in both images, a Sphere or Mesh with dense matched pixel pairs, Distances with the marked points' pixels in both images (in the order of `points`).
+corners in both images, a Sphere or Mesh with dense matched pixel pairs, Distances with the marked points' pixels
+in both images (in the order of `points`).
 """
 
 from __future__ import annotations

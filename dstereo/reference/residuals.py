@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dstereo.models.camera import Camera, project
-from dstereo.models.distortion import undistort
+from dstereo.models.distortion import Distortion, undistort
 from dstereo.models.pose import rodrigues
 from dstereo.models.rig import Rig
 from dstereo.reference.correction import PARAM_NAMES, RIG_CORRECTION_NAMES, apply
@@ -42,11 +42,6 @@ def split(x: Float[Array, " p"], free: tuple[int, ...]) -> tuple[Float[Array, " 
     return theta, x[len(free):]
 
 
-def _ray(k, coeffs, q):
-    xy = undistort(coeffs, (q - k[2:4]) / k[0:2])
-    return jnp.array([xy[0], xy[1], 1.0])
-
-
 def _solve2(a: Float[Array, "2 2"], b: Float[Array, "2"]) -> Float[Array, "2"]:
     """a^-1 b by Cramer's rule: a batched 2x2 LU compiles several times slower and gains nothing here."""
     det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
@@ -54,7 +49,8 @@ def _solve2(a: Float[Array, "2 2"], b: Float[Array, "2"]) -> Float[Array, "2"]:
 
 
 def _ray_from(k, coeffs, q, xy0):
-    """As `_ray`, by two Newton steps from `xy0`, the undistorted point under the calibration being corrected.
+    """`Camera.unproject`'s ray, by two Newton steps from `xy0`, the undistorted point under the calibration
+    being corrected.
 
     Exact where the intrinsics are not corrected (xy0 is then the fixed point), quadratically convergent for a
     focal correction of ~1e-3 (error ~1e-12), and its derivative at the start is the implicit-function one.
@@ -67,7 +63,7 @@ def _ray_from(k, coeffs, q, xy0):
 @jax.jit
 def undistorted(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "n 2"]) -> Float[Array, "n 2"]:
     """Undistorted normalised coordinates of raw pixels (the start `xy0` of `triangulate`)."""
-    return jax.vmap(lambda p: _ray(k, coeffs, p)[:2])(q)
+    return jax.vmap(lambda p: Camera(k, Distortion(coeffs, ())).unproject(p)[:2])(q)
 
 
 def triangulate(left: Camera, right: Camera, rig: Rig, q_l: Float[Array, "n 2"], q_r: Float[Array, "n 2"],
@@ -81,8 +77,8 @@ def triangulate(left: Camera, right: Camera, rig: Rig, q_l: Float[Array, "n 2"],
         one = jnp.ones((xy0_l.shape[0], 1))
         v1, v2 = jnp.concatenate([xy0_l, one], axis=1), jnp.concatenate([xy0_r, one], axis=1) @ R
     elif xy0_l is None:
-        v1 = jax.vmap(_ray, in_axes=(None, None, 0))(k_l, c_l, q_l)
-        v2 = jax.vmap(_ray, in_axes=(None, None, 0))(k_r, c_r, q_r) @ R
+        v1 = jax.vmap(left.unproject)(q_l)
+        v2 = jax.vmap(right.unproject)(q_r) @ R
     else:
         v1 = jax.vmap(_ray_from, in_axes=(None, None, 0, 0))(k_l, c_l, q_l, xy0_l)
         v2 = jax.vmap(_ray_from, in_axes=(None, None, 0, 0))(k_r, c_r, q_r, xy0_r) @ R

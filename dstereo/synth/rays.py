@@ -23,7 +23,7 @@ from dstereo.models.distortion import undistort
 CHUNK = 65536
 
 
-NEWTON_ITERATIONS = 12  # the renderer has always taken 12 steps (4 more than the default); kept so renders are unchanged
+NEWTON_ITERATIONS = 12  # the renderer has always taken 12 steps (4 more than the default): renders stay unchanged
 
 
 def unproject_point(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "2"]) -> Float[Array, "2"]:
