@@ -149,3 +149,19 @@ def test_log_rotation_has_finite_gradients_at_identity_and_near_pi():
     """Singular cases by name: identity (series branch) and 180 degrees (quaternion branch)."""
     for R in (np.eye(3), cv2.Rodrigues(np.array([0.0, 0.0, np.pi - 1e-3]))[0]):
         assert np.all(np.isfinite(np.asarray(jax.jacfwd(log_rotation)(jnp.asarray(R)))))
+
+
+def test_newton_step_from_a_nearby_start_converges_quadratically_and_is_fixed_at_the_root():
+    """The one undistortion's step: from a start 1e-3 off, two steps reach ~(1e-3)^4 (quadratic convergence),
+    and from the root itself it returns the root (what the uncertainty code differentiates through)."""
+    from dstereo.models.distortion import newton_step
+
+    rng = np.random.default_rng(9)
+    _, coeffs = _random_camera(rng, 1.0)
+    xy = np.array([0.3, -0.2])
+    xd = distort(jnp.asarray(coeffs), jnp.asarray(xy))
+    two = undistort(jnp.asarray(coeffs), xd, iterations=2, start=jnp.asarray(xy + 1e-3))
+    # Newton's error after two steps is C^3 e^4 for e = 1e-3 and C ~ |f''| / |f'| = O(1) here: ~1e-12.
+    assert np.abs(np.asarray(two) - xy).max() < 1e-10
+    # At the root the step is zero up to rounding of the O(1) residual (~1e-16).
+    np.testing.assert_allclose(newton_step(jnp.asarray(coeffs), xd, jnp.asarray(xy)), xy, atol=1e-14)

@@ -195,10 +195,10 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
 def board_depth_range(solution, object_points: np.ndarray) -> dict:
     """Nearest and farthest board corner depth (left camera z, the calibration's unit) over the solution's
     board poses: `reconstruct` uses it as a search-range prior when a pair has too few sparse matches."""
-    from scipy.spatial.transform import Rotation
+    from dstereo.models.pose import rotation_matrix
 
     obj = np.asarray(object_points, float).reshape(-1, 3)
-    z = np.concatenate([Rotation.from_rotvec(p[:3]).apply(obj)[:, 2] + p[5] for p in np.asarray(solution.poses)])
+    z = np.concatenate([obj @ rotation_matrix(p[:3])[2] + p[5] for p in np.asarray(solution.poses)])
     return {"board_depth_min": float(z.min()), "board_depth_max": float(z.max())}
 
 
@@ -423,7 +423,7 @@ def frustum_depth(baseline: float, distance: float) -> float:
 def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
     """3D view in the left camera's frame: both cameras (frusta sized by `frustum_depth`), the baseline
     between their centres, and every pair's board."""
-    from scipy.spatial.transform import Rotation
+    from dstereo.models.pose import rotation_matrix
 
     plt = _pyplot()
     obj = detection.object_points
@@ -433,7 +433,7 @@ def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> N
     ax = fig.add_subplot(projection="3d")
     boards = []
     for pose in solution.poses:
-        pts = Rotation.from_rotvec(pose[:3]).apply(outline) + pose[3:]
+        pts = outline @ rotation_matrix(pose[:3]).T + pose[3:]
         boards.append(pts)
         ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
     distance = float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
