@@ -16,6 +16,7 @@ import trimesh
 from conftest import run_cli
 from dstereo.uncertainty import points as pu
 from dstereo.calib import stereo as st
+from dstereo.calib.problem import run
 from dstereo.uncertainty.covariance import scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration, write_opencv_stereo
@@ -126,23 +127,23 @@ def mc():
     obj = object_points(PATTERN, SQUARE)
     data = np.stack([np.stack([true_corners(left, p, PATTERN, SQUARE) for p in poses]),
                      np.stack([true_corners(right, compose(rig_rt, p), PATTERN, SQUARE) for p in poses])], axis=1)
-    spec = st._Spec(True, FREE, FREE)  # the joint solve, batched as solve_stereo_subsets does
+    spec = st._spec_for("joint", left, right)  # the joint solve, batched by the one runner
     truth = np.concatenate([rig_rt, np.asarray(left.free_vector()), np.asarray(right.free_vector())])
-    solver = st._batch_solver(spec, LMOptions(lambda0=1e-6))
     shared = st._shared(obj, left, right)
+    options = LMOptions(lambda0=1e-6)
     rng = np.random.default_rng(0)
     values, covs = [], []
     for _ in range(DRAWS // CHUNK):
         noisy = data[None] + rng.normal(0.0, CORNER_NOISE, (CHUNK,) + data.shape)
-        every_corner = jnp.ones((CHUNK, VIEWS, data.shape[-2] * 4))  # residual weights: no outlier masked
-        out = jax.tree_util.tree_map(np.asarray, solver(jnp.asarray(truth), jnp.broadcast_to(
-            jnp.asarray(poses), (CHUNK,) + poses.shape), jnp.asarray(noisy), shared, every_corner))
+        every_corner = np.ones((CHUNK, VIEWS, data.shape[-2] * 4))  # residual weights: no outlier masked
+        out = run(spec, options, np.broadcast_to(truth, (CHUNK, len(truth))), np.broadcast_to(poses, (CHUNK,) + poses.shape),
+                  noisy, np.ones((CHUNK, VIEWS)), np.full(CHUNK, options.lambda0), shared, r_weight=every_corner)
         assert np.all(out.status > 0)
         sigma2 = out.sse / (out.n_residuals - (len(truth) + 6 * VIEWS))
         values.append(out.g)
         covs.append(scaled_inverse(out.schur) * sigma2[:, None, None])
     values, covs = np.concatenate(values), np.concatenate(covs)
-    names = spec.names()
+    names = st._names(spec)
     index = pu.theta_index(names)
     base = pu.parameter_vector(StereoCalibration(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0))
     # test points: pixels across the left image, depths 460..540 mm, seen by both cameras

@@ -1,16 +1,13 @@
 """One camera from chessboard views: full-set solve and the batched solve of every image subset.
 
 The solver's shared vector is `Camera.free_vector()` = [fx, fy, cx, cy, <free distortion coefficients>];
-each view contributes its pose (rvec, tvec). Compiled functions are cached per (free set, shapes), so a
-test suite or a CLI run compiles each once.
+each view contributes its pose (rvec, tvec): the K = 1 case of `calib/problem.py`, whose compiled solver (cached
+per free set and shapes) serves the full set and every subset.
 """
 
 from __future__ import annotations
 
-import functools
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import jax
@@ -19,136 +16,48 @@ import numpy as np
 
 from dstereo.calib.init_fisheye import initial_guess_fisheye
 from dstereo.calib.init_zhang import initial_guess
+from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.calib.subsets import SubsetPlan
 from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
-from dstereo.models import camera, fisheye
+from dstereo.calib.problem import (Problem, chunk_rows, frame_linearize, frame_residual, lens_functions,  # noqa: F401
+                                   residual_weights, run, shared_data)
 from dstereo.models.camera import INTRINSIC_NAMES
-from dstereo.models.distortion import coeff_slots, lens_model, with_free
-from dstereo.models.pose import rodrigues, rodrigues_jacobian
-from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
-from dstereo.solver.lm import COMPILE_OPTIONS, STATUS_TEXT, LMOptions, solve_structured_batch
+from dstereo.models.distortion import coeff_slots, lens_model
+from dstereo.solver.lm import STATUS_TEXT, LMOptions
 
 
-def lens_functions(free: tuple[str, ...]):
-    """(project, project_jacobian) of the lens model that `free` names, both on (k, coeffs (8,), p_cam): the
-    fisheye model reads its k1..k4 from the first four slots (`distortion.coeff_slots`)."""
-    if lens_model(free) == "fisheye":
-        return (lambda k, c, p: fisheye.project(k, c[:4], p)), (lambda k, c, p: fisheye.project_jacobian(k, c[:4], p))
-    return camera.project, camera.project_jacobian
+def _problem(free: tuple[str, ...]) -> Problem:
+    return Problem.of([tuple(free)])
 
 
-@functools.lru_cache(maxsize=None)
 def view_residual_for(free: tuple[str, ...]):
-    """Residual of one view (2n,) for a given free distortion set; cached so jit sees one function."""
-    project, _ = lens_functions(free)
-
-    def view_residual(g, pose, obs_v, shared):
-        obj, base_coeffs = shared
-        coeffs = with_free(base_coeffs, free, g[4:])
-        # One rotation per view, not per point: the pose Jacobian is then formed once, too.
-        p_cam = obj @ rodrigues(pose[:3]).T + pose[3:6]
-        q = jax.vmap(project, in_axes=(None, None, 0))(g[:4], coeffs, p_cam)
-        return (q - obs_v).ravel()
-
-    return view_residual
+    """One view's residuals (2n,) as (g, pose, obs (n, 2), (obj, coeffs (8,))): the problem's frame, K = 1."""
+    res = frame_residual(_problem(free))
+    return lambda g, pose, obs_v, shared: res(g, pose, obs_v[None], (shared[0], jnp.zeros((1, 4)), shared[1][None]))
 
 
-@functools.lru_cache(maxsize=None)
 def view_linearize_for(free: tuple[str, ...]):
-    """Residuals and transposed Jacobian of one view by the chain rule: per point the hand-written d q /
-    d(k, coeffs, p_cam) (`camera.project_jacobian`), and d R / d rvec once per view (`pose.rodrigues_jacobian`).
-
-    Written on whole coordinate arrays (3, n) rather than vmapped per point, with the free coefficients
-    picked by static slices: the view is then a few elementwise loops, which traces and compiles about
-    twice as fast as per-point vmaps and autodiff (compile time dominates a cold calibration);
-    `tests/test_engine.py` checks it against autodiff and finite differences.
-    """
-    cols = [coeff_slots(free).index(n) for n in free]
-    _, project_jacobian = lens_functions(free)
-
-    def linearize(g, pose, obs_v, shared):
-        obj, base_coeffs = shared
-        coeffs = with_free(base_coeffs, free, g[4:])
-        rot, d_rot = rodrigues_jacobian(pose[:3])  # (3, 3), (3, 3, 3): d R_ij / d rvec_k
-        o = obj.T  # (3, n)
-        # Products over 3-vectors as sums of broadcasts: XLA's CPU dot emitter compiles tiny dots into far
-        # more code than these fused loops.
-        p_cam = sum(rot[:, j, None] * o[j] for j in range(3)) + pose[3:6, None]  # (3, n)
-        dpc_drot = sum(d_rot[:, j, :, None] * o[j] for j in range(3))  # (3 i, 3 k, n): d p_cam_i / d rvec_k
-        q, dk, dc, dp = project_jacobian(g[:4], coeffs, p_cam)  # (2, n), (2, 4, n), (2, 8 or 4, n), (2, 3, n)
-        dp_drot = sum(dp[:, i, None, :] * dpc_drot[None, i] for i in range(3))  # (2, 3, n)
-        rows = jnp.concatenate([dk, *(dc[:, c:c + 1] for c in cols), dp_drot, dp, (q - obs_v.T)[:, None]], axis=1)
-        # (2, G + 7, n) -> one row per parameter and the residuals last, in the model's order (n, 2)
-        rows = jnp.transpose(rows, (1, 2, 0)).reshape(rows.shape[1], -1)
-        return rows[-1], rows[:-1]
-
-    return linearize
+    """`view_residual_for`'s residuals and transposed Jacobian (G + 6, 2n) (`problem.frame_linearize`)."""
+    lin = frame_linearize(_problem(free))
+    return lambda g, pose, obs_v, shared: lin(g, pose, obs_v[None], (shared[0], jnp.zeros((1, 4)), shared[1][None]))
 
 
-# Problems per compiled call: as many as fit CALL_POINTS corner observations, at most MAX_CHUNK, at most
-# MAX_CONCURRENT_CALLS at once (a jaxlib CPU-runtime hang; see dstereo/jax_workarounds.py).
-
-
-def chunk_rows(n_views: int, n_points: int) -> int:
-    """Problems per compiled call for views of `n_points` corners (fixed per shape, so one compile)."""
-    return int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_views * n_points))))
-
-
-def _threads(requested: int | None) -> int:
-    env = os.environ.get("DSTEREO_THREADS")
-    n = requested or (int(env) if env and env.isdigit() else None) or os.cpu_count() or 1
-    return max(1, min(n, MAX_CONCURRENT_CALLS))
-
-
-@functools.lru_cache(maxsize=None)
-def _solver(free: tuple[str, ...], options: LMOptions):
-    """The one compiled program behind the full set and every subset: CHUNK problems of V views, each with
-    its own start, view weights (0 = left out), corner weights (0 = an outlier) and initial damping. The full
-    set and subsets of the same images share its shape, so a calibration with subsets compiles once (compile
-    time dominates a cold run), whatever the outlier mask."""
-    res, lin = view_residual_for(free), view_linearize_for(free)
-
-    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared):
-        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight)
-
-    return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
+def _shared(obj: np.ndarray):
+    return shared_data(obj, np.zeros(4), np.zeros(8))
 
 
 def _residual_weights(inliers: np.ndarray) -> np.ndarray:
     """(..., V, n) corner inlier mask -> (..., V, 2n) residual weights in the residual's (x, y) per point order."""
-    return np.repeat(np.asarray(inliers, float), 2, axis=-1)
+    return residual_weights(np.asarray(inliers)[..., None, :])
 
 
 def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None):
-    """Call the compiled solver on one chunk given as per-problem numpy arrays (leading axis <= chunk_rows).
-
-    `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
-    and `.normal`); the solver then skips linearising the start. Without it, the same compiled program
-    linearises the start itself (a traced flag, not a second compile). An argument that is already a device
-    array is taken as it is, at the chunk's full size: subsets pass what all their chunks share once.
-    `weight` is always per chunk and gives the number of problems. `r_weight` (per problem (V, 2n), default
-    all 1): the corners' residual weights, 0 for an outlier."""
-    n, (n_views, n_pts) = len(weight), np.shape(obs)[1:3]
-    rows = chunk_rows(n_views, n_pts)
-
-    def prep(a):
-        if isinstance(a, jax.Array):
-            return a
-        a = np.asarray(a, float)
-        # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
-        return np.ascontiguousarray(np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a)
-
-    n_p1 = np.shape(g0)[1] + 7  # shared parameters + 6 pose parameters + the residual column
-    given = normal0 is not None
-    if not given:
-        normal0 = (np.zeros((n, n_views, 2 * n_pts)), np.zeros((n, n_views, n_p1, n_p1)))
-    key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
-    if r_weight is None:
-        r_weight = np.ones((n, n_views, 2 * n_pts))
-    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
-    out = _solver(tuple(free), key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared)
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
+    """`problem.run` for one camera: obs (B, V, n, 2) as K = 1 frames."""
+    # a device array comes from `solve_subsets`, already put there as K = 1 frames (B, V, 1, n, 2)
+    obs = obs if isinstance(obs, jax.Array) else np.asarray(obs, float)[:, :, None]
+    return run(_problem(free), options, g0, p0, obs, weight, lambda0, shared, normal0,
+               np.ones(np.shape(weight) + (2 * np.shape(obs)[3],)) if r_weight is None else r_weight)
 
 
 @dataclass
@@ -228,7 +137,7 @@ def calibrate_full(
         # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
         k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
         g0, lam = np.concatenate([k0, np.zeros(len(free))]), options.lambda0
-    shared = (np.asarray(obj, float), np.zeros(8))  # numpy: no eager JAX op (each compiles on first use)
+    shared = _shared(obj)
     # A view without inlier corners (rejected whole) takes no part: weight 0, its pose carried unchanged
     out = _run(free, options, g0[None], p0[None], obs[None], mask.any(axis=1)[None].astype(float), np.array([lam]),
                shared, r_weight=_residual_weights(mask)[None])
@@ -287,68 +196,23 @@ def solve_subsets(
     start: CameraSolution,
     options: LMOptions = LMOptions(lambda0=1e-6),
     progress=None,
-    threads: int | None = None,
+    n_threads: int | None = None,
 ) -> SubsetSolutions:
     """Refine every subset of `plan` in fixed-size vmapped chunks, starting from the full-set solution.
 
     Starting at the full-set optimum puts every subset a few iterations from its own optimum; each subset
     still converges to its own least-squares solution (tests check this against cv2.calibrateCamera).
-    A subset is the full set with the other views weighted 0, so it reuses the full set's compiled solver,
-    unless subsets are less than half the set: then carrying the unused views would cost more than a second
-    compile, and the subsets' views are gathered instead. Chunks run on `threads` threads (default: one per
-    core, at most 2, or DSTEREO_THREADS); XLA runs one chunk's loop mostly on one core.
+    How (masked or gathered frames, chunks, threads, the start's linearisation reused): `subset_solve`.
     """
-    free = start.free
     index = np.asarray(plan.index)
-    n_sub, m = index.shape
-    n_views = len(obs)
-    obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
-    shared = (np.asarray(obj, float), np.zeros(8))
-    gathered = 2 * m < n_views
+    m = index.shape[1]
+    obs = np.asarray(obs, float)
     # The full set's outlier mask: a corner rejected there is left out of every subset too
     r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers)
-
-    # The full set's linearisation at its solution (the subsets' start), per view and unweighted: every
-    # subset reuses it instead of linearising its start again (one pass of about six saved).
-    normal = None if start.normal is None else (start.residuals.reshape(n_views, -1), start.normal)
-
-    if not gathered:
-        # Every chunk of a masked plan shares the start, views and linearisation; only the weights differ.
-        # Put them on the device once, at the full chunk size, instead of copying them for every chunk.
-        full_rows = chunk_rows(n_views, obs.shape[1])
-        put = lambda a: jax.device_put(np.ascontiguousarray(np.broadcast_to(a, (full_rows, *np.shape(a)))))  # noqa: E731
-        common = (put(start.values), put(poses), put(obs))
-        lam_all = put(np.float64(options.lambda0))
-        normal_all = None if normal is None else tuple(put(a) for a in normal)
-        r_weight_all = put(r_weight)
-
-    def chunk_args(rows):
-        c = len(rows)
-        if gathered:
-            g0 = np.broadcast_to(start.values, (c, len(start.values)))
-            start_ne = None if normal is None else tuple(a[rows] for a in normal)
-            return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne, r_weight[rows]
-        weight = np.zeros((c, n_views))
-        np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat views
-        return (*common, weight, lam_all), normal_all, r_weight_all
-
-    def run(rows):
-        args, start_ne, r_w = chunk_args(rows)
-        # Per-view linearisations and residuals are not kept per subset (C=5000: ~400 MB).
-        return _run(free, options, *args, shared, start_ne, r_w)._replace(normal=None, residuals=None)
-
+    normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
     t0 = time.perf_counter()
-    rows = chunk_rows(m if gathered else n_views, obs.shape[1])
-    chunks = [index[c: c + rows] for c in range(0, n_sub, rows)]
-    workers = min(_threads(threads), len(chunks))
-    outs, done = [], 0
-    with ThreadPoolExecutor(workers) as pool:
-        for out in pool.map(run, chunks):
-            outs.append(out)
-            done += len(out.status)
-            if progress is not None:
-                progress(done, n_sub)
-    out = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
+    out = solve_frame_subsets(_problem(start.free), obs[:, None], r_weight, _shared(obj), index,
+                              SubsetStart(start.values, start.poses, normal), options, progress, n_threads)
     n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
     n_params = len(start.values) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)

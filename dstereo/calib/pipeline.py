@@ -337,7 +337,8 @@ def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnin
 def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
     """(SubsetSolutions or None, SubsetTable): every subset solved block by block (`subset_runs`); the whole
     SubsetSolutions only up to KEEP_SOLUTIONS subsets (above, the table holds what the steps need)."""
-    from dstereo.calib.mono import SubsetSolutions, chunk_rows, solve_subsets
+    from dstereo.calib.mono import SubsetSolutions, solve_subsets
+    from dstereo.calib.subset_solve import chunk_size
     from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
 
     m, n_views = plan.per_set, len(obs)
@@ -347,7 +348,7 @@ def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
         return np.column_stack([sol.rms, sol.values]), sol.status, sol
 
     table, kept = solve_in_blocks(
-        plan, columns, solve_block, chunk_rows(m if 2 * m < n_views else n_views, obs.shape[1]), scratch,
+        plan, columns, solve_block, chunk_size(n_views, m, obs.shape[1]), scratch,
         progress=None if progress is None else (lambda i, n: progress("subsets", i, n)),
         note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None)
     if not kept:

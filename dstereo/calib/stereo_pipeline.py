@@ -35,7 +35,6 @@ from dstereo.io.stereo_files import StereoDetection, detect_pairs
 LEFT_FOLDERS = ("images_left", "calibrate_left")
 RIGHT_FOLDERS = ("images_right", "calibrate_right")
 STEREO_FOLDERS = ("images_stereo_left", "images_stereo_right")
-STEREO_CHUNK = 32  # solve_stereo_subsets' chunk (its default)
 
 
 @dataclass(frozen=True)
@@ -168,6 +167,7 @@ def _prefixed(progress: Progress | None, side: str) -> Progress | None:
 def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
     """(StereoSubsetSolutions or None, SubsetTable of STEP_COLUMNS): block by block, as the mono pipeline."""
     from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
+    from dstereo.calib.subset_solve import chunk_size
 
     note = getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None
 
@@ -177,7 +177,8 @@ def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
         return np.column_stack([cols[k] for k in STEP_COLUMNS]), sol.status, sol
 
     report = None if progress is None else (lambda d, n: progress("stereo subsets", d, n))
-    table, kept = solve_in_blocks(plan, STEP_COLUMNS, solve_block, STEREO_CHUNK, scratch, progress=report,
+    chunk = chunk_size(len(obs_l), plan.per_set, 2 * obs_l.shape[1])
+    table, kept = solve_in_blocks(plan, STEP_COLUMNS, solve_block, chunk, scratch, progress=report,
                                   note=None if note is None else (lambda text: note("stereo " + text)))
     if not kept:
         return None, table

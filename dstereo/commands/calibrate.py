@@ -50,6 +50,12 @@ def calibrate(
     right: Optional[Path] = typer.Option(
         None, "--right", help="Stereo: right camera's images; partners by name (left05 / right05, L_05 / R_05, "
         "im0 / im1)."),
+    cameras: Optional[Path] = typer.Option(
+        None, "--cameras", help="N cameras: a folder with one subfolder of images per camera (sorted; the first is "
+        "the reference), frames matched by file name, missing files allowed. Writes cameras.yml and a stereo file "
+        "per adjacent pair."),
+    pair: Optional[str] = typer.Option(
+        None, "--pair", help="With --cameras: write the stereo file of this pair only, A,B (subfolder names)."),
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),
@@ -75,6 +81,8 @@ def calibrate(
         raise DstereoError(f"--cross-validate {cross_validate}: give a number of splits (4 or more), or leave it out")
     if projection_range is not None and not projection_range > 0:
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
+    if pair is not None and cameras is None:
+        raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     cfg = load_config(config_path) if config_path is not None else Config()
     mono_steps, stereo_steps = parse_step_flags(step)
@@ -90,6 +98,14 @@ def calibrate(
     from dstereo.io import figure_pool
 
     figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
+    if cameras is not None:
+        if left is not None or right is not None or images is not None:
+            raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
+        if cross_validate or cfg.model_auto or stereo_steps:
+            raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
+                               "N cameras yet; calibrate a camera alone for those")
+        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, not no_cache, started, projection_range)
+        return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
         if cross_validate:
@@ -173,6 +189,45 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
         typer.echo(f"dstereo: warning: {warning}", err=True)
     if not quiet:
         typer.echo("\n".join(summary_lines(job, out)))
+
+
+def _pair(spec: Optional[str]):
+    from dstereo.errors import DstereoError
+
+    if spec is None:
+        return None
+    names = [p.strip() for p in spec.split(",")]
+    if len(names) != 2 or not all(names):
+        raise DstereoError(f"--pair {spec}: give two camera subfolder names, A,B")
+    return tuple(names)
+
+
+def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None) -> None:
+    """N cameras (--cameras DIR): see dstereo.calib.multiview_job."""
+    import numpy as np
+
+    from dstereo.calib.multiview_job import calibrate_cameras_project, camera_folders
+    from dstereo.io.cameras_files import write_multiview_results
+
+    folders = camera_folders(root, cfg)
+    out = _results_folder(out, project, force, cfg, inputs=[root, *folders])
+    with progress_bars(quiet) as progress:
+        job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
+        job.pairs(pair)  # a wrong --pair is refused before anything is written
+        job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
+                         for w in _view_warnings(cal)]
+        write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
+    job.timings["total_s"] = time.perf_counter() - started
+    for warning in job.warnings:
+        typer.echo(f"dstereo: warning: {warning}", err=True)
+    if not quiet:
+        sol = job.solution
+        for label, cam, T, rms in zip(job.labels, sol.cameras, sol.T, sol.camera_rms()):
+            typer.echo(f"{label}: fx {float(cam.k[0]):.3f} fy {float(cam.k[1]):.3f} cx {float(cam.k[2]):.3f} "
+                       f"cy {float(cam.k[3]):.3f}  |T| {np.linalg.norm(T):.4f}  RMS {rms:.4f} px "
+                       f"({int(job.visible[:, job.labels.index(label)].sum())} views)")
+        typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
+        typer.echo(f"wrote {out}")
 
 
 def _view_warnings(cal) -> list[str]:

@@ -1,0 +1,270 @@
+"""The one calibration problem: K cameras, a planar board, frames; its residuals, Jacobian and compiled solver.
+
+A frame is one board pose, T_ref_board (rvec, tvec), seen by any subset of the K cameras; camera 0 is the
+reference, camera c > 0 sits at x_c = R_c x_ref + T_c. The solver's shared vector is, in this order:
+
+    [rvec_1, T_1, ..., rvec_{K-1}, T_{K-1}]  then, for each camera whose intrinsics are refined,
+    [fx, fy, cx, cy, <its free distortion coefficients>]
+
+so one camera (K = 1) is `Camera.free_vector()` and a stereo rig (K = 2) is [rig, left, right] (or the rig alone
+with intrinsics held: the thesis's fixed-intrinsics stereo path). A frame's residuals are camera-major, then
+corner, then (x, y). A corner a camera did not see is NaN in the observations: its residual and Jacobian are 0
+(`jnp.where`, so an unseen camera's projection may be anything, even behind the camera) and callers give it
+weight 0 (`residual_weights`), which also leaves it out of the residual count.
+
+Compiled functions are cached per `Problem` (static: lens models, which cameras are refined) and options, so a
+process compiles each shape once.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
+from dstereo.models import camera, fisheye
+from dstereo.models.distortion import coeff_slots, lens_model, with_free
+from dstereo.models.pose import rodrigues, rodrigues_jacobian
+from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
+
+POSE_SIZE = 6  # rvec, tvec: of a frame's board pose and of a camera's extrinsics
+
+
+class CameraSpec(NamedTuple):
+    """One camera of a problem: the distortion coefficients it solves (they name its lens model) and whether
+    its intrinsics are refined at all (False: held at the values given in `shared`)."""
+
+    free: tuple[str, ...]
+    refined: bool = True
+
+    @property
+    def size(self) -> int:
+        return 4 + len(self.free) if self.refined else 0
+
+
+class Problem(NamedTuple):
+    """Static layout of a calibration problem (hashable: the key of its compiled programs)."""
+
+    cameras: tuple[CameraSpec, ...]
+
+    @classmethod
+    def of(cls, frees, refined=True) -> "Problem":
+        """From per-camera free sets (a list) and one `refined` flag or one per camera."""
+        refined = [refined] * len(frees) if isinstance(refined, bool) else list(refined)
+        return cls(tuple(CameraSpec(tuple(f), bool(r)) for f, r in zip(frees, refined)))
+
+    @property
+    def k(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def n_extrinsic(self) -> int:
+        return POSE_SIZE * (self.k - 1)
+
+    @property
+    def n_shared(self) -> int:
+        return self.n_extrinsic + sum(c.size for c in self.cameras)
+
+    def intrinsic_slices(self) -> tuple[slice | None, ...]:
+        """Where each camera's [k, free coefficients] sit in the shared vector (None: held)."""
+        out, at = [], self.n_extrinsic
+        for c in self.cameras:
+            out.append(slice(at, at + c.size) if c.refined else None)
+            at += c.size
+        return tuple(out)
+
+
+def lens_functions(free: tuple[str, ...]):
+    """(project, project_jacobian) of the lens model that `free` names, both on (k, coeffs (8,), p_cam): the
+    fisheye model reads its k1..k4 from the first four slots (`distortion.coeff_slots`)."""
+    if lens_model(free) == "fisheye":
+        return (lambda k, c, p: fisheye.project(k, c[:4], p)), (lambda k, c, p: fisheye.project_jacobian(k, c[:4], p))
+    return camera.project, camera.project_jacobian
+
+
+def _intrinsics(problem: Problem, g, shared):
+    """Per camera (k (4,), coeffs (8,)): the refined ones read from g over the held values in `shared`."""
+    _, ks, coeffs = shared
+    out = []
+    for c, (spec, sl) in enumerate(zip(problem.cameras, problem.intrinsic_slices())):
+        if sl is None:
+            out.append((ks[c], coeffs[c]))
+        else:
+            gc = g[sl]
+            out.append((gc[:4], with_free(coeffs[c], spec.free, gc[4:])))
+    return out
+
+
+def _seen(obs_c):
+    """(n,) corners this camera saw, and its observations with the unseen ones at 0."""
+    seen = jnp.isfinite(obs_c[:, 0])
+    return seen, jnp.where(seen[:, None], obs_c, 0.0)
+
+
+@functools.lru_cache(maxsize=None)
+def frame_residual(problem: Problem):
+    """Residuals (K 2n,) of one frame: (g, pose (6,), obs (K, n, 2), shared = (obj (n, 3), ks (K, 4),
+    coeffs (K, 8)))."""
+
+    def residual(g, pose, obs_v, shared):
+        obj = shared[0]
+        p_ref = obj @ rodrigues(pose[:3]).T + pose[3:6]
+        out = []
+        for c, (k, coeffs) in enumerate(_intrinsics(problem, g, shared)):
+            p = p_ref
+            if c > 0:
+                e = g[POSE_SIZE * (c - 1): POSE_SIZE * c]
+                p = p_ref @ rodrigues(e[:3]).T + e[3:6]
+            project = lens_functions(problem.cameras[c].free)[0]
+            q = jax.vmap(project, in_axes=(None, None, 0))(k, coeffs, p)
+            seen, o = _seen(obs_v[c])
+            out.append(jnp.where(seen[:, None], q - o, 0.0).ravel())
+        return jnp.concatenate(out)
+
+    return residual
+
+
+def _rotate(rot, d_rot, x):
+    """R x (3, n) and d(R x)/d rvec (3 i, 3 k, n) from (R, dR_ij/drvec_k); products over 3-vectors as sums of
+    broadcasts: XLA's CPU dot emitter compiles tiny dots into far more code than these fused loops."""
+    rx = sum(rot[:, j, None] * x[j] for j in range(3))
+    return rx, sum(d_rot[:, j, :, None] * x[j] for j in range(3))
+
+
+@functools.lru_cache(maxsize=None)
+def frame_linearize(problem: Problem):
+    """Residuals and transposed Jacobian [d/dg, d/dpose]' (G + 6, K 2n) of one frame by the chain rule: per
+    point the hand-written d q / d(k, coeffs, p_cam) (`camera.project_jacobian`), each rotation's derivative
+    once per frame (`pose.rodrigues_jacobian`).
+
+    Written on whole coordinate arrays (3, n) with static slices rather than vmapped per point: the frame is
+    then a few elementwise loops, which traces and compiles about twice as fast as per-point vmaps and autodiff
+    (compile time dominates a cold calibration); tests check it against autodiff and finite differences."""
+    n_g = problem.n_shared
+    slices = problem.intrinsic_slices()
+
+    def linearize(g, pose, obs_v, shared):
+        obj = shared[0]
+        n = obj.shape[0]
+        rot_b, d_rot_b = rodrigues_jacobian(pose[:3])
+        p_ref, dref_drot = _rotate(rot_b, d_rot_b, obj.T)
+        p_ref = p_ref + pose[3:6, None]
+        blocks = []
+        for c, (k, coeffs) in enumerate(_intrinsics(problem, g, shared)):
+            spec = problem.cameras[c]
+            p, dp_drot, dp_dt = p_ref, dref_drot, None  # dp_dt None: the identity
+            if c > 0:
+                e = g[POSE_SIZE * (c - 1): POSE_SIZE * c]
+                rot_c, d_rot_c = rodrigues_jacobian(e[:3])
+                p, dp_de_rot = _rotate(rot_c, d_rot_c, p_ref)
+                p = p + e[3:6, None]
+                # d p / d(board pose) through R_c: rows i of R_c times the reference derivatives
+                dp_drot = sum(rot_c[:, j, None, None] * dref_drot[j] for j in range(3))
+                dp_dt = rot_c
+            q, dk, dc, dq_dp = lens_functions(spec.free)[1](k, coeffs, p)  # (2,n) (2,4,n) (2,8|4,n) (2,3,n)
+            chain = lambda d_i: sum(dq_dp[:, i, None, :] * d_i[i][None] for i in range(3))  # noqa: E731
+            rows = jnp.zeros((2, n_g + POSE_SIZE, n))
+            if c > 0:
+                at = POSE_SIZE * (c - 1)
+                rows = rows.at[:, at:at + 3].set(chain(dp_de_rot))
+                rows = rows.at[:, at + 3:at + 6].set(dq_dp)
+            if slices[c] is not None:
+                cols = [coeff_slots(spec.free).index(name) for name in spec.free]
+                rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, *(dc[:, i:i + 1] for i in cols)], axis=1))
+            rows = rows.at[:, n_g:n_g + 3].set(chain(dp_drot))
+            rows = rows.at[:, n_g + 3:].set(dq_dp if dp_dt is None else
+                                           sum(dq_dp[:, i, None, :] * dp_dt[i][None, :, None] for i in range(3)))
+            seen, o = _seen(obs_v[c])
+            full = jnp.concatenate([rows, (q - o.T)[:, None]], axis=1)
+            full = jnp.where(seen[None, None, :], full, 0.0)
+            # (2, G + 7, n) -> one row per parameter, the residuals last, in the residual's order (n, 2)
+            blocks.append(jnp.transpose(full, (1, 2, 0)).reshape(n_g + POSE_SIZE + 1, 2 * n))
+        a = jnp.concatenate(blocks, axis=1)
+        return a[-1], a[:-1]
+
+    return linearize
+
+
+# --- the compiled solver and how it is called --------------------------------------------------------------
+
+
+def chunk_rows(n_frames: int, n_points: int) -> int:
+    """Problems per compiled call for frames of `n_points` corner observations (all cameras together), fixed
+    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`)."""
+    return int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+
+
+def threads(requested: int | None = None) -> int:
+    """Compiled calls run at once: `requested`, DSTEREO_THREADS, or one per core; at most MAX_CONCURRENT_CALLS."""
+    env = os.environ.get("DSTEREO_THREADS")
+    n = requested or (int(env) if env and env.isdigit() else None) or os.cpu_count() or 1
+    return max(1, min(n, MAX_CONCURRENT_CALLS))
+
+
+@functools.lru_cache(maxsize=None)
+def compiled_solver(problem: Problem, options: LMOptions):
+    """The one compiled program behind the full set and every subset of a problem: CHUNK problems of F frames,
+    each with its own start, frame weights (0 = left out), residual weights (0 = unseen or an outlier) and
+    initial damping. The full set and subsets of the same frames share its shape, so a calibration with subsets
+    compiles once (compile time dominates a cold run), whatever the outlier mask."""
+    res, lin = frame_residual(problem), frame_linearize(problem)
+
+    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared):
+        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight)
+
+    return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
+
+
+def residual_weights(mask: np.ndarray) -> np.ndarray:
+    """(..., F, K, n) corner mask (True: seen and an inlier) -> (..., F, K 2n) residual weights in the
+    residual's order."""
+    mask = np.asarray(mask, float)
+    return np.repeat(mask, 2, axis=-1).reshape(*mask.shape[:-2], -1)
+
+
+def shared_data(obj: np.ndarray, ks: np.ndarray, coeffs: np.ndarray):
+    """The solver's constant data: board points (n, 3), held intrinsics (K, 4) and coefficients (K, 8) (the
+    refined cameras' non-free coefficients stay at these values). numpy, not jnp: no eager JAX op."""
+    return (np.asarray(obj, float), np.asarray(ks, float).reshape(-1, 4), np.asarray(coeffs, float).reshape(-1, 8))
+
+
+def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None):
+    """Call the compiled solver on one chunk given as per-problem arrays (leading axis <= chunk_rows): g0 (B, G),
+    p0 (B, F, 6), obs (B, F, K, n, 2) (NaN: unseen), weight (B, F), lambda0 (B,).
+
+    `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
+    and `.normal`); the solver then skips linearising the start. Without it, the same compiled program linearises
+    the start itself (a traced flag, not a second compile). An argument that is already a device array is taken
+    as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
+    chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen."""
+    n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
+    rows = chunk_rows(n_frames, k * n_pts)
+    if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
+        cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
+        parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,
+                     None if normal0 is None else tuple(cut(a, i) for a in normal0), cut(r_weight, i))
+                 for i in range(0, n, rows)]
+        return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts)
+
+    def prep(a):
+        if isinstance(a, jax.Array):
+            return a
+        a = np.asarray(a, float)
+        # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
+        return np.ascontiguousarray(np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a)
+
+    n_p1 = problem.n_shared + POSE_SIZE + 1
+    given = normal0 is not None
+    if not given:
+        normal0 = (np.zeros((n, n_frames, 2 * k * n_pts)), np.zeros((n, n_frames, n_p1, n_p1)))
+    if r_weight is None and not isinstance(obs, jax.Array):
+        r_weight = residual_weights(np.isfinite(np.asarray(obs)[..., 0]))
+    key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
+    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
+    out = compiled_solver(problem, key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared)
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)

@@ -1,0 +1,86 @@
+"""The one subset runner: every subset of frames of a calibration problem, solved in batched chunks.
+
+A subset is the full set with the other frames weighted 0, so it reuses the full set's compiled solver, unless
+subsets are less than half the set: then carrying the unused frames would cost more than a second compile, and
+the subsets' frames are gathered instead. Every subset starts at the full set's solution (a few iterations from
+its own optimum; each still converges to its own least-squares solution) and, where given, reuses the full
+set's linearisation there instead of linearising its start again (one pass of about six saved). Chunks run on
+`problem.threads()` threads; XLA runs one chunk's loop mostly on one core. Used by one camera, a stereo rig and
+N cameras alike.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from dstereo.calib.problem import Problem, chunk_rows, run, threads
+from dstereo.solver.lm import LMOptions, LMResult
+
+
+class SubsetStart(NamedTuple):
+    """The full set's solution every subset starts from: shared vector (G,), frame poses (F, 6), and optionally
+    its linearisation there (residuals (F, R), normal blocks (F, P1, P1); `LMResult.residuals` / `.normal`)."""
+
+    values: np.ndarray
+    poses: np.ndarray
+    normal: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray, shared, index: np.ndarray,
+                        start: SubsetStart, options: LMOptions = LMOptions(lambda0=1e-6), progress=None,
+                        n_threads: int | None = None) -> LMResult:
+    """Solve each row of `index` (C, m) (frame indices; a repeated index counts a frame twice: bootstrap) as its
+    own problem. obs (F, K, n, 2) (NaN: unseen), r_weight (F, K 2n) the full set's residual weights (an outlier
+    there is left out of every subset). Returns the stacked `LMResult` (C leading) without per-frame residuals
+    and normal blocks (C = 5000 would keep ~400 MB)."""
+    index = np.asarray(index)
+    n_sub, m = index.shape
+    n_frames, n_obs = len(obs), int(np.prod(np.shape(obs)[1:3]))
+    obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
+    gathered = 2 * m < n_frames
+    normal = start.normal
+
+    if not gathered:
+        # Every chunk of a masked plan shares the start, frames and linearisation; only the weights differ.
+        # Put them on the device once, at the full chunk size, instead of copying them for every chunk.
+        full_rows = chunk_rows(n_frames, n_obs)
+        put = lambda a: jax.device_put(np.ascontiguousarray(np.broadcast_to(a, (full_rows, *np.shape(a)))))  # noqa: E731
+        common = (put(start.values), put(poses), put(obs))
+        lam_all = put(np.float64(options.lambda0))
+        normal_all = None if normal is None else tuple(put(a) for a in normal)
+        r_weight_all = put(r_weight)
+
+    def chunk_args(rows):
+        c = len(rows)
+        if gathered:
+            g0 = np.broadcast_to(start.values, (c, len(start.values)))
+            start_ne = None if normal is None else tuple(a[rows] for a in normal)
+            return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne, r_weight[rows]
+        weight = np.zeros((c, n_frames))
+        np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat frames
+        return (*common, weight, lam_all), normal_all, r_weight_all
+
+    def solve(rows):
+        args, start_ne, r_w = chunk_args(rows)
+        return run(problem, options, *args, shared, start_ne, r_w)._replace(normal=None, residuals=None)
+
+    rows = chunk_rows(m if gathered else n_frames, n_obs)
+    chunks = [index[c: c + rows] for c in range(0, n_sub, rows)]
+    outs, done = [], 0
+    with ThreadPoolExecutor(min(threads(n_threads), len(chunks))) as pool:
+        for out in pool.map(solve, chunks):
+            outs.append(out)
+            done += len(out.status)
+            if progress is not None:
+                progress(done, n_sub)
+    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
+
+
+def chunk_size(problem_frames: int, m: int, n_obs: int) -> int:
+    """The chunk `solve_frame_subsets` uses for subsets of m of `problem_frames` frames of n_obs corner
+    observations each (callers size their blocks of subsets to a multiple of it)."""
+    return chunk_rows(m if 2 * m < problem_frames else problem_frames, n_obs)
