@@ -85,8 +85,8 @@ def test_pair_residual_matches_opencv_projection():
     # The same projection in float64 twice (composeRT + projectPoints vs ours): rounding ~1e-13 of ~1e3 px.
     np.testing.assert_allclose(r[: ql.size].reshape(-1, 2), ql, atol=1e-8)
     np.testing.assert_allclose(r[ql.size:].reshape(-1, 2), qr, atol=1e-8)
-    model = Rig(left, right, jnp.asarray(rig[:3]), jnp.asarray(rig[3:]))
-    np.testing.assert_allclose(np.asarray(model.project_pair(pose, obj[7])), [ql[7], qr[7]], atol=1e-8)
+    model = Rig(jnp.asarray(rig[:3]), jnp.asarray(rig[3:]))
+    np.testing.assert_allclose(np.asarray(model.project_pair(left, right, pose, obj[7])), [ql[7], qr[7]], atol=1e-8)
 
 
 @pytest.mark.numerics
@@ -384,7 +384,7 @@ def test_no_common_board_view_is_an_error(tmp_path):
 def test_pairs_missing_a_board_are_dropped_with_the_reason():
     obj = object_points(PATTERN, 1.0)
     board = np.zeros((len(obj), 2))
-    det = lambda found, rejected: Detection(found, rejected, (640, 480), obj, PATTERN, 1.0)  # noqa: E731
+    det = lambda found, rejected: Detection(found, rejected, (640, 480), Board(PATTERN, 1.0).geometry)  # noqa: E731
     left = det({"l1.png": board, "l2.png": board}, {"l3.png": "no full 9x6 board found"})
     right = det({"r1.png": board, "r3.png": board}, {"r2.png": "unreadable: not an image file OpenCV can decode"})
     pairs, dropped = match_pairs(left, right, ["l1.png", "l2.png", "l3.png"], ["r1.png", "r2.png", "r3.png"])

@@ -334,7 +334,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
     import cv2
 
-    from dstereo.stereo.rectify import rectified_from_projections, rectify_map, stereo_rectify
+    from dstereo.stereo.rectify import rectified_from_projections, rectify_calibration, rectify_map
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
@@ -346,8 +346,8 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
         outside = np.zeros(left.shape[:2], bool)
         exact_maps = None
     else:
-        rect = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, size, calib.R, calib.T, alpha=config.alpha,
-                              zero_disparity=config.zero_disparity, undistort=config.undistort)
+        rect = rectify_calibration(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
+                                   undistort=config.undistort)
         if rect.vertical:
             raise DstereoError(
                 f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "

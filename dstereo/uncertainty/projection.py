@@ -33,9 +33,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
-from dstereo.models.pose import rodrigues
-from dstereo.uncertainty.point_jacobians import newton_step
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
+from dstereo.models.pose import rodrigues, rotation_matrix
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
@@ -61,8 +60,7 @@ FOLD_MARGIN = 1.1
 
 
 def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
-    x0 = (q - k[2:4]) / k[0:2]
-    return jax.lax.fori_loop(0, iterations, lambda _, x: newton_step(k, coeffs, q, x), x0)
+    return undistort(coeffs, (q - k[2:4]) / k[0:2], iterations)
 
 
 def _invertible(k, coeffs, q, x):
@@ -247,9 +245,7 @@ def sse_of(sol) -> float:
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:
     """Mean distance from the camera to the board centre over the views (poses (V, 6) T_cam_board)."""
-    from scipy.spatial.transform import Rotation
-
-    poses = np.array(poses, dtype=float)  # a writable copy (scipy refuses read-only views of JAX arrays)
+    poses = np.asarray(poses, dtype=float)
     centre = np.asarray(object_points, float).mean(axis=0)
-    centres = Rotation.from_rotvec(poses[:, :3]).apply(centre) + poses[:, 3:6]
+    centres = np.stack([rotation_matrix(p[:3]) @ centre + p[3:6] for p in poses])
     return float(np.mean(np.linalg.norm(centres, axis=1)))
