@@ -7,9 +7,7 @@ from pathlib import Path
 import dstereo
 
 PACKAGE = Path(dstereo.__file__).parent
-# The lead's calibration core still names the rig's parameters and takes rotation logs itself (scipy); it is
-# being rewritten onto `dstereo.models` (issue 17). Remove each file from here once it imports them.
-PENDING = {"calib/stereo.py", "calib/multiview.py", "io/cameras_files.py"}
+PENDING: set[str] = set()  # files allowed a second definition for now: none
 
 
 def _sites(pattern: str) -> set[str]:

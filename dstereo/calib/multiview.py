@@ -24,10 +24,12 @@ from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
 from dstereo.models.distortion import PRESETS
+from dstereo.models.pose import rotation_vectors
+from dstereo.models.rig import RIG_NAMES
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
 from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 
-EXTRINSIC_NAMES = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
+EXTRINSIC_NAMES = RIG_NAMES  # a camera's pose in the reference: the rig of (reference, camera)
 MODES = ("fixed", "joint")
 # A frame's pose implied through one camera that differs from the consensus by more than this is read as a
 # corner-order flip (a flip is a 180-degree turn, far above any calibration's disagreement of a degree or two).
@@ -93,12 +95,12 @@ class MultiviewSolution:
 
 def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ra, rb = Rotation.from_rotvec(a[..., :3]), Rotation.from_rotvec(b[..., :3])
-    return np.concatenate([(ra * rb).as_rotvec(), ra.apply(b[..., 3:]) + a[..., 3:]], axis=-1)
+    return np.concatenate([rotation_vectors((ra * rb).as_matrix()), ra.apply(b[..., 3:]) + a[..., 3:]], axis=-1)
 
 
 def _inverse(a: np.ndarray) -> np.ndarray:
     r = Rotation.from_rotvec(a[..., :3]).inv()
-    return np.concatenate([r.as_rotvec(), -r.apply(a[..., 3:])], axis=-1)
+    return np.concatenate([rotation_vectors(r.as_matrix()), -r.apply(a[..., 3:])], axis=-1)
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -111,7 +113,7 @@ def _median_pose(poses: np.ndarray) -> np.ndarray:
     first = np.concatenate([np.median(poses[:, :3], axis=0), np.median(poses[:, 3:], axis=0)])
     ang = _angle_deg(poses, first[None])
     near = ang <= 2 * np.median(ang) + 1e-9
-    rot = Rotation.from_rotvec(poses[near, :3]).mean().as_rotvec()
+    rot = rotation_vectors(Rotation.from_rotvec(poses[near, :3]).mean().as_matrix())
     return np.concatenate([rot, np.median(poses[near, 3:], axis=0)])
 
 

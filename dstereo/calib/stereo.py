@@ -32,11 +32,10 @@ from dstereo.uncertainty.covariance import Conditioning, conditioning, covarianc
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
 from dstereo.models.distortion import lens_model, undistort
-from dstereo.models.pose import rodrigues
-from dstereo.models.rig import essential_matrix, fundamental_matrix
+from dstereo.models.pose import rodrigues, rotation_vectors
+from dstereo.models.rig import RIG_NAMES, essential_matrix, fundamental_matrix
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
 
-RIG_NAMES: tuple[str, ...] = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
 # Thesis Figure 5.14's stereo step parameters, the named columns of a subset table.
 STEP_COLUMNS: tuple[str, ...] = ("stereo_re", "Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")
 MODES = ("fixed", "joint")
@@ -119,7 +118,7 @@ def initial_rig(left: Camera, right: Camera, obj: np.ndarray, obs_left: np.ndarr
     r_l, r_r = Rotation.from_rotvec(p_l[:, :3]), Rotation.from_rotvec(p_r[:, :3])
     r_rl = r_r * r_l.inv()
     t_rl = p_r[:, 3:] - r_rl.apply(p_l[:, 3:])
-    rvecs = r_rl.as_rotvec()
+    rvecs = rotation_vectors(r_rl.as_matrix())
     return np.concatenate([np.median(rvecs, axis=0), np.median(t_rl, axis=0)]), p_l
 
 

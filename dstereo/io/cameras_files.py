@@ -78,7 +78,7 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
     """(file name, None) written, or (None, why not)."""
     from dstereo.io.stereo_files import write_stereo_yml
     from dstereo.models.rig import essential_matrix, fundamental_matrix
-    from scipy.spatial.transform import Rotation
+    from dstereo.models.pose import rotation_vector
 
     sol = job.solution
     ca, cb = sol.cameras[a], sol.cameras[b]
@@ -86,7 +86,7 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
         return None, (f"{job.labels[a]}-{job.labels[b]}: no stereo file, fisheye rectification is not supported by "
                       "dstereo reconstruct yet")
     R, T = sol.relative(a, b)
-    E = np.asarray(essential_matrix(Rotation.from_matrix(R).as_rotvec(), T))
+    E = np.asarray(essential_matrix(rotation_vector(R), T))
     F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,

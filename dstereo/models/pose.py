@@ -115,6 +115,15 @@ def rotation_vector(rmat) -> np.ndarray:
     return np.array(log_rotation(jnp.asarray(rmat, float).reshape(3, 3)), float)
 
 
+_log_many = jax.jit(jax.vmap(log_rotation))
+
+
+def rotation_vectors(rmats) -> np.ndarray:
+    """Host side: `log_rotation` of (..., 3, 3) matrices at once, as a writable numpy (..., 3)."""
+    rmats = np.asarray(rmats, float)
+    return np.array(_log_many(jnp.asarray(rmats.reshape(-1, 3, 3))), float).reshape(*rmats.shape[:-2], 3)
+
+
 def transform(rvec: Float[Array, "3"], tvec: Float[Array, "3"], p: Float[Array, "3"]) -> Float[Array, "3"]:
     """R(rvec) p + t for one point."""
     return rodrigues(rvec) @ p + tvec

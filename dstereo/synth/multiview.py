@@ -79,8 +79,7 @@ def ring_rig(n_cameras: int) -> MultiviewRig:
         eye = centre + ARC_RADIUS_MM * np.array([np.sin(a), 0.0, -np.cos(a)]) + np.array([0.0, height, 0.0])
         aimed = look_at(eye, centre)
         # Roll about the optical axis: the camera's own frame turns, so the image turns the other way.
-        rolled = compose(np.concatenate([Rotation.from_euler("z", roll, degrees=True).as_rotvec(), np.zeros(3)]),
-                         aimed)
+        rolled = compose(np.r_[0.0, 0.0, np.radians(roll), np.zeros(3)], aimed)  # rvec of a turn about z
         names.append(name)
         cams.append(cam)
         world.append(rolled)
