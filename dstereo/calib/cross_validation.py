@@ -96,9 +96,9 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             cov = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
             joint = joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
             # marginalising the sag = dropping its rows and columns (shared first, then the poses)
-            rows = np.r_[keep, np.arange(g, len(joint))]
+            kept = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
-                params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(rows, rows)],
+                params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(kept, kept)],
                 poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
                 rms=float(np.sqrt(sse / (m * n_pts)))))
     return out
