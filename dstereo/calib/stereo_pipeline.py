@@ -79,18 +79,18 @@ def stereo_sources(images: Path | None, config: Config, left: Path | None = None
     fmt_r = config.image_format_right or config.image_format
     if left is not None or right is not None:
         if left is None or right is None:
-            raise DstereoError("stereo: give both --left and --right (a folder or a pattern such as DIR/left*.jpg)")
-        files_l, files_r = _files(left, fmt_l, "--left"), _files(right, fmt_r, "--right")
+            raise DstereoError("stereo: give both `left` and `right` (a folder or a pattern such as DIR/left*.jpg)")
+        files_l, files_r = _files(left, fmt_l, "`left`"), _files(right, fmt_r, "`right`")
         return StereoSources(files_l, files_r, files_l, files_r, f"--left {left} --right {right}")
     if images is None or not Path(images).is_dir():
         raise DstereoError(f"stereo: image folder {images} does not exist; give a PROJECT with images/images_left and "
-                           "images/images_right, or --left DIR --right DIR")
+                           "images/images_right, or `left` DIR `right` DIR")
     images = Path(images)
     found = [next((images / n for n in names if (images / n).is_dir()), None)
              for names in (LEFT_FOLDERS, RIGHT_FOLDERS)]
     if None in found:
         raise DstereoError(f"stereo: {images} needs the folders images_left and images_right (thesis 4.2.2.2); "
-                           "or give --left DIR --right DIR")
+                           "or give `left` DIR `right` DIR")
     mono_l, mono_r = _files(found[0], fmt_l, str(found[0])), _files(found[1], fmt_r, str(found[1]))
     pair_dirs = [images / n for n in STEREO_FOLDERS]
     present = [d.is_dir() for d in pair_dirs]
@@ -199,7 +199,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     from dstereo.models.pose import rodrigues
 
     if config.stereo_steps and config.per_set is None:
-        raise DstereoError("stereo steps need subsets of pairs; set images per set (--per-set m)")
+        raise DstereoError("stereo steps need subsets of pairs; set images per set (`per_set` m)")
     timings, warnings = {}, []
     t0 = time.perf_counter()
     if progress is not None:
