@@ -101,3 +101,20 @@ def test_frames_that_share_no_name_are_refused(rig_folder, tmp_path):
             (other / f"cam{k}" / f"c{k}_{p.name}").write_bytes(p.read_bytes())
     code, text = _cli("--cameras", other, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "-q")
     assert code == 1 and "matched by file name" in text and not (tmp_path / "r").exists()
+
+
+def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder, tmp_path):
+    """The renders' board is flat: the solved sag must lie within 3.5 of its own sigma of zero, in cameras.json
+    for the rig and in summary.json for one camera."""
+    root, _ = rig_folder
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "rig", "--board-sag",
+                      "-q")
+    assert code == 0, text
+    joint = json.loads((tmp_path / "rig" / "cameras.json").read_text())["joint"]
+    for name in ("board_sag_x", "board_sag_y"):
+        assert abs(joint["parameters"][name]) < 3.5 * joint["std"][name], (name, joint["parameters"][name])
+    code, text = _cli("--images", root / "cam1", "--pattern", "9x6", "--square", "20", "--out", tmp_path / "one",
+                      "--board-sag", "-q")
+    assert code == 0, text
+    full = json.loads((tmp_path / "one" / "summary.json").read_text())["full_set"]
+    assert "board_sag_x" in full["std"] and "board_sag = true" in (tmp_path / "one" / "config.toml").read_text()

@@ -134,10 +134,11 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     start = [_camera_of(c) for c in cams]
     sizes = [c.detection.image_size for c in cams]
     obj = cams[0].detection.object_points
-    held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels)
+    sag = config.board_sag
+    held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels, board_warp=sag)
     if progress is not None:
         progress("rig solve", 1, 2)
-    joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels)
+    joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels, board_warp=sag)
     if progress is not None:
         progress("rig solve", 2, 2)
     timings["rig_s"] = time.perf_counter() - t

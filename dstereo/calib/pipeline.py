@@ -208,7 +208,7 @@ def calibrate_camera(
     if progress is not None:
         progress("full-set solve", 0, 1)
     full = choice.chosen_candidate.solution if choice is not None else \
-        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
+        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model), board_warp=config.board_sag)
     if progress is not None:
         progress("full-set solve", 1, 1)
     timings["full_solve_s"] = time.perf_counter() - t0

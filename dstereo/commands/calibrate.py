@@ -41,6 +41,9 @@ def calibrate(
     no_outlier_rejection: bool = typer.Option(
         False, "--no-outlier-rejection", help="Keep every detected corner and view (default: iterative k-sigma "
         "rejection of outlier corners and views, each one reported)."),
+    board_sag: bool = typer.Option(
+        False, "--board-sag", help="Solve the board's sag (two parameters, x and y, in the board unit, as mrcal) with "
+        "the rest; reported with its sigma. One camera and --cameras; not for --left/--right yet."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -87,7 +90,7 @@ def calibrate(
     flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
         pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
         per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
-        outlier_rejection=no_outlier_rejection, steps=step))
+        outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
@@ -113,6 +116,9 @@ def calibrate(
             raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
                                "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
                                "chosen --model")
+        if cfg.board_sag:
+            raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
+                               "a subfolder and run --cameras DIR, whose rig solve has it")
         if lens_model(tuple(cfg.model)) == "fisheye":
             raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
                                "calibrate each camera alone with --images DIR")

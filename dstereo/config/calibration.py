@@ -63,6 +63,7 @@ class Config:
     final: str = "survivors"
     # Iterative k-sigma rejection of outlier corners and views before the subsets (calib/outliers.py)
     outlier_rejection: bool = True
+    board_sag: bool = False  # solve the board's two sag parameters with the rest (calib/problem.py)
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
 

@@ -11,7 +11,10 @@ def flag_layer(values: dict) -> dict:
     """`values`: parameter -> the flag's raw value (None: not given; `steps`: the list of --step texts;
     `outlier_rejection`: True when --no-outlier-rejection was given). Returns the parameters they set."""
     raw = given(values)
-    layer = {k: v for k, v in raw.items() if k not in ("pattern", "model", "steps", "outlier_rejection", "images")}
+    layer = {k: v for k, v in raw.items()
+             if k not in ("pattern", "model", "steps", "outlier_rejection", "images", "board_sag")}
+    if raw.get("board_sag"):
+        layer["board_sag"] = True
     if "pattern" in raw:
         from dstereo.io.corners import parse_pattern
 

@@ -66,6 +66,8 @@ def toml_layer(data: dict, where: str) -> dict:
         layer["final"] = str(cal["final"])
     if "outlier_rejection" in cal:
         layer["outlier_rejection"] = flag(cal["outlier_rejection"], f"{where}: [calibration] outlier_rejection")
+    if "board_sag" in cal:
+        layer["board_sag"] = flag(cal["board_sag"], f"{where}: [calibration] board_sag")
     if "steps" in data:
         layer["steps"] = _toml_steps(data["steps"], f"{where}: steps", stereo=False)
     if "steps" in table(data, "stereo", where):

@@ -224,7 +224,10 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
 
 def solution_map(sol, image_size, range_: float, method: str = "pose-compensated",
                  grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
-    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks)."""
+    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks). A solved board
+    sag is the board's, not the camera's: marginalised (its rows and columns dropped from the covariance)."""
+    lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
+    names = tuple(sol.names[i] for i in lens)
     if method == "pose-compensated":
         from dstereo.uncertainty.covariance import joint_covariance
 
@@ -233,10 +236,11 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
                                "equations; use `projection_method` intrinsics-only")
         n_obs = int(np.prod(np.shape(sol.residuals)))  # 2 per corner
         joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), n_obs)
-        return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, image_size, range_, grid,
-                                          poses=sol.poses, method=method)
-    return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, sol.cov, image_size, range_, grid,
-                                      method=method)
+        keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
+        return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, joint[np.ix_(keep, keep)], image_size,
+                                          range_, grid, poses=sol.poses, method=method)
+    return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, sol.cov[np.ix_(lens, lens)], image_size,
+                                      range_, grid, method=method)
 
 
 def sse_of(sol) -> float:
