@@ -18,7 +18,7 @@ from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subset_runs import estimate_run, solve_in_blocks
 from dstereo.calib.subset_table import SubsetTable
 from dstereo.calib.subsets import REJECTION_MAX, plan_subsets, unrank
-from dstereo.commands.progress import eta_text
+from dstereo.frames.runner import eta_text
 from dstereo.config.calibration import Step
 from dstereo.errors import DstereoError
 

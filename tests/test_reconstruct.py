@@ -21,7 +21,8 @@ from dstereo.io.calib_files import (
     write_opencv_stereo,
     write_pfm,
 )
-from dstereo.io.pointcloud import grid_faces, remove_statistical_outliers
+from dstereo.io.pointcloud import grid_faces
+from dstereo.stereo.point_outliers import remove_statistical_outliers
 from dstereo.models.camera import Camera
 from dstereo.stereo.pipeline import (
     ReconstructionConfig,

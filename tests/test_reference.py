@@ -134,7 +134,7 @@ def test_jacobians_match_central_differences(board_view, truth):
     data = (base, jnp.asarray(ref.object_points()), jnp.asarray(q_l[None]), jnp.asarray(q_r[None]))
     _fd_check(res.board_residuals, np.r_[theta, pose], data, free)
     n = 40
-    from dstereo.reference.refine import matches_with_rays
+    from dstereo.reference.triangulation import matches_with_rays
 
     sphere_data = (base, matches_with_rays(perturbed(truth), q_l[:n], q_r[:n]), jnp.asarray(60.0), jnp.ones(n))
     _fd_check(res.sphere_residuals, np.r_[theta_rig, 1.0, -2.0, 400.0], sphere_data, free_rig)
@@ -294,16 +294,16 @@ def test_mesh_reference_on_sphere_pair(all_sphere_matches, truth):
 
 
 def test_metric_scale_of_unscaled_points(sphere_matches, truth, board_view):
-    from dstereo.reference.refine import _triangulated
+    from dstereo.reference.triangulation import triangulated
 
     _, (q_l, q_r) = sphere_matches
-    unscaled = _triangulated(truth, q_l, q_r) / 37.0
+    unscaled = triangulated(truth, q_l, q_r) / 37.0
     s = metric_scale(unscaled, Sphere(120.0))
     assert abs(s.factor / 37.0 - 1) < 0.005 and s.std < 0.005 * 37 and abs(s.factor - 37.0) < 5 * s.std + 0.1
     bp, ref, _, _ = board_view
     grid = np.full((480, 640, 3), np.nan)
     corners = np.rint(bp.corners_left).astype(int)
-    grid[corners[:, 1], corners[:, 0]] = _triangulated(truth, bp.corners_left, bp.corners_right) / 5.0
+    grid[corners[:, 1], corners[:, 0]] = triangulated(truth, bp.corners_left, bp.corners_right) / 5.0
     b = metric_scale(grid, ref, corners)
     assert b.factor == pytest.approx(5.0, rel=0.01) and b.std < 0.05
 

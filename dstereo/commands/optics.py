@@ -108,7 +108,9 @@ def optics(
     setup = lib.make_config(settings.settings(file_layer, flags))
     results = lib.compute_optics(setup)
     if plots is not None:
-        results["plots"] = [str(p) for p in lib.write_plots(setup, plots)]
+        from dstereo.io.optics_figures import write_plots
+
+        results["plots"] = [str(p) for p in write_plots(setup, plots)]
     if json_output:
         typer.echo(to_json(results))
         return

@@ -6,17 +6,9 @@ import time
 
 import typer
 
+from dstereo.frames.runner import eta_text
+
 PLAIN_EVERY_S = 30.0  # without a terminal, a long stage prints a line with its ETA at most this often
-
-
-def eta_text(done: int, total: int, elapsed: float) -> str:
-    """'ETA 12 min' from the rate so far (empty before any progress)."""
-    if done <= 0 or total <= done or elapsed <= 0:
-        return ""
-    left = elapsed / done * (total - done)
-    if left < 90:
-        return f"ETA {left:.0f} s"
-    return f"ETA {left / 60:.0f} min" if left < 5400 else f"ETA {left / 3600:.1f} h"
 
 
 class Reporter:

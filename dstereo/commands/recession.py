@@ -62,7 +62,7 @@ def recession(
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
     from dstereo.recession import RecessionConfig, check_sizes, discover, run_recession
-    from dstereo.recession.results import write_results
+    from dstereo.io.recession_files import write_results
 
     from dstereo.io.output_location import check_not_inputs
 

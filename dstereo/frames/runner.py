@@ -235,10 +235,18 @@ class _Ticker:
         if note is None or not self.runner.times:
             return
         if self.last_note is None or now - self.last_note >= NOTE_EVERY_S or self.done == self.total:
-            from dstereo.commands.progress import eta_text
-
             self.last_note = now
             msg = (f"{self.stage}: {self.done}/{self.total}, {statistics.median(self.runner.times):.2f} s per frame "
                    f"on a worker (median), {self.finished / (now - self.start):.2f} frames/s")
             eta = eta_text(self.finished, self.finished + self.total - self.done, now - self.start)
             note(msg + (f", {eta}" if eta else ""))
+
+
+def eta_text(done: int, total: int, elapsed: float) -> str:
+    """'ETA 12 min' from the rate so far (empty before any progress)."""
+    if done <= 0 or total <= done or elapsed <= 0:
+        return ""
+    left = elapsed / done * (total - done)
+    if left < 90:
+        return f"ETA {left:.0f} s"
+    return f"ETA {left / 60:.0f} min" if left < 5400 else f"ETA {left / 3600:.1f} h"

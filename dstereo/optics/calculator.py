@@ -367,100 +367,21 @@ def _notes(config: OpticsConfig, sensor_derived: bool, out: Mapping[str, Any]) -
     return notes
 
 
-# --- Figures 5.1-5.3 ---------------------------------------------------------------------------------------
-def write_plots(config: OpticsConfig, out_dir: str | os.PathLike) -> list[Path]:
-    """Total DoF vs focal length (fixed N), vs N (fixed f) and over (f, N) with the set-up marked; PNGs."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    figures = (_plot_vs_focal(config, plt), _plot_vs_f_number(config, plt), _plot_contour(config, plt))
-    paths = []
-    for name, fig in zip(PLOT_NAMES, figures):
-        tmp = out_dir / f".{name}.partial"
-        fig.savefig(tmp, format="png", dpi=120)
-        plt.close(fig)
-        os.replace(tmp, out_dir / name)
-        paths.append(out_dir / name)
-    return paths
-
-
-def _focal_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
+# --- the curves of figures 5.1-5.3 (drawn by dstereo.io.optics_figures) ---------------------------------------
+def focal_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
     """Lens focal lengths (mm) from f/2 to 2 f, kept short enough for the DoF focal length to focus at s."""
     scale = dof_focal_length_mm(config) / config.focal_length
     top = min(2.0 * config.focal_length, 0.5 * config.focus_distance / max(scale, 1.0))
     return np.linspace(config.focal_length / 2.0, max(top, config.focal_length), n)
 
 
-def _f_number_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
+def f_number_axis(config: OpticsConfig, n: int = 200) -> np.ndarray:
+    """f-numbers from 1 to 32 (or twice the chosen one, if larger)."""
     return np.linspace(1.0, max(32.0, 2.0 * config.f_number), n)
 
 
-def _total(config: OpticsConfig, focal, f_number) -> np.ndarray:
+def total_dof_curve(config: OpticsConfig, focal, f_number) -> np.ndarray:
     """Total DoF (mm) for lens focal length(s) and f-number(s), NaN where it is infinite."""
     scale = dof_focal_length_mm(config) / config.focal_length
     total = total_depth_of_field(config.focus_distance, scale * np.asarray(focal), f_number, coc_of(config))
     return np.where(np.isfinite(total), total, np.nan)
-
-
-def _label_focal(config: OpticsConfig) -> str:
-    return f"lens focal length (mm); DoF with the {config.dof_focal_length} focal length"
-
-
-def _plot_vs_focal(config: OpticsConfig, plt):
-    fig, ax = plt.subplots(figsize=(6, 4))
-    focal = _focal_axis(config)
-    ax.plot(focal, _total(config, focal, config.f_number))
-    chosen = float(_total(config, config.focal_length, config.f_number))
-    ax.plot([config.focal_length], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
-    ax.set(xlabel=_label_focal(config), ylabel="total depth of field (mm)",
-           title=f"N = {config.f_number:g}, s = {config.focus_distance:g} mm")
-    ax.legend()
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    return fig
-
-
-def _plot_vs_f_number(config: OpticsConfig, plt):
-    fig, ax = plt.subplots(figsize=(6, 4))
-    f_number = _f_number_axis(config)
-    ax.plot(f_number, _total(config, config.focal_length, f_number))
-    chosen = float(_total(config, config.focal_length, config.f_number))
-    ax.plot([config.f_number], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
-    ax.set(xlabel="f-number N", ylabel="total depth of field (mm)",
-           title=f"f = {config.focal_length:g} mm, s = {config.focus_distance:g} mm")
-    ax.legend()
-    ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    return fig
-
-
-def _plot_contour(config: OpticsConfig, plt):
-    fig, ax = plt.subplots(figsize=(6, 4.5))
-    from matplotlib.colors import LogNorm
-    from matplotlib.ticker import FuncFormatter
-
-    from dstereo.io.plots import log_ticks, tick_label
-
-    focal, f_number = np.meshgrid(_focal_axis(config, 120), _f_number_axis(config, 120))
-    total = _total(config, focal, f_number)
-    if np.all(np.isnan(total)):
-        ax.text(0.5, 0.5, "focus beyond the hyperfocal distance everywhere", ha="center", transform=ax.transAxes)
-    else:
-        levels = np.geomspace(np.nanmin(total), np.nanmax(total), 21)
-        filled = ax.contourf(focal, f_number, total, levels=levels, norm=LogNorm())
-        bar = fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)",
-                           ticks=log_ticks(levels[0], levels[-1]), format=FuncFormatter(tick_label))
-        bar.minorticks_off()
-    chosen = float(_total(config, config.focal_length, config.f_number))
-    if np.isfinite(chosen):
-        line = ax.contour(focal, f_number, total, levels=[chosen], colors="white", linewidths=1)
-        ax.clabel(line, fmt="%.0f mm")
-    ax.plot([config.focal_length], [config.f_number], "rx", ms=12, mew=2, label="chosen set-up")
-    ax.set(xlabel=_label_focal(config), ylabel="f-number N", title=f"s = {config.focus_distance:g} mm")
-    ax.legend(loc="upper right")
-    fig.tight_layout()
-    return fig

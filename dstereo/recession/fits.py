@@ -110,3 +110,14 @@ def rate_map(t: np.ndarray, maps: np.ndarray, min_frames: int = 3) -> dict[str, 
     few = n < min_frames
     return {"rate": np.where(few, np.nan, rate), "rate_se": np.where(few, np.nan, se),
             "ci95_half": np.where(few, np.nan, half), "frames": n.astype(int)}
+
+
+def line_band(fit: LineFit, t: np.ndarray, r: np.ndarray, at: np.ndarray) -> np.ndarray | None:
+    """Half-width of the 95 % confidence band of the fitted line at times `at` (unweighted residual scatter of
+    the frames `t`, `r` the fit used); None with two frames or fewer, where the scatter is not estimable."""
+    if fit.n <= 2:
+        return None
+    resid = r - (fit.intercept + fit.rate * t)
+    s = np.sqrt(resid @ resid / (fit.n - 2))
+    sxx = ((t - t.mean()) ** 2).sum()
+    return stats.t.ppf(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (at - t.mean()) ** 2 / sxx)

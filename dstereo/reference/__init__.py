@@ -7,7 +7,9 @@ through the differentiable model; `metric_scale` gives an uncalibrated reconstru
 
 from dstereo.reference.correction import PARAM_NAMES, RigBase, corrected_calibration, rig_error
 from dstereo.reference.objects import Board, Distances, Mesh, Sphere, read_marks
-from dstereo.reference.refine import Refinement, board_metric_check, fit_sphere, refine_rig
+from dstereo.reference.refine import board_metric_check, refine_rig
+from dstereo.reference.refinement import Refinement
+from dstereo.reference.sphere_fit import fit_sphere
 from dstereo.reference.scale import MetricScale, board_distances, metric_scale
 
 __all__ = [

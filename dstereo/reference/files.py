@@ -15,7 +15,7 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration
 from dstereo.reference.objects import Board, Distances, Sphere
-from dstereo.reference.refine import Refinement
+from dstereo.reference.refinement import Refinement
 
 
 def board_corners(image: np.ndarray, board: Board, name: str) -> np.ndarray:

@@ -5,7 +5,7 @@ pose, pick for each point the nearest of the 8 triangles whose centroids are clo
 point-to-triangle distance by clamped barycentric projection onto each candidate's plane and edges), then solve
 rig correction + mesh pose on the point-to-plane residuals of those triangles (`residuals.mesh_residuals`).
 Points farther than 5 robust standard deviations from the mesh get weight zero, and so do points whose
-triangle is seen more obliquely than `refine.LIMB_DEG` from either camera: near a silhouette SGBM biases depth
+triangle is seen more obliquely than `sphere_fit.LIMB_DEG` from either camera: near a silhouette SGBM biases depth
 outwards (as for the sphere reference; with those points in, the baseline of the tests' rendered sphere came out
 0.0 to 0.5 % short depending on which matches were sampled, 13 times its standard deviation). Scope: one
 pair, rigid mesh, a start pose good to a few mm / degrees (ICP's basin); no coarse registration.
@@ -24,6 +24,10 @@ from dstereo.models.pose import rodrigues
 from dstereo.reference import residuals as res
 from dstereo.reference.correction import PARAM_NAMES, corrected_calibration
 from dstereo.reference.objects import Mesh
+from dstereo.reference.refinement import refinement_from_solution
+from dstereo.reference.solve import solve
+from dstereo.reference.sphere_fit import LIMB_DEG
+from dstereo.reference.triangulation import matches_with_rays, triangulated
 
 
 def _closest_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -71,9 +75,7 @@ def facing_cameras(points: np.ndarray, normals: np.ndarray, camera_centres: list
 
 
 def refine_mesh(calib, mesh: Mesh, q_left, q_right, base, free, rounds: int = 8):
-    from dstereo.reference.refine import LIMB_DEG, _triangulated, finish, matches_with_rays
-    from dstereo.reference.solve import solve
-
+    """Refinement of `calib` against `mesh`: alternate nearest-triangle matching and the solve, `rounds` at most."""
     names = tuple(PARAM_NAMES[i] for i in free)
     matches = matches_with_rays(calib, q_left, q_right)
     theta, pose = np.zeros(len(free)), np.asarray(mesh.pose0, float)
@@ -81,7 +83,7 @@ def refine_mesh(calib, mesh: Mesh, q_left, q_right, base, free, rounds: int = 8)
     for _ in range(rounds):
         full = np.zeros(len(PARAM_NAMES))
         full[list(free)] = theta
-        points = _triangulated(corrected_calibration(calib, full), q_left, q_right)
+        points = triangulated(corrected_calibration(calib, full), q_left, q_right)
         rot = np.asarray(rodrigues(jnp.asarray(pose[:3])))
         p_mesh = (points - pose[3:]) @ rot
         v0, normal, dist = nearest_triangles(mesh, p_mesh)
@@ -100,6 +102,6 @@ def refine_mesh(calib, mesh: Mesh, q_left, q_right, base, free, rounds: int = 8)
         if np.max(np.abs(step[: len(free)])) < 1e-9:
             break
     sol = dataclasses.replace(sol, rms_before=first.rms_before)
-    out = finish(calib, "mesh", free, sol, "mm")
+    out = refinement_from_solution(calib, "mesh", free, sol, "mm")
     out.checks["mesh"] = {"points": int(len(points)), "inliers": int(keep.sum())}
     return out

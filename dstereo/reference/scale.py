@@ -14,7 +14,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.reference.objects import Board, Distances, Sphere
-from dstereo.reference.refine import LIMB_DEG, facing, fit_sphere, sphere_inliers
+from dstereo.reference.sphere_fit import LIMB_DEG, facing, fit_sphere, sphere_inliers
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ def write_npz(path: Path, result) -> None:
 
 def write_results(out, result, calibration: str, sequence: str, force: bool = False, extra: dict | None = None) -> dict:
     """Fill the results folder (module docstring); returns the summary written to summary.json."""
-    from dstereo.recession import plots
+    from dstereo.io import recession_figures as plots
 
     summary = {"sequence": str(sequence), "calibration": str(calibration), **result.summary(), **(extra or {})}
     with atomic_folder(out, force) as tmp:

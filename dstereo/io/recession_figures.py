@@ -1,11 +1,13 @@
-"""Figures of the recession results folder (matplotlib, Agg backend): one function, one PNG."""
+"""Figures of the `dstereo recession` results folder (matplotlib, Agg backend): one function, one PNG."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
+
+from dstereo.io.sigma_maps import log_colour_bar, map_norm
+from dstereo.recession.fits import line_band
 
 
 def _pyplot():
@@ -30,12 +32,8 @@ def recession_vs_time(result, path: Path) -> None:
     tt = np.linspace(t.min(), t.max(), 200)
     ax.plot(tt, fit.intercept + fit.rate * tt, "C1-",
             label=f"fit: {1000 * fit.rate:.3f} mm/ks, 95% [{1000 * fit.ci95[0]:.3f}, {1000 * fit.ci95[1]:.3f}]")
-    if fit.n > 2:
-        tok = t[ok]
-        resid = r[ok] - (fit.intercept + fit.rate * tok)
-        s = np.sqrt(resid @ resid / (fit.n - 2))
-        sxx = ((tok - tok.mean()) ** 2).sum()
-        band = stats.t.ppf(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (tt - tok.mean()) ** 2 / sxx)
+    band = line_band(fit, t[ok], r[ok], tt)
+    if band is not None:
         ax.fill_between(tt, fit.intercept + fit.rate * tt - band, fit.intercept + fit.rate * tt + band, color="C1",
                         alpha=0.2, label="95% band of the line")
     for f in result.frames:
@@ -89,8 +87,6 @@ def rate_map(result, path: Path) -> None:
     frames do not wash the maps out; cells beyond the scale in the over/under colour (red/blue), cells without a
     fit white."""
     import matplotlib
-
-    from dstereo.io.sigma_maps import log_colour_bar, map_norm
 
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), dpi=100)
