@@ -226,7 +226,7 @@ def test_sgbm_settings_follow_the_image_unless_set():
 
 def test_cli_and_config_files_record_what_the_user_set(tmp_path):
     from dstereo.config.reconstruction import build, flag_layer
-    from dstereo.stereo.pipeline import load_config
+    from dstereo.config.reconstruction import load_config
 
     assert build(flag_layer({"sgbm": ["blockSize=5", "num_disparities=64"]})).sgbm_user == ("block_size",
                                                                                            "num_disparities")

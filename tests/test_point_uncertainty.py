@@ -281,7 +281,7 @@ def test_fixed_mode_covariance_carries_the_intrinsics_errors_into_the_rig(mc):
     covariance assembled from it (block-diagonal only on request)."""
     from scipy.linalg import block_diag
 
-    from dstereo.calib.stereo_pipeline import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
+    from dstereo.uncertainty.rig import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
 
     ql, qr = mc.data[:, 0], mc.data[:, 1]
     fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")

@@ -196,7 +196,7 @@ def test_separate_individual_images():
     other = calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=left[::-1], mono_right=right[::-1])
     # The same problems summed in another order: solutions within the LM's stopping tolerance (lm_agreement) of
     # each other; the rig moves by that and by what the intrinsics' shifts carry into it (A = d rig / d k).
-    from dstereo.calib.stereo_pipeline import rig_sensitivity
+    from dstereo.uncertainty.rig import rig_sensitivity
 
     n_res = lambda cam: 2 * cam.residuals[..., 0].size  # noqa: E731
     moved = []

@@ -357,7 +357,7 @@ def rig_sigma(solution, calibration_covariance) -> RigSigma:
 def attach_rig_uncertainty(job) -> None:
     """job.calibration_covariance (of what stereo.yml holds) and job.full_set_sigma (the full-set solve's honest
     +-), both with each camera's written-solution covariance carried into the rig."""
-    from dstereo.calib.stereo_pipeline import rig_covariance
+    from dstereo.uncertainty.rig import rig_covariance
 
     cams = (written_camera_solution(job.left), written_camera_solution(job.right))
     full_cov = rig_covariance(job, cameras=cams)

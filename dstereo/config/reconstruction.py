@@ -1,6 +1,6 @@
 """The reconstruction configuration (`dstereo reconstruct`, and the matching options of `dstereo recession`):
 layers of parameters from files ([reconstruct] and [sgbm] tables) and flags, merged by the one rule, built into
-`dstereo.stereo.pipeline.ReconstructionConfig`.
+`dstereo.stereo.reconstruction_config.ReconstructionConfig`.
 
 SGBM fields travel as `sgbm.<field>` parameters, so a file's [sgbm] block_size and a flag's --sgbm P1=200 both
 apply; a `preset` sets every SGBM field, so one given drops the SGBM fields of the layers below it (its
@@ -109,7 +109,7 @@ def build(*layers: dict, sgbm_base=None):
     from dataclasses import replace
 
     from dstereo.stereo.disparity import PRESETS
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.stereo.reconstruction_config import ReconstructionConfig
 
     merged = merge_layers(RECONSTRUCT, *layers)
     if isinstance(merged.get("disparity_sigma"), str) and merged["disparity_sigma"].strip().lower() == "auto":

@@ -145,7 +145,7 @@ def calibrate_joint(job, folder: Path, report):
     """Refine both cameras and the rig together on the job's pairs, from its cameras; write stereo.yml and
     stereo.json (with `joint_covariance`'s standard deviations). Returns the solution and that covariance."""
     from dstereo.calib.stereo import calibrate_stereo
-    from dstereo.calib.stereo_pipeline import JOINT_STRUCTURE
+    from dstereo.uncertainty.rig import JOINT_STRUCTURE
     from dstereo.io.results import atomic_folder, write_json
     from dstereo.io.stereo_files import write_stereo_yml
 

@@ -332,7 +332,7 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     from dstereo.io.results import write_stats_files, write_subsets_csv
 
     s, det = job.full, job.detection
-    from dstereo.calib.stereo_pipeline import rig_covariance
+    from dstereo.uncertainty.rig import rig_covariance
 
     cov_names, cov, cov_structure = job.calibration_covariance or rig_covariance(job)
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),

@@ -170,7 +170,3 @@ def run_reconstruction(
     write_atomically(out, force, fill)
     return results
 
-
-# The configuration files' loader lives in dstereo.config.reconstruction (one configuration system for every
-# command); these names stay importable from here.
-from dstereo.config.reconstruction import CONFIG_NAMES, config_from_mapping, load_config  # noqa: E402,F401
