@@ -24,9 +24,9 @@ from dstereo.io.calib_files import (
 from dstereo.io.pointcloud import grid_faces
 from dstereo.stereo.point_outliers import remove_statistical_outliers
 from dstereo.models.camera import Camera
+from dstereo.config.reconstruction import load_config
 from dstereo.stereo.pipeline import (
     ReconstructionConfig,
-    load_config,
     read_image,
     reconstruct_calibrated,
     reconstruct_uncalibrated,
