@@ -30,6 +30,7 @@ ORCHESTRATION = {
     "recession.synthetic",  # writes a synthetic sequence folder (images, stereo.yml) the command reads
     "frames.pairs",  # one frame of a run: reads the calibration, reconstructs, writes the frame's folder
     "frames.store",  # the per-frame results store on disk (one JSON a frame)
+    "synth.truth",  # writes and reads the truth files beside a synthetic render
 }
 
 # Calibration modules that still import `io` (the calibration core is being rewritten by the lead, issue 17

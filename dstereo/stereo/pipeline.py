@@ -137,7 +137,8 @@ def run_reconstruction(
 ) -> list[PairResult]:
     """Reconstruct every (left, right) pair and write the results folder (one sub-folder per pair if several)."""
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.io.reconstruction_files import json_default, write_atomically, write_pair
+    from dstereo.io.json_files import json_default
+    from dstereo.io.reconstruction_files import write_atomically, write_pair
 
     check_output(out, force)
     if not pairs:
