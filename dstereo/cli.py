@@ -33,8 +33,10 @@ def _root() -> None:
 def main() -> None:
     try:
         app()  # standalone: usage errors print and exit 2 by themselves
-    except DstereoError as exc:
-        typer.echo(f"dstereo: error: {exc}", err=True)
+    except DstereoError as exc:  # the library names parameters; the line names the flags of the command that ran
+        from dstereo.config.messages import command_of, with_flags
+
+        typer.echo(f"dstereo: error: {with_flags(str(exc), command_of(sys.argv))}", err=True)
         sys.exit(1)
     except OSError as exc:  # a file system refusal while reading or writing (disk full, permissions): name the file
         if os.environ.get("DSTEREO_DEBUG"):

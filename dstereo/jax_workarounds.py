@@ -14,10 +14,10 @@ Settings (used by the code through the names below):
   on the 2-core machines measured; `DSTEREO_THREADS=1` runs one call at a time).
 
 Closed forms written instead of a LAPACK call (code where they are used; listed here so they are re-checked):
-- `models/distortion.py` undistortion: a 2 x 2 Newton step solved in closed form; `jnp.linalg.solve` vmapped
-  over many points hung the CPU runtime (and compiled to far more code).
-- `point_jacobians.py`: the small per-point solves in closed form; the LAPACK call vmapped over large chunks
-  deadlocked intermittently.
+- `models/distortion.py` undistortion (`newton_step`, which `undistort` iterates and `point_jacobians.py`, the
+  projection uncertainty, the renderer and the reference refinement call): a 2 x 2 Newton step solved in
+  closed form; `jnp.linalg.solve` vmapped over many points hung the CPU runtime (and compiled to far more code),
+  and in `point_jacobians.py`, vmapped over large chunks, deadlocked intermittently.
 """
 
 MEASURED_ON = "0.10.2"

@@ -7,7 +7,9 @@ Same machine, same run, same corners (../shared/data/rig640 left images) and the
     process that reads the compiled solvers from disk, the warm run repeats the solve in the same process;
   - OpenCV sequential, and one process per core (cv2.setNumThreads(1) in each worker; best of two runs),
     default criteria as the thesis's tool used them;
-  - optimistix's dense Levenberg-Marquardt, vmapped over the same chunks (the design's solver library).
+  - optimistix's dense Levenberg-Marquardt, vmapped over the same chunks (the design's solver library);
+  - a K = 3 rig (rendered): frame subsets solved batched beside calibrateMultiviewExtended per subset
+    (experiments/bench_multiview.py; `--multiview` runs that case alone).
 Prints subsets/s, ratios, compile time, peak memory (C=5000, separate process) and the largest difference
 against OpenCV. `python -m experiments.bench_subsets [--quick]`; writes experiments/results/bench_subsets.md.
 """
@@ -185,6 +187,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="only the C=286 five-coefficient case")
     parser.add_argument("--memory-case", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--cached-case", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--multiview", action="store_true",
+                        help="only the K=3 rig case (writes results/bench_subsets_multiview.md)")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "bench_subsets.md"))
     args = parser.parse_args()
     if args.memory_case:
@@ -192,6 +196,18 @@ def main() -> None:
         return
     if args.cached_case:
         cached_case(int(args.cached_case[0]), int(args.cached_case[1]), args.cached_case[2])
+        return
+    if args.multiview:
+        import tempfile
+
+        os.environ["DSTEREO_JAX_CACHE"] = tempfile.mkdtemp(prefix="dstereo-bench-jax-")  # empty: cold means cold
+        from experiments.bench_multiview import multiview_subset_case, report_lines
+
+        text = "\n".join([f"# Subset benchmark, K = 3 case ({time.strftime('%Y-%m-%d')}, {os.cpu_count()} cores)",
+                          *report_lines(multiview_subset_case())]) + "\n"
+        print(text)
+        out = Path(__file__).parent / "results" / "bench_subsets_multiview.md"
+        out.write_text(text)
         return
     if not DATA.exists():
         sys.exit(f"bench_subsets: {DATA} is absent; this benchmark needs ../shared/data/rig640")
@@ -204,8 +220,12 @@ def main() -> None:
         rows.append(case("C=1140 (20 images, m=17), k1k2p1p2k3", 20, 17, FIVE, processes, False))
         rows.append(case("C=286 (13 images, m=10), rational", 13, 10, RATIONAL, processes, False))
         memory = _fresh_process("--memory-case")
+        from experiments.bench_multiview import multiview_subset_case
+
+        log("K=3 rig: frame subsets")
+        multiview = multiview_subset_case()
     else:
-        memory = None
+        memory = multiview = None
     lines = [
         f"# Subset benchmark ({time.strftime('%Y-%m-%d')}, {processes} cores, {sys.platform})", "",
         "| case | dstereo cold (incl. compile) | dstereo cold, new process | dstereo, new process, compile cache on disk "
@@ -236,6 +256,10 @@ def main() -> None:
     if memory:
         lines += ["", f"Peak memory, C={memory['subsets']} (25 images, m=20, sampled), whole process: "
                   f"{memory['peak_mb']:.0f} MB; {memory['seconds']:.1f} s; {memory['converged']} converged."]
+    if multiview:
+        from experiments.bench_multiview import report_lines
+
+        lines += report_lines(multiview)
     text = "\n".join(lines) + "\n"
     print(text)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dstereo.calib import stereo as st  # noqa: E402
+from dstereo.calib.stereo_folders import calibrate_stereo_folders  # noqa: E402
 from dstereo.calib.subsets import plan_subsets  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -131,7 +132,7 @@ def main() -> None:
         folder = DATA / name
         left, right = sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg"))
         for mode in ("fixed", "joint"):
-            result = st.calibrate_stereo_folders(left, right, (9, 6), 1.0, mode=mode)
+            result = calibrate_stereo_folders(left, right, (9, 6), 1.0, mode=mode)
             s = result.stereo
             print(f"\n== {name} [{mode}]: {len(result.pairs)} pairs, RMS {s.rms:.4f} px, "
                   f"stereo_re {s.stereo_re:.4f} px, "

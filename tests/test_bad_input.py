@@ -297,7 +297,7 @@ def test_stereo_steps_from_flags_reach_the_stereo_run(tmp_path):
     _refused(("calibrate", "--images", left_dir, "--pattern", "9x6", "--per-set", "3", "--step", "stereo_re=3",
               "--out", out), out, "--step stereo_re=3", "stereo run")
     _refused(("calibrate", "--images", left_dir, "--pattern", "9x6", "--per-set", "3", "--step", "re=1,Tx=1",
-              "--out", out), out, "re=1,Tx=1", "separate --step flags")
+              "--out", out), out, "re=1,Tx=1", "separate --step")
 
 
 def test_init_template_carries_the_stereo_steps(tmp_path):

@@ -175,6 +175,8 @@ def test_results_folder_is_complete_and_well_formed(thesis_run):
     report = (results / "report.md").read_text()
     for piece in ("plots/fx.png", "camera.yml", "stats/step_4.txt", "| 4 | fx, fy, cx, cy |", "upper left"):
         assert piece in report
+    board = s["pattern"]  # report.md and summary.json read the board from one carrier: they agree
+    assert f"- board: {board['columns']} x {board['rows']} inner corners, square {board['square']:g} " in report
     assert not [p for p in results.parent.iterdir() if p.name.startswith(".results.")]  # no temporary left
 
 

@@ -139,7 +139,9 @@ def test_existing_out_is_refused_without_force(tmp_path):
     result = CliRunner().invoke(app, ["demo", "--out", str(out), "--quick"])
     assert result.exit_code != 0
     assert isinstance(result.exception, DstereoError) and "already exists" in str(result.exception)
-    assert "--force" in str(result.exception)
+    from dstereo.config.messages import with_flags
+
+    assert "--force" in with_flags(str(result.exception), "demo")  # as the CLI line names it
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 

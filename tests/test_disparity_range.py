@@ -225,13 +225,12 @@ def test_sgbm_settings_follow_the_image_unless_set():
 
 
 def test_cli_and_config_files_record_what_the_user_set(tmp_path):
-    from dstereo.commands.matching_options import matching_changes
-    from dstereo.stereo.disparity import PRESETS
-    from dstereo.stereo.pipeline import load_config
+    from dstereo.config.reconstruction import build, flag_layer
+    from dstereo.config.reconstruction import load_config
 
-    changes = matching_changes(PRESETS["default"], None, ["blockSize=5", "num_disparities=64"], None, None, None)
-    assert changes["sgbm_user"] == ("block_size", "num_disparities")
-    assert matching_changes(PRESETS["default"], "thesis-5.9", [], None, None, None)["sgbm_user"] == ("preset",)
+    assert build(flag_layer({"sgbm": ["blockSize=5", "num_disparities=64"]})).sgbm_user == ("block_size",
+                                                                                           "num_disparities")
+    assert build(flag_layer({"preset": "thesis-5.9"})).sgbm_user == ("preset",)
     path = tmp_path / "dstereo.toml"
     path.write_text("[sgbm]\nspeckleWindowSize = 100\n")
     assert load_config(path).sgbm_user == ("speckle_window_size",)

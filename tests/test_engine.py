@@ -300,7 +300,7 @@ def test_detection_bad_inputs(tmp_path):
     blank.mkdir()
     _write(blank / "a.png", np.full((60, 80), 255, np.uint8))
     (blank / "broken.png").write_bytes(b"not an image")
-    with pytest.raises(DstereoError, match="no image .* shows a full 9x6 board; check --pattern"):
+    with pytest.raises(DstereoError, match="no image .* shows a full 9x6 board; check `pattern`"):
         detect_folder(blank, (9, 6), 1.0, use_cache=False)
 
 

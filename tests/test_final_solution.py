@@ -180,7 +180,7 @@ def test_rig_written_is_the_solve_on_the_surviving_pairs(rig_job):
     (stereo.yml's cov) is that solve's, not the full set's."""
     from dstereo.calib.final_solution import rig_final
     from dstereo.calib.stereo import STEP_COLUMNS, calibrate_stereo
-    from dstereo.calib.stereo_pipeline import rig_covariance
+    from dstereo.uncertainty.rig import rig_covariance
 
     obj, obs_l, obs_r, sols, cams, stereo, job = rig_job
     index = np.array([np.arange(1, 7), np.arange(6, 12), np.arange(2, 8)])  # pair 0 in none
@@ -240,7 +240,7 @@ def test_final_option_in_toml_and_its_errors():
     cfg = config_from_toml('[pattern]\ncolumns = 9\nrows = 6\n[calibration]\nfinal = "mean"\n', "t.toml")
     assert cfg.final == "mean" and Config().final == "survivors"
     assert config_from_toml(to_toml(cfg), "back.toml").final == "mean"  # the results folder's config.toml
-    with pytest.raises(DstereoError, match="final 'median'; use one of survivors, mean"):
+    with pytest.raises(DstereoError, match="`final` 'median'; use one of survivors, mean"):
         validate(cfg.with_overrides(final="median"))
 
 

@@ -103,17 +103,14 @@ def test_a_killed_worker_has_its_frame_retried_then_reported(sequence, serial, t
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.recession import RecessionConfig, discover, run_recession
     from dstereo.recession.analysis import FrameReconstructor
-    from dstereo.stereo.pipeline import ReconstructionConfig
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
     frames = discover(sequence)
     calib = read_stereo_calibration(sequence / "stereo.yml")
-    from dataclasses import replace
-
-    from dstereo.commands.matching_options import matching_changes
+    from dstereo.config import reconstruction as settings
 
     # the configuration the CLI builds from ARGS, so that frame 2 can be compared with the serial run bit for bit
-    recon = replace(ReconstructionConfig(), **matching_changes(ReconstructionConfig().sgbm, None, [], 550, 650, None))
+    recon = settings.build(settings.flag_layer({"z_min": 550, "z_max": 650}))
     config = RecessionConfig(grid_mm=1.0)
     dying = DyingReconstructor(FrameReconstructor(calib, recon, config.refine_subpixel), tmp_path / "died", 2, 4)
     result = run_recession(frames, calib, config, recon, reconstruct=dying, runner=FrameRunner(2, retries=1))

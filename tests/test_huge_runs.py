@@ -198,7 +198,9 @@ def test_stereo_blocks_fill_the_step_columns(tmp_path, monkeypatch):
     for keep, limit in ((10 ** 6, None), (0, 0)):  # whole solutions kept in memory / none kept, table on disk
         monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", keep)
         monkeypatch.setattr(subset_table, "MEMORY_LIMIT_BYTES", 10 ** 9 if limit is None else limit)
-        subsets, table = stereo_pipeline._solve_stereo_subsets(None, None, None, plan, Full(), tmp_path, None)
+        # the corners only size the blocks (the chunk the real solver would take for 12 pairs of 54 corners)
+        corners = np.zeros((12, 54, 2))
+        subsets, table = stereo_pipeline._solve_stereo_subsets(None, corners, corners, plan, Full(), tmp_path, None)
         idx = plan.index.astype(float)
         assert table.columns == STEP_COLUMNS and table.on_disk == (limit == 0)
         assert np.allclose(table.column("Tnorm"), np.linalg.norm(idx[:, 3:6] + 100.0, axis=1), rtol=0, atol=0)

@@ -31,13 +31,12 @@ ORCHESTRATION = {
     "frames.pairs",  # one frame of a run: reads the calibration, reconstructs, writes the frame's folder
     "frames.store",  # the per-frame results store on disk (one JSON a frame)
     "synth.truth",  # writes and reads the truth files beside a synthetic render
+    "calib.pipeline",  # `calibrate`, one camera: an image folder in (corner detection), a finished job out
+    "calib.stereo_pipeline",  # `calibrate`, a stereo rig: the pairs' folders in, a finished job out
+    "calib.stereo_folders",  # the same from two folders alone, for tests and experiments
 }
 
-# Calibration modules that still import `io` (the calibration core is being rewritten by the lead, issue 17
-# item 1): each is a breach of the rule above, listed so the test passes meanwhile. Empty it as the core stops
-# importing io (calib.* -> io.corners, io.stereo_files): only the calibration job module should remain, and it
-# moves to ORCHESTRATION.
-LEAD_TO_CLEAR = {"calib.pipeline", "calib.stereo", "calib.stereo_pipeline"}
+LEAD_TO_CLEAR: set[str] = set()  # calibration modules waived while the core was rewritten: none left
 
 # `StereoCalibration` (two cameras and their rig, as a calibration file gives them) is defined in
 # io/calib_files.py, so these compute modules import io for a type. The helper unifying the rig type (issue 17
@@ -45,10 +44,8 @@ LEAD_TO_CLEAR = {"calib.pipeline", "calib.stereo", "calib.stereo_pipeline"}
 RIG_TYPE_IN_IO = {"reference.correction", "reference.dense", "reference.refine", "reference.refinement",
                   "stereo.matching", "stereo.pair_result"}
 
-# Cycles through the lead's calibration files, kept until the rewrite lands: calib/final_solution.py needs
-# `rig_covariance` from calib/stereo_pipeline.py, which calls final_solution's rig solve. The fix is to move
-# `rig_covariance` (and `rig_sensitivity`) into uncertainty/ (they compute a covariance, not a job).
-LEAD_CYCLES = [{"calib.final_solution", "calib.stereo_pipeline"}]
+# Cycles waived while the calibration core was rewritten: none left (`rig_covariance` moved to uncertainty/rig.py).
+LEAD_CYCLES: list[set[str]] = []
 
 
 def module_names(package: Path) -> dict[str, Path]:

@@ -22,6 +22,13 @@ def _cli(args):
     return CliRunner().invoke(app, list(args) if single else ["optics", *args])
 
 
+def _line(result) -> str:
+    """The error as `dstereo optics` prints it: the library names parameters, the CLI line names their flags."""
+    from dstereo.config.messages import with_flags
+
+    return with_flags(str(result.exception), "optics")
+
+
 # --- thesis truth ------------------------------------------------------------------------------------------
 def test_table_5_2_and_5_3_from_the_sensor_unrounded():
     r = optics.compute_optics(optics.make_config(THESIS_SETUP))
@@ -174,7 +181,7 @@ def test_cli_rejects_non_positive_values(flag, value):
     result = _cli(args)
     assert result.exit_code != 0
     assert isinstance(result.exception, DstereoError)
-    message = str(result.exception)
+    message = _line(result)
     assert "\n" not in message and flag in message
 
 
@@ -192,7 +199,7 @@ def test_cli_rejects_non_positive_values(flag, value):
 def test_cli_rejects_inconsistent_inputs(args, needle):
     result = _cli(args)
     assert result.exit_code != 0 and isinstance(result.exception, DstereoError)
-    assert needle in str(result.exception) and "\n" not in str(result.exception)
+    assert needle in _line(result) and "\n" not in _line(result)
 
 
 def test_cli_entry_prints_one_line_and_exits_1(monkeypatch, capsys):

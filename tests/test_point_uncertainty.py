@@ -24,7 +24,7 @@ from dstereo.io.stereo_files import write_stereo_yml
 from dstereo.models.camera import Camera
 from dstereo.models.distortion import Distortion
 from dstereo.models.distortion import undistort
-from dstereo.models.pose import rodrigues
+from dstereo.models.rig import Rig
 from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map
 from dstereo.stereo.rectify import stereo_rectify
 from dstereo.solver.lm import LMOptions
@@ -47,7 +47,8 @@ def _pipeline(params, q_left, q_right):
     parameters, both ORIGINAL pixels rectified (exact undistortion), disparity along the row, Q, back to the
     original left frame. Independent of `point_from_pixels`' plane construction."""
     k_l, c_l, k_r, c_r, rv, t = params[0:4], params[4:12], params[12:16], params[16:24], params[24:27], params[27:30]
-    r = stereo_rectify(k_l, c_l, k_r, c_r, SIZE, rodrigues(rv), t, zero_disparity=False, vertical=False)
+    r = stereo_rectify(Camera(k_l, Distortion(c_l)), Camera(k_r, Distortion(c_r)), Rig(rv, t), SIZE,
+                       zero_disparity=False, vertical=False)
 
     def rectified(k, c, q, rot, P):
         ray = rot @ jnp.append(undistort(c, (q - k[2:]) / k[:2], iterations=30), 1.0)
@@ -75,10 +76,9 @@ def _linearised(params, uvd, rect, cov):
 def test_point_jacobians_match_central_differences_of_the_pipeline():
     rig = plasmatron_rig(focal_px=1500.0)  # two different cameras, 5 distortion coefficients each, converging
     R, T = rig.rotation_translation()
-    params = jnp.asarray(pu.parameter_vector(rig.left.matrix(), rig.left.coeffs(), rig.right.matrix(),
-                                             rig.right.coeffs(), R, T))
-    r = stereo_rectify(rig.left.k, rig.left.coeffs(), rig.right.k, rig.right.coeffs(), SIZE, R, T,
-                       zero_disparity=False)
+    params = jnp.asarray(pu.parameter_vector(StereoCalibration(rig.left.matrix(), rig.left.coeffs(),
+                                                               rig.right.matrix(), rig.right.coeffs(), R, T)))
+    r = stereo_rectify(rig.left, rig.right, rig.rig, SIZE, zero_disparity=False)
     rect = pu.RectGeometry(r.R1, r.R2, r.P1, r.P2, r.Q)
     Q, R1 = np.asarray(r.Q), np.asarray(r.R1)
     pipeline = jax.jit(_pipeline)
@@ -145,7 +145,7 @@ def mc():
     values, covs = np.concatenate(values), np.concatenate(covs)
     names = st._names(spec)
     index = pu.theta_index(names)
-    base = pu.parameter_vector(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0)
+    base = pu.parameter_vector(StereoCalibration(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0))
     # test points: pixels across the left image, depths 460..540 mm, seen by both cameras
     prs = np.random.default_rng(1)
     q = prs.uniform([30, 30], [610, 450], (400, 2))
@@ -281,7 +281,7 @@ def test_fixed_mode_covariance_carries_the_intrinsics_errors_into_the_rig(mc):
     covariance assembled from it (block-diagonal only on request)."""
     from scipy.linalg import block_diag
 
-    from dstereo.calib.stereo_pipeline import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
+    from dstereo.uncertainty.rig import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
 
     ql, qr = mc.data[:, 0], mc.data[:, 1]
     fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")

@@ -219,7 +219,7 @@ def test_auto_axis_that_does_not_settle_is_an_error(monkeypatch):
     from dstereo.recession import surface
 
     monkeypatch.setattr(surface, "MAX_PASSES", 1)  # one plane fit cannot show that the axis settled
-    with pytest.raises(DstereoError, match="did not settle.*give --axis and --point"):
+    with pytest.raises(DstereoError, match="did not settle.*give `axis` and `point`"):
         surface.estimate_axis(tilted_face_cloud(0)[0], 0.5)
 
 

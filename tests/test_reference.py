@@ -49,7 +49,7 @@ def board_view(rig):
     from dstereo.reference.files import board_corners
 
     bp = board_pair(rig)
-    ref = Board(bp.board.pattern, bp.board.square)
+    ref = Board.from_pattern(bp.board.pattern, bp.board.square)  # the renderer's geometry, as a reference
     return bp, ref, board_corners(bp.left, ref, "left"), board_corners(bp.right, ref, "right")
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dstereo.calib import stereo as st
+from dstereo.calib.stereo_folders import calibrate_stereo_folders
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.io.corners import Detection
@@ -37,7 +38,7 @@ def _real(name: str):
     if name not in _REAL:
         left, right = _pairs(require_data(name))
         per_set = 20 if name == "rig640" else None
-        _REAL[name] = st.calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=32)
+        _REAL[name] = calibrate_stereo_folders(left, right, PATTERN, 1.0, per_set=per_set, max_subsets=32)
     return name, _REAL[name]
 
 
@@ -84,8 +85,8 @@ def test_pair_residual_matches_opencv_projection():
     # The same projection in float64 twice (composeRT + projectPoints vs ours): rounding ~1e-13 of ~1e3 px.
     np.testing.assert_allclose(r[: ql.size].reshape(-1, 2), ql, atol=1e-8)
     np.testing.assert_allclose(r[ql.size:].reshape(-1, 2), qr, atol=1e-8)
-    model = Rig(left, right, jnp.asarray(rig[:3]), jnp.asarray(rig[3:]))
-    np.testing.assert_allclose(np.asarray(model.project_pair(pose, obj[7])), [ql[7], qr[7]], atol=1e-8)
+    model = Rig(jnp.asarray(rig[:3]), jnp.asarray(rig[3:]))
+    np.testing.assert_allclose(np.asarray(model.project_pair(left, right, pose, obj[7])), [ql[7], qr[7]], atol=1e-8)
 
 
 @pytest.mark.numerics
@@ -192,10 +193,10 @@ def test_separate_individual_images():
     individual images of another size than the camera's stereo images are an error."""
     name, result = _real("opencv_stereo")
     left, right = _pairs(require_data(name))
-    other = st.calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=left[::-1], mono_right=right[::-1])
+    other = calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=left[::-1], mono_right=right[::-1])
     # The same problems summed in another order: solutions within the LM's stopping tolerance (lm_agreement) of
     # each other; the rig moves by that and by what the intrinsics' shifts carry into it (A = d rig / d k).
-    from dstereo.calib.stereo_pipeline import rig_sensitivity
+    from dstereo.uncertainty.rig import rig_sensitivity
 
     n_res = lambda cam: 2 * cam.residuals[..., 0].size  # noqa: E731
     moved = []
@@ -211,7 +212,7 @@ def test_separate_individual_images():
     assert other.mono_detection_left.names == [p.name for p in left[::-1]]
     wrong = sorted(require_data("rig640").glob("left*.jpg"))[:5]
     with pytest.raises(DstereoError, match="individual calibration images are 640x512 but stereo images are 640x480"):
-        st.calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=wrong)
+        calibrate_stereo_folders(left, right, PATTERN, 1.0, mono_left=wrong)
 
 
 # --- synthetic rig of two different cameras ----------------------------------------------------------------------
@@ -360,14 +361,14 @@ def test_left_right_count_mismatch_is_an_error(tmp_path):
     left = [_blank(tmp_path / f"left{i}.png") for i in range(3)]
     right = [_blank(tmp_path / f"right{i}.png") for i in range(2)]
     with pytest.raises(DstereoError, match="3 left images .* 2 right images"):
-        st.calibrate_stereo_folders(left, right, PATTERN, 1.0)
+        calibrate_stereo_folders(left, right, PATTERN, 1.0)
 
 
 def test_mixed_image_sizes_in_one_camera_is_an_error(tmp_path):
     left = [_blank(tmp_path / "left0.png"), _blank(tmp_path / "left1.png", (80, 60)), _blank(tmp_path / "left2.png")]
     right = [_blank(tmp_path / f"right{i}.png") for i in range(3)]  # 3 pairs: fewer are refused before detection
     with pytest.raises(DstereoError, match="mixes image sizes"):
-        st.calibrate_stereo_folders(left, right, PATTERN, 1.0)
+        calibrate_stereo_folders(left, right, PATTERN, 1.0)
 
 
 def test_no_common_board_view_is_an_error(tmp_path):
@@ -377,13 +378,13 @@ def test_no_common_board_view_is_an_error(tmp_path):
     left = [data / "left01.jpg", data / "left02.jpg", blank[0], blank[1]]
     right = [blank[2], blank[3], data / "right03.jpg", data / "right04.jpg"]
     with pytest.raises(DstereoError, match="no pair shows the full 9x6 board in both cameras"):
-        st.calibrate_stereo_folders(left, right, PATTERN, 1.0)
+        calibrate_stereo_folders(left, right, PATTERN, 1.0)
 
 
 def test_pairs_missing_a_board_are_dropped_with_the_reason():
     obj = object_points(PATTERN, 1.0)
     board = np.zeros((len(obj), 2))
-    det = lambda found, rejected: Detection(found, rejected, (640, 480), obj, PATTERN, 1.0)  # noqa: E731
+    det = lambda found, rejected: Detection(found, rejected, (640, 480), Board(PATTERN, 1.0).geometry)  # noqa: E731
     left = det({"l1.png": board, "l2.png": board}, {"l3.png": "no full 9x6 board found"})
     right = det({"r1.png": board, "r3.png": board}, {"r2.png": "unreadable: not an image file OpenCV can decode"})
     pairs, dropped = match_pairs(left, right, ["l1.png", "l2.png", "l3.png"], ["r1.png", "r2.png", "r3.png"])

@@ -9,9 +9,11 @@ import pytest
 from conftest import require_data
 from dstereo.stereo.disparity import disparity_range
 from dstereo.io.calib_files import read_stereo_calibration
-from dstereo.models.camera import project
+from dstereo.models.camera import Camera, project
+from dstereo.models.distortion import Distortion
 from dstereo.models.pose import rodrigues
-from dstereo.stereo.rectify import q_matrix, rectify_map, stereo_rectify
+from dstereo.models.rig import Rig
+from dstereo.stereo.rectify import q_matrix, rectify_calibration, rectify_map
 from dstereo.stereo.triangulate import (
     depth_from_disparity,
     reproject_disparity,
@@ -23,7 +25,7 @@ from dstereo.stereo.triangulate import (
 
 def _rectification():
     c = read_stereo_calibration(require_data("opencv_stereo") / "intrinsics.yml")
-    return c, stereo_rectify(c.k1, c.D1, c.k2, c.D2, (640, 480), c.R, c.T, alpha=0.0)
+    return c, rectify_calibration(c, (640, 480), alpha=0.0)
 
 
 @pytest.mark.numerics
@@ -89,6 +91,11 @@ def _two_cameras(seed=3):
     return k1, c1, k2, c2, R, T, X, q1, q2
 
 
+def _cameras_and_rig(k1, c1, k2, c2, R, T):
+    cams = [Camera(jnp.asarray(k), Distortion(jnp.asarray(c))) for k, c in ((k1, c1), (k2, c2))]
+    return cams[0], cams[1], Rig.from_matrix(R, T)
+
+
 @pytest.mark.numerics
 def test_triangulate_dlt_matches_cv2_triangulate_points():
     k1, _, k2, _, R, T, X, q1, q2 = _two_cameras()
@@ -106,7 +113,7 @@ def test_triangulate_dlt_matches_cv2_triangulate_points():
 
 def test_two_ray_triangulation_recovers_truth_through_distortion():
     k1, c1, k2, c2, R, T, X, q1, q2 = _two_cameras()
-    ours = np.asarray(triangulate_pixels(k1, c1, k2, c2, R, T, jnp.asarray(q1), jnp.asarray(q2)))
+    ours = np.asarray(triangulate_pixels(*_cameras_and_rig(k1, c1, k2, c2, R, T), jnp.asarray(q1), jnp.asarray(q2)))
     assert np.abs(ours - X).max() < 1e-8
 
 
@@ -119,7 +126,8 @@ def test_triangulation_derivative_matches_finite_differences():
     k1, c1, k2, c2, R, T, _, q1, q2 = _two_cameras()
 
     def point(u):
-        return triangulate_pixels(k1, c1, k2, c2, R, T, jnp.asarray(q1[:1]).at[0, 0].set(u), jnp.asarray(q2[:1]))[0]
+        return triangulate_pixels(*_cameras_and_rig(k1, c1, k2, c2, R, T), jnp.asarray(q1[:1]).at[0, 0].set(u),
+                                  jnp.asarray(q2[:1]))[0]
 
     u0 = float(q1[0, 0])
     fd = (point(u0 + 1e-3) - point(u0 - 1e-3)) / 2e-3

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.calib.mono import _run
+from dstereo.calib.problem import WARP_NAMES
 from dstereo.uncertainty.covariance import covariance, joint_covariance
 from dstereo.errors import DstereoError
 from dstereo.models.camera import project
@@ -59,19 +60,26 @@ class HalfSolution:
     rms: float
 
 
+def _lens_names(full) -> tuple[str, ...]:
+    """The solve's intrinsics and distortion names (a board sag, when solved, is not the camera's)."""
+    return tuple(n for n in full.names if n not in WARP_NAMES)
+
+
 def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOptions()) -> list[HalfSolution]:
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
     `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
     (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
-    from dstereo.calib.mono import _residual_weights, chunk_rows
+    from dstereo.calib.mono import _residual_weights, _shared, chunk_rows
 
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     n_views, n_pts = obs.shape[-3:-1]
     rows = chunk_rows(n_views, n_pts)
     # The halves fit the corners the full set fitted: outliers rejected there weigh 0 here too.
     inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
-    shared = (obj, np.zeros(8))
-    free_idx = [CAMERA_NAMES.index(n) for n in full.names]
+    shared = _shared(obj)
+    lens = _lens_names(full)
+    free_idx = [CAMERA_NAMES.index(n) for n in lens]
+    keep = np.arange(len(lens))  # the lens parameters lead the shared vector; a board sag (last) is marginalised
     out = []
     for c in range(0, len(weights), rows):
         w = np.asarray(weights[c: c + rows], float)
@@ -84,11 +92,13 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             g = len(full.values)
             sse, n_res = float(res.sse[i]), 2 * int(inliers[w[i] > 0].sum())
             params = np.zeros(12)
-            params[free_idx] = res.g[i]
+            params[free_idx] = res.g[i][keep]
+            cov = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
+            joint = joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
+            # marginalising the sag = dropping its rows and columns (shared first, then the poses)
+            kept = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
-                params=params, values=np.asarray(res.g[i]),
-                cov=covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m),
-                joint=joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i]),
+                params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(kept, kept)],
                 poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
                 rms=float(np.sqrt(sse / (m * n_pts)))))
     return out
@@ -260,12 +270,12 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     from dstereo.models.distortion import lens_model
 
     if lens_model(tuple(full.free)) == "fisheye":
-        raise DstereoError("--cross-validate: not available for the fisheye model yet; use it with the pinhole "
-                           "models (e.g. --model rational)")
+        raise DstereoError("`cross_validate`: not available for the fisheye model yet; use it with the pinhole "
+                           "models (e.g. `model` rational)")
     n_views = len(obs)
     if n_views < 2 * MIN_HALF_VIEWS:
-        raise DstereoError(f"--cross-validate: {n_views} views; two disjoint halves need at least "
-                           f"{2 * MIN_HALF_VIEWS} (add views or leave out --cross-validate)")
+        raise DstereoError(f"`cross_validate`: {n_views} views; two disjoint halves need at least "
+                           f"{2 * MIN_HALF_VIEWS} (add views or leave out `cross_validate`)")
     if splits < 1:
         raise DstereoError(f"cross-validation splits {splits}: give at least 1 (4 or more to pool)")
     rng = np.random.default_rng(seed)
@@ -282,12 +292,12 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     bad = [i for i, s in enumerate(sols) if not s.converged]
     if bad:
         raise DstereoError(f"cross-validation: {len(bad)} half calibration(s) did not converge; the views do not "
-                           "constrain the model in halves (add views or use a simpler --model)")
+                           "constrain the model in halves (add views or use a simpler `model`)")
     if range_ is None:
         range_ = mean_board_distance(full.poses, obj)
     w, h = image_size
     corners = np.asarray(obs, float).reshape(-1, 2)
-    results = [compare_halves(sols[2 * i], sols[2 * i + 1], full.names, image_size, range_, grid, corners)
+    results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid, corners)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
                            np.linspace(0.0, h - 1.0, grid[1]))

@@ -246,7 +246,7 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     views = survival[0] > 0
     inliers = None if full.inliers is None else full.inliers[views]  # the full set's outlier mask carries over
     solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free),
-                                                       inliers=inliers)
+                                                       inliers=inliers, board_warp=full.board_sag is not None)
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
     coeffs = np.array(solution.coeffs, float)
@@ -357,7 +357,7 @@ def rig_sigma(solution, calibration_covariance) -> RigSigma:
 def attach_rig_uncertainty(job) -> None:
     """job.calibration_covariance (of what stereo.yml holds) and job.full_set_sigma (the full-set solve's honest
     +-), both with each camera's written-solution covariance carried into the rig."""
-    from dstereo.calib.stereo_pipeline import rig_covariance
+    from dstereo.uncertainty.rig import rig_covariance
 
     cams = (written_camera_solution(job.left), written_camera_solution(job.right))
     full_cov = rig_covariance(job, cameras=cams)

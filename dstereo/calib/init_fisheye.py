@@ -62,7 +62,7 @@ def initial_guess_fisheye(obj: np.ndarray, obs: np.ndarray, image_size: tuple[in
     i = int(np.argmin(costs))
     if not np.isfinite(costs[i]):
         raise DstereoError("calibration start (fisheye): no equidistant focal length between "
-                           f"{grid[0]:.0f} and {grid[-1]:.0f} px fits the board views; check --pattern and the images")
+                           f"{grid[0]:.0f} and {grid[-1]:.0f} px fits the board views; check `pattern` and the images")
     fine = np.geomspace(grid[max(i - 1, 0)], grid[min(i + 1, F_STEPS - 1)], F_STEPS)
     costs = [_fit(obj2, obs, f, c)[0] for f in fine]
     f = float(fine[int(np.argmin(costs))])

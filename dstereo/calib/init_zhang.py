@@ -1,4 +1,5 @@
-"""Closed-form start for a planar-target calibration (Zhang 2000), numpy only: no OpenCV calibration call.
+"""Closed-form start for a planar-target calibration (Zhang 2000), numpy (and the one rotation log of
+`dstereo.models.pose`): no OpenCV calibration call.
 
 Per view a homography board -> image (normalised DLT); then the focal lengths from the orthonormality of
 the rotation's first two columns, with the principal point held at the image centre (two unknowns from
@@ -11,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models.pose import log_rotation
 
 
 def _normaliser(pts: np.ndarray) -> np.ndarray:
@@ -65,29 +67,7 @@ def pose_from_homography(h: np.ndarray, kmat: np.ndarray) -> np.ndarray:
     r1, r2, t = lam * m[:, 0], lam * m[:, 1], lam * m[:, 2]
     u, _, vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return np.concatenate([rotvec_from_matrix(rot), t])
-
-
-def rotvec_from_matrix(rot: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix via its unit quaternion (Shepperd: divide by the largest
-    component, so it stays accurate up to and at 180 degrees)."""
-    tr = np.trace(rot)
-    d = np.array([tr, rot[0, 0], rot[1, 1], rot[2, 2]])
-    i = int(np.argmax(d))
-    if i == 0:
-        w = 0.5 * np.sqrt(1.0 + tr)
-        v = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / (4.0 * w)
-    else:
-        a, b, c = i - 1, i % 3, (i + 1) % 3
-        v = np.zeros(3)
-        v[a] = 0.5 * np.sqrt(max(1.0 + 2.0 * rot[a, a] - tr, 0.0))
-        v[b] = (rot[b, a] + rot[a, b]) / (4.0 * v[a])
-        v[c] = (rot[c, a] + rot[a, c]) / (4.0 * v[a])
-        w = (rot[c, b] - rot[b, c]) / (4.0 * v[a])
-    if w < 0:
-        w, v = -w, -v
-    s = np.linalg.norm(v)
-    return v * (2.0 * np.arctan2(s, w) / s) if s > 1e-300 else 2.0 * v
+    return np.concatenate([np.asarray(log_rotation(rot)), t])
 
 
 def initial_guess(obj: np.ndarray, obs: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

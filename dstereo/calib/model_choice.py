@@ -188,7 +188,7 @@ def choose(candidates: list[Candidate]) -> tuple[str, str]:
         if c not in usable and not c.note:
             c.note = "did not converge on every fold: not a candidate"
     if not usable:
-        raise DstereoError("model auto: no candidate lens model converged on every fold; choose one with --model "
+        raise DstereoError("model auto: no candidate lens model converged on every fold; choose one with `model` "
                            "and check the images (see the full-set warnings)")
     best = min(usable, key=lambda c: c.heldout_rms)
     near = []
@@ -216,7 +216,7 @@ def choose_model(obj, obs, image_size, candidates: tuple[str, ...] = CANDIDATES,
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     if len(obs) < 4:
         raise DstereoError(f"model auto: {len(obs)} usable views; choosing a model by held-out views needs at "
-                           "least 4 (better 10+): choose one with --model")
+                           "least 4 (better 10+): choose one with `model`")
     t0 = time.perf_counter()
     rows = []
     for i, preset in enumerate(candidates):

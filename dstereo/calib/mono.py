@@ -20,15 +20,15 @@ from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.calib.subsets import SubsetPlan
 from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
-from dstereo.calib.problem import (Problem, chunk_rows, frame_linearize, frame_residual, lens_functions,  # noqa: F401
+from dstereo.calib.problem import (WARP_NAMES, WARP_SIZE, Problem, chunk_rows, frame_linearize, frame_residual, lens_functions,  # noqa: F401
                                    residual_weights, run, shared_data)
 from dstereo.models.camera import INTRINSIC_NAMES
 from dstereo.models.distortion import coeff_slots, lens_model
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
 
 
-def _problem(free: tuple[str, ...]) -> Problem:
-    return Problem.of([tuple(free)])
+def _problem(free: tuple[str, ...], board_warp: bool = False) -> Problem:
+    return Problem.of([tuple(free)], board_warp=board_warp)
 
 
 def view_residual_for(free: tuple[str, ...]):
@@ -52,11 +52,13 @@ def _residual_weights(inliers: np.ndarray) -> np.ndarray:
     return residual_weights(np.asarray(inliers)[..., None, :])
 
 
-def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None):
+def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None, board_warp=None):
     """`problem.run` for one camera: obs (B, V, n, 2) as K = 1 frames."""
     # a device array comes from `solve_subsets`, already put there as K = 1 frames (B, V, 1, n, 2)
     obs = obs if isinstance(obs, jax.Array) else np.asarray(obs, float)[:, :, None]
-    return run(_problem(free), options, g0, p0, obs, weight, lambda0, shared, normal0,
+    # the shared vector's length tells whether it carries the board's sag (4 + free, or 2 more)
+    warp = np.shape(g0)[-1] == 4 + len(free) + WARP_SIZE if board_warp is None else board_warp
+    return run(_problem(free, warp), options, g0, p0, obs, weight, lambda0, shared, normal0,
                np.ones(np.shape(weight) + (2 * np.shape(obs)[3],)) if r_weight is None else r_weight)
 
 
@@ -81,6 +83,7 @@ class CameraSolution:
     timings: dict = field(default_factory=dict)
     normal: np.ndarray | None = None  # (V, P+1, P+1) per view [J r]'[J r] at the solution: subsets start from it
     inliers: np.ndarray | None = None  # (V, n) bool: corners the solve used (None: all); subsets use the same
+    board_sag: np.ndarray | None = None  # (2,) the board's sag (x, y) in the board unit when solved (`problem`)
 
     @property
     def converged(self) -> bool:
@@ -121,22 +124,26 @@ def calibrate_full(
     options: LMOptions = LMOptions(),
     inliers: np.ndarray | None = None,
     start: tuple[np.ndarray, np.ndarray] | None = None,
+    board_warp: bool = False,
 ) -> CameraSolution:
     """Calibrate from all views: closed-form start, then the structured LM to convergence.
 
     `inliers` (V, n) bool: corners to fit (the others, outliers, weigh 0; default all). `start`: (shared vector,
-    (V, 6) poses) of the same views to start from (an earlier mask's solve) instead of the closed form."""
+    (V, 6) poses) of the same views to start from (an earlier mask's solve) instead of the closed form.
+    `board_warp`: solve the board's sag too (`problem.sag_basis`; two more shared parameters, last)."""
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     _check_views(obj, obs)
     t0 = time.perf_counter()
     mask = np.ones(obs.shape[:2], bool) if inliers is None else np.asarray(inliers, bool)
     if start is not None:
         g0, p0, lam = np.asarray(start[0], float), np.asarray(start[1], float), 1e-6
+        if board_warp and len(g0) == 4 + len(free):
+            g0 = np.concatenate([g0, np.zeros(WARP_SIZE)])
     else:
         fish = lens_model(tuple(free)) == "fisheye"
         # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
         k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
-        g0, lam = np.concatenate([k0, np.zeros(len(free))]), options.lambda0
+        g0, lam = np.concatenate([k0, np.zeros(len(free) + WARP_SIZE * board_warp)]), options.lambda0
     shared = _shared(obj)
     # A view without inlier corners (rejected whole) takes no part: weight 0, its pose carried unchanged
     out = _run(free, options, g0[None], p0[None], obs[None], mask.any(axis=1)[None].astype(float), np.array([lam]),
@@ -153,10 +160,11 @@ def calibrate_full(
 
 
 def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
-    names = INTRINSIC_NAMES + tuple(free)
+    warp = len(out.g) == 4 + len(free) + WARP_SIZE
+    names = INTRINSIC_NAMES + tuple(free) + (WARP_NAMES if warp else ())
     g = out.g
     coeffs = np.zeros(8)
-    coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:]
+    coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:4 + len(free)]
     n_params = len(g) + 6 * int(mask.any(axis=1).sum())
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
     resid = np.asarray(out.residuals).reshape(obs.shape)
@@ -168,6 +176,7 @@ def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
         residuals=resid, iterations=int(out.iterations), status=int(out.status), normal=np.asarray(out.normal),
         conditioning=conditioning(out.schur, names, g, np.sqrt(np.maximum(np.diag(cov), 0.0)), image_size),
         free=free, image_size=tuple(image_size), inliers=None if mask.all() else mask,
+        board_sag=g[-WARP_SIZE:].copy() if warp else None,
     )
 
 
@@ -211,7 +220,7 @@ def solve_subsets(
     r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers)
     normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
     t0 = time.perf_counter()
-    out = solve_frame_subsets(_problem(start.free), obs[:, None], r_weight, _shared(obj), index,
+    out = solve_frame_subsets(_problem(start.free, start.board_sag is not None), obs[:, None], r_weight, _shared(obj), index,
                               SubsetStart(start.values, start.poses, normal), options, progress, n_threads)
     n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
     n_params = len(start.values) + 6 * m

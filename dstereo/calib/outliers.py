@@ -117,7 +117,7 @@ def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: floa
     keep = np.flatnonzero(mask.any(axis=1))
     if len(keep) < 3:
         raise DstereoError(f"outlier rejection: only {len(keep)} of {len(obs)} views keep their corners; the "
-                           "lens model does not fit these views (try another --model) or the pattern is wrong")
+                           "lens model does not fit these views (try another `model`) or the pattern is wrong")
     if len(keep) < len(obs):  # the rest without the rejected views (their shape: one more compile)
         sol = calibrate_full(obj, obs[keep], image_size, free=free, inliers=mask[keep],
                              start=(sol.values, sol.poses[keep]))

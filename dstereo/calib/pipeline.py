@@ -149,7 +149,7 @@ def list_camera_images(folder: Path, config: Config, image_format: str | None = 
         list_images(folder)  # the one message for a file or a missing folder
     files = sorted(p for p in folder.glob(config.glob) if p.is_file())
     if not files:
-        raise DstereoError(f"images: no file in {folder} matches {config.glob!r}; check --glob")
+        raise DstereoError(f"images: no file in {folder} matches {config.glob!r}; check `glob`")
     return files
 
 
@@ -186,7 +186,7 @@ def calibrate_camera(
     if unreadable:
         name = next(iter(unreadable))
         raise DstereoError(f"images: {Path(folder) / name} is not an image file OpenCV can decode "
-                           f"({len(unreadable)} such file(s)); remove it or narrow the image format / --glob")
+                           f"({len(unreadable)} such file(s)); remove it or narrow the image format / `glob`")
     used = [n for n in det.names if n in det.corners]
     obs = np.stack([det.corners[n] for n in used])
     for name, reason in det.rejected.items():
@@ -208,7 +208,7 @@ def calibrate_camera(
     if progress is not None:
         progress("full-set solve", 0, 1)
     full = choice.chosen_candidate.solution if choice is not None else \
-        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model))
+        calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model), board_warp=config.board_sag)
     if progress is not None:
         progress("full-set solve", 1, 1)
     timings["full_solve_s"] = time.perf_counter() - t0
@@ -223,11 +223,11 @@ def calibrate_camera(
     if config.per_set is not None and len(used) < n_before:  # views rejected whole: plan the rest
         if config.per_set > len(used):
             raise DstereoError(f"per-set: m = {config.per_set} but only {len(used)} views are left after outlier "
-                               "rejection; lower --per-set (or --no-outlier-rejection)")
+                               "rejection; lower `per_set` (or `outlier_rejection`)")
         plan = plan_subsets(len(used), config.per_set, cap=config.max_subsets, seed=config.seed)
     if plan is not None and len(plan) < 2 and steps:
         raise DstereoError(f"per-set: m = {config.per_set} of {len(used)} usable images gives a single subset; "
-                           "the steps need several: lower --per-set")
+                           "the steps need several: lower `per_set`")
     if not full.converged:
         warnings.append(f"full-set solve did not converge ({full.status_text}); its values are unreliable")
     columns = ("re",) + tuple(full.names)
@@ -268,7 +268,7 @@ def calibrate_camera(
             usable &= np.isfinite(table.column(j))
         if not usable.any():
             table.close()
-            raise DstereoError(f"none of the {len(table)} subset solves converged; check the images and --pattern")
+            raise DstereoError(f"none of the {len(table)} subset solves converged; check the images and `pattern`")
         if not usable.all():
             bad = np.flatnonzero(~usable)
             warnings.append(f"{len(bad)} of {len(table)} subset solves did not converge and are left out of the "

@@ -33,6 +33,8 @@ from dstereo.models.pose import rodrigues, rodrigues_jacobian
 from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
 
 POSE_SIZE = 6  # rvec, tvec: of a frame's board pose and of a camera's extrinsics
+WARP_SIZE = 2  # the board's sag along its x and y
+WARP_NAMES = ("board_sag_x", "board_sag_y")
 
 
 class CameraSpec(NamedTuple):
@@ -48,15 +50,17 @@ class CameraSpec(NamedTuple):
 
 
 class Problem(NamedTuple):
-    """Static layout of a calibration problem (hashable: the key of its compiled programs)."""
+    """Static layout of a calibration problem (hashable: the key of its compiled programs). With `board_warp`
+    the shared vector ends with the board's two sag parameters (`board_sag`)."""
 
     cameras: tuple[CameraSpec, ...]
+    board_warp: bool = False
 
     @classmethod
-    def of(cls, frees, refined=True) -> "Problem":
+    def of(cls, frees, refined=True, board_warp: bool = False) -> "Problem":
         """From per-camera free sets (a list) and one `refined` flag or one per camera."""
         refined = [refined] * len(frees) if isinstance(refined, bool) else list(refined)
-        return cls(tuple(CameraSpec(tuple(f), bool(r)) for f, r in zip(frees, refined)))
+        return cls(tuple(CameraSpec(tuple(f), bool(r)) for f, r in zip(frees, refined)), bool(board_warp))
 
     @property
     def k(self) -> int:
@@ -68,7 +72,11 @@ class Problem(NamedTuple):
 
     @property
     def n_shared(self) -> int:
-        return self.n_extrinsic + sum(c.size for c in self.cameras)
+        return self.n_extrinsic + sum(c.size for c in self.cameras) + (WARP_SIZE if self.board_warp else 0)
+
+    @property
+    def warp_slice(self) -> slice | None:
+        return slice(self.n_shared - WARP_SIZE, self.n_shared) if self.board_warp else None
 
     def intrinsic_slices(self) -> tuple[slice | None, ...]:
         """Where each camera's [k, free coefficients] sit in the shared vector (None: held)."""
@@ -100,6 +108,23 @@ def _intrinsics(problem: Problem, g, shared):
     return out
 
 
+def sag_basis(obj):
+    """(n, 2) how far each corner moves out of the board plane per unit of the two sag parameters: a parabola
+    along x and one along y, 1 at the board's centre line and 0 at its outer corner rows (mrcal's calobject_warp
+    model): z = sag_x (1 - u^2) + sag_y (1 - v^2), u, v the corners' positions scaled to [-1, 1]."""
+    lo, hi = jnp.min(obj[:, :2], axis=0), jnp.max(obj[:, :2], axis=0)
+    uv = 2.0 * (obj[:, :2] - lo) / (hi - lo) - 1.0
+    return 1.0 - uv ** 2
+
+
+def board_points(problem: Problem, g, obj):
+    """The board's corners (n, 3), sagged by the shared vector's warp parameters when the problem has them."""
+    if not problem.board_warp:
+        return obj
+    obj = jnp.asarray(obj)
+    return obj.at[:, 2].add(sag_basis(obj) @ g[problem.warp_slice])
+
+
 def _seen(obs_c):
     """(n,) corners this camera saw, and its observations with the unseen ones at 0."""
     seen = jnp.isfinite(obs_c[:, 0])
@@ -112,7 +137,7 @@ def frame_residual(problem: Problem):
     coeffs (K, 8)))."""
 
     def residual(g, pose, obs_v, shared):
-        obj = shared[0]
+        obj = board_points(problem, g, shared[0])
         p_ref = obj @ rodrigues(pose[:3]).T + pose[3:6]
         out = []
         for c, (k, coeffs) in enumerate(_intrinsics(problem, g, shared)):
@@ -149,11 +174,13 @@ def frame_linearize(problem: Problem):
     slices = problem.intrinsic_slices()
 
     def linearize(g, pose, obs_v, shared):
-        obj = shared[0]
+        obj = board_points(problem, g, shared[0])
         n = obj.shape[0]
         rot_b, d_rot_b = rodrigues_jacobian(pose[:3])
         p_ref, dref_drot = _rotate(rot_b, d_rot_b, obj.T)
         p_ref = p_ref + pose[3:6, None]
+        if problem.board_warp:  # d p_ref / d sag_j = (board z axis in the camera) * basis_j: (3, 2, n)
+            dref_dw = rot_b[:, 2, None, None] * sag_basis(shared[0]).T[None]
         blocks = []
         for c, (k, coeffs) in enumerate(_intrinsics(problem, g, shared)):
             spec = problem.cameras[c]
@@ -166,6 +193,9 @@ def frame_linearize(problem: Problem):
                 # d p / d(board pose) through R_c: rows i of R_c times the reference derivatives
                 dp_drot = sum(rot_c[:, j, None, None] * dref_drot[j] for j in range(3))
                 dp_dt = rot_c
+            dp_dw = None
+            if problem.board_warp:
+                dp_dw = dref_dw if c == 0 else sum(rot_c[:, j, None, None] * dref_dw[j] for j in range(3))
             q, dk, dc, dq_dp = lens_functions(spec.free)[1](k, coeffs, p)  # (2,n) (2,4,n) (2,8|4,n) (2,3,n)
             chain = lambda d_i: sum(dq_dp[:, i, None, :] * d_i[i][None] for i in range(3))  # noqa: E731
             rows = jnp.zeros((2, n_g + POSE_SIZE, n))
@@ -176,6 +206,8 @@ def frame_linearize(problem: Problem):
             if slices[c] is not None:
                 cols = [coeff_slots(spec.free).index(name) for name in spec.free]
                 rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, *(dc[:, i:i + 1] for i in cols)], axis=1))
+            if dp_dw is not None:
+                rows = rows.at[:, problem.warp_slice].set(chain(dp_dw))
             rows = rows.at[:, n_g:n_g + 3].set(chain(dp_drot))
             rows = rows.at[:, n_g + 3:].set(dq_dp if dp_dt is None else
                                            sum(dq_dp[:, i, None, :] * dp_dt[i][None, :, None] for i in range(3)))

@@ -31,6 +31,7 @@ from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.io.corners import list_images
 from dstereo.io.stereo_files import StereoDetection, detect_pairs
+from dstereo.uncertainty.rig import FIXED_STRUCTURE, JOINT_STRUCTURE
 
 LEFT_FOLDERS = ("images_left", "calibrate_left")
 RIGHT_FOLDERS = ("images_right", "calibrate_right")
@@ -79,18 +80,18 @@ def stereo_sources(images: Path | None, config: Config, left: Path | None = None
     fmt_r = config.image_format_right or config.image_format
     if left is not None or right is not None:
         if left is None or right is None:
-            raise DstereoError("stereo: give both --left and --right (a folder or a pattern such as DIR/left*.jpg)")
-        files_l, files_r = _files(left, fmt_l, "--left"), _files(right, fmt_r, "--right")
+            raise DstereoError("stereo: give both `left` and `right` (a folder or a pattern such as DIR/left*.jpg)")
+        files_l, files_r = _files(left, fmt_l, "`left`"), _files(right, fmt_r, "`right`")
         return StereoSources(files_l, files_r, files_l, files_r, f"--left {left} --right {right}")
     if images is None or not Path(images).is_dir():
         raise DstereoError(f"stereo: image folder {images} does not exist; give a PROJECT with images/images_left and "
-                           "images/images_right, or --left DIR --right DIR")
+                           "images/images_right, or `left` DIR `right` DIR")
     images = Path(images)
     found = [next((images / n for n in names if (images / n).is_dir()), None)
              for names in (LEFT_FOLDERS, RIGHT_FOLDERS)]
     if None in found:
         raise DstereoError(f"stereo: {images} needs the folders images_left and images_right (thesis 4.2.2.2); "
-                           "or give --left DIR --right DIR")
+                           "or give `left` DIR `right` DIR")
     mono_l, mono_r = _files(found[0], fmt_l, str(found[0])), _files(found[1], fmt_r, str(found[1]))
     pair_dirs = [images / n for n in STEREO_FOLDERS]
     present = [d.is_dir() for d in pair_dirs]
@@ -199,7 +200,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     from dstereo.models.pose import rodrigues
 
     if config.stereo_steps and config.per_set is None:
-        raise DstereoError("stereo steps need subsets of pairs; set images per set (--per-set m)")
+        raise DstereoError("stereo steps need subsets of pairs; set images per set (`per_set` m)")
     timings, warnings = {}, []
     t0 = time.perf_counter()
     if progress is not None:
@@ -306,83 +307,6 @@ def _pair_inliers(det, cams, obs_l, obs_r) -> np.ndarray | None:
             elif name in rows and cal.full.inliers is not None and np.allclose(cal.observations[rows[name]], obs[p]):
                 mask[p, side] = cal.full.inliers[rows[name]]
     return None if mask.all() else mask
-
-
-FIXED_STRUCTURE = ("fixed mode, propagated: each camera's intrinsics covariance from its individual (mono) full-set "
-                   "solve (left and right independent), and the rig's as the fixed-intrinsics stereo solve's plus the "
-                   "intrinsics errors carried into the rig (A C_k A^T, A = d rig / d intrinsics at the stereo "
-                   "optimum), "
-                   "with the cross terms A C_k; assumes the stereo corners' noise independent of the individual "
-                   "solves'. Values in this file are the final ones; the covariance is that of the solves on the "
-                   "surviving views and pairs (the full-set solves when all survive)")
-BLOCK_STRUCTURE = ("block-diagonal (left, right, rig): each camera's intrinsics from its individual (mono) full-set "
-                   "solve, the rig from the stereo solve with the intrinsics held fixed; no correlations")
-JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-set)"
-
-
-def rig_sensitivity(obj, obs_left, obs_right, solution) -> np.ndarray:
-    """A = d rig / d (left, right intrinsics) (6, G_l + G_r) of a fixed-intrinsics stereo solve: how the rig
-    that fits the pairs moves when the held intrinsics move, -S_rr^-1 S_rk with S the Schur complement of
-    J^T J (board poses eliminated) of the pairs' residuals, at the solution."""
-    import jax
-    import jax.numpy as jnp
-
-    from dstereo.models.rig import pair_residual
-
-    left, right, n_l = solution.left, solution.right, len(solution.left.free_vector())
-    per_pair = jax.vmap(pair_residual, in_axes=(None, None, None, None, None, 0, None, 0, 0))
-    obj, obs_l, obs_r = (jnp.asarray(a, float) for a in (obj, obs_left, obs_right))
-
-    def residuals(x):
-        cam_l, cam_r = left.with_free_vector(x[6:6 + n_l]), right.with_free_vector(x[6 + n_l:x.size - poses.size])
-        return per_pair(cam_l.k, cam_l.dist.coeffs, cam_r.k, cam_r.dist.coeffs, x[:6],
-                        x[x.size - poses.size:].reshape(-1, 6), obj, obs_l, obs_r).ravel()
-
-    poses = np.asarray(solution.poses, float)
-    x = np.concatenate([solution.values[:6], np.asarray(left.free_vector()), np.asarray(right.free_vector()),
-                        poses.ravel()])
-    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(jnp.asarray(x)))
-    scale = np.linalg.norm(jac, axis=0)
-    jac = jac / scale  # Jacobi scaling: fx (px) next to k3 spans many decades
-    n_g = x.size - poses.size
-    jg, jp = jac[:, :n_g], jac[:, n_g:]
-    schur = jg.T @ jg - jg.T @ jp @ np.linalg.solve(jp.T @ jp, jp.T @ jg)
-    a = -np.linalg.solve(schur[:6, :6], schur[:6, 6:])
-    return a * scale[:6, None] ** -1 * scale[None, 6:n_g]
-
-
-def rig_covariance(job: StereoCalibrationJob, propagate: bool = True, solution=None, pairs=None,
-                   cameras=None) -> tuple[tuple[str, ...], np.ndarray, str]:
-    """(names, covariance, structure) of every parameter stereo.yml carries: left.fx.., right.fx.., RVx..Tz.
-
-    Mode "joint": the joint solve's covariance, reordered. Mode "fixed" (the thesis's path): the intrinsics come
-    from the individual calibrations (left and right independent); the rig was fitted with them held, so their
-    errors move it: cov(rig) = C_rig|k + A C_k A^T and cov(rig, k) = A C_k (`rig_sensitivity`). Without that
-    (`propagate=False`, block-diagonal) the rig cannot absorb a principal-point error and the point sigmas come
-    out several times too large (measured in the report of this change).
-    """
-    s = job.full if solution is None else solution
-    if s.mode == "joint":
-        names = tuple(n for n in s.names if not n.startswith(("left.", "right.")))
-        order = [i for i, n in enumerate(s.names) if n.startswith("left.")] + \
-            [i for i, n in enumerate(s.names) if n.startswith("right.")] + [s.names.index(n) for n in names]
-        return tuple(s.names[i] for i in order), s.cov[np.ix_(order, order)], JOINT_STRUCTURE
-    from scipy.linalg import block_diag
-
-    names = (tuple(f"left.{n}" for n in job.left.full.names) + tuple(f"right.{n}" for n in job.right.full.names)
-             + tuple(s.names))
-    # `cameras`: the CameraSolutions whose covariance goes with the intrinsics used (default the full sets');
-    # `pairs`: (V,) bool of the pairs `solution` was solved on (default all)
-    left, right = cameras if cameras is not None else (job.left.full, job.right.full)
-    c_k = block_diag(left.cov, right.cov)
-    if not propagate:
-        return names, block_diag(c_k, s.cov), BLOCK_STRUCTURE
-    obs_l, obs_r = job.detection.observations()
-    if pairs is not None:
-        obs_l, obs_r = obs_l[pairs], obs_r[pairs]
-    a = rig_sensitivity(job.detection.object_points, obs_l, obs_r, s)
-    cross = a @ c_k
-    return names, np.block([[c_k, cross.T], [cross, s.cov + cross @ a.T]]), FIXED_STRUCTURE
 
 
 def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:

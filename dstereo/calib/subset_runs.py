@@ -95,7 +95,7 @@ class RunEstimate:
         if self.disk_bytes > self.free_disk:
             per = self.disk_bytes / max(self.subsets, 1)
             raise DstereoError(f"max-subsets: {self.subsets} subsets need about {_size(self.disk_bytes)} of disk in "
-                               f"{self.folder} but {_size(self.free_disk)} is free; lower --max-subsets to at most "
+                               f"{self.folder} but {_size(self.free_disk)} is free; lower `max_subsets` to at most "
                                f"about {int(self.free_disk / per)} or free disk space")
 
 

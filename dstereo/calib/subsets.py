@@ -101,7 +101,7 @@ def plan_subsets(n_images: int, per_set: int, cap: int = 2000, seed: int = 0) ->
         raise DstereoError(f"per-set: m = {per_set} images per subset is too few; a calibration needs m >= 3")
     if per_set > n_images:
         raise DstereoError(
-            f"per-set: m = {per_set} images per subset but only {n_images} usable images; lower --per-set "
+            f"per-set: m = {per_set} images per subset but only {n_images} usable images; lower `per_set` "
             f"to at most {n_images} or add images"
         )
     if cap < 1:

@@ -41,6 +41,9 @@ def calibrate(
     no_outlier_rejection: bool = typer.Option(
         False, "--no-outlier-rejection", help="Keep every detected corner and view (default: iterative k-sigma "
         "rejection of outlier corners and views, each one reported)."),
+    board_sag: bool = typer.Option(
+        False, "--board-sag", help="Solve the board's sag (two parameters, x and y, in the board unit, as mrcal) with "
+        "the rest; reported with its sigma. One camera and --cameras; not for --left/--right yet."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -50,6 +53,12 @@ def calibrate(
     right: Optional[Path] = typer.Option(
         None, "--right", help="Stereo: right camera's images; partners by name (left05 / right05, L_05 / R_05, "
         "im0 / im1)."),
+    cameras: Optional[Path] = typer.Option(
+        None, "--cameras", help="N cameras: a folder with one subfolder of images per camera (sorted; the first is "
+        "the reference), frames matched by file name, missing files allowed. Writes cameras.yml and a stereo file "
+        "per adjacent pair."),
+    pair: Optional[str] = typer.Option(
+        None, "--pair", help="With --cameras: write the stereo file of this pair only, A,B (subfolder names)."),
     projection_range: Optional[float] = typer.Option(
         None, "--projection-range", help="Distance (board unit) of the projection-uncertainty map "
         "(plots/projection_uncertainty.png); default: the mean board distance."),
@@ -62,9 +71,9 @@ def calibrate(
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    from dstereo.config.calibration import Config, find_project_config, load_config, parse_step_flags, validate
+    from dstereo.config.calibration import build_config, file_layer, find_project_config, parse_step_flags, validate
+    from dstereo.config.calibration_flags import flag_layer
     from dstereo.errors import DstereoError
-    from dstereo.io.corners import parse_pattern
 
     started = time.perf_counter()
     from dstereo.uncertainty.projection import METHODS
@@ -75,21 +84,27 @@ def calibrate(
         raise DstereoError(f"--cross-validate {cross_validate}: give a number of splits (4 or more), or leave it out")
     if projection_range is not None and not projection_range > 0:
         raise DstereoError(f"--projection-range {projection_range}: give a positive distance in the board's unit")
+    if pair is not None and cameras is None:
+        raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
-    cfg = load_config(config_path) if config_path is not None else Config()
-    mono_steps, stereo_steps = parse_step_flags(step)
-    cfg = cfg.with_overrides(
-        pattern=parse_pattern(pattern) if pattern is not None else None, square=square,
-        unit=unit if unit is not None else ("mm" if square is not None and cfg.unit == "squares" else None),
-        image_format=image_format, glob=glob, model=_model(model), model_auto=_auto(model), per_set=per_set,
-        max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
-        outlier_rejection=False if no_outlier_rejection else None,
-        steps=mono_steps, stereo_steps=stereo_steps,
-    )
+    flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
+        pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
+        per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
+        outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
+    cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
+    stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
     from dstereo.io import figure_pool
 
     figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
+    if cameras is not None:
+        if left is not None or right is not None or images is not None:
+            raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
+        if cross_validate or cfg.model_auto or stereo_steps:
+            raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
+                               "N cameras yet; calibrate a camera alone for those")
+        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, not no_cache, started, projection_range)
+        return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
         if cross_validate:
@@ -101,6 +116,9 @@ def calibrate(
             raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
                                "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
                                "chosen --model")
+        if cfg.board_sag:
+            raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
+                               "a subfolder and run --cameras DIR, whose rig solve has it")
         if lens_model(tuple(cfg.model)) == "fisheye":
             raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
                                "calibrate each camera alone with --images DIR")
@@ -175,6 +193,45 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
         typer.echo("\n".join(summary_lines(job, out)))
 
 
+def _pair(spec: Optional[str]):
+    from dstereo.errors import DstereoError
+
+    if spec is None:
+        return None
+    names = [p.strip() for p in spec.split(",")]
+    if len(names) != 2 or not all(names):
+        raise DstereoError(f"--pair {spec}: give two camera subfolder names, A,B")
+    return tuple(names)
+
+
+def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None) -> None:
+    """N cameras (--cameras DIR): see dstereo.calib.multiview_job."""
+    import numpy as np
+
+    from dstereo.calib.multiview_job import calibrate_cameras_project, camera_folders
+    from dstereo.io.cameras_files import write_multiview_results
+
+    folders = camera_folders(root, cfg)
+    out = _results_folder(out, project, force, cfg, inputs=[root, *folders])
+    with progress_bars(quiet) as progress:
+        job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
+        job.pairs(pair)  # a wrong --pair is refused before anything is written
+        job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
+                         for w in _view_warnings(cal)]
+        write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
+    job.timings["total_s"] = time.perf_counter() - started
+    for warning in job.warnings:
+        typer.echo(f"dstereo: warning: {warning}", err=True)
+    if not quiet:
+        sol = job.solution
+        for label, cam, T, rms in zip(job.labels, sol.cameras, sol.T, sol.camera_rms()):
+            typer.echo(f"{label}: fx {float(cam.k[0]):.3f} fy {float(cam.k[1]):.3f} cx {float(cam.k[2]):.3f} "
+                       f"cy {float(cam.k[3]):.3f}  |T| {np.linalg.norm(T):.4f}  RMS {rms:.4f} px "
+                       f"({int(job.visible[:, job.labels.index(label)].sum())} views)")
+        typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
+        typer.echo(f"wrote {out}")
+
+
 def _view_warnings(cal) -> list[str]:
     """Views far off the rest or in another corner order (dstereo.calib.view_checks), from the full-set solve."""
     from dstereo.calib import view_checks
@@ -212,22 +269,6 @@ def _stereo_view_warnings(job) -> list[str]:
     out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
            for w in _view_warnings(cal)]
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
-
-
-def _auto(spec: Optional[str]):
-    from dstereo.config.calibration import is_auto_model
-
-    return None if spec is None else is_auto_model(spec)
-
-
-def _model(spec: Optional[str]):
-    from dstereo.config.calibration import is_auto_model
-
-    if spec is None or is_auto_model(spec):
-        return None
-    from dstereo.models.distortion import parse_model
-
-    return parse_model(spec)
 
 
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,

@@ -7,6 +7,8 @@ from typing import Any, Optional
 
 import typer
 
+from dstereo.config.options import OPTICS  # flags and help declared once, with the file keys
+
 # (results key, label) in the order the console table shows them; rows whose value is None are skipped.
 ROWS = (
     ("focus_distance_mm", "focus distance (mm)"),
@@ -73,21 +75,19 @@ def to_json(results: dict[str, Any]) -> str:
 
 
 def optics(
-    focus_distance: Optional[float] = typer.Option(None, "--focus-distance", help="Distance to the subject, mm."),
-    focal_length: Optional[float] = typer.Option(None, "--focal-length", help="Lens focal length, mm."),
-    sensor: Optional[str] = typer.Option(None, "--sensor", help="Sensor WIDTHxHEIGHT in mm, e.g. 22.5x16.9."),
-    crop_factor: Optional[float] = typer.Option(None, "--crop-factor", help="Crop factor (instead of --sensor)."),
-    f_number: Optional[float] = typer.Option(None, "--f-number", help="Aperture f-number N."),
-    coc: Optional[float] = typer.Option(None, "--coc", help="Circle of confusion, mm [from the sensor diagonal]."),
-    pixel_size: Optional[float] = typer.Option(None, "--pixel-size", help="Pixel pitch, mm."),
-    wavelength: Optional[float] = typer.Option(None, "--wavelength", help="Light wavelength, mm [0.00055]."),
-    baseline: Optional[float] = typer.Option(None, "--baseline", help="Stereo baseline, mm."),
-    disparity_precision: Optional[float] = typer.Option(
-        None, "--disparity-precision", help="Matcher sub-pixel precision, px [1]."),
-    dof_focal_length: Optional[str] = typer.Option(
-        None, "--dof-focal-length", help="Focal length in the DoF equations: effective (thesis) or lens [effective]."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML file with an [optics] section; flags override."),
-    plots: Optional[Path] = typer.Option(None, "--plots", help="Write the three DoF figures (PNG) to this folder."),
+    focus_distance: Optional[float] = OPTICS.option("focus_distance"),
+    focal_length: Optional[float] = OPTICS.option("focal_length"),
+    sensor: Optional[str] = OPTICS.option("sensor"),
+    crop_factor: Optional[float] = OPTICS.option("crop_factor"),
+    f_number: Optional[float] = OPTICS.option("f_number"),
+    coc: Optional[float] = OPTICS.option("coc"),
+    pixel_size: Optional[float] = OPTICS.option("pixel_size"),
+    wavelength: Optional[float] = OPTICS.option("wavelength"),
+    baseline: Optional[float] = OPTICS.option("baseline"),
+    disparity_precision: Optional[float] = OPTICS.option("disparity_precision"),
+    dof_focal_length: Optional[str] = OPTICS.option("dof_focal_length"),
+    config: Optional[Path] = OPTICS.option("config"),
+    plots: Optional[Path] = OPTICS.option("plots"),
     json_output: bool = typer.Option(False, "--json", help="Print only JSON (lengths in mm)."),
 ) -> None:
     """Depth of field, hyperfocal distance, diffraction check and stereo depth resolution for a capture set-up."""
@@ -102,8 +102,10 @@ def optics(
         "wavelength": wavelength, "baseline": baseline, "disparity_precision": disparity_precision,
         "dof_focal_length": dof_focal_length,
     }
-    file_values = lib.load_config_file(config) if config is not None else {}
-    setup = lib.make_config(lib.merge_settings(file_values, flags))
+    from dstereo.config import optics as settings
+
+    file_layer = settings.file_layer(config) if config is not None else {}
+    setup = lib.make_config(settings.settings(file_layer, flags))
     results = lib.compute_optics(setup)
     if plots is not None:
         from dstereo.io.optics_figures import write_plots

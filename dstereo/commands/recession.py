@@ -50,19 +50,19 @@ def recession(
 ) -> None:
     """Recession of a sample's front face over time: a surface per stereo pair, recession along the sample axis
     on a grid over the face, at the stagnation point and as maps, and recession rates with 95 % intervals."""
-    from dataclasses import asdict, replace
+    from dataclasses import asdict
 
     from dstereo import __version__
     from dstereo.frames import FrameRunner, PartialStore, fingerprint
 
     from dstereo.commands.progress import progress_bars
-    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
+    from dstereo.commands.matching_options import search_range_line
+    from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
     from dstereo.recession import RecessionConfig, check_sizes, discover, run_recession
     from dstereo.io.recession_files import write_results
-    from dstereo.stereo.pipeline import ReconstructionConfig
 
     from dstereo.io.output_location import check_not_inputs
 
@@ -73,9 +73,9 @@ def recession(
     cfg = RecessionConfig(grid_mm=grid, stagnation_radius_mm=stagnation_radius, stagnation_model=stagnation_fit,
                           axis=_vector(axis, "--axis"), point=_vector(point, "--point"), min_points_per_cell=min_points,
                           refine_subpixel=refine)
-    changes = matching_changes(ReconstructionConfig().sgbm, preset, sgbm, z_min, z_max, roi)
-    recon = replace(ReconstructionConfig(), **changes)
-    check_reconstruction_config(recon)
+    recon = settings.build(settings.flag_layer({"preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max,
+                                                "roi": roi}))
+    settings.check(recon)
 
     calibration = read_stereo_calibration(calib)
     if calibration.rectified:

@@ -7,62 +7,47 @@ from typing import Optional
 
 import typer
 
+from dstereo.config.options import RECONSTRUCT
 
-def reconstruct(
-    left: list[Path] = typer.Option(..., "--left", help="Left image (repeat for several pairs)."),
-    right: list[Path] = typer.Option(..., "--right", help="Right image, in the same order as --left."),
-    out: Path = typer.Option(..., "--out", help="Results folder (refused if it exists, unless --force)."),
-    calib: Optional[Path] = typer.Option(
-        None, "--calib", help="stereo.yml, OpenCV YAML with M1 D1 M2 D2 R T, or Middlebury calib.txt. "
-        "Without it the uncalibrated path runs (needs --focal-mm or --focal-px)."),
-    project: Optional[Path] = typer.Option(
-        None, "--project", help="Project folder: its stereo.yml/calib.txt and dstereo.toml are used as defaults."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML/JSON file with [reconstruct] and [sgbm]."),
-    preset: Optional[str] = typer.Option(None, "--preset", help="SGBM preset: default, thesis-5.9, thesis-5.15."),
-    sgbm: list[str] = typer.Option([], "--sgbm", help="SGBM parameter NAME=VALUE (repeat), e.g. block_size=7."),
-    z_min: Optional[float] = typer.Option(None, "--z-min", help="Nearest depth of the scene, mm (sets the range)."),
-    z_max: Optional[float] = typer.Option(None, "--z-max", help="Farthest depth of the scene, mm."),
-    alpha: Optional[float] = typer.Option(None, "--alpha", help="Rectification free scaling: -1 default, 0..1."),
-    zero_disparity: Optional[bool] = typer.Option(
-        None, "--zero-disparity/--own-centres", help="Share one principal point (OpenCV's default) or centre each view."),
-    lr_check: Optional[float] = typer.Option(None, "--lr-check", help="Left-right consistency tolerance, px."),
-    roi: Optional[str] = typer.Option(None, "--roi", help="x,y,w,h on the rectified left image: keep points inside."),
-    outliers: Optional[int] = typer.Option(None, "--outliers", help="Statistical outlier removal: neighbours (0 off)."),
-    outlier_std: Optional[float] = typer.Option(None, "--outlier-std", help="Outlier threshold in std devs."),
-    max_jump: Optional[float] = typer.Option(None, "--max-jump", help="Relative depth step that breaks the mesh."),
-    refine: Optional[bool] = typer.Option(
-        None, "--refine/--no-refine", help="Refine SGBM's pixel-locked sub-pixel disparity (cubic re-rectification + "
-        "Lucas-Kanade); pixels it cannot refine are dropped. Default off: it helps on well-textured, smooth "
-        "surfaces (speckle), not on scenes with many slanted or occluding edges."),
-    focal_mm: Optional[float] = typer.Option(None, "--focal-mm", help="Uncalibrated: lens focal length, mm."),
-    pixel_size_mm: Optional[float] = typer.Option(None, "--pixel-size-mm", help="Uncalibrated: pixel pitch, mm."),
-    crop_factor: Optional[float] = typer.Option(None, "--crop-factor", help="Uncalibrated: crop factor (36 mm)."),
-    focal_px: Optional[float] = typer.Option(None, "--focal-px", help="Uncalibrated: focal length in px."),
-    baseline_mm: Optional[float] = typer.Option(
-        None, "--baseline-mm", help="Uncalibrated: baseline, mm (without it the output is unscaled)."),
-    disparity_sigma: Optional[str] = typer.Option(
-        None, "--disparity-sigma", help="Disparity noise in rectified px for the point uncertainties, or 'auto' "
-        "(default: per pixel from the image gradients and the image noise, checked on smooth parts of the map)."),
-    no_uncertainty: bool = typer.Option(False, "--no-uncertainty", help="Skip the point uncertainties (sigma_*)."),
-    full_covariance: bool = typer.Option(
-        False, "--full-covariance", help="Also write cov_xyz.npy, the (h, w, 3, 3) covariance of every point."),
-    workers: Optional[int] = typer.Option(
-        None, "--workers", help="Several pairs: in parallel on a local Dask cluster of this many processes "
-        "(default: the machine's cores when the pairs, timed on the first, would take over ~30 s serially; else one "
-        "after another here; 1: always one after another in this process)."),
-    scheduler: Optional[str] = typer.Option(
-        None, "--scheduler", help="Several pairs: address of a running Dask scheduler (tcp://host:8786); its workers "
-        "need dstereo, the images at the same paths and OUT's parent folder shared."),
-    resume: bool = typer.Option(False, "--resume", help="Several pairs: continue from the pairs kept in OUT.partial."),
-    retries: int = typer.Option(2, "--retries", help="Reruns of a pair whose worker process died, then it fails."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
+
+def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
+    left: list[Path] = RECONSTRUCT.option("left", ...),
+    right: list[Path] = RECONSTRUCT.option("right", ...),
+    out: Path = RECONSTRUCT.option("out", ...),
+    calib: Optional[Path] = RECONSTRUCT.option("calib"),
+    project: Optional[Path] = RECONSTRUCT.option("project"),
+    config: Optional[Path] = RECONSTRUCT.option("config"),
+    preset: Optional[str] = RECONSTRUCT.option("preset"),
+    sgbm: list[str] = RECONSTRUCT.option("sgbm", []),
+    z_min: Optional[float] = RECONSTRUCT.option("z_min"),
+    z_max: Optional[float] = RECONSTRUCT.option("z_max"),
+    alpha: Optional[float] = RECONSTRUCT.option("alpha"),
+    zero_disparity: Optional[bool] = RECONSTRUCT.option("zero_disparity"),
+    lr_check: Optional[float] = RECONSTRUCT.option("sgbm.lr_check"),
+    roi: Optional[str] = RECONSTRUCT.option("roi"),
+    outliers: Optional[int] = RECONSTRUCT.option("outlier_neighbours"),
+    outlier_std: Optional[float] = RECONSTRUCT.option("outlier_std"),
+    max_jump: Optional[float] = RECONSTRUCT.option("max_jump"),
+    refine: Optional[bool] = RECONSTRUCT.option("refine"),
+    focal_mm: Optional[float] = RECONSTRUCT.option("focal_mm"),
+    pixel_size_mm: Optional[float] = RECONSTRUCT.option("pixel_size_mm"),
+    crop_factor: Optional[float] = RECONSTRUCT.option("crop_factor"),
+    focal_px: Optional[float] = RECONSTRUCT.option("focal_px"),
+    baseline_mm: Optional[float] = RECONSTRUCT.option("baseline_mm"),
+    disparity_sigma: Optional[str] = RECONSTRUCT.option("disparity_sigma"),
+    no_uncertainty: bool = RECONSTRUCT.option("uncertainty", False),
+    full_covariance: bool = RECONSTRUCT.option("full_covariance", False),
+    workers: Optional[int] = RECONSTRUCT.option("workers"),
+    scheduler: Optional[str] = RECONSTRUCT.option("scheduler"),
+    resume: bool = RECONSTRUCT.option("resume", False),
+    retries: int = RECONSTRUCT.option("retries", 2),
+    force: bool = RECONSTRUCT.option("force", False),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
-    from dataclasses import replace
-
-    from dstereo.commands.matching_options import check_reconstruction_config, matching_changes, search_range_line
+    from dstereo.commands.matching_options import search_range_line
+    from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
-    from dstereo.stereo.pipeline import CONFIG_NAMES, ReconstructionConfig, load_config, run_reconstruction
+    from dstereo.stereo.pipeline import run_reconstruction
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
@@ -74,41 +59,25 @@ def reconstruct(
     check_order_agrees_with_names(left, right)
     for a, b in zip(left, right):
         check_distinct_images(a, b)
-    cfg = ReconstructionConfig()
+    layers = []  # defaults < the project's file < --config < flags
     if project is not None:
         if not project.is_dir():
             raise DstereoError(f"project folder {project} does not exist")
         if calib is None:
             calib = next((project / n for n in ("stereo.yml", "stereo.yaml", "calib.txt") if (project / n).is_file()),
                          None)
-        found = next((project / n for n in CONFIG_NAMES if (project / n).is_file()), None)
-        if found is not None:
-            cfg = load_config(found, cfg)
+        found = settings.project_file(project)
+        layers += [settings.file_layer(found)] if found is not None else []
     if config is not None:
-        cfg = load_config(config, cfg)
-    changes = matching_changes(cfg.sgbm, preset, sgbm, z_min, z_max, roi)
-    if lr_check is not None:
-        changes["sgbm"] = changes["sgbm"].with_overrides({"lr_check": lr_check})
-    changes |= {k: v for k, v in dict(
-        alpha=alpha, zero_disparity=zero_disparity, refine=refine, outlier_neighbours=outliers, outlier_std=outlier_std,
-        max_jump=max_jump, focal_mm=focal_mm, pixel_size_mm=pixel_size_mm, crop_factor=crop_factor,
-        focal_px=focal_px, baseline_mm=baseline_mm).items() if v is not None}
-    if no_uncertainty:
-        changes["uncertainty"] = False
-    if full_covariance:
-        changes["full_covariance"] = True
-    if disparity_sigma is not None and disparity_sigma.strip().lower() != "auto":
-        try:
-            changes["disparity_sigma"] = float(disparity_sigma)
-        except ValueError:
-            raise DstereoError(f"--disparity-sigma {disparity_sigma!r}: give a number of px (e.g. 0.2) or "
-                               "'auto'") from None
-        if not changes["disparity_sigma"] >= 0:
-            raise DstereoError(f"--disparity-sigma {disparity_sigma}: must be >= 0 px")
-    elif disparity_sigma is not None:
-        changes["disparity_sigma"] = None
-    cfg = replace(cfg, **changes)
-    check_reconstruction_config(cfg, _width(left[0]))
+        layers.append(settings.file_layer(config))
+    layers.append(settings.flag_layer({  # parameter -> flag value (dstereo.config.options.RECONSTRUCT)
+        "preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max, "roi": roi, "sgbm.lr_check": lr_check,
+        "alpha": alpha, "zero_disparity": zero_disparity, "refine": refine, "outlier_neighbours": outliers,
+        "outlier_std": outlier_std, "max_jump": max_jump, "focal_mm": focal_mm, "pixel_size_mm": pixel_size_mm,
+        "crop_factor": crop_factor, "focal_px": focal_px, "baseline_mm": baseline_mm, "uncertainty": no_uncertainty,
+        "full_covariance": full_covariance, "disparity_sigma": disparity_sigma}))
+    cfg = settings.build(*layers)
+    settings.check(cfg, _width(left[0]))
 
     if len(left) == 1:
         results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)

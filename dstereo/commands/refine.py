@@ -44,14 +44,14 @@ def refine(
     check_not_inputs(out, [calib, left, right, distances])
     check_distinct_images(left, right)
     from dstereo.reference import Board, Sphere, read_marks
-    from dstereo.reference.correction import RIG_NAMES
+    from dstereo.reference.correction import RIG_CORRECTION_NAMES
     from dstereo.reference.files import run_refinement
 
     marks, config = None, None
     if board is not None:
         from dstereo.io.corners import parse_pattern
 
-        reference = Board(parse_pattern(board), float(square))
+        reference = Board.from_pattern(parse_pattern(board), float(square))
     elif sphere_diameter is not None:
         reference = Sphere(float(sphere_diameter))
         if z_min is not None:
@@ -63,7 +63,7 @@ def refine(
         marks = (q_l, q_r)
     if scale_only is None:
         scale_only = sphere_diameter is not None
-    fixed = tuple(n for n in RIG_NAMES if n != "baseline") if scale_only else ()
+    fixed = tuple(n for n in RIG_CORRECTION_NAMES if n != "baseline") if scale_only else ()
     result = run_refinement(calib, left, right, reference, out, focal=focal, fixed=fixed, marks=marks, force=force,
                             config=config)
     r = result.report()

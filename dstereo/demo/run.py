@@ -31,7 +31,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dstereo.config.calibration import Step
 
@@ -146,7 +145,7 @@ def calibrate_joint(job, folder: Path, report):
     """Refine both cameras and the rig together on the job's pairs, from its cameras; write stereo.yml and
     stereo.json (with `joint_covariance`'s standard deviations). Returns the solution and that covariance."""
     from dstereo.calib.stereo import calibrate_stereo
-    from dstereo.calib.stereo_pipeline import JOINT_STRUCTURE
+    from dstereo.uncertainty.rig import JOINT_STRUCTURE
     from dstereo.io.results import atomic_folder, write_json
     from dstereo.io.stereo_files import write_stereo_yml
 
@@ -331,9 +330,11 @@ def rms_slope(depth: np.ndarray, focal_px: float) -> float:
 
 
 def rotation_error_deg(r_est: np.ndarray, r_true: np.ndarray) -> float:
-    """Angle of R_est R_true^T, degrees."""
-    c = np.clip((np.trace(r_est @ r_true.T) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.degrees(np.arccos(c)))
+    """Angle of R_est R_true^T, degrees (through the one rotation log: arccos of the trace loses half the digits
+    at the small angles compared here)."""
+    from dstereo.models.pose import rotation_vector
+
+    return float(np.degrees(np.linalg.norm(rotation_vector(np.asarray(r_est) @ np.asarray(r_true).T))))
 
 
 def _norm_sigma(v: np.ndarray, cov: np.ndarray) -> float:
@@ -391,7 +392,9 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
                      BOUNDS["baseline_percent"], 100 * _norm_sigma(s.T, cov[3:6, 3:6]) / s.baseline, b_thesis,
                      100 * (b_thesis / b_true - 1), "%"))
     rot_sigma = float(np.degrees(np.sqrt(np.trace(cov[0:3, 0:3]))))
-    angle = lambda r: float(np.degrees(np.linalg.norm(Rotation.from_matrix(r).as_rotvec())))  # noqa: E731
+    from dstereo.models.pose import rotation_vector
+
+    angle = lambda r: float(np.degrees(np.linalg.norm(rotation_vector(r))))  # noqa: E731
     rows.append(_row("rotation R", "deg", angle(r_true), angle(s.R), rotation_error_deg(s.R, r_true),
                      max(BOUNDS["rotation_deg"], k_sig * rot_sigma), rot_sigma, angle(job.R),
                      rotation_error_deg(job.R, r_true)))

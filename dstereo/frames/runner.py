@@ -98,7 +98,7 @@ class FrameRunner:
         from dstereo.errors import DstereoError
 
         if workers is not None and workers < 1:
-            raise DstereoError(f"--workers {workers}: need 1 or more (1 runs the frames one after another here)")
+            raise DstereoError(f"`workers` {workers}: need 1 or more (1 runs the frames one after another here)")
         if retries < 0:
             raise DstereoError(f"retries {retries}: need 0 or more")
         self.auto = workers is None and scheduler is None
@@ -187,9 +187,9 @@ class FrameRunner:
                     try:
                         client = Client(self.scheduler, timeout="20s")
                     except OSError as exc:
-                        raise DstereoError(f"--scheduler {self.scheduler}: no Dask scheduler answers there ({exc}); "
+                        raise DstereoError(f"`scheduler` {self.scheduler}: no Dask scheduler answers there ({exc}); "
                                            "start one with `dask scheduler` and workers with `dask worker "
-                                           "ADDRESS`, or drop --scheduler to use this machine") from exc
+                                           "ADDRESS`, or drop `scheduler` to use this machine") from exc
                 else:
                     cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                            dashboard_address=None, silence_logs=logging.ERROR, env=worker_env())

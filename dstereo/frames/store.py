@@ -57,8 +57,8 @@ class PartialStore:
         inputs = self.folder / "inputs.json"
         if self.folder.exists() and not resume:
             if not force:
-                raise DstereoError(f"{self.folder} holds the finished frames of an earlier run; pass --resume to "
-                                   "continue it, or --force to start afresh (its frames are deleted)")
+                raise DstereoError(f"{self.folder} holds the finished frames of an earlier run; pass `resume` to "
+                                   "continue it, or `force` to start afresh (its frames are deleted)")
             shutil.rmtree(self.folder)
         if self.folder.exists():
             try:
@@ -66,9 +66,9 @@ class PartialStore:
             except (OSError, ValueError, KeyError):
                 found = None
             if found != self.key:
-                raise DstereoError(f"--resume: {self.folder} was made from other inputs or settings (calibration, "
-                                   "frame files or options differ); rerun with the same ones, or pass --force "
-                                   "without --resume to start afresh")
+                raise DstereoError(f"`resume`: {self.folder} was made from other inputs or settings (calibration, "
+                                   "frame files or options differ); rerun with the same ones, or pass `force` "
+                                   "without `resume` to start afresh")
         self.frames.mkdir(parents=True, exist_ok=True)
         if not inputs.exists():
             replace_atomically(inputs, lambda p: p.write_text(json.dumps({"fingerprint": self.key}) + "\n"))
@@ -92,7 +92,7 @@ class PartialStore:
             with np.load(npz_path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
         except (OSError, ValueError) as exc:
-            raise DstereoError(f"--resume: {npz_path} cannot be read ({exc}); delete it (and its .json) to "
+            raise DstereoError(f"`resume`: {npz_path} cannot be read ({exc}); delete it (and its .json) to "
                                "recompute that frame") from exc
         return arrays, meta
 

@@ -15,9 +15,13 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models.camera import Camera
+from dstereo.models.distortion import Distortion
+from dstereo.models.rig import Rig
 
 ALIASES = {
     "K1": ("M1", "K1", "cameraMatrix1", "camera_matrix_1", "cameraMatrixL"),
@@ -65,6 +69,20 @@ class StereoCalibration:
     @property
     def baseline(self) -> float:
         return float(np.linalg.norm(self.T))
+
+    def cameras(self) -> tuple[Camera, Camera]:
+        """(left, right) as `dstereo.models.camera.Camera`, no coefficient free (a calibration being used)."""
+        size = tuple(self.image_size) if self.image_size is not None else (0, 0)
+        def camera(K, D):
+            coeffs = jnp.asarray(np.asarray(D, float).ravel()[:8])
+            return Camera(jnp.asarray(self.k_vector(K)), Distortion(coeffs, ()), size)
+
+        return camera(self.K1, self.D1), camera(self.K2, self.D2)
+
+    @property
+    def rig(self) -> Rig:
+        """R, T as the one rig type (`dstereo.models.rig.Rig`); R and T stay as the file gave them."""
+        return Rig.from_matrix(self.R, self.T)
 
     def projections(self) -> tuple[np.ndarray, np.ndarray]:
         """P1, P2 of an already rectified pair (only meaningful when `rectified`)."""
@@ -179,7 +197,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
             data = {**_read_storage(other), **data}
     if str(data.get("distortion_model") or "pinhole").strip().lower() != "pinhole":
         raise DstereoError(f"{path}: distortion_model {data['distortion_model']!r}: stereo rigs with fisheye cameras "
-                           "are not supported yet (issue 16); only one camera can be calibrated with --model fisheye")
+                           "are not supported yet (issue 16); only one camera can be calibrated with `model` fisheye")
     missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
     if missing and any(k in data for k in MONO_KEYS):
         raise DstereoError(
@@ -296,7 +314,7 @@ def read_stereo_calibration(path: str | Path) -> StereoCalibration:
     """Any supported stereo calibration file (see the module docstring), by content."""
     path = Path(path)
     if not path.is_file():
-        raise DstereoError(f"calibration file {path} does not exist; give --calib a stereo.yml, OpenCV YAML or calib.txt")
+        raise DstereoError(f"calibration file {path} does not exist; give `calib` a stereo.yml, OpenCV YAML or calib.txt")
     head = path.read_text(errors="replace")[:4000]
     if re.search(r"^\s*cam0\s*=", head, flags=re.MULTILINE):
         return read_middlebury_calib(path)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.models.board import Board
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 _DETECTOR_VERSION = "v1"  # bump when detection parameters change so cached corners are not reused
@@ -22,24 +23,34 @@ _DETECTOR_VERSION = "v1"  # bump when detection parameters change so cached corn
 
 @dataclass
 class Detection:
-    """Corners of the usable images (name -> (n, 2) float64), rejects (name -> reason), image size (w, h)."""
+    """Corners of the usable images (name -> (n, 2) float64), rejects (name -> reason), image size (w, h), and
+    the board they were detected on (the one carrier of the pattern and the square size)."""
 
     corners: dict[str, np.ndarray]
     rejected: dict[str, str]
     image_size: tuple[int, int]
-    object_points: np.ndarray
-    pattern: tuple[int, int]
-    square: float
+    board: Board
     folder: str = ""
     from_cache: int = 0
     names: list[str] = field(default_factory=list)  # every image considered, sorted
 
+    # Read-only views of `board`, for callers that need only one of its parts.
+    @property
+    def object_points(self) -> np.ndarray:
+        return self.board.object_points()
+
+    @property
+    def pattern(self) -> tuple[int, int]:
+        return self.board.pattern
+
+    @property
+    def square(self) -> float:
+        return self.board.square
+
 
 def board_points(pattern: tuple[int, int], square: float) -> np.ndarray:
-    """(cols*rows, 3) object points of the inner corners, z = 0, OpenCV's order (x fastest)."""
-    cols, rows = pattern
-    yy, xx = np.mgrid[0:rows, 0:cols]
-    return np.column_stack([xx.ravel() * square, yy.ravel() * square, np.zeros(cols * rows)]).astype(np.float64)
+    """(cols*rows, 3) object points of the inner corners (`dstereo.models.board.Board.object_points`)."""
+    return Board.from_pattern(pattern, square).object_points()
 
 
 def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
@@ -59,10 +70,10 @@ def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
 def list_images(folder: Path, suffix: str | None = None) -> list[Path]:
     folder = Path(folder)
     if folder.is_file():
-        raise DstereoError(f"images: {folder} is a file; point --images at the folder that holds the chessboard "
-                           "images (or the folder plus --glob 'name*.jpg')")
+        raise DstereoError(f"images: {folder} is a file; point `images` at the folder that holds the chessboard "
+                           "images (or the folder plus `glob` 'name*.jpg')")
     if not folder.is_dir():
-        raise DstereoError(f"images: folder {folder} does not exist; point --images at the chessboard images")
+        raise DstereoError(f"images: folder {folder} does not exist; point `images` at the chessboard images")
     suffixes = (("." + suffix.lstrip(".").lower()),) if suffix else IMAGE_SUFFIXES
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
     if not files:
@@ -147,9 +158,9 @@ def detect_folder(
     if not corners:
         raise DstereoError(
             f"images: no image in {folder} shows a full {pattern[0]}x{pattern[1]} board; "
-            "check --pattern (inner corners, COLSxROWS, e.g. 9x6)"
+            "check `pattern` (inner corners, COLSxROWS, e.g. 9x6)"
             + (f" ({len(unreadable)} of the {len(files)} images could not be decoded)" if unreadable else "")
         )
     size = next(iter(sizes))
-    return Detection(corners, rejected, size, board_points(pattern, square), pattern, square, str(folder), hits,
+    return Detection(corners, rejected, size, Board.from_pattern(pattern, square), str(folder), hits,
                      [p.name for p in files])

@@ -156,8 +156,8 @@ def check_order_agrees_with_names(left: list[Path], right: list[Path]) -> None:
     by_name = {a: b for a, b in named.pairs}
     for a, b in zip(map(Path, left), map(Path, right)):
         if by_name[a] != b:
-            raise DstereoError(f"--left {a} is given with --right {b}, but by name its partner is {by_name[a]}; give "
-                               "the --right images in the order of the --left ones")
+            raise DstereoError(f"`left` {a} is given with `right` {b}, but by name its partner is {by_name[a]}; give "
+                               "the `right` images in the order of the `left` ones")
 
 
 def camera_side(path: str | Path) -> str | None:
@@ -180,4 +180,4 @@ def check_one_camera(files: list[Path], where: str) -> None:
         raise DstereoError(
             f"images: {where} holds both cameras' images ({len(sides['left'])} left, e.g. {sides['left'][0].name}; "
             f"{len(sides['right'])} right, e.g. {sides['right'][0].name}); a calibration is of one camera: give "
-            "--glob (e.g. --glob 'left*.jpg'), or calibrate the rig with --left and --right")
+            "`glob` (e.g. `glob` 'left*.jpg'), or calibrate the rig with `left` and `right`")

@@ -49,9 +49,9 @@ def check_output(out: str | Path, force: bool) -> Path:
 
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise DstereoError(f"results: {out} exists and is not a folder; choose another --out")
+        raise DstereoError(f"results: {out} exists and is not a folder; choose another `out`")
     if out.exists() and not force:
-        raise DstereoError(f"results folder {out} already exists; choose another --out or pass --force to replace it")
+        raise DstereoError(f"results folder {out} already exists; choose another `out` or pass `force` to replace it")
     return check_creatable(out)
 
 
@@ -223,7 +223,8 @@ def summary_dict(cal) -> dict:
     summary = {
         "config": as_dict(cal.config),
         "image_size": list(det.image_size),
-        "pattern": {"columns": det.pattern[0], "rows": det.pattern[1], "square": det.square, "unit": cal.config.unit},
+        "pattern": {"columns": det.board.cols, "rows": det.board.rows, "square": det.board.square,
+                    "unit": cal.config.unit},
         "model": list(full.free),
         "images": {"folder": str(cal.folder), "used": list(cal.used), "rejected": dict(det.rejected),
                    "considered": list(det.names)},
@@ -466,9 +467,9 @@ def _fmt_px(value) -> str:
 
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
-    full, cfg = cal.full, cal.config
+    full, cfg, board = cal.full, cal.config, cal.detection.board  # the board summary.json reports, too
     lines = [f"# Camera calibration: {cal.folder}", "",
-             f"- board: {cfg.pattern[0]} x {cfg.pattern[1]} inner corners, square {cfg.square:g} {cfg.unit}",
+             f"- board: {board.cols} x {board.rows} inner corners, square {board.square:g} {cfg.unit}",
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",

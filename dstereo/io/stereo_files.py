@@ -19,6 +19,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder, list_images
 from dstereo.io.pairing import check_enough_pairs, pair_by_name
+from dstereo.models.board import Board
+
 
 @dataclass(frozen=True)
 class DroppedPair:
@@ -38,8 +40,12 @@ class StereoDetection:
     warnings: list[str] = field(default_factory=list)  # images left out for want of a partner named like them
 
     @property
+    def board(self) -> Board:
+        return self.left.board  # both cameras were detected on the one board
+
+    @property
     def object_points(self) -> np.ndarray:
-        return self.left.object_points
+        return self.board.object_points()
 
     def observations(self) -> tuple[np.ndarray, np.ndarray]:
         """(V, n, 2) left and right corners of the pairs, in pair order."""
@@ -76,7 +82,7 @@ def detect_pairs(left, right, pattern: tuple[int, int], square: float, suffix: s
     if same:
         raise DstereoError(f"stereo images: {same[0]} is given as both the left and the right image"
                            + (f" ({len(same) - 1} more)" if len(same) > 1 else "")
-                           + "; give each camera's own images (--left and --right point at different files)")
+                           + "; give each camera's own images (`left` and `right` point at different files)")
     files_l, files_r = [a for a, _ in named.pairs], [b for _, b in named.pairs]
     det_l = detect_folder(files_l[0].parent, pattern, square, files=files_l, use_cache=use_cache, progress=progress)
     det_r = detect_folder(files_r[0].parent, pattern, square, files=files_r, use_cache=use_cache, progress=progress)
@@ -178,10 +184,10 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
 def board_depth_range(solution, object_points: np.ndarray) -> dict:
     """Nearest and farthest board corner depth (left camera z, the calibration's unit) over the solution's
     board poses: `reconstruct` uses it as a search-range prior when a pair has too few sparse matches."""
-    from scipy.spatial.transform import Rotation
+    from dstereo.models.pose import rotation_matrix
 
     obj = np.asarray(object_points, float).reshape(-1, 3)
-    z = np.concatenate([Rotation.from_rotvec(p[:3]).apply(obj)[:, 2] + p[5] for p in np.asarray(solution.poses)])
+    z = np.concatenate([obj @ rotation_matrix(p[:3])[2] + p[5] for p in np.asarray(solution.poses)])
     return {"board_depth_min": float(z.min()), "board_depth_max": float(z.max())}
 
 
@@ -262,8 +268,8 @@ def stereo_summary(job) -> dict:
         full_std |= sigma.std
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
-        "cameras": cams, "pattern": {"columns": det.left.pattern[0], "rows": det.left.pattern[1],
-                                     "square": det.left.square, "unit": job.config.unit},
+        "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
+                                     "square": det.board.square, "unit": job.config.unit},
         "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
                   "F": job.F, **job.final},
         "final_spread": job.spread,
@@ -303,7 +309,7 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     from dstereo.io.results import write_stats_files, write_subsets_csv
 
     s, det = job.full, job.detection
-    from dstereo.calib.stereo_pipeline import rig_covariance
+    from dstereo.uncertainty.rig import rig_covariance
 
     cov_names, cov, cov_structure = job.calibration_covariance or rig_covariance(job)
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
@@ -388,17 +394,17 @@ def frustum_depth(baseline: float, distance: float) -> float:
 def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
     """3D view in the left camera's frame: both cameras (frusta sized by `frustum_depth`), the baseline
     between their centres, and every pair's board."""
-    from scipy.spatial.transform import Rotation
+    from dstereo.models.pose import rotation_matrix
 
     plt = _pyplot()
     obj = detection.object_points
-    cols, rows = detection.left.pattern
+    cols, rows = detection.board.pattern
     outline = obj[[0, cols - 1, cols * rows - 1, cols * (rows - 1), 0]]
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
     boards = []
     for pose in solution.poses:
-        pts = Rotation.from_rotvec(pose[:3]).apply(outline) + pose[3:]
+        pts = outline @ rotation_matrix(pose[:3]).T + pose[3:]
         boards.append(pts)
         ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
     distance = float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))

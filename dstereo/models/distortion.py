@@ -113,20 +113,29 @@ def distort(coeffs: Float[Array, "8"], xy: Float[Array, "2"]) -> Float[Array, "2
     return jnp.stack([xd, yd])
 
 
-def undistort(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 8) -> Float[Array, "2"]:
-    """Exact inverse of `distort` for one point: Newton's method on distort(x) = xy_d.
+def newton_step(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], xy: Float[Array, "2"]) -> Float[Array, "2"]:
+    """One Newton step of distort(coeffs, x) = xy_d from x = xy, one point.
 
-    Newton with the 2x2 JAX Jacobian converges quadratically where the model is invertible, so a handful of
-    iterations reach machine precision (OpenCV's undistortPoints uses a fixed-point scheme that does not).
+    The 2 x 2 system is solved in closed form: vmapped over many points, jnp.linalg.solve's LAPACK call was seen
+    to hang jaxlib 0.10.2's CPU runtime (and it compiles to far more code). From a known root this step returns
+    the root, and its derivative there is the implicit-function one (-J_distort^-1 d residual / d coeffs), which
+    the uncertainty and refinement code differentiate through.
     """
+    f = distort(coeffs, xy) - xy_d
+    (a, b), (c, d) = jax.jacfwd(distort, argnums=1)(coeffs, xy)
+    det = a * d - b * c
+    return xy - jnp.stack([d * f[0] - b * f[1], a * f[1] - c * f[0]]) / det
 
-    def step(xy, _):
-        f = distort(coeffs, xy) - xy_d
-        (a, b), (c, d) = jax.jacfwd(distort, argnums=1)(coeffs, xy)
-        # Closed-form 2 x 2 solve: vmapped over many points, jnp.linalg.solve's LAPACK call was seen to hang
-        # jaxlib 0.10.2's CPU runtime (and it compiles to far more code).
-        det = a * d - b * c
-        return xy - jnp.stack([d * f[0] - b * f[1], a * f[1] - c * f[0]]) / det, None
 
-    xy, _ = jax.lax.scan(step, xy_d, None, length=iterations)
+def undistort(
+    coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 8, start: Float[Array, "2"] | None = None
+) -> Float[Array, "2"]:
+    """Exact inverse of `distort` for one point: `iterations` Newton steps on distort(x) = xy_d from `start`
+    (default xy_d itself). The one undistortion of the pinhole model; every caller uses it.
+
+    Newton converges quadratically where the model is invertible, so a handful of iterations reach machine
+    precision (OpenCV's undistortPoints uses a fixed-point scheme that does not).
+    """
+    x0 = xy_d if start is None else start
+    xy, _ = jax.lax.scan(lambda xy, _: (newton_step(coeffs, xy_d, xy), None), x0, None, length=iterations)
     return xy

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -59,14 +60,68 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _EPS[_i, _j, _k], _EPS[_i, _k, _j] = 1.0, -1.0
 
 
+@jax.jit
 def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
-    """Axis-angle vector of a rotation matrix (numpy-side helper for initialisation and I/O, angle < pi)."""
-    cos_t = jnp.clip((jnp.trace(rmat) - 1.0) / 2.0, -1.0, 1.0)
-    t = jnp.arccos(cos_t)
-    w = jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
-    sin_t = jnp.sin(t)
-    scale = jnp.where(sin_t < 1e-12, 0.5, t / (2.0 * jnp.where(sin_t < 1e-12, 1.0, sin_t)))
-    return w * scale
+    """Axis-angle vector of a rotation matrix (angle in [0, pi]), the one inverse of `rodrigues`.
+
+    Below ~120 degrees (trace >= every diagonal entry) theta = atan2(|w|, (tr - 1) / 2) on the skew part w,
+    accurate to rounding at small angles (arccos of the trace is not); above it the skew part vanishes at pi,
+    so the axis comes from the unit quaternion divided by its largest vector component (Shepperd), accurate
+    up to and at 180 degrees. Unused branches see safe inputs, so gradients stay finite (also at identity).
+    """
+    tr = jnp.trace(rmat)
+    diag = jnp.diagonal(rmat)
+    near_pi = jnp.max(diag) > tr
+    axis = jnp.argmax(diag)
+    small_angle = _log_small_angle(rmat)
+    candidates = jnp.stack([_log_from_axis(rmat, tr, a, near_pi & (axis == a)) for a in range(3)])
+    return jnp.where(near_pi, candidates[axis], small_angle)
+
+
+def _log_small_angle(rmat):
+    w = 0.5 * jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
+    s2 = w @ w
+    small = s2 < 1e-24  # series of theta / sin(theta); the double `where` keeps gradients finite at identity
+    s = jnp.sqrt(jnp.where(small, 1.0, s2))
+    theta = jnp.arctan2(s, 0.5 * (jnp.trace(rmat) - 1.0))
+    return w * jnp.where(small, 1.0 + s2 / 6.0, theta / s)
+
+
+def _log_from_axis(rmat, tr, a: int, selected):
+    """Shepperd's quaternion (w, v) from its component v[a] (the largest), then 2 atan2(|v|, w) v / |v|."""
+    b, c = (a + 1) % 3, (a + 2) % 3
+    m = jnp.where(selected, 1.0 + 2.0 * rmat[a, a] - tr, 1.0)  # > 1 when selected: 4 v[a]^2 >= 1
+    va = 0.5 * jnp.sqrt(m)
+    v = jnp.zeros(3).at[a].set(va)
+    v = v.at[b].set((rmat[b, a] + rmat[a, b]) / (4.0 * va)).at[c].set((rmat[c, a] + rmat[a, c]) / (4.0 * va))
+    w = (rmat[c, b] - rmat[b, c]) / (4.0 * va)
+    sign = jnp.where(w < 0, -1.0, 1.0)  # the quaternion with w >= 0: angle in [0, pi]
+    w, v = sign * w, sign * v
+    s = jnp.sqrt(v @ v)  # >= 1/2 here
+    return v * (2.0 * jnp.arctan2(s, w) / s)
+
+
+_rodrigues_compiled = jax.jit(rodrigues)
+
+
+def rotation_matrix(rvec) -> np.ndarray:
+    """Host side: `rodrigues` as a writable numpy (3, 3), compiled once (eager JAX would dispatch ~20 tiny ops
+    per call; compiled, a call costs about what scipy's Rotation does, ~10 us measured)."""
+    return np.array(_rodrigues_compiled(jnp.asarray(rvec, float).reshape(3)), float)
+
+
+def rotation_vector(rmat) -> np.ndarray:
+    """Host side: `log_rotation` as a writable numpy (3,)."""
+    return np.array(log_rotation(jnp.asarray(rmat, float).reshape(3, 3)), float)
+
+
+_log_many = jax.jit(jax.vmap(log_rotation))
+
+
+def rotation_vectors(rmats) -> np.ndarray:
+    """Host side: `log_rotation` of (..., 3, 3) matrices at once, as a writable numpy (..., 3)."""
+    rmats = np.asarray(rmats, float)
+    return np.array(_log_many(jnp.asarray(rmats.reshape(-1, 3, 3))), float).reshape(*rmats.shape[:-2], 3)
 
 
 def transform(rvec: Float[Array, "3"], tvec: Float[Array, "3"], p: Float[Array, "3"]) -> Float[Array, "3"]:

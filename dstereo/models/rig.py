@@ -1,4 +1,4 @@
-"""Stereo rig: two cameras and the right camera's pose relative to the left, as OpenCV's stereoCalibrate.
+"""Stereo rig: the right camera's pose relative to the left (`Rig`), as OpenCV's stereoCalibrate.
 
 x_right = R x_left + T with R = rodrigues(rvec) (`T_right_left`). A board pose per stereo pair is
 `T_left_board` (rvec, tvec); the right camera sees the same board at T_right_left T_left_board. The cameras
@@ -14,7 +14,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dstereo.models.camera import Camera, project
-from dstereo.models.pose import rodrigues
+from dstereo.models.pose import log_rotation, rodrigues
+
+# Names of the rig's parameters, [rvec, tvec] (`Rig.as_vector`), as calibration files and covariances list them.
+RIG_NAMES: tuple[str, ...] = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
 
 
 def skew(v: Float[Array, "3"]) -> Float[Array, "3 3"]:
@@ -70,26 +73,64 @@ def pair_residual(
 
 
 class Rig(eqx.Module):
-    """Two cameras and `T_right_left` as an axis-angle `rvec` (3,) and translation `tvec` (3,) (board unit)."""
+    """The right camera's pose relative to the left, `T_right_left`: x_right = R x_left + T, R = rodrigues(rvec).
 
-    left: Camera
-    right: Camera
+    The one stereo-rig type: rvec (3,) axis-angle, tvec (3,) in the board unit (OpenCV's stereoCalibrate R, T).
+    A pytree (its two arrays are leaves), so it passes whole through jit, vmap and grad.
+    """
+
     rvec: Float[Array, "3"]
     tvec: Float[Array, "3"]
 
-    def rotation(self) -> Float[Array, "3 3"]:
-        return rodrigues(self.rvec)
+    @classmethod
+    def from_matrix(cls, R, T) -> "Rig":
+        """From OpenCV's (R (3, 3), T (3,) or (3, 1)); R goes through the one rotation log."""
+        return cls(log_rotation(jnp.asarray(R, float)), jnp.asarray(T, float).reshape(3))
 
-    def rig_vector(self) -> Float[Array, "6"]:
+    @classmethod
+    def from_vector(cls, v: Float[Array, "6"]) -> "Rig":
+        """From [rvec, tvec] in `RIG_NAMES` order."""
+        v = jnp.asarray(v, float)
+        return cls(v[:3], v[3:6])
+
+    def as_vector(self) -> Float[Array, "6"]:
+        """[rvec, tvec], `RIG_NAMES` order."""
         return jnp.concatenate([self.rvec, self.tvec])
 
+    def rotation(self) -> Float[Array, "3 3"]:
+        """R, OpenCV's rotation matrix of the rig."""
+        return rodrigues(self.rvec)
+
+    def centre(self) -> Float[Array, "3"]:
+        """The right camera's centre in the left camera frame, -R^T T."""
+        return -self.rotation().T @ self.tvec
+
+    def baseline(self) -> Float[Array, ""]:
+        return jnp.linalg.norm(self.tvec)
+
+    def apply(self, p_left: Float[Array, "3"]) -> Float[Array, "3"]:
+        """A left-frame point in the right camera frame."""
+        return self.rotation() @ p_left + self.tvec
+
+    def inverse(self) -> "Rig":
+        """T_left_right: x_left = R^T x_right - R^T T."""
+        return Rig(-self.rvec, -self.rotation().T @ self.tvec)
+
+    def compose(self, other: "Rig") -> "Rig":
+        """`self` after `other` (T_a_b.compose(T_b_c) = T_a_c): x_a = R_ab (R_bc x_c + T_bc) + T_ab."""
+        rot = self.rotation()
+        return Rig(log_rotation(rot @ other.rotation()), rot @ other.tvec + self.tvec)
+
     def essential(self) -> Float[Array, "3 3"]:
+        """E = [T]x R (x_r' E x_l = 0 on normalised image points)."""
         return essential_matrix(self.rvec, self.tvec)
 
-    def fundamental(self) -> Float[Array, "3 3"]:
-        return fundamental_matrix(self.left.k, self.right.k, self.essential())
+    def fundamental(self, k_left: Float[Array, "4"], k_right: Float[Array, "4"]) -> Float[Array, "3 3"]:
+        """F for the cameras' intrinsics (fx, fy, cx, cy), scaled to F[2, 2] = 1 as cv2.stereoCalibrate."""
+        return fundamental_matrix(k_left, k_right, self.essential())
 
-    def project_pair(self, pose_left: Float[Array, "6"], p_board: Float[Array, "3"]) -> Float[Array, "2 2"]:
-        """One board point at board pose `pose_left` -> its (left, right) pixels."""
-        p_left, p_right = board_in_cameras(self.rig_vector(), pose_left, p_board[None])
-        return jnp.stack([self.left.project(p_left[0]), self.right.project(p_right[0])])
+    def project_pair(self, left: Camera, right: Camera, pose_left: Float[Array, "6"],
+                     p_board: Float[Array, "3"]) -> Float[Array, "2 2"]:
+        """One board point at board pose `pose_left` (T_left_board) -> its (left, right) pixels."""
+        p_left, p_right = board_in_cameras(self.as_vector(), pose_left, p_board[None])
+        return jnp.stack([left.project(p_left[0]), right.project(p_right[0])])

@@ -61,8 +61,8 @@ REQUIRED_KEYS = ("focus_distance", "focal_length", "f_number")
 
 
 def describe(key: str) -> str:
-    """How a user names parameter `key`: the flag and the `[optics]` config key."""
-    return f"--{key.replace('_', '-')} / [optics] {key}"
+    """Parameter `key` as errors name it (the CLI shows its flag: dstereo.config.messages)."""
+    return f"`{key}`"
 
 
 # --- eq. 2.1-2.7 and 5.1-5.3 -----------------------------------------------------------------------------
@@ -204,38 +204,6 @@ def parse_sensor(value: Any) -> tuple[float, float]:
     return (width, height)
 
 
-def load_config_file(path: str | os.PathLike) -> dict[str, Any]:
-    """The `[optics]` section of a TOML file, as a dict; unknown keys are an error naming them."""
-    import tomllib
-
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise DstereoError(f"cannot read config file {path}: {exc.strerror}; check --config")
-    except tomllib.TOMLDecodeError as exc:
-        raise DstereoError(f"config file {path} is not valid TOML ({exc}); fix the file")
-    section = data.get("optics")
-    if not isinstance(section, dict):
-        raise DstereoError(f"config file {path} has no [optics] section; add one with keys {', '.join(CONFIG_KEYS)}")
-    unknown = sorted(set(section) - set(CONFIG_KEYS))
-    if unknown:
-        allowed = ", ".join(CONFIG_KEYS)
-        raise DstereoError(f"unknown key(s) {', '.join(unknown)} in [optics] of {path}; allowed: {allowed}")
-    return dict(section)
-
-
-def merge_settings(file_values: Mapping[str, Any], flag_values: Mapping[str, Any]) -> dict[str, Any]:
-    """Flags (non-None) override the file; a flag giving `sensor` or `crop_factor` drops the other from the file."""
-    given = {k: v for k, v in flag_values.items() if v is not None}
-    merged = dict(file_values)
-    for a, b in (("sensor", "crop_factor"), ("crop_factor", "sensor")):
-        if a in given:
-            merged.pop(b, None)
-    merged.update(given)
-    return merged
-
-
 def _positive(key: str, value: Any) -> float:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
     if not ok:
@@ -281,8 +249,8 @@ def _check_geometry(config: OpticsConfig, explicit_dof: bool = True) -> OpticsCo
         if explicit_dof:
             raise DstereoError(
                 f"focus distance ({describe('focus_distance')}) {s:g} mm is possible with the {f:g} mm lens, but "
-                f"--dof-focal-length effective puts the 35 mm-equivalent focal length {f_dof:g} mm into the thin-lens "
-                f"DoF equations, which then need a focus distance above {f_dof:g} mm; pass --dof-focal-length lens "
+                f"`dof_focal_length` effective puts the 35 mm-equivalent focal length {f_dof:g} mm into the thin-lens "
+                f"DoF equations, which then need a focus distance above {f_dof:g} mm; set `dof_focal_length` lens "
                 "for the depth of field of the lens itself")
         config = replace(config, dof_focal_length="lens")
     if config.baseline is not None and config.pixel_size is None:

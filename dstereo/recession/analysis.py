@@ -54,12 +54,12 @@ class RecessionConfig:
         if self.stagnation_radius_mm is None:
             object.__setattr__(self, "stagnation_radius_mm", stagnation_radius_for(self.grid_mm))
         if not self.stagnation_radius_mm > 0:
-            raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm}: need a positive radius in mm")
+            raise DstereoError(f"`stagnation_radius` {self.stagnation_radius_mm}: need a positive radius in mm")
         if self.stagnation_radius_mm < 2 * self.grid_mm:
-            raise DstereoError(f"--stagnation-radius {self.stagnation_radius_mm} mm is under two grid cells "
-                               f"({self.grid_mm} mm); use a larger radius or a finer --grid")
+            raise DstereoError(f"`stagnation_radius` {self.stagnation_radius_mm} mm is under two grid cells "
+                               f"({self.grid_mm} mm); use a larger radius or a finer `grid`")
         if self.point is not None and self.axis is None:
-            raise DstereoError("--point needs --axis too (the point alone does not fix the axis)")
+            raise DstereoError("`point` needs `axis` too (the point alone does not fix the axis)")
 
 
 @dataclass
@@ -412,8 +412,8 @@ def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: in
     n = int(np.isfinite(heights).sum())
     if n < min_cells:
         raise DstereoError(f"only {n} grid cells of {config.grid_mm:g} mm hold {config.min_points_per_cell} or more "
-                           "points in the reference frame; use a coarser --grid (cells of ~4 x 4 pixels or more) or "
-                           "a lower --min-points")
+                           "points in the reference frame; use a coarser `grid` (cells of ~4 x 4 pixels or more) or "
+                           "a lower `min_points`")
 
 
 def _reconstructor(calib, recon_config, refine: bool):

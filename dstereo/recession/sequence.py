@@ -120,7 +120,7 @@ def discover(sequence: str | Path, timestamps: str | Path | None = None, fps: fl
     left_dir, right_dir = find_folders(sequence)
     pairs = pair_images(left_dir, right_dir)
     if fps is not None and not fps > 0:
-        raise DstereoError(f"--fps {fps}: need a positive frame rate")
+        raise DstereoError(f"`fps` {fps}: need a positive frame rate")
     csv_path = Path(timestamps) if timestamps is not None else sequence / "timestamps.csv"
     table = read_timestamps(csv_path) if timestamps is not None or csv_path.is_file() else None
     frames = []
@@ -130,13 +130,13 @@ def discover(sequence: str | Path, timestamps: str | Path | None = None, fps: fl
         elif fps is not None:
             m = LAST_INTEGER.search(key)
             if m is None:
-                raise DstereoError(f"{left}: --fps needs a frame number in the name; none found in {key!r}")
+                raise DstereoError(f"{left}: `fps` needs a frame number in the name; none found in {key!r}")
             t = int(m.group(1)) / fps
         else:
             t = time_from_name(key)
             if t is None:
-                raise DstereoError(f"{left}: no time for this frame: give --timestamps CSV (name,time_s), put "
-                                   "timestamps.csv in the sequence folder, give --fps, or write the time in the "
+                raise DstereoError(f"{left}: no time for this frame: give `timestamps` CSV (name,time_s), put "
+                                   "timestamps.csv in the sequence folder, give `fps`, or write the time in the "
                                    "name (e.g. left_t=12.5s.png)")
         frames.append(Frame(key, left, right, float(t)))
     if len(frames) < 2:

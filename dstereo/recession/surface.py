@@ -260,13 +260,13 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
     p = valid_points(points)
     if len(p) < min_points:
         raise DstereoError(f"only {len(p)} points in the first frame; need at least {min_points} to find the "
-                           "sample axis (check the calibration and the depth range, or give --axis and --point)")
+                           "sample axis (check the calibration and the depth range, or give `axis` and `point`)")
     keep = _ransac_start(p, grid_mm)
     previous, change = None, float("nan")
     for passes in range(1, MAX_PASSES + 1):
         if keep.sum() < min_points:
             raise DstereoError(f"the automatic sample axis kept only {int(keep.sum())} face points after {passes - 1} "
-                               "plane fits; the front face is not seen clearly: give --axis and --point")
+                               "plane fits; the front face is not seen clearly: give `axis` and `point`")
         frame = _plane_frame(p[keep])
         new_keep, coef = face_points(frame.coordinates(p), grid_mm, k, keep)
         if passes > FREE_PASSES:
@@ -279,7 +279,7 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
     else:
         raise DstereoError(f"the automatic sample axis did not settle: after {MAX_PASSES} plane fits it still moved "
                            f"{change:.3f} deg per fit (tolerance {AXIS_TOLERANCE_DEG} deg); the face may be hidden in "
-                           "part or not roughly symmetric: give --axis and --point")
+                           "part or not roughly symmetric: give `axis` and `point`")
     uvh = frame.coordinates(p[new_keep])
     _, coef = _trim(uvh, k, np.ones(len(uvh), bool))
     cells = np.unique(np.round(uvh[:, :2] / grid_mm).astype(np.int64), axis=0) * grid_mm
@@ -325,11 +325,11 @@ class Grid:
 def grid_over(uv: np.ndarray, spacing: float) -> Grid:
     """Grid covering the given face coordinates (first frame) with a cell centre on the stagnation point."""
     if not spacing > 0:
-        raise DstereoError(f"--grid {spacing}: need a positive cell size in mm")
+        raise DstereoError(f"`grid` {spacing}: need a positive cell size in mm")
     lo = np.floor(uv.min(axis=0) / spacing).astype(int)
     hi = np.ceil(uv.max(axis=0) / spacing).astype(int)
     if np.prod(hi - lo + 1) > 4_000_000:
-        raise DstereoError(f"--grid {spacing} mm gives {np.prod(hi - lo + 1)} cells over the face; use a coarser grid")
+        raise DstereoError(f"`grid` {spacing} mm gives {np.prod(hi - lo + 1)} cells over the face; use a coarser grid")
     return Grid(float(spacing), np.arange(lo[0], hi[0] + 1) * spacing, np.arange(lo[1], hi[1] + 1) * spacing)
 
 

@@ -55,7 +55,7 @@ def converging_rig(image_size: tuple[int, int], focal_px: tuple[float, float], b
                          image_size=tuple(image_size))
     right = Camera.create(fr, fr * 1.0005, (w - 1) / 2 - 3.0, (h - 1) / 2 + 2.0, base.right.coeffs(),
                           image_size=tuple(image_size))
-    return StereoRig(left, right, base.T_right_left, base.T_left_world)
+    return StereoRig(left, right, base.rig, base.T_left_world)
 
 
 def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.0, total_mm: float = 2.0,

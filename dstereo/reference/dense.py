@@ -41,7 +41,7 @@ def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
     v, u = np.nonzero(_trusted(result))
     if len(u) < 50:
         raise DstereoError("dense matching found fewer than 50 valid pixels on the reference; give it texture, set "
-                           "the depth range (--z-min/--z-max) or check the calibration's image size")
+                           "the depth range (`z_min`/`z_max`) or check the calibration's image size")
     keep = np.sort(np.random.default_rng(seed).permutation(len(u))[:max_points])
     u, v = u[keep].astype(float), v[keep].astype(float)
     d = result.disparity[v.astype(int), u.astype(int)].astype(float)

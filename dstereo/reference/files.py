@@ -27,7 +27,7 @@ def board_corners(image: np.ndarray, board: Board, name: str) -> np.ndarray:
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     corners, reason = _detect_one(grey, tuple(board.pattern))
     if corners is None:
-        raise DstereoError(f"{name}: {reason}; check --board (inner corners, COLSxROWS, e.g. 9x6) and that the whole "
+        raise DstereoError(f"{name}: {reason}; check `board` (inner corners, COLSxROWS, e.g. 9x6) and that the whole "
                            "board is in view")
     return corners
 
@@ -81,10 +81,9 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
 def write_calibration(path: Path, calib: StereoCalibration, image_size: tuple[int, int]) -> None:
     from dstereo.io.stereo_files import write_stereo_yml
 
-    t = np.asarray(calib.T).reshape(3)
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ calib.R
-    F = np.linalg.inv(calib.K2).T @ E @ np.linalg.inv(calib.K1)
-    write_stereo_yml(path, calib.K1, calib.D1, calib.K2, calib.D2, calib.R, t, E, F / F[2, 2],
+    rig = calib.rig
+    E, F = np.array(rig.essential(), float), np.array(rig.fundamental(calib.k1, calib.k2), float)
+    write_stereo_yml(path, calib.K1, calib.D1, calib.K2, calib.D2, calib.R, np.asarray(calib.T).reshape(3), E, F,
                      calib.image_size or image_size)
 
 

@@ -1,8 +1,9 @@
 """Reference objects of known geometry: a chessboard, a sphere, marked points with known distances, a mesh.
 
 Each is a small immutable pytree holding only what is known about the object (lengths in mm). Which
-observations go with which object: a Board with its inner corners in both images, a Sphere or Mesh with dense
-matched pixel pairs, Distances with the marked points' pixels in both images (in the order of `points`).
+observations go with which object: a Board (`dstereo.models.board.Board`, the calibration's board) with its inner
+corners in both images, a Sphere or Mesh with dense matched pixel pairs, Distances with the marked points' pixels
+in both images (in the order of `points`).
 """
 
 from __future__ import annotations
@@ -16,23 +17,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from dstereo.errors import DstereoError
+from dstereo.models.board import Board
 
-
-class Board(eqx.Module):
-    """Chessboard: `pattern` (columns, rows) of inner corners, `square` side (mm)."""
-
-    pattern: tuple[int, int] = eqx.field(static=True)
-    square: float = eqx.field(static=True)
-
-    def __check_init__(self):
-        if self.square <= 0 or min(self.pattern) < 2:
-            raise DstereoError(f"board {self.pattern} square {self.square}: need >= 2x2 inner corners, square > 0 mm")
-
-    def object_points(self) -> np.ndarray:
-        """(cols * rows, 3) inner corners in the board frame, OpenCV's order (x fastest), mm."""
-        cols, rows = self.pattern
-        yy, xx = np.mgrid[0:rows, 0:cols]
-        return np.column_stack([xx.ravel(), yy.ravel(), np.zeros(cols * rows)]) * float(self.square)
+__all__ = ["Board", "Distances", "Mesh", "Sphere", "read_marks"]
 
 
 class Sphere(eqx.Module):

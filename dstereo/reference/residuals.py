@@ -27,10 +27,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from dstereo.models.camera import project
-from dstereo.models.distortion import distort, undistort
+from dstereo.models.camera import Camera, project
+from dstereo.models.distortion import Distortion, undistort
 from dstereo.models.pose import rodrigues
-from dstereo.reference.correction import PARAM_NAMES, RIG_NAMES, apply
+from dstereo.models.rig import Rig
+from dstereo.reference.correction import PARAM_NAMES, RIG_CORRECTION_NAMES, apply
 
 _project = jax.vmap(project, in_axes=(None, None, 0))
 
@@ -41,11 +42,6 @@ def split(x: Float[Array, " p"], free: tuple[int, ...]) -> tuple[Float[Array, " 
     return theta, x[len(free):]
 
 
-def _ray(k, coeffs, q):
-    xy = undistort(coeffs, (q - k[2:4]) / k[0:2])
-    return jnp.array([xy[0], xy[1], 1.0])
-
-
 def _solve2(a: Float[Array, "2 2"], b: Float[Array, "2"]) -> Float[Array, "2"]:
     """a^-1 b by Cramer's rule: a batched 2x2 LU compiles several times slower and gains nothing here."""
     det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
@@ -53,42 +49,40 @@ def _solve2(a: Float[Array, "2 2"], b: Float[Array, "2"]) -> Float[Array, "2"]:
 
 
 def _ray_from(k, coeffs, q, xy0):
-    """As `_ray`, by two Newton steps from `xy0`, the undistorted point under the calibration being corrected.
+    """`Camera.unproject`'s ray, by two Newton steps from `xy0`, the undistorted point under the calibration
+    being corrected.
 
     Exact where the intrinsics are not corrected (xy0 is then the fixed point), quadratically convergent for a
     focal correction of ~1e-3 (error ~1e-12), and its derivative at the start is the implicit-function one.
     Compiles and differentiates far faster than the full Newton loop (measured: 6.5 s -> ~1 s to compile the
     sphere problem)."""
-    xy_d = (q - k[2:4]) / k[0:2]
-    xy = xy0
-    for _ in range(2):
-        jac = jax.jacfwd(distort, argnums=1)(coeffs, xy)
-        xy = xy - _solve2(jac, distort(coeffs, xy) - xy_d)
+    xy = undistort(coeffs, (q - k[2:4]) / k[0:2], iterations=2, start=xy0)
     return jnp.array([xy[0], xy[1], 1.0])
 
 
 @jax.jit
 def undistorted(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "n 2"]) -> Float[Array, "n 2"]:
     """Undistorted normalised coordinates of raw pixels (the start `xy0` of `triangulate`)."""
-    return jax.vmap(lambda p: _ray(k, coeffs, p)[:2])(q)
+    return jax.vmap(lambda p: Camera(k, Distortion(coeffs, ())).unproject(p)[:2])(q)
 
 
-def triangulate(k_l, c_l, k_r, c_r, R, T, q_l: Float[Array, "n 2"], q_r: Float[Array, "n 2"],
+def triangulate(left: Camera, right: Camera, rig: Rig, q_l: Float[Array, "n 2"], q_r: Float[Array, "n 2"],
                 xy0_l=None, xy0_r=None, focal: bool = True) -> Float[Array, "n 3"]:
     """Midpoint triangulation of raw pixel pairs in the left camera frame (as `dstereo.stereo.triangulate`, traceable).
 
     With `xy0_l`, `xy0_r` (`undistorted` under the uncorrected calibration) the rays start from them, and are
     them when the focal lengths are not corrected (`focal=False`, static): the intrinsics are then constant."""
+    k_l, c_l, k_r, c_r, R = left.k, left.dist.coeffs, right.k, right.dist.coeffs, rig.rotation()
     if xy0_l is not None and not focal:
         one = jnp.ones((xy0_l.shape[0], 1))
         v1, v2 = jnp.concatenate([xy0_l, one], axis=1), jnp.concatenate([xy0_r, one], axis=1) @ R
     elif xy0_l is None:
-        v1 = jax.vmap(_ray, in_axes=(None, None, 0))(k_l, c_l, q_l)
-        v2 = jax.vmap(_ray, in_axes=(None, None, 0))(k_r, c_r, q_r) @ R
+        v1 = jax.vmap(left.unproject)(q_l)
+        v2 = jax.vmap(right.unproject)(q_r) @ R
     else:
         v1 = jax.vmap(_ray_from, in_axes=(None, None, 0, 0))(k_l, c_l, q_l, xy0_l)
         v2 = jax.vmap(_ray_from, in_axes=(None, None, 0, 0))(k_r, c_r, q_r, xy0_r) @ R
-    o2 = -R.T @ T
+    o2 = rig.centre()
 
     def mid(a, b):
         m = jnp.stack([a, -b], axis=1)
@@ -102,13 +96,15 @@ def board_residuals(x, data, free: tuple[int, ...]):
     """Reprojection residuals (px) of V board views, left then right per view: data = (base, obj, obs_l, obs_r)."""
     base, obj, obs_l, obs_r = data
     theta, nuisance = split(x, free)
-    k_l, c_l, k_r, c_r, R, T = apply(base, theta)
+    left, right, rig = apply(base, theta)
+    R, T = rig.rotation(), rig.tvec
     poses = nuisance.reshape(-1, 6)
 
     def view(pose, ql, qr):
         p_l = obj @ rodrigues(pose[:3]).T + pose[3:6]
         p_r = p_l @ R.T + T
-        return jnp.concatenate([(_project(k_l, c_l, p_l) - ql).ravel(), (_project(k_r, c_r, p_r) - qr).ravel()])
+        return jnp.concatenate([(_project(left.k, left.dist.coeffs, p_l) - ql).ravel(),
+                                (_project(right.k, right.dist.coeffs, p_r) - qr).ravel()])
 
     return jax.vmap(view)(poses, obs_l, obs_r).ravel()
 
@@ -118,7 +114,7 @@ def sphere_residuals(x, data, free: tuple[int, ...]):
     shapes stay fixed): data = (base, (q_l, q_r, xy0_l, xy0_r), radius, weight); x ends in the centre."""
     base, matches, radius, weight = data
     theta, centre = split(x, free)
-    p = triangulate(*apply(base, theta), *matches, focal=max(free) >= len(RIG_NAMES))
+    p = triangulate(*apply(base, theta), *matches, focal=max(free) >= len(RIG_CORRECTION_NAMES))
     return (jnp.linalg.norm(p - centre, axis=1) - radius) * weight
 
 
@@ -128,10 +124,10 @@ def distance_residuals(x, data, free: tuple[int, ...]):
     data = (base, q_l, q_r, pairs, lengths, sigma_px, sigma_mm); x ends in the m points (left frame, mm)."""
     base, q_l, q_r, pairs, lengths, sigma_px, sigma_mm = data
     theta, nuisance = split(x, free)
-    k_l, c_l, k_r, c_r, R, T = apply(base, theta)
+    left, right, rig = apply(base, theta)
     p = nuisance.reshape(-1, 3)
-    r_l = (_project(k_l, c_l, p) - q_l) / sigma_px
-    r_r = (_project(k_r, c_r, p @ R.T + T) - q_r) / sigma_px
+    r_l = (_project(left.k, left.dist.coeffs, p) - q_l) / sigma_px
+    r_r = (_project(right.k, right.dist.coeffs, p @ rig.rotation().T + rig.tvec) - q_r) / sigma_px
     d = jnp.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
     return jnp.concatenate([r_l.ravel(), r_r.ravel(), (d - lengths) / sigma_mm])
 
@@ -141,6 +137,6 @@ def mesh_residuals(x, data, free: tuple[int, ...]):
     chosen triangle's vertex v0 and unit normal (mesh frame); x ends in the mesh pose T_left_mesh (rvec, tvec)."""
     base, matches, v0, normal = data
     theta, pose = split(x, free)
-    p = triangulate(*apply(base, theta), *matches, focal=max(free) >= len(RIG_NAMES))
+    p = triangulate(*apply(base, theta), *matches, focal=max(free) >= len(RIG_CORRECTION_NAMES))
     p_mesh = (p - pose[3:6]) @ rodrigues(pose[:3])  # R^T (p - t), row-wise
     return jnp.sum((p_mesh - v0) * normal, axis=1)

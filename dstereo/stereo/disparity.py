@@ -128,7 +128,7 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise DstereoError(f"--sgbm {item!r}: write NAME=VALUE, e.g. --sgbm block_size=7")
+            raise DstereoError(f"`sgbm` {item!r}: write NAME=VALUE, e.g. `sgbm` block_size=7")
         out[key.strip()] = value.strip()
     return out
 

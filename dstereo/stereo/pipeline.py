@@ -42,7 +42,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
     import cv2
 
-    from dstereo.stereo.rectify import rectified_from_projections, rectify_map, stereo_rectify
+    from dstereo.stereo.rectify import rectified_from_projections, rectify_calibration, rectify_map
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
@@ -54,8 +54,8 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
         outside = np.zeros(left.shape[:2], bool)
         exact_maps = None
     else:
-        rect = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, size, calib.R, calib.T, alpha=config.alpha,
-                              zero_disparity=config.zero_disparity, undistort=config.undistort)
+        rect = rectify_calibration(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
+                                   undistort=config.undistort)
         if rect.vertical:
             raise DstereoError(
                 f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
@@ -171,55 +171,3 @@ def run_reconstruction(
     write_atomically(out, force, fill)
     return results
 
-
-# --- configuration files --------------------------------------------------------------------------------------
-
-CONFIG_NAMES = ("dstereo.toml", "reconstruct.toml", "dstereo.json", "reconstruct.json")
-
-
-def config_from_mapping(data: dict, base: ReconstructionConfig = ReconstructionConfig(), where: str = "config"):
-    """ReconstructionConfig from {'reconstruct': {...}, 'sgbm': {...}} (TOML/JSON layout); 'preset' picks the
-    SGBM starting point, 'z_min'/'z_max' give the depth range in mm."""
-    from dataclasses import fields, replace
-
-    from dstereo.stereo.disparity import CV_NAMES
-
-    section = dict(data.get("reconstruct", {}))
-    sgbm = base.sgbm
-    preset = section.pop("preset", data.get("sgbm", {}).get("preset"))
-    if preset is not None:
-        if preset not in PRESETS:
-            raise DstereoError(f"{where}: unknown SGBM preset {preset!r}; use one of {sorted(PRESETS)}")
-        sgbm = PRESETS[preset]
-    sgbm_items = {k: v for k, v in data.get("sgbm", {}).items() if k != "preset"}
-    sgbm = sgbm.with_overrides(sgbm_items)
-    user = tuple(base.sgbm_user) + (("preset",) if preset is not None else ()) + tuple(
-        CV_NAMES.get(k, k).strip().lower().replace("-", "_") for k in sgbm_items)
-    z = (section.pop("z_min", None), section.pop("z_max", None))
-    known = {f.name for f in fields(ReconstructionConfig)} - {"sgbm", "sgbm_user", "search_range"}
-    unknown = sorted(set(section) - known)
-    if unknown:
-        raise DstereoError(f"{where}: unknown [reconstruct] key(s) {unknown}; known: {sorted(known)} + z_min, z_max")
-    if "roi" in section and section["roi"] is not None:
-        section["roi"] = tuple(int(v) for v in section["roi"])
-    if "depth_range" in section and section["depth_range"] is not None:
-        section["depth_range"] = tuple(float(v) for v in section["depth_range"])
-    if any(v is not None for v in z):
-        if None in z:
-            raise DstereoError(f"{where}: give both z_min and z_max (mm)")
-        section["depth_range"] = (float(z[0]), float(z[1]))
-    return replace(base, sgbm=sgbm, sgbm_user=user, **section)
-
-
-def load_config(path: str | Path, base: ReconstructionConfig = ReconstructionConfig()) -> ReconstructionConfig:
-    """ReconstructionConfig from a TOML or JSON file (see `config_from_mapping`)."""
-    import tomllib
-
-    path = Path(path)
-    if not path.is_file():
-        raise DstereoError(f"configuration file {path} does not exist")
-    try:
-        data = json.loads(path.read_text()) if path.suffix == ".json" else tomllib.loads(path.read_text())
-    except (ValueError, tomllib.TOMLDecodeError) as exc:
-        raise DstereoError(f"{path}: cannot be parsed ({exc})") from None
-    return config_from_mapping(data, base, str(path))

@@ -26,9 +26,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
-from dstereo.models.camera import project
+from dstereo.models.camera import Camera, project
 from dstereo.models.distortion import undistort as undistort_newton
 from dstereo.models.pose import rodrigues
+from dstereo.models.rig import Rig
 
 GRID = 9  # border sampling of OpenCV's getUndistortRectangles: a 9 x 9 grid of pixels
 
@@ -48,16 +49,6 @@ class Rectification(eqx.Module):
     roi2: Float[Array, "4"]
     size: tuple[int, int] = eqx.field(static=True)
     vertical: bool = eqx.field(static=True, default=False)
-
-
-def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
-    """Axis-angle vector of a rotation (angle < pi), accurate at small angles (atan2 rather than arccos)."""
-    w = 0.5 * jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
-    s2 = w @ w
-    small = s2 < 1e-24  # series of theta / sin(theta); the double `where` keeps gradients finite at identity
-    s = jnp.sqrt(jnp.where(small, 1.0, s2))
-    theta = jnp.arctan2(s, 0.5 * (jnp.trace(rmat) - 1.0))
-    return w * jnp.where(small, 1.0 + s2 / 6.0, theta / s)
 
 
 def undistort_fixed_point(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 5) -> Float[Array, "2"]:
@@ -141,16 +132,16 @@ def _roi(rect, c0, c, s, new_w, new_h):
     return jnp.where(empty, jnp.zeros(4), jnp.array([x0, y0, x1 - x0, y1 - y0]))
 
 
-def _half_rotations(R, T):
-    """Half-rotations r_r (right half) and the rotated baseline t = r_r T."""
-    r_r = rodrigues(-0.5 * log_rotation(R))
+def _half_rotations(rvec, T):
+    """Half-rotations r_r (right half) and the rotated baseline t = r_r T (rvec: the rig's axis-angle)."""
+    r_r = rodrigues(-0.5 * rvec)
     return r_r, r_r @ T
 
 
 @partial(jax.jit, static_argnames=("idx", "method"))
-def _rectify(k1, c1, k2, c2, R, T, alpha, zero_disparity, sizes, *, idx, method):
+def _rectify(k1, c1, k2, c2, rvec, T, alpha, zero_disparity, sizes, *, idx, method):
     nx, ny, new_w, new_h = sizes  # traced: one compilation serves every image size
-    r_r, t = _half_rotations(R, T)
+    r_r, t = _half_rotations(rvec, T)
     c = t[idx]
     uu = jnp.zeros(3).at[idx].set(jnp.where(c > 0, 1.0, -1.0))
     ww = jnp.cross(t, uu)  # rotation axis x sin(angle) |t| that turns t onto the image axis
@@ -217,13 +208,10 @@ def q_matrix(P1: Float[Array, "3 4"], P2: Float[Array, "3 4"], vertical: bool = 
 
 
 def stereo_rectify(
-    k1: Float[Array, "4"],
-    coeffs1: Float[Array, "8"],
-    k2: Float[Array, "4"],
-    coeffs2: Float[Array, "8"],
+    left: Camera,
+    right: Camera,
+    rig: Rig,
     image_size: tuple[int, int],
-    R: Float[Array, "3 3"],
-    T: Float[Array, "3"],
     *,
     alpha: float = -1.0,
     zero_disparity: bool = True,
@@ -234,11 +222,12 @@ def stereo_rectify(
     """Bouguet rectification of a calibrated pair, as `cv2.stereoRectify` (whose Python default flag is
     CALIB_ZERO_DISPARITY, i.e. `zero_disparity=True`: both principal points equal).
 
-    k = (fx, fy, cx, cy) in px, coeffs in OpenCV order (k1, k2, p1, p2, k3, k4, k5, k6); image_size = (width,
-    height); R, T: x_right = R x_left + T (T in mm gives Q in mm). `alpha` in [0, 1] is OpenCV's free scaling,
+    The two cameras' k = (fx, fy, cx, cy) px and 8 coefficients (OpenCV order) and the rig (x_right = R x_left
+    + T; T in mm gives Q in mm); image_size = (width, height). `alpha` in [0, 1] is OpenCV's free scaling,
     negative for the default. `zero_disparity=False` keeps each image's own principal point along the baseline
-    (smaller disparities for converging rigs). Differentiable in every array argument; under a JAX transform
-    of R or T give `vertical` (is the baseline closer to the image y axis?), which is otherwise read off R, T.
+    (smaller disparities for converging rigs). Differentiable in every array of the cameras and the rig; under
+    a JAX transform of the rig give `vertical` (is the baseline closer to the image y axis?), which is
+    otherwise read off the rig.
     """
     if undistort not in ("opencv", "exact"):
         raise DstereoError(f"undistort={undistort!r}: use 'opencv' (reproduce cv2) or 'exact' (Newton inverse)")
@@ -246,22 +235,28 @@ def stereo_rectify(
     if w < 2 or h < 2:
         raise DstereoError(f"image_size {image_size}: need width and height of at least 2 pixels")
     new = (w, h) if new_size is None or new_size[0] * new_size[1] == 0 else (int(new_size[0]), int(new_size[1]))
-    R = jnp.asarray(R, dtype=float).reshape(3, 3)
-    T = jnp.asarray(T, dtype=float).reshape(3)
+    rvec = jnp.asarray(rig.rvec, dtype=float).reshape(3)
+    T = jnp.asarray(rig.tvec, dtype=float).reshape(3)
     if vertical is None:
-        if isinstance(R, jax.core.Tracer) or isinstance(T, jax.core.Tracer):
-            raise DstereoError("stereo_rectify under a JAX transform of R or T: pass vertical=True/False")
-        t = np.asarray(_half_rotations(R, T)[1])
+        if isinstance(rvec, jax.core.Tracer) or isinstance(T, jax.core.Tracer):
+            raise DstereoError("stereo_rectify under a JAX transform of the rig: pass vertical=True/False")
+        t = np.asarray(_half_rotations(rvec, T)[1])
         if not np.linalg.norm(t) > 0:
             raise DstereoError("stereo calibration: the baseline T is zero; check the extrinsics (T) of the calibration")
         vertical = bool(abs(t[0]) <= abs(t[1]))
     idx = 1 if vertical else 0
-    out = _rectify(
-        jnp.asarray(k1, dtype=float), jnp.asarray(coeffs1, dtype=float), jnp.asarray(k2, dtype=float),
-        jnp.asarray(coeffs2, dtype=float), R, T, jnp.asarray(alpha, dtype=float), jnp.asarray(bool(zero_disparity)),
-        jnp.array([w, h, *new], dtype=float), idx=idx, method=undistort,
-    )
+    arrays = [jnp.asarray(a, dtype=float) for a in (left.k, left.dist.coeffs, right.k, right.dist.coeffs)]
+    out = _rectify(*arrays, rvec, T, jnp.asarray(alpha, dtype=float), jnp.asarray(bool(zero_disparity)),
+                   jnp.array([w, h, *new], dtype=float), idx=idx, method=undistort)
     return Rectification(*out, size=new, vertical=idx == 1)
+
+
+def rectify_calibration(calib, image_size: tuple[int, int] | None = None, **options) -> Rectification:
+    """`stereo_rectify` of a `StereoCalibration` (its cameras and rig), at its own image size unless given."""
+    size = image_size if image_size is not None else calib.image_size
+    if size is None:
+        raise DstereoError(f"stereo calibration {calib.source or ''}: no image size; give image_size")
+    return stereo_rectify(*calib.cameras(), calib.rig, size, **options)
 
 
 def rectified_from_projections(P1, P2, size: tuple[int, int]) -> Rectification:

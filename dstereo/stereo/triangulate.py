@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from dstereo.models.camera import project
-from dstereo.models.distortion import undistort
+from dstereo.models.camera import Camera
+from dstereo.models.rig import Rig
 
 
 @jax.jit
@@ -76,30 +76,12 @@ def triangulate_rays(
 
 
 @jax.jit
-def triangulate_pixels(
-    k1: Float[Array, "4"],
-    coeffs1: Float[Array, "8"],
-    k2: Float[Array, "4"],
-    coeffs2: Float[Array, "8"],
-    R: Float[Array, "3 3"],
-    T: Float[Array, "3"],
-    q1: Float[Array, "n 2"],
-    q2: Float[Array, "n 2"],
-) -> Float[Array, "n 3"]:
+def triangulate_pixels(left: Camera, right: Camera, rig: Rig, q1: Float[Array, "n 2"],
+                       q2: Float[Array, "n 2"]) -> Float[Array, "n 3"]:
     """Raw (distorted) matched pixels -> points in the left camera frame: exact undistortion, two-ray midpoint.
 
     x_right = R x_left + T, so the right camera centre in the left frame is -R^T T and its rays rotate by R^T.
     """
-
-    def ray(k, coeffs, q):
-        xy = undistort(coeffs, (q - k[2:4]) / k[0:2])
-        return jnp.array([xy[0], xy[1], 1.0])
-
-    v1 = jax.vmap(ray, in_axes=(None, None, 0))(k1, coeffs1, q1)
-    v2 = jax.vmap(ray, in_axes=(None, None, 0))(k2, coeffs2, q2) @ R
-    return triangulate_rays(-R.T @ T, v1, v2)
-
-
-def reprojection_residuals(k, coeffs, R, T, p_left: Float[Array, "n 3"], q: Float[Array, "n 2"]) -> Float[Array, "n 2"]:
-    """Pixel residuals of left-frame points seen by a camera at x_cam = R x_left + T (identity for the left)."""
-    return jax.vmap(lambda p, qq: project(k, coeffs, R @ p + T) - qq)(p_left, q)
+    v1 = jax.vmap(left.unproject)(q1)
+    v2 = jax.vmap(right.unproject)(q2) @ rig.rotation()
+    return triangulate_rays(rig.centre(), v1, v2)

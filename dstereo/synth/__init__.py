@@ -5,6 +5,7 @@ cork Plasmatron sample), a surface-recession sequence, and the truth of every re
 """
 
 from dstereo.synth.board import Board, object_points, true_corners
+from dstereo.synth.multiview import MultiviewRig, MultiviewSet, multiview_poses, multiview_set, ring_rig
 from dstereo.synth.objects import Plane, Sample, Sphere
 from dstereo.synth.poses import board_pose_set, compose, corner_coverage, invert, look_at, pose_from_rt, pose_matrix
 from dstereo.synth.rays import camera_rays
@@ -18,13 +19,14 @@ from dstereo.synth.scenes import (
 from dstereo.synth.sensor import RenderOptions
 from dstereo.synth.texture import Speckle
 from dstereo.synth.truth import read_truth, write_render
-from dstereo.synth.writers import write_calibration_set, write_stereo_renders
+from dstereo.synth.writers import write_calibration_set, write_multiview_set, write_stereo_renders
 
 __all__ = [
-    "CALIBRATION_OPTIONS", "OBJECT_OPTIONS", "Board", "CalibrationSet", "Plane", "RecessionProfile",
-    "RenderOptions", "Sample", "Speckle", "Sphere", "StereoRender", "StereoRig", "board_pose_set",
-    "calibration_set", "camera_rays", "compose", "corner_coverage", "invert", "look_at", "object_pair",
-    "object_points", "plasmatron_rig", "pose_from_rt", "pose_matrix", "profile_for_total", "read_truth",
-    "receded", "recession_sequence", "render_board", "render_object", "sample_pair", "sample_pose",
-    "stereo_rig", "true_corners", "write_calibration_set", "write_render", "write_stereo_renders",
+    "CALIBRATION_OPTIONS", "OBJECT_OPTIONS", "Board", "CalibrationSet", "MultiviewRig", "MultiviewSet", "Plane",
+    "RecessionProfile", "RenderOptions", "Sample", "Speckle", "Sphere", "StereoRender", "StereoRig",
+    "board_pose_set", "calibration_set", "camera_rays", "compose", "corner_coverage", "invert", "look_at",
+    "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
+    "pose_matrix", "profile_for_total", "read_truth", "receded", "recession_sequence", "render_board",
+    "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners",
+    "write_calibration_set", "write_multiview_set", "write_render", "write_stereo_renders",
 ]

@@ -1,7 +1,7 @@
-"""Chessboard target: geometry, true corner positions, and its anti-aliased reflectance on the board plane.
+"""Chessboard target as the renderer sees it: true corner positions and its anti-aliased reflectance.
 
-Board frame: the inner-corner grid lies in z = 0, inner corner (row i, column j) at (j * square, i * square, 0);
-object points are listed row by row, columns fastest, as OpenCV's samples build them. The squares extend one
+The corner geometry is `dstereo.models.board.Board` (`Board.geometry`): inner corner (row i, column j) at
+(j * square, i * square, 0), row by row, columns fastest, OpenCV's order. The squares extend one
 square beyond the inner corners on every side; a white margin `border` (mm) surrounds them. The square that
 touches the first inner corner from the outside (x < 0, y < 0) is black.
 """
@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
+from dstereo.models.board import Board as BoardGeometry
 from dstereo.models.camera import Camera, project_view
 
 
@@ -46,6 +47,11 @@ class Board:
         if self.square <= 0 or self.border < 0:
             raise DstereoError(f"board square={self.square}, border={self.border}: need square > 0, border >= 0")
 
+    @property
+    def geometry(self) -> BoardGeometry:
+        """The board's corner geometry, the model every calibration fits."""
+        return BoardGeometry.from_pattern(self.pattern, self.square)
+
     def squares_extent(self) -> tuple[float, float, float, float]:
         """(x0, y0, x1, y1) of the area covered by squares, board frame, mm."""
         cols, rows = self.pattern
@@ -63,9 +69,8 @@ class Board:
 
 
 def object_points(pattern: tuple[int, int], square: float) -> np.ndarray:
-    """(cols * rows, 3) inner-corner positions in the board frame, OpenCV's order, mm."""
-    cols, rows = pattern
-    return np.array([(x * square, y * square, 0.0) for y in range(rows) for x in range(cols)], dtype=float)
+    """(cols * rows, 3) inner-corner positions in the board frame, OpenCV's order, mm (`BoardGeometry`)."""
+    return BoardGeometry.from_pattern(pattern, square).object_points()
 
 
 def true_corners(camera: Camera, pose, pattern: tuple[int, int], square: float) -> np.ndarray:

@@ -1,8 +1,7 @@
 """Rigid-pose helpers (numpy side) and a generator of good calibration pose sets (thesis section 5.3.2.4).
 
 A pose is a (6,) vector (rvec, tvec) of `T_a_b`, which maps coordinates in frame b into frame a. These
-helpers build truth on the host, so they use scipy's rotations (the same Rodrigues map as
-`dstereo.models.rodrigues`, to rounding) instead of dispatching many tiny JAX calls.
+helpers build truth on the host with the one rotation exp/log of `dstereo.models.pose` (compiled host calls).
 """
 
 from __future__ import annotations
@@ -11,10 +10,10 @@ from typing import Sequence
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
+from dstereo.models.pose import rotation_matrix, rotation_vector
 from dstereo.synth.board import Board
 from dstereo.synth.rays import project_points, unproject_points
 
@@ -23,7 +22,7 @@ def pose_matrix(pose) -> np.ndarray:
     """(4, 4) homogeneous matrix of a (6,) pose."""
     pose = np.asarray(pose, float).reshape(6)
     m = np.eye(4)
-    m[:3, :3] = Rotation.from_rotvec(pose[:3]).as_matrix()
+    m[:3, :3] = rotation_matrix(pose[:3])
     m[:3, 3] = pose[3:]
     return m
 
@@ -35,7 +34,7 @@ def pose_from_matrix(m: np.ndarray) -> np.ndarray:
 
 def pose_from_rt(rmat: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """(6,) pose of OpenCV's (R, T) pair, e.g. stereoCalibrate's T_right_left."""
-    rvec = Rotation.from_matrix(np.asarray(rmat, float)).as_rotvec()
+    rvec = rotation_vector(rmat)
     return np.concatenate([rvec, np.asarray(tvec, float).reshape(3)])
 
 
@@ -76,8 +75,7 @@ def _board_samples(board: Board, per_edge: int = 12) -> np.ndarray:
     outline = board.outline()
     t = np.linspace(0.0, 1.0, per_edge, endpoint=False)[:, None]
     edges = [outline[i] + t * (outline[(i + 1) % 4] - outline[i]) for i in range(4)]
-    cols, rows = board.pattern
-    inner = np.array([(x * board.square, y * board.square, 0.0) for y in range(rows) for x in range(cols)])
+    inner = board.geometry.object_points()
     return np.concatenate(edges + [inner])
 
 
@@ -125,8 +123,8 @@ def _candidate_pose(rng: np.random.Generator, camera: Camera, board: Board, anch
     tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform())  # more large tilts than a uniform draw gives
     axis_angle = rng.uniform(0.0, 2 * np.pi)
     roll = np.radians(max_roll_deg) * rng.uniform(-1.0, 1.0)
-    r_tilt = Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0])).as_matrix()
-    r_roll = Rotation.from_rotvec([0.0, 0.0, roll]).as_matrix()
+    r_tilt = rotation_matrix(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
+    r_roll = rotation_matrix([0.0, 0.0, roll])
     rmat = r_tilt @ r_roll
     tvec = depth * ray - rmat @ board.centre()
     return pose_from_rt(rmat, tvec)

@@ -17,35 +17,18 @@ from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera, project
-from dstereo.models.distortion import distort
+from dstereo.models.distortion import undistort
 
 # Rays are computed in chunks of this many samples so memory stays bounded for any image size.
 CHUNK = 65536
 
 
-NEWTON_ITERATIONS = 12
-
-
-def undistort_point(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"]) -> Float[Array, "2"]:
-    """Exact inverse of `dstereo.models.distort` for one point, by Newton's method from x = x_d.
-
-    The same iteration as `dstereo.models.undistort`, with the 2x2 step solved in closed form (Cramer's rule),
-    which XLA fuses across millions of pixels far faster than a batched `linalg.solve`.
-    """
-
-    def step(xy, _):
-        f = distort(coeffs, xy) - xy_d
-        (a, b), (c, d) = jax.jacfwd(distort, argnums=1)(coeffs, xy)
-        det = a * d - b * c
-        return xy - jnp.stack([d * f[0] - b * f[1], a * f[1] - c * f[0]]) / det, None
-
-    xy, _ = jax.lax.scan(step, xy_d, None, length=NEWTON_ITERATIONS)
-    return xy
+NEWTON_ITERATIONS = 12  # the renderer has always taken 12 steps (4 more than the default): renders stay unchanged
 
 
 def unproject_point(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "2"]) -> Float[Array, "2"]:
     """Pixel -> normalised undistorted (x, y) of its ray, one point (the exact Newton inverse)."""
-    return undistort_point(coeffs, (q - k[2:4]) / k[0:2])
+    return undistort(coeffs, (q - k[2:4]) / k[0:2], NEWTON_ITERATIONS)
 
 
 @jax.jit

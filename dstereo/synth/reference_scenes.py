@@ -14,6 +14,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.models.camera import Camera
+from dstereo.models.pose import rotation_vector
+from dstereo.models.rig import Rig
 from dstereo.synth.board import Board
 from dstereo.synth.poses import compose, invert, look_at
 from dstereo.synth.render import render_board
@@ -37,7 +39,7 @@ def reference_rig(image_size: tuple[int, int] = (640, 480), focal_px: float = 80
     target = np.array([0.0, 0.0, distance_mm])
     t_left = look_at([-baseline_mm / 2, 0.0, 0.0], target)
     t_right = look_at([baseline_mm / 2, 0.0, 0.0], target)
-    return StereoRig(left, right, compose(t_right, invert(t_left)), t_left)
+    return StereoRig(left, right, Rig.from_vector(compose(t_right, invert(t_left))), t_left)
 
 
 @dataclass
@@ -57,13 +59,12 @@ def board_pair(rig: StereoRig, pattern: tuple[int, int] = (13, 10), fill: float 
                options: RenderOptions = CALIBRATION_OPTIONS) -> BoardPair:
     """Render one board view centred on (0, 0, distance) (rig world frame), turned by `tilt_deg` about the
     world x then y axes, its squares spanning about `fill` of the left image's width."""
-    cols, rows = pattern
+    cols = pattern[0]
     f = float(rig.left.k[0])
     square = fill * distance_mm * rig.left.image_size[0] / f / (cols + 1)
     board = Board(tuple(pattern), square, square)
-    rot = Rotation.from_euler("xy", tilt_deg, degrees=True)
-    centre = np.array([(cols - 1) * square / 2, (rows - 1) * square / 2, 0.0])
-    T_world_board = np.r_[rot.as_rotvec(), np.array([0.0, 0.0, distance_mm]) - rot.apply(centre)]
+    rmat = Rotation.from_euler("xy", tilt_deg, degrees=True).as_matrix()
+    T_world_board = np.r_[rotation_vector(rmat), np.array([0.0, 0.0, distance_mm]) - rmat @ board.centre()]
     pose_left = compose(rig.T_left_world, T_world_board)
     pose_right = compose(rig.T_right_left, pose_left)
     img_l, truth_l = render_board(rig.left, pose_left, board, options, seed=[seed, 0])

@@ -17,7 +17,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.models.camera import Camera
-from dstereo.synth.poses import compose, invert, look_at, pose_matrix
+from dstereo.models.pose import rotation_vector
+from dstereo.models.rig import Rig
+from dstereo.synth.poses import compose, invert, look_at
 from dstereo.synth.truth import camera_truth
 
 # Two slightly different lenses (OpenCV order k1, k2, p1, p2, k3): the rig need not be symmetric.
@@ -27,12 +29,18 @@ PLASMATRON_COEFFS_RIGHT = (-0.22, 1.1, -0.0002, 0.0005, 0.0)
 
 @dataclass
 class StereoRig:
-    """Two cameras, `T_right_left` (x_right = R x_left + T, OpenCV's stereoCalibrate) and `T_left_world`."""
+    """Two cameras, their `Rig` (T_right_left: x_right = R x_left + T, OpenCV's stereoCalibrate) and
+    `T_left_world` (a 6-vector rvec, tvec)."""
 
     left: Camera
     right: Camera
-    T_right_left: np.ndarray
+    rig: Rig
     T_left_world: np.ndarray
+
+    @property
+    def T_right_left(self) -> np.ndarray:
+        """The rig as a 6-vector (rvec, tvec), the form `dstereo.synth.poses` composes."""
+        return np.array(self.rig.as_vector(), float)  # a writable copy: scipy refuses read-only views of JAX arrays
 
     @property
     def T_right_world(self) -> np.ndarray:
@@ -40,21 +48,21 @@ class StereoRig:
 
     def rotation_translation(self) -> tuple[np.ndarray, np.ndarray]:
         """(R, T) of T_right_left as OpenCV's stereoCalibrate returns them."""
-        m = pose_matrix(self.T_right_left)
-        return m[:3, :3], m[:3, 3]
+        return np.array(self.rig.rotation(), float), np.array(self.rig.tvec, float)
 
     def to_truth(self) -> dict:
         r, t = self.rotation_translation()
         return {
             "left": camera_truth(self.left), "right": camera_truth(self.right),
-            "T_right_left": np.asarray(self.T_right_left).tolist(), "R": r.tolist(), "T": t.tolist(),
+            "T_right_left": self.T_right_left.tolist(), "R": r.tolist(), "T": t.tolist(),
             "T_left_world": np.asarray(self.T_left_world).tolist(),
         }
 
 
 def stereo_rig(left: Camera, right: Camera, T_right_left) -> StereoRig:
-    """Rig from two cameras and their relative pose; the world frame is the left camera's."""
-    return StereoRig(left, right, np.asarray(T_right_left, float).reshape(6), np.zeros(6))
+    """Rig from two cameras and their relative pose (a `Rig` or its 6-vector); the world frame is the left camera's."""
+    rig = T_right_left if isinstance(T_right_left, Rig) else Rig.from_vector(np.asarray(T_right_left, float).reshape(6))
+    return StereoRig(left, right, rig, np.zeros(6))
 
 
 def plasmatron_rig(
@@ -74,7 +82,7 @@ def plasmatron_rig(
     target = np.array([0.0, 0.0, distance_mm])
     t_left_world = look_at([-baseline_mm / 2, 0.0, 0.0], target)
     t_right_world = look_at([baseline_mm / 2, 0.0, 0.0], target)
-    return StereoRig(left, right, compose(t_right_world, invert(t_left_world)), t_left_world)
+    return StereoRig(left, right, Rig.from_vector(compose(t_right_world, invert(t_left_world))), t_left_world)
 
 
 def sample_pose(length_mm: float = 50.0, distance_mm: float = 600.0, yaw_deg: float = 0.0,
@@ -86,4 +94,4 @@ def sample_pose(length_mm: float = 50.0, distance_mm: float = 600.0, yaw_deg: fl
     rmat = r_turn @ r_face
     head = np.array([0.0, 0.0, distance_mm])
     tvec = head - rmat @ np.array([0.0, 0.0, length_mm])
-    return np.concatenate([Rotation.from_matrix(rmat).as_rotvec(), tvec])
+    return np.concatenate([rotation_vector(rmat), tvec])

@@ -12,7 +12,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
-from dstereo.synth.board import Board, object_points
+from dstereo.synth.board import Board
 from dstereo.synth.objects import Sample
 from dstereo.synth.poses import board_pose_set, compose, pose_matrix
 from dstereo.synth.rays import camera_rays
@@ -81,7 +81,7 @@ def calibration_set(
         "board": {"pattern": list(board.pattern), "square": board.square, "border": board.border},
         "left": views[0][0]["camera"],
         "poses_left": poses,
-        "object_points": object_points(board.pattern, board.square),
+        "object_points": board.geometry.object_points(),
         "corners_left": np.stack([v["corners"] for v in views[0]]),
         "render": options.to_truth(),
         "seed": seed,

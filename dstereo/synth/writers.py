@@ -1,4 +1,5 @@
-"""Write whole synthetic data sets to a folder (thesis layout: images_left/, images_right/), truth beside each image.
+"""Write whole synthetic data sets to a folder (thesis layout: images_left/, images_right/), truth beside each image;
+a multi-camera set in the `--cameras` layout (one subfolder per camera, truth at the top).
 
 A set is written into a temporary sibling folder and renamed into place at the end, so an interrupted write
 never leaves a half-written folder; an existing folder is replaced only with `force=True`.
@@ -12,6 +13,7 @@ import tempfile
 from pathlib import Path
 
 from dstereo.errors import DstereoError
+from dstereo.synth.multiview import MultiviewSet
 from dstereo.synth.scenes import CalibrationSet, StereoRender
 from dstereo.synth.truth import write_render
 
@@ -83,5 +85,21 @@ def write_recession_sequence(folder, renders: list[StereoRender], force: bool = 
             index.append({"left": f"images_left/left_{i:03d}.png", "right": f"images_right/right_{i:03d}.png"} | entry)
         (tmp / "timestamps.csv").write_text("\n".join(lines) + "\n")
         (tmp / "index.json").write_text(json.dumps(index, indent=1))
+
+    return _write_folder(folder, force, fill)
+
+
+def write_multiview_set(folder, mset: MultiviewSet, force: bool = False) -> Path:
+    """`<camera>/<frame>.png` for every frame a camera sees (no file where it does not: the `--cameras` layout)
+    and `truth.json` / `truth.npz` at the top, so the camera folders hold images only."""
+    import cv2
+
+    def fill(tmp: Path):
+        for name, row in zip(mset.rig.names, mset.images):
+            (tmp / name).mkdir()
+            for frame, image in zip(mset.frame_names, row):
+                if image is not None and not cv2.imwrite(str(tmp / name / f"{frame}.png"), image):
+                    raise DstereoError(f"write_multiview_set: cv2 could not write {tmp / name / frame}.png")
+        write_render(tmp, None, mset.truth, name="truth")
 
     return _write_folder(folder, force, fill)

@@ -35,10 +35,10 @@ from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, distort
-from dstereo.models.pose import rodrigues
+from dstereo.models.distortion import COEFF_NAMES
+from dstereo.models.distortion import newton_step as distortion_newton_step
+from dstereo.models.rig import RIG_NAMES, Rig
 
-RIG_NAMES: tuple[str, ...] = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
 PARAMETER_NAMES: tuple[str, ...] = (tuple(f"left.{n}" for n in INTRINSIC_NAMES + COEFF_NAMES)
                                     + tuple(f"right.{n}" for n in INTRINSIC_NAMES + COEFF_NAMES) + RIG_NAMES)
 
@@ -53,13 +53,11 @@ class RectGeometry(NamedTuple):
     Q: Float[Array, "4 4"]
 
 
-def parameter_vector(K1, D1, K2, D2, R, T) -> np.ndarray:
-    """(30,) all rig parameters in `PARAMETER_NAMES` order (rvec = axis-angle of R)."""
-    from scipy.spatial.transform import Rotation
-
+def parameter_vector(calib) -> np.ndarray:
+    """(30,) all rig parameters of a stereo calibration (K1, D1, K2, D2 and its `Rig`) in `PARAMETER_NAMES` order."""
     k = lambda K: [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]  # noqa: E731
-    rvec = Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
-    return np.concatenate([k(K1), np.ravel(D1)[:8], k(K2), np.ravel(D2)[:8], rvec, np.ravel(T)]).astype(float)
+    rig = np.asarray(calib.rig.as_vector())
+    return np.concatenate([k(calib.K1), np.ravel(calib.D1)[:8], k(calib.K2), np.ravel(calib.D2)[:8], rig]).astype(float)
 
 
 def theta_index(names) -> tuple[int, ...]:
@@ -71,18 +69,14 @@ def theta_index(names) -> tuple[int, ...]:
     return tuple(PARAMETER_NAMES.index(n) for n in names)
 
 
-def _unpack(params):
-    return params[0:4], params[4:12], params[12:16], params[16:24], params[24:27], params[27:30]
+def _unpack(params) -> tuple[Float[Array, "4"], Float[Array, "8"], Float[Array, "4"], Float[Array, "8"], Rig]:
+    """The 30-vector -> (k_left, coeffs_left, k_right, coeffs_right, Rig)."""
+    return params[0:4], params[4:12], params[12:16], params[16:24], Rig.from_vector(params[24:30])
 
 
 def newton_step(k, coeffs, q, x0):
-    """One Newton step of distort(coeffs, x) = (q - c) / f from x0, the 2 x 2 system solved in closed form
-    (jaxlib 0.10.2's CPU LAPACK call, vmapped over large chunks, deadlocked intermittently here)."""
-    qn = (q - k[2:4]) / k[0:2]
-    a = jax.jacfwd(distort, argnums=1)(coeffs, x0)
-    r = distort(coeffs, x0) - qn
-    det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]  # 2 x 2 inverse written out: no LAPACK call per point
-    return x0 - jnp.array([a[1, 1] * r[0] - a[0, 1] * r[1], a[0, 0] * r[1] - a[1, 0] * r[0]]) / det
+    """One Newton step (`dstereo.models.distortion.newton_step`) towards pixel q's undistorted point from x0."""
+    return distortion_newton_step(coeffs, (q - k[2:4]) / k[0:2], x0)
 
 
 def point_from_pixels(params, q_left, q_right, x_left0, x_right0, axis) -> Float[Array, "3"]:
@@ -90,16 +84,15 @@ def point_from_pixels(params, q_left, q_right, x_left0, x_right0, axis) -> Float
     parameters `params` (30,): left ray meets the plane through the right camera centre spanned by the right
     ray and `axis` (the rectified y axis in the left frame). x_*0 are the pixels' undistorted normalised
     coordinates at the linearisation point (module docstring)."""
-    k_l, c_l, k_r, c_r, rvec, t = _unpack(params)
+    k_l, c_l, k_r, c_r, rig = _unpack(params)
     # One Newton step from the root at the linearisation point: exact value there, and its derivative with
     # respect to (k, coeffs) is the implicit-function one, -J_distort^-1 d residual / d params.
     x_l = newton_step(k_l, c_l, q_left, x_left0)
     x_r = newton_step(k_r, c_r, q_right, x_right0)
-    rot = rodrigues(rvec)
     v_l = jnp.append(x_l, 1.0)
-    v_r = rot.T @ jnp.append(x_r, 1.0)
+    v_r = rig.rotation().T @ jnp.append(x_r, 1.0)
     normal = jnp.cross(v_r, axis)
-    return (normal @ (-rot.T @ t)) / (normal @ v_l) * v_l
+    return (normal @ rig.centre()) / (normal @ v_l) * v_l
 
 
 def rays_of_rectified(uvd, rect: RectGeometry):
@@ -132,7 +125,7 @@ def point_covariance(params, index: tuple[int, ...], cov_theta, sigma_d, uvd, re
     if not index:
         return jnp.zeros((3, 3)), disp
     x_l0, x_r0 = rays_of_rectified(uvd, rect)
-    k_l, c_l, k_r, c_r, _, _ = _unpack(params)
+    k_l, c_l, k_r, c_r, _ = _unpack(params)
     q_l = project(k_l, c_l, jnp.append(x_l0, 1.0))
     q_r = project(k_r, c_r, jnp.append(x_r0, 1.0))
     axis = rect.R1.T @ jnp.array([0.0, 1.0, 0.0])

@@ -118,10 +118,9 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
         disparity = np.asarray(result_or_disparity, float)
         valid = np.isfinite(disparity)
     if matrices is None:
-        from dstereo.stereo.rectify import stereo_rectify
+        from dstereo.stereo.rectify import rectify_calibration
 
-        r = stereo_rectify(calib.k1, calib.D1, calib.k2, calib.D2, (disparity.shape[1], disparity.shape[0]), calib.R,
-                           calib.T, zero_disparity=False)
+        r = rectify_calibration(calib, (disparity.shape[1], disparity.shape[0]), zero_disparity=False)
         matrices = {k: getattr(r, k) for k in ("R1", "R2", "P1", "P2", "Q")}
     sigma_map = np.broadcast_to(np.asarray(sigma_d, float), disparity.shape)
     valid &= np.isfinite(sigma_map)
@@ -129,7 +128,7 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
         raise DstereoError(f"disparity noise sigma_d={sigma_d if np.ndim(sigma_d) == 0 else 'map'} px: give a "
                            "finite value >= 0 (or 'auto')")
     found = calibration_covariance(calib)
-    params = jnp.asarray(parameter_vector(calib.K1, calib.D1, calib.K2, calib.D2, calib.R, calib.T))
+    params = jnp.asarray(parameter_vector(calib))
     names, cov, structure = found if found is not None else ((), np.zeros((0, 0)), "")
     index = theta_index(names)
     rect = rect_geometry(matrices)

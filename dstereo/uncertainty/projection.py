@@ -33,9 +33,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
-from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model
-from dstereo.models.pose import rodrigues
-from dstereo.uncertainty.point_jacobians import newton_step
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
+from dstereo.models.pose import rodrigues, rotation_matrix
 
 CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + COEFF_NAMES
 FISHEYE_CAMERA_NAMES: tuple[str, ...] = INTRINSIC_NAMES + FISHEYE_SLOTS  # fisheye: cv2.fisheye's D in coeffs[:4]
@@ -61,8 +60,7 @@ FOLD_MARGIN = 1.1
 
 
 def _undistorted(k, coeffs, q, iterations: int = NEWTON_ITERATIONS):
-    x0 = (q - k[2:4]) / k[0:2]
-    return jax.lax.fori_loop(0, iterations, lambda _, x: newton_step(k, coeffs, q, x), x0)
+    return undistort(coeffs, (q - k[2:4]) / k[0:2], iterations)
 
 
 def _invertible(k, coeffs, q, x):
@@ -226,19 +224,23 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
 
 def solution_map(sol, image_size, range_: float, method: str = "pose-compensated",
                  grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
-    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks)."""
+    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks). A solved board
+    sag is the board's, not the camera's: marginalised (its rows and columns dropped from the covariance)."""
+    lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
+    names = tuple(sol.names[i] for i in lens)
     if method == "pose-compensated":
         from dstereo.uncertainty.covariance import joint_covariance
 
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
-                               "equations; use --projection-method intrinsics-only")
+                               "equations; use `projection_method` intrinsics-only")
         n_obs = int(np.prod(np.shape(sol.residuals)))  # 2 per corner
         joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), n_obs)
-        return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, image_size, range_, grid,
-                                          poses=sol.poses, method=method)
-    return projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, sol.cov, image_size, range_, grid,
-                                      method=method)
+        keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
+        return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, joint[np.ix_(keep, keep)], image_size,
+                                          range_, grid, poses=sol.poses, method=method)
+    return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, sol.cov[np.ix_(lens, lens)], image_size,
+                                      range_, grid, method=method)
 
 
 def sse_of(sol) -> float:
@@ -247,9 +249,7 @@ def sse_of(sol) -> float:
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:
     """Mean distance from the camera to the board centre over the views (poses (V, 6) T_cam_board)."""
-    from scipy.spatial.transform import Rotation
-
-    poses = np.array(poses, dtype=float)  # a writable copy (scipy refuses read-only views of JAX arrays)
+    poses = np.asarray(poses, dtype=float)
     centre = np.asarray(object_points, float).mean(axis=0)
-    centres = Rotation.from_rotvec(poses[:, :3]).apply(centre) + poses[:, 3:6]
+    centres = np.stack([rotation_matrix(p[:3]) @ centre + p[3:6] for p in poses])
     return float(np.mean(np.linalg.norm(centres, axis=1)))

@@ -1,0 +1,167 @@
+"""`dstereo calibrate --cameras DIR`: N cameras, one subfolder each, frames matched by file name.
+
+DIR's subfolders (sorted by name; the first is the reference) each hold one camera's images; an image of the
+same name (stem) in two subfolders is one frame, seen by both; a camera may miss any frame. Each camera is first
+calibrated alone by the one-camera pipeline (its own results: corners, subsets and steps as configured), then
+all cameras and frames together: the rig with every camera held at its own calibration, then everything
+jointly (`calib/multiview.py`). The joint solve is what cameras.yml holds; the held one is reported beside it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.calib.multiview import MultiviewSolution, calibrate_views
+from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, list_camera_images
+from dstereo.config.calibration import Config
+from dstereo.errors import DstereoError
+from dstereo.models.camera import Camera
+
+# The joint solve's RMS above this multiple of the worst camera's own RMS (and 1 px) cannot be one rig seeing
+# one board at each frame (as `commands.calibrate.RIG_RMS_FACTOR` for two cameras).
+RIG_RMS_FACTOR = 5.0
+
+
+@dataclass
+class MultiviewJob:
+    config: Config
+    root: Path
+    labels: tuple[str, ...]  # subfolder names, the reference first
+    cameras: list[CameraCalibration]
+    frames: list[str]  # frame names (image stems) seen by at least one camera
+    visible: np.ndarray  # (F, K)
+    observations: np.ndarray  # (F, K, n, 2), NaN where not seen
+    held: MultiviewSolution  # every camera held at its own calibration
+    solution: MultiviewSolution  # the joint solve: cameras.yml
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
+        """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""
+        if chosen is None:
+            return [(i, i + 1) for i in range(len(self.labels) - 1)]
+        idx = []
+        for name in chosen:
+            if name not in self.labels:
+                raise DstereoError(f"pair: no camera '{name}' under {self.root}; cameras are {', '.join(self.labels)}")
+            idx.append(self.labels.index(name))
+        if idx[0] == idx[1]:
+            raise DstereoError(f"pair: {chosen[0]} twice; name two different cameras")
+        return [tuple(idx)]
+
+
+def camera_folders(root: Path, config: Config) -> list[Path]:
+    """The camera subfolders of `root` (sorted), each with images; refused with what was found otherwise."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DstereoError(f"cameras: {root} is not a folder; give a folder with one subfolder of images per camera")
+    subs = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    with_images = [p for p in subs if _images(p, config)]
+    if len(with_images) < 2:
+        raise DstereoError(f"cameras: {root} has {len(with_images)} subfolder(s) with images "
+                           f"({', '.join(p.name for p in subs) or 'none'}); a rig needs one subfolder per camera, "
+                           "at least two")
+    return with_images
+
+
+def _images(folder: Path, config: Config) -> list[Path]:
+    try:
+        return list_camera_images(folder, config)
+    except DstereoError:
+        return []
+
+
+def _camera_of(cal: CameraCalibration) -> Camera:
+    f = cal.final
+    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
+                         cal.detection.image_size)
+
+
+def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(frame names, visible (F, K), observations (F, K, n, 2)) from each camera's used views, by image stem."""
+    stems = [{Path(name).stem: name for name in cal.used} for cal in cams]
+    frames = sorted(set().union(*stems))
+    n = cams[0].observations.shape[1]
+    obs = np.full((len(frames), len(cams), n, 2), np.nan)
+    for k, (cal, by_stem) in enumerate(zip(cams, stems)):
+        row = {name: i for i, name in enumerate(cal.used)}
+        for f, stem in enumerate(frames):
+            if stem in by_stem:
+                obs[f, k] = cal.observations[row[by_stem[stem]]]
+    return frames, np.isfinite(obs[..., 0, 0]), obs
+
+
+def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
+                              scratch: Path | None = None) -> MultiviewJob:
+    """Run the job of the module docstring. Raises DstereoError for folders, boards or frames that cannot make
+    one rig."""
+    from dstereo.calib.stereo_pipeline import _prefixed
+
+    t0 = time.perf_counter()
+    folders = camera_folders(root, config)
+    labels = tuple(p.name for p in folders)
+    cams, warnings, timings = [], [], {}
+    for label, folder in zip(labels, folders):
+        t = time.perf_counter()
+        try:
+            cal = calibrate_camera(folder, config, progress=_prefixed(progress, label), use_cache=use_cache,
+                                   scratch=scratch)
+        except DstereoError as exc:
+            raise DstereoError(f"camera {label} ({folder}): {exc}") from None
+        cams.append(cal)
+        warnings += [f"camera {label}: {w}" for w in cal.warnings if w not in config.warnings]
+        timings[f"{label}_s"] = time.perf_counter() - t
+    shapes = {cal.detection.object_points.shape for cal in cams}
+    if len(shapes) != 1 or any(not np.allclose(c.detection.object_points, cams[0].detection.object_points)
+                               for c in cams):
+        raise DstereoError("cameras: the cameras' boards differ (pattern or square); one rig calibrates from one board")
+    frames, visible, obs = frame_table(cams)
+    shared = visible.sum(axis=1)
+    lonely = [frames[f] for f in np.flatnonzero(shared < 2)]
+    if len(lonely) == len(frames):
+        raise DstereoError(f"cameras: no image name occurs in two camera folders under {root}; frames are matched by "
+                           "file name (cam0/0001.png with cam1/0001.png)")
+    if lonely:
+        warnings.append(f"{len(lonely)} of {len(frames)} frames are seen by one camera only ({', '.join(lonely[:5])}"
+                        f"{', ...' if len(lonely) > 5 else ''}): they refine that camera's lens but not the rig")
+    t = time.perf_counter()
+    if progress is not None:
+        progress("rig solve", 0, 2)
+    start = [_camera_of(c) for c in cams]
+    sizes = [c.detection.image_size for c in cams]
+    obj = cams[0].detection.object_points
+    sag = config.board_sag
+    held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels, board_warp=sag)
+    if progress is not None:
+        progress("rig solve", 1, 2)
+    joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels, board_warp=sag)
+    if progress is not None:
+        progress("rig solve", 2, 2)
+    timings["rig_s"] = time.perf_counter() - t
+    job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings)
+    _check(job)
+    timings["total_s"] = time.perf_counter() - t0
+    return job
+
+
+def _check(job: MultiviewJob) -> None:
+    """Refuse a rig that does not fit its frames; warn of what the user should know."""
+    sol = job.solution
+    own = np.array([float(c.full.rms) for c in job.cameras])
+    if sol.rms > max(RIG_RMS_FACTOR * own.max(), 1.0):
+        per = ", ".join(f"{lab} {r:.3g}" for lab, r in zip(job.labels, sol.camera_rms()))
+        raise DstereoError(
+            f"cameras: the rig fits its {len(job.frames)} frames with RMS {sol.rms:.3g} px (per camera: {per}) while "
+            f"the cameras alone fit theirs with {', '.join(f'{r:.3g}' for r in own)} px: images of one name do not "
+            "show the board at one moment (check the names and the cameras' synchronisation); nothing written")
+    for name, s in (("held", job.held), ("joint", sol)):
+        if not s.converged:
+            job.warnings.append(f"the {name} rig solve did not converge ({s.status_text}); its values are unreliable")
+    if sol.flipped:
+        views = ", ".join(f"{job.labels[c]}/{job.frames[f]}" for f, c in sol.flipped[:6])
+        job.warnings.append(f"{len(sol.flipped)} view(s) had their corners in reversed order against the other "
+                            f"cameras' and were re-read reversed ({views})")

@@ -1,0 +1,54 @@
+"""Checked values read from a file or a flag: numbers, whole numbers, switches, file suffixes, lens models.
+`where` names the file and key (or the parameter) so each error says what to fix."""
+
+from __future__ import annotations
+
+from dstereo.errors import DstereoError
+
+
+def number(value, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DstereoError(f"{where}: {value!r} is not a number")
+    return float(value)
+
+
+def whole(value, where: str, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise DstereoError(f"{where}: {value!r} must be a whole number >= {minimum}")
+    return value
+
+
+def optional_whole(value, where: str, minimum: int) -> int | None:
+    return None if value is None else whole(value, where, minimum)
+
+
+def flag(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise DstereoError(f"{where}: {value!r} is not true or false")
+    return value
+
+
+def suffix(value) -> str | None:
+    """'.JPG' -> 'jpg' (None or '' -> None: every image type)."""
+    return None if value in (None, "") else str(value).strip().strip("'\"").lstrip(".").lower()
+
+
+def is_auto_model(spec) -> bool:
+    """True for the model spec "auto" (a flag or a configuration value)."""
+    return isinstance(spec, str) and spec.strip().lower() == "auto"
+
+
+def model(spec, where: str) -> tuple[str, ...]:
+    from dstereo.models.distortion import parse_model
+
+    try:
+        return parse_model(spec)
+    except DstereoError as exc:
+        raise DstereoError(f"{where}: {exc}") from None
+
+
+def model_layer(spec, where: str) -> dict:
+    """The parameters a lens-model spec sets: `model_auto`, and `model` unless the data chooses it ("auto")."""
+    if is_auto_model(spec):
+        return {"model_auto": True}
+    return {"model": model(spec, where), "model_auto": False}

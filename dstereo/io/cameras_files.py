@@ -1,0 +1,164 @@
+"""The results folder of `dstereo calibrate --cameras DIR` (a finished `calib.multiview_job.MultiviewJob`):
+
+    <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
+    cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
+                                 json adds every parameter's std and the held (fixed-intrinsics) solve beside
+    stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B)
+    frames.csv                   which camera saw which frame, each view's RMS (joint solve)
+    summary.json, report.md
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.io.results import atomic_folder, distortion_vector, fill_camera_folder, write_json
+
+
+def _distortion(cam) -> np.ndarray:
+    return distortion_vector(np.asarray(cam.dist.coeffs), tuple(cam.dist.free))
+
+
+def _lens(cam) -> str:
+    from dstereo.models.distortion import lens_model
+
+    return lens_model(tuple(cam.dist.free))
+
+
+def write_cameras_yml(path: Path, job) -> None:
+    import cv2
+
+    sol = job.solution
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("camera_count", len(job.labels))
+        fs.write("camera_names", ",".join(job.labels))
+        fs.write("rms", float(sol.rms))
+        for i, (cam, R, T) in enumerate(zip(sol.cameras, sol.R, sol.T)):
+            fs.write(f"K_{i}", np.asarray(cam.matrix(), float))
+            fs.write(f"D_{i}", _distortion(cam).reshape(1, -1))
+            if _lens(cam) != "pinhole":
+                fs.write(f"distortion_model_{i}", _lens(cam))
+            fs.write(f"R_{i}", np.asarray(R, float))
+            fs.write(f"T_{i}", np.asarray(T, float).reshape(3, 1))
+            fs.write(f"image_size_{i}", np.array(cam.image_size, np.int32).reshape(1, 2))
+    finally:
+        fs.release()
+
+
+def cameras_summary(job) -> dict:
+    sol, held = job.solution, job.held
+    cams = []
+    for i, (label, cam, R, T) in enumerate(zip(job.labels, sol.cameras, sol.R, sol.T)):
+        own = job.cameras[i]
+        cams.append({
+            "name": label, "camera_matrix": np.asarray(cam.matrix()).tolist(),
+            "distortion_coefficients": _distortion(cam).tolist(), "distortion_model": _lens(cam),
+            "image_size": list(cam.image_size), "R": np.asarray(R).tolist(), "T": np.asarray(T).tolist(),
+            "views": int(job.visible[:, i].sum()), "rms_joint": float(sol.camera_rms()[i]),
+            "rms_alone": float(own.full.rms), "rms_held": float(held.camera_rms()[i]),
+        })
+    return {
+        "reference": job.labels[0], "convention": "x_cam_i = R_i x_ref + T_i (board unit)",
+        "unit": job.config.unit, "frames": len(job.frames), "cameras": cams,
+        "joint": {"rms": float(sol.rms), "status": sol.status_text, "iterations": sol.iterations,
+                  "parameters": dict(zip(sol.names, map(float, sol.values))),
+                  "std": dict(zip(sol.names, map(float, sol.std)))},
+        "held": {"rms": float(held.rms), "status": held.status_text,
+                 "parameters": dict(zip(held.names, map(float, held.values))),
+                 "std": dict(zip(held.names, map(float, held.std)))},
+        "flipped_views": [[job.labels[c], job.frames[f]] for f, c in sol.flipped],
+        "warnings": list(job.warnings), "timings_s": dict(job.timings),
+    }
+
+
+def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | None]:
+    """(file name, None) written, or (None, why not)."""
+    from dstereo.io.stereo_files import write_stereo_yml
+    from dstereo.models.rig import essential_matrix, fundamental_matrix
+    from dstereo.models.pose import rotation_vector
+
+    sol = job.solution
+    ca, cb = sol.cameras[a], sol.cameras[b]
+    if "fisheye" in (_lens(ca), _lens(cb)):
+        return None, (f"{job.labels[a]}-{job.labels[b]}: no stereo file, fisheye rectification is not supported by "
+                      "dstereo reconstruct yet")
+    R, T = sol.relative(a, b)
+    E = np.asarray(essential_matrix(rotation_vector(R), T))
+    F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
+    name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
+    write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
+                     ca.image_size, cb.image_size, rms=float(sol.rms))
+    if tuple(ca.image_size) != tuple(cb.image_size):
+        return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
+                      "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")
+    return name, None
+
+
+def write_frames_csv(path: Path, job) -> None:
+    sol = job.solution
+    head = "frame," + ",".join(f"{lab}_seen,{lab}_rms_px" for lab in job.labels)
+    rows = [head]
+    for f, name in enumerate(job.frames):
+        cells = []
+        for k in range(len(job.labels)):
+            seen = bool(job.visible[f, k])
+            cells += [str(int(seen)), f"{sol.per_view_rms[f, k]:.6f}" if seen else ""]
+        rows.append(f"{name}," + ",".join(cells))
+    path.write_text("\n".join(rows) + "\n")
+
+
+def report_markdown(summary: dict) -> str:
+    lines = [f"# {len(summary['cameras'])} cameras, {summary['frames']} frames", "",
+             f"Reference: {summary['reference']}; {summary['convention']}.", "",
+             "| camera | views | fx | fy | cx | cy | RMS alone (px) | RMS held (px) | RMS joint (px) | |T| |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for c in summary["cameras"]:
+        K = np.array(c["camera_matrix"])
+        lines.append(f"| {c['name']} | {c['views']} | {K[0, 0]:.3f} | {K[1, 1]:.3f} | {K[0, 2]:.3f} | {K[1, 2]:.3f} | "
+                     f"{c['rms_alone']:.4f} | {c['rms_held']:.4f} | {c['rms_joint']:.4f} | "
+                     f"{np.linalg.norm(c['T']):.4f} |")
+    std = summary["joint"]["std"]
+    lines += ["", f"Joint solve: RMS {summary['joint']['rms']:.4f} px ({summary['joint']['status']}); held "
+              f"(each camera at its own calibration): RMS {summary['held']['rms']:.4f} px.", "",
+              "| parameter | joint | std |", "|---|---|---|"]
+    lines += [f"| {n} | {v:.6g} | {std[n]:.3g} |" for n, v in summary["joint"]["parameters"].items()]
+    if summary["flipped_views"]:
+        lines += ["", "Views re-read in reversed corner order: "
+                  + ", ".join(f"{c}/{f}" for c, f in summary["flipped_views"])]
+    if summary["stereo_files"] or summary["stereo_notes"]:
+        lines += ["", "Stereo files: " + ", ".join(summary["stereo_files"]) + "".join(
+            f"\n- {n}" for n in summary["stereo_notes"])]
+    if summary["warnings"]:
+        lines += ["", "## Warnings"] + [f"- {w}" for w in summary["warnings"]]
+    return "\n".join(lines) + "\n"
+
+
+def write_multiview_results(out, job, force: bool = False, pairs=None, projection_range: float | None = None) -> Path:
+    """Write the folder of the module docstring under a temporary name, renamed into place at the end."""
+    out = Path(out)
+    try:
+        with atomic_folder(out, force) as tmp:
+            for label, cal in zip(job.labels, job.cameras):
+                (tmp / label).mkdir()
+                fill_camera_folder(tmp / label, cal, projection_range=projection_range)
+            write_cameras_yml(tmp / "cameras.yml", job)
+            summary = cameras_summary(job)
+            summary["stereo_files"], summary["stereo_notes"] = [], []
+            for a, b in job.pairs(pairs):
+                name, note = _write_pair(tmp, job, a, b)
+                if name:
+                    summary["stereo_files"].append(name)
+                if note:
+                    summary["stereo_notes"].append(note)
+            write_json(tmp / "cameras.json", summary)
+            write_frames_csv(tmp / "frames.csv", job)
+            write_json(tmp / "summary.json", summary)
+            (tmp / "report.md").write_text(report_markdown(summary))
+    finally:
+        for cal in job.cameras:
+            if cal.filtering is not None:
+                cal.filtering.table.close()
+    return out

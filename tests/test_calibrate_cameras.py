@@ -1,0 +1,120 @@
+"""`dstereo calibrate --cameras DIR` end to end on a rendered K = 3 rig of different cameras with partial
+visibility (tests/test_calib_problem.py's rig, rendered, corners detected by OpenCV): the files, the recovered
+rig against the truth, and the refusals. The accuracy acceptance at 60 frames, and OpenCV's calibrateMultiview
+beside it, is tests/test_multiview.py."""
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import test_calib_problem as rig
+from conftest import run_cli
+from dstereo.synth.board import Board
+from dstereo.synth.poses import compose
+from dstereo.synth.render import camera_rays, render_board
+
+
+def _cli(*args):
+    code, out, err = run_cli("calibrate", *args)
+    return code, out + err
+
+
+@pytest.fixture(scope="module")
+def rig_folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rig") / "cameras"
+    obj, obs, vis, poses = rig._rig_frames(n_frames=20)
+    board = Board(rig.PATTERN, rig.SQUARE, border=rig.SQUARE)
+    for k, (cam, e) in enumerate(zip(rig.CAMERAS, rig.EXT)):
+        (root / f"cam{k}").mkdir(parents=True)
+        rays, centre = camera_rays(cam, 2), camera_rays(cam, 1)
+        for f in np.flatnonzero(vis[:, k]):
+            img, _ = render_board(cam, compose(e, poses[f]), board, rays=rays, centre_rays=centre, seed=7 * f + k)
+            cv2.imwrite(str(root / f"cam{k}" / f"frame{f:03d}.png"), img)
+    return root, vis
+
+
+@pytest.fixture(scope="module")
+def rig_run(rig_folder, tmp_path_factory):
+    root, vis = rig_folder
+    out = tmp_path_factory.mktemp("out") / "results"
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", out, "-q")
+    assert code == 0, text
+    return out, vis
+
+
+def test_cameras_yml_holds_every_camera_and_the_rig_near_the_truth(rig_run):
+    out, vis = rig_run
+    fs = cv2.FileStorage(str(out / "cameras.yml"), cv2.FILE_STORAGE_READ)
+    assert int(fs.getNode("camera_count").real()) == 3 and fs.getNode("camera_names").string() == "cam0,cam1,cam2"
+    for i, (cam, e) in enumerate(zip(rig.CAMERAS, rig.EXT)):
+        K = fs.getNode(f"K_{i}").mat()
+        # rendered and detected corners (~0.05 px noise over ~1000 corners): focal to ~0.1 %, well inside 0.5 %
+        np.testing.assert_allclose([K[0, 0], K[1, 1]], np.asarray(cam.k[:2]), rtol=5e-3)
+        R, T = fs.getNode(f"R_{i}").mat(), fs.getNode(f"T_{i}").mat().ravel()
+        np.testing.assert_allclose(cv2.Rodrigues(R)[0].ravel(), e[:3], atol=np.radians(0.2))
+        np.testing.assert_allclose(T, e[3:], atol=0.01 * max(1.0, np.linalg.norm(e[3:])))
+        assert tuple(fs.getNode(f"image_size_{i}").mat().ravel()) == cam.image_size
+    summary = json.loads((out / "cameras.json").read_text())
+    assert [c["views"] for c in summary["cameras"]] == vis.sum(axis=0).tolist()
+
+
+def test_each_camera_gets_its_own_folder_and_each_adjacent_pair_a_stereo_file(rig_run):
+    from dstereo.io.calib_files import read_stereo_calibration
+
+    out, _ = rig_run
+    for k in range(3):
+        assert (out / f"cam{k}" / "camera.yml").is_file() and (out / f"cam{k}" / "corners.npz").is_file()
+    names = sorted(p.name for p in out.glob("stereo_*.yml"))
+    assert names == ["stereo_cam0_cam1.yml", "stereo_cam1_cam2.yml"]
+    pair = read_stereo_calibration(out / "stereo_cam1_cam2.yml")
+    # the pair's relative pose is the composition of the two cameras' poses in the reference
+    R1, R2 = cv2.Rodrigues(rig.EXT[1][:3])[0], cv2.Rodrigues(rig.EXT[2][:3])[0]
+    R = R2 @ R1.T
+    T = rig.EXT[2][3:] - R @ rig.EXT[1][3:]
+    np.testing.assert_allclose(np.asarray(pair.R), R, atol=np.radians(0.3))
+    np.testing.assert_allclose(np.asarray(pair.T).ravel(), T, atol=0.01 * np.linalg.norm(T))
+    lines = (out / "frames.csv").read_text().splitlines()
+    assert lines[0].startswith("frame,cam0_seen,cam0_rms_px") and len(lines) == 21
+
+
+def test_a_chosen_pair_and_the_refusals(rig_folder, tmp_path):
+    root, _ = rig_folder
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "--pair",
+                      "cam0,cam9", "-q")
+    assert code == 1 and "no camera 'cam9'" in text and not (tmp_path / "r").exists()
+    code, text = _cli("--cameras", root / "cam0", "--pattern", "9x6", "--out", tmp_path / "r2")
+    assert code == 1 and "subfolder" in text and not (tmp_path / "r2").exists()
+    code, text = _cli("--pair", "cam0,cam1", "--images", root / "cam0", "--out", tmp_path / "r3")
+    assert code == 1 and "--pair: only with --cameras" in text
+    assert all(line.startswith("dstereo: error: ") for line in text.strip().splitlines()[-1:])
+
+
+def test_frames_that_share_no_name_are_refused(rig_folder, tmp_path):
+    root, _ = rig_folder
+    other = tmp_path / "renamed"
+    for k in range(2):
+        (other / f"cam{k}").mkdir(parents=True)
+        for p in sorted((root / f"cam{k}").glob("*.png"))[:8]:
+            (other / f"cam{k}" / f"c{k}_{p.name}").write_bytes(p.read_bytes())
+    code, text = _cli("--cameras", other, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "-q")
+    assert code == 1 and "matched by file name" in text and not (tmp_path / "r").exists()
+
+
+def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder, tmp_path):
+    """The renders' board is flat: the solved sag must lie within 3.5 of its own sigma of zero, in cameras.json
+    for the rig and in summary.json for one camera."""
+    root, _ = rig_folder
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "rig", "--board-sag",
+                      "-q")
+    assert code == 0, text
+    joint = json.loads((tmp_path / "rig" / "cameras.json").read_text())["joint"]
+    for name in ("board_sag_x", "board_sag_y"):
+        assert abs(joint["parameters"][name]) < 3.5 * joint["std"][name], (name, joint["parameters"][name])
+    code, text = _cli("--images", root / "cam1", "--pattern", "9x6", "--square", "20", "--out", tmp_path / "one",
+                      "--board-sag", "-q")
+    assert code == 0, text
+    full = json.loads((tmp_path / "one" / "summary.json").read_text())["full_set"]
+    assert "board_sag_x" in full["std"] and "board_sag = true" in (tmp_path / "one" / "config.toml").read_text()

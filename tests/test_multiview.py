@@ -1,0 +1,155 @@
+"""N-camera calibration against rendered truth and against cv2.calibrateMultiview (issue 17 acceptance).
+
+K = 3 and K = 4 rigs of different cameras (one mounted upside down), 60 frames, partial visibility, rendered,
+written in the `--cameras` layout and detected with OpenCV (corners ordered by io.corner_order). Renders and solves
+are made once per rig for the whole session.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from conftest import lm_agreement
+
+from experiments.multiview_truth import (
+    CASES, errors_of, held_differences, opencv_cameras, render_case, solve_case,
+)
+from experiments.opencv_multiview import calibrate_multiview, float32_corners
+
+_CACHE: dict = {}
+
+
+@pytest.fixture(scope="session", params=CASES, ids=lambda c: f"K{c[0]}")
+def case(request, tmp_path_factory):
+    n_cams, seed = request.param
+    if n_cams not in _CACHE:
+        truth, folders = render_case(n_cams, seed, tmp_path_factory.mktemp(f"rig{n_cams}") / "cameras")
+        _CACHE[n_cams] = (truth, folders, solve_case(folders))
+    return _CACHE[n_cams]
+
+
+def test_rig_has_the_visibility_the_issue_asks(case):
+    truth, folders, _ = case
+    n_frames, n_cams = folders.visible.shape
+    assert n_frames == 60 and n_cams == len(truth["rig"]["names"])
+    # Every image rendered was detected (a full board), and nothing else: visibility is the rendered one.
+    np.testing.assert_array_equal(folders.visible, truth["visible"])
+    assert np.all(folders.visible.sum(axis=1) >= 2)
+    missing = np.mean(~folders.visible, axis=0)
+    assert np.all((missing >= 0.2) & (missing <= 0.4)), missing
+    sizes = {tuple(c["image_size"]) for c in truth["rig"]["cameras"]}
+    focals = {c["fx"] for c in truth["rig"]["cameras"]}
+    assert len(sizes) >= 3 and len(focals) == n_cams
+
+
+def test_corners_mean_the_same_board_points_in_every_camera(case):
+    """Detected corners within a fraction of a square (20 mm squares span 15-30 px here) of the true ones."""
+    truth, folders, solved = case
+    seen = folders.visible
+    err = np.linalg.norm(folders.obs[seen] - truth["corners"][seen], axis=-1)
+    assert err.max() < 0.5, err.max()
+    assert solved["joint"].flipped == []  # calibrate_views found no view to re-read reversed
+
+
+def test_joint_mode_recovers_the_truth(case):
+    truth, _, solved = case
+    joint = solved["joint"]
+    assert joint.converged, joint.status_text
+    e = errors_of(truth, solved)["joint"]
+    assert e["focal_pct"].max() < 0.1, e
+    assert e["rotation_deg"].max() < 0.05, e
+    assert e["baseline_pct"].max() < 0.1, e
+
+
+def test_joint_mode_beats_opencv_against_the_truth(case):
+    """Mean over the rig's cameras of each figure: OpenCV never refines intrinsics jointly, so each camera's own
+    calibrateCamera error stays in its focal length and passes into its rotation and baseline. (The worst camera
+    is nearly tied on K = 3's rotation, 0.0214 vs 0.0218 deg; experiments/results/multiview_truth.md.)"""
+    truth, _, solved = case
+    errs = errors_of(truth, solved)
+    for key in ("focal_pct", "rotation_deg", "baseline_pct"):
+        assert errs["joint"][key].mean() < errs["opencv"][key].mean(), (key, errs)
+
+
+def test_opencv_holds_the_intrinsics_it_is_given(case):
+    """CALIB_USE_INTRINSIC_GUESS in `flags`: K and D come back bit for bit (only extrinsics and poses move)."""
+    _, _, solved = case
+    np.testing.assert_array_equal(solved["opencv_held"].K, solved["opencv"].K)
+    np.testing.assert_array_equal(solved["opencv_held"].D, solved["opencv"].D)
+
+
+def robust_weight_bound(residuals: np.ndarray, rms: float) -> float:
+    """Largest shift, in parameter standard deviations, from OpenCV weighting each corner by exp(-e^2 / 30).
+
+    OpenCV's final optimisation (modules/calib/src/multiview_calibration.cpp, its robust function) weighs a corner with squared residual e^2
+    (px^2) by w = exp(-e^2 / 30); dstereo's fixed mode is plain least squares. To first order the weighted optimum
+    moves by the least-squares fit of the residual vector v = (1 - w) r ~ (e^2 / 30) r, and for any parameter
+    |delta_i| <= ||v|| sqrt([(J'J)^-1]_ii) = ||v|| std_i / sigma (Cauchy-Schwarz), sigma the residual RMS.
+    """
+    r = np.asarray(residuals, float).reshape(-1, 2)
+    e2 = np.sum(r**2, axis=1, keepdims=True)
+    v = (1.0 - np.exp(-e2 / 30.0)) * r
+    return float(np.linalg.norm(v) / rms)
+
+
+def expected_gap_in_std(fixed, folders) -> float:
+    """How far apart (in parameter standard deviations) dstereo's fixed mode and OpenCV held should end.
+
+    (1) OpenCV's robust weights: at most `robust_weight_bound`. (2) OpenCV's board in float32, rounded twice
+    (metres, then divided by its scale): a relative 2 * 2^-24 of each point, i.e. at most that fraction of the
+    board's pixel span per corner, independent from corner to corner, so it acts as extra corner noise and moves
+    a parameter by about (that noise / the corner RMS) std. (3) LM stopping: `conftest.lm_agreement` in std.
+    """
+    seen = folders.visible
+    q = folders.obs[seen]
+    span = np.max(np.linalg.norm(q - q.mean(axis=1, keepdims=True), axis=-1))
+    board_rounding = 2.0 * 2.0**-24 * span / fixed.rms
+    n_res = 2 * q.shape[0] * q.shape[1]
+    lm = float(lm_agreement(1.0, n_res, len(fixed.values) + 6 * len(fixed.poses)))
+    return robust_weight_bound(fixed.residuals[seen], fixed.rms) + board_rounding + lm
+
+
+def test_fixed_mode_equals_opencv_with_the_intrinsics_held(case):
+    """Same corners (float32), same intrinsics (OpenCV's own), same problem: the optima agree to 1e-6.
+
+    `expected_gap_in_std` (0.005 std on K = 3, 0.04 on K = 4, mostly the worst-case robust-weight bound) times
+    the solution's own std gives at most ~6e-7 rad and ~9e-7 relative translation: the acceptance's 1e-6 is
+    above the derived gap, which the test checks before asserting it (measured: 2e-8 to 5e-8). It can fail:
+    one camera's fx moved by 1e-5 relative moves the K = 3 rig by 5e-6 rad and 1.2e-5 relative (measured).
+    """
+    _, folders, solved = case
+    fixed = solved["fixed"]
+    assert fixed.converged, fixed.status_text
+    gap = expected_gap_in_std(fixed, folders)
+    names = np.array(fixed.names)
+    rot_std = fixed.std[np.char.find(names, ".RV") >= 0].max()
+    t_idx = np.char.find(names, ".T") >= 0
+    t_rel_std = np.max(fixed.std[t_idx].reshape(-1, 3) / np.linalg.norm(fixed.values[t_idx].reshape(-1, 3), axis=1,
+                                                                           keepdims=True))
+    print(f"expected gap {gap:.2g} std: {gap * rot_std:.2g} rad, {gap * t_rel_std:.2g} relative")
+    assert gap * rot_std < 1e-6 and gap * t_rel_std < 1e-6
+    diff = held_differences(solved)
+    assert diff["rotation_rad"] < 1e-6 and diff["translation_rel"] < 1e-6, diff
+    # The intrinsics were held: dstereo's cameras are OpenCV's.
+    for cam, k in zip(fixed.cameras, solved["opencv"].K):
+        np.testing.assert_array_equal(np.asarray(cam.k), [k[0, 0], k[1, 1], k[0, 2], k[1, 2]])
+    np.testing.assert_allclose(float(fixed.rms), solved["opencv_held"].rms, rtol=1e-4)
+
+
+def test_opencv_needs_metres(case):
+    """The pitfall the helper avoids: board points in mm make OpenCV call a planar board collinear."""
+    import cv2
+
+    _, folders, _ = case
+    obs = float32_corners(folders.obs)
+    with pytest.raises(cv2.error, match="(?i)collinear"):
+        calibrate_multiview(folders.object_points * 1000.0, obs, folders.visible, folders.image_sizes)
+
+
+def test_opencv_cameras_roundtrip(case):
+    _, folders, solved = case
+    cams = opencv_cameras(solved["opencv"], folders.image_sizes)
+    for cam, k, d in zip(cams, solved["opencv"].K, solved["opencv"].D):
+        np.testing.assert_array_equal(cam.matrix(), k)
+        np.testing.assert_array_equal(cam.coeffs()[:5], d[:5])
+    assert math.isfinite(solved["opencv"].rms)
