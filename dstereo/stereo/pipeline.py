@@ -21,7 +21,7 @@ from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration
 from dstereo.io.images import read_image
 from dstereo.io.results import check_output
-from dstereo.stereo.disparity import PRESETS, SGBMParams
+from dstereo.stereo.disparity import SGBMParams
 from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
 from dstereo.stereo.pair_result import PairResult, check_pair, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
@@ -33,7 +33,6 @@ __all__ = [
     "LOW_DENSITY", "PairResult", "ReconstructionConfig", "add_uncertainty", "check_pair", "disparity_sigma_hook",
     "initial_range", "match_in_range", "read_image", "reconstruct_calibrated", "reconstruct_uncalibrated",
     "run_reconstruction", "sized_sgbm", "uncalibrated_q", "user_sgbm_names",
-    "CONFIG_NAMES", "config_from_mapping", "load_config",
 ]
 
 
