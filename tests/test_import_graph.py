@@ -30,6 +30,7 @@ ORCHESTRATION = {
     "recession.synthetic",  # writes a synthetic sequence folder (images, stereo.yml) the command reads
     "frames.pairs",  # one frame of a run: reads the calibration, reconstructs, writes the frame's folder
     "frames.store",  # the per-frame results store on disk (one JSON a frame)
+    "synth.truth",  # writes and reads the truth files beside a synthetic render
     "calib.pipeline",  # `calibrate`, one camera: an image folder in (corner detection), a finished job out
     "calib.stereo_pipeline",  # `calibrate`, a stereo rig: the pairs' folders in, a finished job out
     "calib.stereo_folders",  # the same from two folders alone, for tests and experiments
@@ -240,6 +241,7 @@ def planted(tmp_path):
         "calib/job.py": "from ..commands.run import main\nfrom fakepkg.io import files\n",
         "io/__init__.py": "",
         "io/files.py": "from fakepkg.models import Camera\n",
+        "io/report.py": "import fakepkg.commands.run\n",  # io reaching up into a command
         "commands/__init__.py": "",
         "commands/run.py": "def main(): ...\n",
     })
@@ -264,6 +266,8 @@ def test_checker_reports_the_planted_breaches(planted):
         "calib.job -> commands.run: a compute room never imports commands or the cli",
         "calib.job -> commands.run: only cli and commands import commands",
         "calib.job -> io.files: a compute room imports io only from its orchestration modules (ORCHESTRATION)",
+        "io.report -> commands.run: only cli and commands import commands",
+        "io.report -> commands.run: io never imports commands",
         "models.rig -> stereo.a: models/ imports only models, errors and jax_workarounds",
     ]
     waived = layering_breaches(import_graph(planted), orchestration={"calib.job"}, waived=set())

@@ -41,7 +41,7 @@ class _StageLines:
 
 
 def _print(comparison: dict, out: Path, elapsed: float) -> None:
-    from dstereo.demo.run import TABLE_HEADER, notes, surface_lines, table_rows
+    from dstereo.demo.report import TABLE_HEADER, notes, surface_lines, table_rows
 
     rows = [TABLE_HEADER] + table_rows(comparison)
     widths = [max(len(r[j]) for r in rows) for j in range(len(TABLE_HEADER))]

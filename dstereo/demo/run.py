@@ -25,42 +25,16 @@ prints.
 
 from __future__ import annotations
 
-import functools
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
-from dstereo.config.calibration import Step
-
-# Thesis Figure 5.14: stereo_re <= 3 px, then Tnorm and RVnorm within 0.75 IQR.
-THESIS_STEREO_STEPS = (Step(("stereo_re",), (3.0,)), Step(("Tnorm",), (0.75,)), Step(("RVnorm",), (0.75,)))
-# Fixed acceptance bounds; principal points and rotation also pass within `sigmas` standard deviations.
-BOUNDS = {"focal_percent": 0.1, "principal_px": 0.5, "baseline_percent": 0.1, "rotation_deg": 0.05, "sigmas": 3.0}
-# Allowed SGBM sub-pixel disparity error on the speckle, px (about 0.13 px measured with the true calibration).
-DISPARITY_NOISE_PX = 0.2
-
-
-@dataclass(frozen=True)
-class DemoSettings:
-    """Sizes of one demo run: the rig (reduced Plasmatron), the calibration set and the subset analysis."""
-
-    image_size: tuple[int, int] = (640, 480)
-    focal_px: float = 4800.0
-    baseline_mm: float = 100.0
-    distance_mm: float = 600.0
-    n_views: int = 14
-    per_set: int = 12
-    max_subsets: int = 200
-    model: tuple[str, ...] = ("k1", "k2", "p1", "p2")  # free distortion (the lenses have k3 = 0)
-
-
-FULL = DemoSettings()
-QUICK = DemoSettings(n_views=8, per_set=6, max_subsets=28)
-PATHS = {"scenes": "scenes", "calibration": "calibration", "joint_yml": "calibration_joint/stereo.yml",
-         "thesis_yml": "calibration/stereo.yml", "reconstruction": "reconstruction",
-         "points": "reconstruction/points.npy", "comparison": "comparison.md"}
+from dstereo.demo.comparison import compare
+from dstereo.demo.report import markdown
+from dstereo.demo.settings import DemoSettings, FULL, PATHS, QUICK, THESIS_STEREO_STEPS
+from dstereo.demo.surface import rms_slope, surface_errors
 
 
 def run_demo(out, force: bool = False, quick: bool = False, seed: int = 0, progress=None,
@@ -99,9 +73,6 @@ def run_demo(out, force: bool = False, quick: bool = False, seed: int = 0, progr
     return comparison
 
 
-# --- scenes ---------------------------------------------------------------------------------------------------
-
-
 def render_scenes(folder: Path, rig, settings: DemoSettings, seed: int, report):
     """Chessboard pairs and the sample pair, written in the thesis layout under `folder`."""
     from dstereo.synth import calibration_set, sample_pair, write_calibration_set, write_stereo_renders
@@ -114,9 +85,6 @@ def render_scenes(folder: Path, rig, settings: DemoSettings, seed: int, report):
     write_stereo_renders(folder / "sample", [pair])
     report("render sample", 2, 2)
     return cset, pair
-
-
-# --- calibration ----------------------------------------------------------------------------------------------
 
 
 def thesis_config(board: dict, settings: DemoSettings, seed: int):
@@ -197,9 +165,6 @@ def joint_covariance(s, obj: np.ndarray, obs_left: np.ndarray, obs_right: np.nda
     return (sigma2 * np.linalg.inv(scaled.T @ scaled) / np.outer(scale, scale))[:n_g, :n_g]
 
 
-# --- reconstruction and its error against the true surface ----------------------------------------------------
-
-
 def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> dict:
     """Reconstruct the sample pair with the joint calibration (written to out/reconstruction), and with the
     thesis's and the true calibrations (the latter: matching alone), all with the sub-pixel refinement; errors of
@@ -240,274 +205,3 @@ def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> 
             surface[f"{key}_sgbm"] = surface_errors(plain.points, rig.left, depth)
     report("reconstruct", len(calibs), len(calibs))
     return surface
-
-
-def bilinear(image: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """image (h, w) at pixels q (n, 2) (x, y; pixel centres at integers); NaN where a neighbour is NaN or q lies
-    outside [0, w - 1] x [0, h - 1]."""
-    h, w = image.shape
-    inside = np.all(np.isfinite(q), axis=1) & (q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1)
-    qc = np.where(inside[:, None], q, 0.0)
-    x0 = np.minimum(np.floor(qc[:, 0]).astype(int), w - 2)
-    y0 = np.minimum(np.floor(qc[:, 1]).astype(int), h - 2)
-    fx, fy = qc[:, 0] - x0, qc[:, 1] - y0
-    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
-    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
-    return np.where(inside, top * (1 - fy) + bottom * fy, np.nan)
-
-
-@functools.cache
-def _projector():
-    import jax
-
-    from dstereo.models.camera import project
-
-    return jax.jit(jax.vmap(project, in_axes=(None, None, 0)))
-
-
-def ray_errors(p: np.ndarray, camera, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance (n,) mm of points p (n, 3; left camera frame) from the true surface along the true left
-    camera's ray through each (NaN off the sample), and their pixels (n, 2) in the true camera."""
-    q = np.asarray(_projector()(camera.k, camera.dist.coeffs, p))
-    return (p[:, 2] - bilinear(depth, q)) * np.linalg.norm(p, axis=1) / p[:, 2], q
-
-
-def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(R, t) minimising |R a + t - b| over point pairs (n, 3) (Kabsch)."""
-    ca, cb = a.mean(axis=0), b.mean(axis=0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    r = vt.T @ d @ u.T
-    return r, cb - r @ ca
-
-
-def _stats(err: np.ndarray) -> dict:
-    if not err.size:
-        return {"rms_mm": float("nan")}
-    a = np.abs(err)
-    return {"rms_mm": float(np.sqrt(np.mean(err**2))), "mean_mm": float(np.mean(err)), "std_mm": float(np.std(err)),
-            "median_abs_mm": float(np.median(a)), "p95_abs_mm": float(np.percentile(a, 95)),
-            "over_1mm": int((a > 1.0).sum())}
-
-
-def surface_errors(points: np.ndarray, camera, depth: np.ndarray, fit_iterations: int = 5) -> dict:
-    """Errors (mm) of reconstructed points (h, w, 3; left camera frame) against the true surface, along the
-    true left camera's rays (`ray_errors`), as they are and after the rigid motion that best fits them onto
-    the surface (`shape_*`: what is left once the pose of the whole cloud is taken out; each fit pairs the
-    points with the surface points on their current rays; the domed face is a spherical cap, so the fitted
-    motion itself is not unique and is not reported). `coverage` is the fraction of the sample's pixels
-    in the left image that a point lands on; points landing off the sample are counted, not measured."""
-    p = points.reshape(-1, 3).astype(float)
-    p = p[np.all(np.isfinite(p), axis=1) & (p[:, 2] > 0)]
-    err, q = ray_errors(p, camera, depth)
-    on = np.isfinite(err)
-    r, t, pts = np.eye(3), np.zeros(3), p[on]
-    for _ in range(fit_iterations):
-        moved = pts @ r.T + t
-        e, _ = ray_errors(moved, camera, depth)
-        ok = np.isfinite(e)
-        r, t = rigid_fit(pts[ok], moved[ok] * (1.0 - e[ok] / np.linalg.norm(moved[ok], axis=1))[:, None])
-    fitted, _ = ray_errors(pts @ r.T + t, camera, depth)
-    face = np.isfinite(depth)
-    hit = np.zeros_like(face)
-    u, v = np.rint(q[on]).astype(int).T
-    hit[v, u] = True
-    shape = _stats(fitted[np.isfinite(fitted)])
-    return {"points": int(len(p)), "on_sample": int(on.sum()), "off_sample": int((~on).sum()),
-            "coverage": float((hit & face).sum() / max(face.sum(), 1)), **_stats(err[on]),
-            "shape_rms_mm": shape["rms_mm"], "shape_median_abs_mm": shape.get("median_abs_mm", float("nan"))}
-
-
-def rms_slope(depth: np.ndarray, focal_px: float) -> float:
-    """RMS over the sample of its depth slope |grad Z| per mm across the view (edges, where a neighbour is
-    background, excluded): how much a sideways shift of the cloud shows as depth error."""
-    gy, gx = np.gradient(depth)
-    slope = np.hypot(gx, gy) * focal_px / depth
-    return float(np.sqrt(np.nanmean(slope**2)))
-
-
-# --- comparison -----------------------------------------------------------------------------------------------
-
-
-def rotation_error_deg(r_est: np.ndarray, r_true: np.ndarray) -> float:
-    """Angle of R_est R_true^T, degrees (through the one rotation log: arccos of the trace loses half the digits
-    at the small angles compared here)."""
-    from dstereo.models.pose import rotation_vector
-
-    return float(np.degrees(np.linalg.norm(rotation_vector(np.asarray(r_est) @ np.asarray(r_true).T))))
-
-
-def _norm_sigma(v: np.ndarray, cov: np.ndarray) -> float:
-    """Standard deviation of |v| for v with covariance `cov` (first order)."""
-    grad = v / np.linalg.norm(v)
-    return float(np.sqrt(grad @ cov @ grad))
-
-
-def surface_bound(s, cov: np.ndarray, settings: DemoSettings, slope: float) -> dict:
-    """Surface RMS bounds (mm). Matching alone (the true calibration, or the shape after a rigid fit) is held
-    to the depth noise of DISPARITY_NOISE_PX at the sample, Z^2 / (f B) sigma_d. The joint calibration adds, in
-    quadrature, what 3 sigma of it can do: a depth scale error (left focal length, baseline), Z sigma_scale,
-    and a turn of the whole cloud with the left camera's pointing (principal point / f), which slides the
-    domed face sideways by Z sigma_pointing and shows as depth error `slope` (RMS over the face) times that."""
-    z, f, b = settings.distance_mm, settings.focal_px, settings.baseline_mm
-    matching = z * z / (f * b) * DISPARITY_NOISE_PX
-    std = dict(zip(s.names, np.sqrt(np.diag(cov))))
-    k = BOUNDS["sigmas"]
-    scale = k * z * np.hypot(std["left.fx"] / float(s.left.k[0]), _norm_sigma(s.T, cov[3:6, 3:6]) / s.baseline)
-    pointing = k * z * slope * np.hypot(std["left.cx"], std["left.cy"]) / float(s.left.k[0])
-    return {"matching_mm": matching, "scale_mm": float(scale), "pointing_mm": float(pointing),
-            "joint_mm": float(np.linalg.norm([matching, scale, pointing]))}
-
-
-def _row(parameter: str, unit: str, truth, joint, error, bound, sigma=None, thesis=None, thesis_error=None,
-         error_unit: str | None = None) -> dict:
-    return {"parameter": parameter, "unit": unit, "error_unit": error_unit or unit, "truth": truth,
-            "thesis": thesis, "thesis_error": thesis_error, "estimate": joint, "error": error, "sigma": sigma,
-            "bound": bound, "ok": bool(np.isfinite(error) and abs(error) <= bound)}
-
-
-def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings) -> dict:
-    """One row per parameter: truth, the thesis's path (estimate, error), the joint refinement (estimate, error,
-    sigma), the bound and whether the joint error is within it; then the subset and surface summaries. Rotation:
-    truth and estimates are rotation angles, errors the angle of R_est R_true^T. Focal lengths and the baseline
-    have errors in %, and their sigma too."""
-    k_sig = BOUNDS["sigmas"]
-    std = dict(zip(s.names, np.sqrt(np.diag(cov))))
-    rows = []
-    for side, true_cam, thesis_cam, cam in (("left", rig.left, job.full.left, s.left),
-                                            ("right", rig.right, job.full.right, s.right)):
-        kt, kh, ke = (np.asarray(c.k, float) for c in (true_cam, thesis_cam, cam))
-        for j, name in enumerate(("fx", "fy", "cx", "cy")):
-            sig = std[f"{side}.{name}"]
-            if j < 2:
-                pct = lambda v: 100 * (v / kt[j] - 1)  # noqa: E731
-                rows.append(_row(f"{side} {name}", "px", kt[j], ke[j], pct(ke[j]), BOUNDS["focal_percent"],
-                                 100 * sig / kt[j], kh[j], pct(kh[j]), "%"))
-            else:
-                rows.append(_row(f"{side} {name}", "px", kt[j], ke[j], ke[j] - kt[j],
-                                 max(BOUNDS["principal_px"], k_sig * sig), sig, kh[j], kh[j] - kt[j]))
-    r_true, t_true = rig.rotation_translation()
-    b_true, b_thesis = float(np.linalg.norm(t_true)), float(np.linalg.norm(job.T))
-    rows.append(_row("baseline |T|", "mm", b_true, s.baseline, 100 * (s.baseline / b_true - 1),
-                     BOUNDS["baseline_percent"], 100 * _norm_sigma(s.T, cov[3:6, 3:6]) / s.baseline, b_thesis,
-                     100 * (b_thesis / b_true - 1), "%"))
-    rot_sigma = float(np.degrees(np.sqrt(np.trace(cov[0:3, 0:3]))))
-    from dstereo.models.pose import rotation_vector
-
-    angle = lambda r: float(np.degrees(np.linalg.norm(rotation_vector(r))))  # noqa: E731
-    rows.append(_row("rotation R", "deg", angle(r_true), angle(s.R), rotation_error_deg(s.R, r_true),
-                     max(BOUNDS["rotation_deg"], k_sig * rot_sigma), rot_sigma, angle(job.R),
-                     rotation_error_deg(job.R, r_true)))
-    bound = surface_bound(s, cov, settings, surface["rms_slope"])
-    joint, thesis, ref = surface["joint"], surface["thesis"], surface["true_calibration"]
-    rows.append(_row("surface RMS", "mm", 0.0, joint["rms_mm"], joint["rms_mm"], bound["joint_mm"],
-                     thesis=thesis["rms_mm"], thesis_error=thesis["rms_mm"]))
-    rows.append(_row("surface RMS, rigid fit", "mm", 0.0, joint["shape_rms_mm"], joint["shape_rms_mm"],
-                     bound["matching_mm"], thesis=thesis["shape_rms_mm"], thesis_error=thesis["shape_rms_mm"]))
-    rows.append(_row("surface RMS, true calibration", "mm", 0.0, ref["rms_mm"], ref["rms_mm"], bound["matching_mm"]))
-    f = job.filtering
-    stats = f.stats(len(f.steps))
-    subsets = {
-        "plan": job.plan.describe(), "per_set": int(job.plan.index.shape[1]), "solved": int(len(f.table)),
-        "converged": int(f.usable.sum()), "survivors": int(f.survivors.sum()),
-        "steps": [o.message for o in f.steps],
-        "after_steps": {c: {"mean": stats[c]["mean"], "std": stats[c]["std"]} for c in ("stereo_re", "Tnorm",
-                                                                                        "RVnorm")},
-        "individual": {side: {"plan": c.plan.describe(), "rms_px": float(c.full.rms)}
-                       for side, c in (("left", job.left), ("right", job.right))},
-    }
-    warnings = [f"{r['parameter']}: error {_num(r['error'])} {r['error_unit']} exceeds the bound "
-                f"{_num(r['bound'])} {r['error_unit']}" for r in rows if not r["ok"]]
-    return {"rows": rows, "ok": not warnings, "warnings": warnings, "calibration_warnings": list(job.warnings),
-            "subsets": subsets, "surface": surface, "surface_bound": bound, "bounds": BOUNDS,
-            "disparity_noise_px": DISPARITY_NOISE_PX,
-            "stereo": {"pairs": len(job.detection.pairs), "dropped": len(job.detection.dropped),
-                       "thesis_rms_px": job.full.rms, "joint_rms_px": s.rms, "joint_status": s.status_text}}
-
-
-# --- rendering the comparison (shared by comparison.md and the console) ---------------------------------------
-
-
-def _num(value, digits: int = 4) -> str:
-    if value is None or not np.isfinite(value):
-        return "-"
-    return f"{value:.{digits}g}" if abs(value) < 1e4 else f"{value:.1f}"
-
-
-TABLE_HEADER = ("parameter", "truth", "thesis path", "error", "joint", "error", "sigma", "bound", "check")
-
-
-def table_rows(comparison: dict) -> list[tuple[str, ...]]:
-    """One tuple of strings per row, in the columns of `TABLE_HEADER`."""
-    out = []
-    for r in comparison["rows"]:
-        eu = " " + r["error_unit"]
-        digits = 6 if r["unit"] == "px" and r["error_unit"] == "%" else 4
-
-        def value(v):
-            return "-" if v is None else (f"{v:.{digits}g}" if r["unit"] != "mm" or v > 10 else f"{v:.4f}")
-
-        truth = "-" if r["parameter"].startswith("surface") else value(r["truth"])
-        thesis_error = "" if r["thesis_error"] is None else _num(r["thesis_error"], 3) + eu
-        out.append((f"{r['parameter']} [{r['unit']}]", truth, value(r["thesis"]), thesis_error, value(r["estimate"]),
-                    _num(r["error"], 3) + eu, "" if r["sigma"] is None else _num(r["sigma"], 2) + eu,
-                    _num(r["bound"], 3) + eu, "ok" if r["ok"] else "WARNING"))
-    return out
-
-
-def notes(comparison: dict) -> list[str]:
-    """How to read the table, one sentence a line."""
-    b, sb = comparison["bounds"], comparison["surface_bound"]
-    return [
-        "thesis path: each camera alone, then the rig with those intrinsics fixed (mean over the subsets surviving "
-        "the stereo steps); joint: both cameras and the rig refined together. The check applies to the joint.",
-        "sigma: the joint solve's standard deviation (Jacobian with scaled columns; corner noise from the fit).",
-        f"bounds: fx, fy within {b['focal_percent']:g} %, baseline within {b['baseline_percent']:g} %; principal "
-        f"points and rotation within max({b['principal_px']:g} px / {b['rotation_deg']:g} deg, {b['sigmas']:g} "
-        "sigma), since a 7.6 deg field barely shows perspective on the board.",
-        "rotation: truth and estimates are rotation angles; errors the angle of R_est R_true^T.",
-        "surface: distance from the true surface along the true left camera's rays; 'rigid fit' after the best "
-        "rigid motion of the cloud (its shape alone).",
-        f"surface bounds: disparity noise {comparison['disparity_noise_px']:g} px -> {sb['matching_mm']:.3f} mm; "
-        f"the joint calibration adds {b['sigmas']:g} sigma of depth scale ({sb['scale_mm']:.3f} mm) and of "
-        f"pointing ({sb['pointing_mm']:.3f} mm) in quadrature.",
-    ]
-
-
-def surface_lines(comparison: dict) -> list[str]:
-    """Surface RMS before/after the sub-pixel refinement, and the predicted depth std beside the measured error."""
-    s = comparison["surface"]
-    sz = s["sigma_z_mm"]
-    return [
-        f"surface RMS vs truth, SGBM -> refined: joint calibration {s['joint_sgbm']['rms_mm']:.4f} -> "
-        f"{s['joint']['rms_mm']:.4f} mm, true calibration {s['true_calibration_sgbm']['rms_mm']:.4f} -> "
-        f"{s['true_calibration']['rms_mm']:.4f} mm (mean {s['true_calibration_sgbm']['mean_mm']:+.4f} -> "
-        f"{s['true_calibration']['mean_mm']:+.4f} mm); the refinement dropped "
-        f"{100 * s['refine_dropped_fraction']:.2f} % of SGBM's pixels.",
-        f"predicted depth std (joint covariance + per-pixel disparity noise, median {sz['sigma_d_px']:.3g} px): median "
-        f"sigma_z {sz['median']:.4f} mm (calibration {sz['calibration_at_median_mm']:.4f}, disparity "
-        f"{sz['disparity_at_median_mm']:.4f} mm at the median point) against the measured surface RMS "
-        f"{s['joint']['rms_mm']:.4f} mm (true calibration, matching alone: {s['true_calibration']['rms_mm']:.4f} mm)."
-        + ("" if sz["calibration_included"] else " Calibration uncertainty NOT included."),
-    ]
-
-
-def markdown(comparison: dict) -> str:
-    """comparison.md: the table, the subset steps, the surface statistics and where everything is."""
-    lines = ["# dstereo demo: estimates against the truth", "",
-             "| " + " | ".join(TABLE_HEADER) + " |", "|" + "---|" * len(TABLE_HEADER)]
-    lines += ["| " + " | ".join(row) + " |" for row in table_rows(comparison)]
-    sub = comparison["subsets"]
-    lines += [""] + [f"- {n}" for n in notes(comparison)]
-    lines += ["", f"## Stereo subsets, thesis path ({sub['plan']}, m = {sub['per_set']})", ""]
-    lines += [f"- {m}" for m in sub["steps"]]
-    lines += [f"- after the steps: {k} = {v['mean']:.6g} +- {v['std']:.3g}" for k, v in sub["after_steps"].items()]
-    lines += ["", "## Sub-pixel refinement and predicted error", ""] + [f"- {n}" for n in surface_lines(comparison)]
-    for key in ("joint", "thesis", "true_calibration", "joint_sgbm", "true_calibration_sgbm"):
-        lines += ["", f"## Surface ({key.replace('_', ' ').replace('sgbm', 'SGBM only, no refinement')})", ""]
-        lines += [f"- {k}: {_num(v) if isinstance(v, float) else v}" for k, v in comparison["surface"][key].items()]
-    lines += ["", "## Files", ""] + [f"- {k}: `{v}`" for k, v in comparison["paths"].items()]
-    if comparison["warnings"] or comparison["calibration_warnings"]:
-        lines += ["", "## Warnings", ""]
-        lines += [f"- {w}" for w in comparison["warnings"] + comparison["calibration_warnings"]]
-    return "\n".join(lines) + "\n"

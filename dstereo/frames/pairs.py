@@ -35,7 +35,8 @@ def pair_names(pairs) -> list[str]:
 
 def reconstruct_pair(job, calib, config, folder: str) -> PairDone:
     """Task: reconstruct one pair and write its folder under `folder` (atomically)."""
-    from dstereo.io.reconstruction_files import json_default, write_pair
+    from dstereo.io.json_files import json_default
+    from dstereo.io.reconstruction_files import write_pair
     from dstereo.stereo.pipeline import check_pair, read_image, reconstruct_calibrated, reconstruct_uncalibrated
 
     name, left_path, right_path = job
@@ -63,7 +64,8 @@ def reconstruct_pairs(pairs, out, calib_path, config, force: bool, runner, store
     from functools import partial
 
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.io.reconstruction_files import json_default, write_atomically
+    from dstereo.io.json_files import json_default
+    from dstereo.io.reconstruction_files import write_atomically
 
     calib = read_stereo_calibration(calib_path) if calib_path is not None else None
     names = pair_names(pairs)

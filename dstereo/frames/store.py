@@ -15,15 +15,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.results import json_default  # numpy/Path -> JSON, exact for float64
+from dstereo.io.atomic_files import replace_atomically
+from dstereo.io.json_files import json_default  # numpy/Path -> JSON, exact for float64
 
 
 def partial_folder(out: str | Path) -> Path:
@@ -44,17 +43,6 @@ def fingerprint(files_hashed, files_stat, settings) -> str:
         h.update(f"{Path(path).absolute()}|{st.st_size}|{st.st_mtime_ns}\n".encode())
     h.update(repr(settings).encode())
     return h.hexdigest()
-
-
-def _write_atomic(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class PartialStore:
@@ -83,7 +71,7 @@ class PartialStore:
                                    "without `resume` to start afresh")
         self.frames.mkdir(parents=True, exist_ok=True)
         if not inputs.exists():
-            _write_atomic(inputs, lambda p: p.write_text(json.dumps({"fingerprint": self.key}) + "\n"))
+            replace_atomically(inputs, lambda p: p.write_text(json.dumps({"fingerprint": self.key}) + "\n"))
         return self
 
     def save(self, name: str, arrays: dict, meta: dict) -> None:
@@ -91,8 +79,8 @@ class PartialStore:
             with path.open("wb") as fh:
                 np.savez(fh, **arrays)
 
-        _write_atomic(self.frames / f"{name}.npz", write_npz)
-        _write_atomic(self.frames / f"{name}.json", lambda p: p.write_text(json.dumps(meta, default=json_default)))
+        replace_atomically(self.frames / f"{name}.npz", write_npz)
+        replace_atomically(self.frames / f"{name}.json", lambda p: p.write_text(json.dumps(meta, default=json_default)))
 
     def load(self, name: str) -> tuple[dict, dict] | None:
         """(arrays, meta) of a stored frame, or None when it is not (wholly) there."""

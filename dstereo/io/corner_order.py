@@ -9,7 +9,7 @@ and lies wholly within the detected grid, so it is sampled there, on a lattice s
 ends of the board; the canonical order starts at the dark end, as `synth.board` prints it and as OpenCV 5.0.0's
 `findChessboardCorners` numbered all 164 views of a rendered K = 4 rig and every image of the shared real sets
 (opencv_stereo, rig640, fisheye640); turned 180 degrees, the 10 real images and 8 renders tried kept their
-physical numbering (measured once; tests/test_corner_order.py keeps a render and left01.jpg).
+physical numbering (measured once; tests/io/test_corner_order.py keeps a render and left01.jpg).
 
 A pattern whose opposite corner squares share a colour (a square board, or both counts of one parity), or an image
 whose squares cannot be told apart at both ends (blur, darkness, glare), is refused with a DstereoError naming the

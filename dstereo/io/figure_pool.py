@@ -24,9 +24,9 @@ def _warm() -> None:
     """Worker initializer: import matplotlib (Agg) and draw once, so the font cache is loaded before a job comes."""
     import io
 
-    from dstereo.io.plots import _pyplot
+    from dstereo.io.figures import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(1, 1))
     ax.set_title("x")
     fig.savefig(io.BytesIO(), format="png", dpi=20)

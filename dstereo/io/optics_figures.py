@@ -8,17 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.io.plots import log_ticks, tick_label
+from dstereo.io.figures import log_ticks, pyplot, tick_label
 from dstereo.optics.calculator import PLOT_NAMES, OpticsConfig, f_number_axis, focal_axis, total_dof_curve
 
 
 def write_plots(config: OpticsConfig, out_dir: str | os.PathLike) -> list[Path]:
     """Total DoF vs focal length (fixed N), vs N (fixed f) and over (f, N) with the set-up marked; PNGs."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     figures = (_plot_vs_focal(config, plt), _plot_vs_f_number(config, plt), _plot_contour(config, plt))

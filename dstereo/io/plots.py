@@ -9,31 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def log_ticks(lo: float, hi: float) -> np.ndarray:
-    """Colour-bar ticks of a log scale over [lo, hi]: 1-2-5 times powers of ten inside, else (a range under
-    about a factor 5) five geometric steps rounded to 2 significant digits; distinct and labelled by `tick_label`."""
-    decades = np.arange(np.floor(np.log10(lo)), np.ceil(np.log10(hi)) + 1)
-    ticks = np.array([m * 10.0 ** d for d in decades for m in (1, 2, 5)])
-    ticks = ticks[(ticks >= lo) & (ticks <= hi)]
-    if len(ticks) < 3:
-        ticks = np.unique([float(f"{t:.2g}") for t in np.geomspace(lo, hi, 5)])
-        ticks = ticks[(ticks >= lo) & (ticks <= hi)]
-    return ticks
-
-
-def tick_label(value: float, _pos=None) -> str:
-    """'0.05', '2', '150', '20000': the tick's own digits (1-2-5 ticks are short), never a small value as 0."""
-    return f"{value:g}"
+from dstereo.io.figures import fixed_margins, log_ticks, pyplot, save, tick_label  # noqa: F401 - public here too
 
 
 def _horizontal() -> dict:
@@ -156,7 +132,7 @@ def parameter_figure_data(name: str, initial: np.ndarray, final: np.ndarray, uni
 
 def draw_parameter_figure(data: dict, path: Path) -> None:
     """Draw and save what `parameter_figure_data` computed."""
-    plt = _pyplot()
+    plt = pyplot()
     name, unit, reference = data["name"], data["unit"], data["reference"]
     label = f"{name} ({unit})" if unit else name
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
@@ -184,22 +160,6 @@ def draw_parameter_figure(data: dict, path: Path) -> None:
     save(fig, path)
 
 
-def fixed_margins(fig, left: float, right: float, bottom: float, top: float) -> None:
-    """Margins in inches (the labels' room) instead of `tight_layout`, which lays out every text once more
-    before the save draws it (~30 % of such a figure's time, measured)."""
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h)
-
-
-def save(fig, path: Path, dpi: int = 90) -> None:
-    """savefig as PNG with zlib level 1 (faster than the default 6; a parameter figure measured 62 kB instead of
-    61 kB), then close the figure."""
-    import matplotlib.pyplot as plt
-
-    fig.savefig(path, dpi=dpi, pil_kwargs={"compress_level": 1})
-    plt.close(fig)
-
-
 def corner_patches(image_size: tuple[int, int]) -> dict[str, tuple[float, float, float, float]]:
     """The four image-corner patches of the coverage check (outer quarter of the width and of the height,
     1/16 of the area each, as `pipeline.corner_coverage` counts them), as (x0, y0, width, height) in px with
@@ -215,7 +175,7 @@ def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: d
     """Heat map of all detected corners over the image, quadrant and centre regions outlined with their share;
     the image-corner patches the coverage warnings speak of are drawn (dashed) with their share, in orange
     where below `corner_min` %."""
-    plt = _pyplot()
+    plt = pyplot()
     w, h = image_size
     fig, ax = plt.subplots(figsize=(7, 7 * h / w + 0.6))
     counts, _, _ = np.histogram2d(points[:, 0], points[:, 1], bins=(32, max(int(32 * h / w), 1)),
@@ -249,7 +209,7 @@ def coverage_heatmap(points: np.ndarray, image_size: tuple[int, int], percent: d
 
 def per_image_rms(names: list[str], rms: np.ndarray, path: Path) -> None:
     """Bar chart of each image's RMS reprojection error in the full-set solve."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(max(6, 0.45 * len(names) + 2), 4))
     ax.bar(range(len(names)), rms, color="tab:blue")
     ax.axhline(float(np.sqrt(np.mean(np.square(rms)))), color="tab:red", ls="--", lw=1, label="overall RMS")
@@ -264,7 +224,7 @@ def per_image_rms(names: list[str], rms: np.ndarray, path: Path) -> None:
 def residual_vectors(observed: np.ndarray, residuals: np.ndarray, image_size: tuple[int, int], path: Path) -> None:
     """Residual vectors (projected - observed) of every corner, drawn at the corner, exaggerated to be seen;
     colour = length (colour bar in px), a key arrow gives the scale."""
-    plt = _pyplot()
+    plt = pyplot()
     w, h = image_size
     pts, res = observed.reshape(-1, 2), residuals.reshape(-1, 2)
     length = np.linalg.norm(res, axis=1)

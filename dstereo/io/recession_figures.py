@@ -6,22 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.io.sigma_maps import log_colour_bar, map_norm
+from dstereo.io.figures import log_colour_bar, map_norm, pyplot
 from dstereo.recession.fits import line_band
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def recession_vs_time(result, path: Path) -> None:
     """Stagnation-point recession over time with its standard errors, the fitted line and its 95 % band."""
-    plt = _pyplot()
+    plt = pyplot()
     ok = result.ok
     t = result.times
     r = np.array([f.recession.value for f in result.frames])
@@ -56,7 +47,7 @@ def _extent(grid) -> list[float]:
 
 def recession_maps(result, path: Path, max_panels: int = 12) -> None:
     """Recession maps of the frames (up to `max_panels`, evenly picked) on one colour scale."""
-    plt = _pyplot()
+    plt = pyplot()
     idx = np.flatnonzero(result.ok)
     if len(idx) > max_panels:
         idx = idx[np.round(np.linspace(0, len(idx) - 1, max_panels)).astype(int)]
@@ -88,7 +79,7 @@ def rate_map(result, path: Path) -> None:
     fit white."""
     import matplotlib
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), dpi=100)
     for ax, key, title in ((axes[0], "rate", "recession rate"), (axes[1], "ci95_half", "95% interval half-width")):
         data = 1000 * np.asarray(result.rates[key], float)
@@ -112,7 +103,7 @@ def rate_map(result, path: Path) -> None:
 
 def radial_profiles(result, path: Path, ring_mm: float | None = None) -> None:
     """Azimuthal median of each frame's recession against the distance from the stagnation point."""
-    plt = _pyplot()
+    plt = pyplot()
     u, v = result.grid.centres()
     rho = np.hypot(u, v)
     step = ring_mm or max(result.grid.spacing, 0.5)

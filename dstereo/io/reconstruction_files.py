@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dstereo.io.results import atomic_folder, json_default
+from dstereo.io.json_files import json_default
+from dstereo.io.results import atomic_folder
 
 if TYPE_CHECKING:  # annotations only: a writer takes a finished result and imports none of the pipeline
     from dstereo.stereo.pair_result import PairResult
@@ -31,8 +32,9 @@ def _epipolar_image(left: np.ndarray, right: np.ndarray, step: int = 32) -> np.n
 def _disparity_png(path: Path, disparity: np.ndarray, title: str) -> None:
     import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dstereo.io.figures import pyplot
+
+    plt = pyplot()
 
     h, w = disparity.shape
     fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)

@@ -24,7 +24,6 @@ partial folder, and an existing folder is replaced only with `force`.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import shutil
 import tempfile
@@ -37,6 +36,7 @@ import numpy as np
 from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, FilterResult
 from dstereo.config.calibration import ABSOLUTE_PARAMETERS, as_dict, to_toml
 from dstereo.errors import DstereoError
+from dstereo.io.json_files import json_default, write_json  # noqa: F401 - the writers' names, importable here
 
 UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
 N_UNDISTORTED = 3
@@ -73,33 +73,6 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-
-
-def json_default(value):
-    """`json.dumps(default=...)` for numpy arrays and scalars and paths."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value)}")
-
-
-def _finite(value):
-    """NaN and infinities -> None, so the file is strict JSON."""
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
-        return None
-    return value
-
-
-def write_json(path: Path, data) -> None:
-    text = json.dumps(data, indent=2, default=json_default)
-    path.write_text(json.dumps(_finite(json.loads(text)), indent=2, allow_nan=False) + "\n")
 
 
 # --- generic tables (reused per camera and by the stereo results) -------------------------------------------
@@ -411,7 +384,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
             summary["warnings"].append(entry["warning"])
             cal.warnings.append(entry["warning"])  # printed after writing, with the others
     if getattr(cal, "cross_validation", None) is not None:
-        from dstereo.calib.cross_validation import write_cross_validation
+        from dstereo.io.cross_validation_files import write_cross_validation
 
         summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit)
     figures.wait()

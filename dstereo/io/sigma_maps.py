@@ -6,72 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+from dstereo.io.figures import ROBUST_PERCENTILE, colour_limits, log_colour_bar, map_norm, pyplot  # noqa: F401
 
 
 OVER_COLOUR = "tab:red"  # pixels above the colour scale
-ROBUST_PERCENTILE = 99.0  # projection maps: the colour scale stops here unless the data fit in it
-SWAMP_FACTOR = 1.25  # the full range is kept unless it is more than this times the percentile range
-
-
-def colour_limits(values: np.ndarray, percentile: float = ROBUST_PERCENTILE,
-                  lower: float | None = None) -> tuple[float, float, str]:
-    """(vmin, vmax, extend) of a map's colour scale. Non-negative maps (`lower` None): 0 to the `percentile` of
-    the finite values, so that one huge value (a 4e13 px std where a ray leaves the model's valid range) does
-    not compress every other pixel into one colour. Signed maps: `lower` to `percentile` percentiles.
-    `extend` ("neither", "max", "min", "both", as matplotlib's colour bar takes it) says which side has finite
-    values beyond the scale (drawn in the over/under colour). Non-finite values are ignored (mask them)."""
-    finite = np.asarray(values, float)
-    finite = finite[np.isfinite(finite)]
-    if finite.size == 0:
-        return 0.0, 1.0, "neither"
-    top, peak = float(np.percentile(finite, percentile)), float(finite.max())
-    bottom, least = (0.0, 0.0) if lower is None else (float(np.percentile(finite, lower)), float(finite.min()))
-    if peak - bottom <= SWAMP_FACTOR * (top - bottom):  # nothing far above: the full range shows it all
-        top = peak
-    if lower is not None and top - least <= SWAMP_FACTOR * (top - bottom):
-        bottom = least
-    if not top > bottom:  # constant
-        top = bottom + (abs(bottom) or 1.0)
-    over, under = peak > top, lower is not None and least < bottom
-    return bottom, top, {(False, False): "neither", (True, False): "max", (False, True): "min",
-                         (True, True): "both"}[(bool(over), bool(under))]
-
-
-LOG_RANGE = 20.0  # a non-negative map whose colour range spans more than this factor is drawn on a log scale
-
-
-def map_norm(values: np.ndarray, percentile: float = ROBUST_PERCENTILE, lower: float | None = None):
-    """(norm, extend, log) for imshow / colorbar: `colour_limits`, and for a non-negative map whose scale spans
-    more than LOG_RANGE from its smallest positive value, a log scale from there (both the small middle and
-    the large rim of a map then show)."""
-    from matplotlib.colors import LogNorm, Normalize
-
-    vmin, vmax, extend = colour_limits(values, percentile, lower)
-    finite = np.asarray(values, float)
-    finite = finite[np.isfinite(finite)]
-    least = float(finite[finite > 0].min()) if lower is None and (finite > 0).any() else 0.0
-    if least > 0 and vmax / least > LOG_RANGE:
-        return LogNorm(least, vmax), extend, True
-    return Normalize(vmin, vmax), extend, False
-
-
-def log_colour_bar(bar) -> None:
-    """1-2-5 ticks with significant-digit labels on a log colour bar (matplotlib's default can print 0)."""
-    from matplotlib.ticker import FuncFormatter
-
-    from dstereo.io.plots import log_ticks, tick_label
-
-    bar.set_ticks(log_ticks(bar.norm.vmin, bar.norm.vmax))
-    bar.ax.yaxis.set_major_formatter(FuncFormatter(tick_label))
-    bar.minorticks_off()
 
 
 def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -> None:
@@ -80,7 +18,7 @@ def sigma_z_png(path: Path, sigma_z: np.ndarray, title: str, unit: str = "mm") -
     points would otherwise wash the map out."""
     import matplotlib
 
-    plt = _pyplot()
+    plt = pyplot()
     h, w = sigma_z.shape
     vmin, vmax, extend = colour_limits(sigma_z, 95.0)
     fig, ax = plt.subplots(figsize=(max(4.0, w / 100 + 1.2), max(3.0, h / 100)), dpi=100)
@@ -100,7 +38,7 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
     spans more than LOG_RANGE (a wide-angle lens: 0.4 px in the middle, 20 px at the rim), so both show."""
     import matplotlib
 
-    plt = _pyplot()
+    plt = pyplot()
     w, h = image_size
     std = np.ma.masked_invalid(np.asarray(pmap.std, float))
     norm, extend, log = map_norm(pmap.std)

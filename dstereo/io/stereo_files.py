@@ -12,8 +12,6 @@ Every file is written under a temporary name and renamed, so none is ever left h
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 import numpy as np
@@ -140,16 +138,7 @@ def match_pairs(det_left: Detection, det_right: Detection, names_left: list[str]
 # --- writers ---------------------------------------------------------------------------------------------------
 
 
-def _replace_atomically(path: Path, write) -> Path:
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+from dstereo.io.atomic_files import replace_atomically as _replace_atomically  # noqa: E402
 
 
 def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, int],
@@ -209,23 +198,11 @@ def append_board_depths(path: Path, depths: dict) -> None:
         fh.writelines(f"{key}: {value!r}\n" for key, value in depths.items())
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not np.isfinite(value):
-        return None  # JSON has no NaN/inf
-    return value
-
-
 def write_json(path, data: dict) -> Path:
     """Any nest of dicts, lists, numpy arrays and scalars as indented JSON (non-finite numbers as null)."""
-    text = json.dumps(_jsonable(data), indent=1)
+    from dstereo.io.json_files import json_text
+
+    text = json_text(data, indent=1)
     return _replace_atomically(Path(path), lambda tmp: tmp.write_text(text))
 
 
@@ -377,13 +354,7 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     (folder / "report.md").write_text(report_markdown(job, summary))
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+from dstereo.io.figures import pyplot as _pyplot  # noqa: E402 - the figures below share io/figures' backend
 
 
 def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:

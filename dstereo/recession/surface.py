@@ -150,7 +150,7 @@ def block_jackknife_axis_deg(uvh: np.ndarray, blocks: int = JACKKNIFE_BLOCKS) ->
     slope at the origin, the face cut into square blocks in (u, v), `blocks` across its larger extent.
     Neighbouring points share SGBM's window and the refinement's kernel, so their errors are correlated: a
     per-point covariance or bootstrap counts them as independent and understates the spread (tenfold
-    on a synthetic face with noise correlated over ~1 mm, tests/test_recession_axis.py); blocks many matching
+    on a synthetic face with noise correlated over ~1 mm, tests/recession/test_axis.py); blocks many matching
     windows wide are close to independent. The quadric, not the plane, is refitted: without a block a plane
     through a domed face tilts with the dome's slope, which is not an error; on a face symmetric about the origin
     the quadric's slope and the plane's coincide. Measured on that synthetic face: error / this sigma has an RMS

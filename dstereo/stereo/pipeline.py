@@ -21,7 +21,7 @@ from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration
 from dstereo.io.images import read_image
 from dstereo.io.results import check_output
-from dstereo.stereo.disparity import PRESETS, SGBMParams
+from dstereo.stereo.disparity import SGBMParams
 from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
 from dstereo.stereo.pair_result import PairResult, check_pair, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
@@ -33,7 +33,6 @@ __all__ = [
     "LOW_DENSITY", "PairResult", "ReconstructionConfig", "add_uncertainty", "check_pair", "disparity_sigma_hook",
     "initial_range", "match_in_range", "read_image", "reconstruct_calibrated", "reconstruct_uncalibrated",
     "run_reconstruction", "sized_sgbm", "uncalibrated_q", "user_sgbm_names",
-    "CONFIG_NAMES", "config_from_mapping", "load_config",
 ]
 
 
@@ -137,7 +136,8 @@ def run_reconstruction(
 ) -> list[PairResult]:
     """Reconstruct every (left, right) pair and write the results folder (one sub-folder per pair if several)."""
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.io.reconstruction_files import json_default, write_atomically, write_pair
+    from dstereo.io.json_files import json_default
+    from dstereo.io.reconstruction_files import write_atomically, write_pair
 
     check_output(out, force)
     if not pairs:

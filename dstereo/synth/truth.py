@@ -8,12 +8,13 @@ renamed, so a folder never holds a half-written render.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.io.atomic_files import replace_atomically
+from dstereo.io.json_files import jsonable
 from dstereo.models.camera import Camera
 from dstereo.models.distortion import COEFF_NAMES
 
@@ -32,30 +33,12 @@ def camera_from_truth(d: dict) -> Camera:
     return Camera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["coeffs"], image_size=tuple(d["image_size"]))
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 def split_truth(truth: dict) -> tuple[dict, dict[str, np.ndarray]]:
     """(JSON part, array part) of a truth dict."""
     arrays = {k: v for k, v in truth.items() if isinstance(v, np.ndarray)}
-    meta = {k: _jsonable(v) for k, v in truth.items() if k not in arrays}
+    meta = {k: jsonable(v) for k, v in truth.items() if k not in arrays}
     meta["arrays"] = sorted(arrays)
     return meta, arrays
-
-
-def _replace_atomically(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{path.suffix}")
-    write(tmp)
-    os.replace(tmp, path)
 
 
 def write_render(folder, image: np.ndarray | None, truth: dict, name: str = "render") -> Path:
@@ -73,14 +56,14 @@ def write_render(folder, image: np.ndarray | None, truth: dict, name: str = "ren
             if not cv2.imwrite(str(p), image):
                 raise DstereoError(f"write_render: cv2 could not write {p}; check the folder is writable")
 
-        _replace_atomically(folder / f"{name}.png", write_png)
-    _replace_atomically(folder / f"{name}.json", lambda p: p.write_text(json.dumps(meta, indent=1)))
+        replace_atomically(folder / f"{name}.png", write_png)
+    replace_atomically(folder / f"{name}.json", lambda p: p.write_text(json.dumps(meta, indent=1)))
 
     def write_npz(p):
         with open(p, "wb") as f:
             np.savez_compressed(f, **arrays)
 
-    _replace_atomically(folder / f"{name}.npz", write_npz)
+    replace_atomically(folder / f"{name}.npz", write_npz)
     return folder / name
 
 

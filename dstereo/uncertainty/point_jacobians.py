@@ -16,7 +16,7 @@ effect, and it is held at its value. With q fixed and theta = theta_true + delta
 J_theta delta to first order, so cov_calib = J_theta S_theta J_theta^T. The undistortion of q is one Newton step
 from the known root (the ray of the rectified pixel): its value is exact at the linearisation point and its
 derivative is the implicit-function one (-J_distort^-1 d residual / d theta).
-`tests/test_point_uncertainty.py` checks J_theta against central differences of the actual pipeline (re-run
+`tests/uncertainty/test_points.py` checks J_theta against central differences of the actual pipeline (re-run
 `stereo_rectify` with theta, rectify the two pixels, reproject through Q).
 
 Disparity noise sigma_d (rectified px, along the row; each point its own, `dstereo.stereo.disparity_noise`): the point

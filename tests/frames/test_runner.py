@@ -2,7 +2,7 @@
 that dies has its frame retried (or reported failed), and an interrupted run resumed from OUT.partial gives the
 uninterrupted run's summary.json.
 
-One small rendered sequence (6 frames, 320 x 240, as tests/test_recession.py renders them) serves every test.
+One small rendered sequence (6 frames, 320 x 240, as tests/recession/test_analysis.py renders them) serves every test.
 """
 
 import json

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from conftest import require_data
-from dstereo.stereo.disparity import PRESETS, SGBMParams, parse_overrides
+from dstereo.config.reconstruction import load_config
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import (
     StereoCalibration,
@@ -22,9 +22,8 @@ from dstereo.io.calib_files import (
     write_pfm,
 )
 from dstereo.io.pointcloud import grid_faces
-from dstereo.stereo.point_outliers import remove_statistical_outliers
 from dstereo.models.camera import Camera
-from dstereo.config.reconstruction import load_config
+from dstereo.stereo.disparity import PRESETS, SGBMParams, parse_overrides
 from dstereo.stereo.pipeline import (
     ReconstructionConfig,
     read_image,
@@ -32,6 +31,7 @@ from dstereo.stereo.pipeline import (
     reconstruct_uncalibrated,
     run_reconstruction,
 )
+from dstereo.stereo.point_outliers import remove_statistical_outliers
 from dstereo.synth.objects import Sample, Sphere
 from dstereo.synth.poses import look_at, pose_matrix
 from dstereo.synth.render import render_object

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
 
 from dstereo.calib import cross_validation as cv  # noqa: E402

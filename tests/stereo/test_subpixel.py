@@ -1,7 +1,7 @@
 """dstereo.stereo.subpixel: pixels the refinement cannot refine are dropped (NaN), the right map is refined like the
 left one, and the homography maps resample as cv2.warpPerspective does. The gain on a rendered pair:
-tests/test_reconstruct.py::test_subpixel_refinement_cuts_the_surface_error; a known shift:
-tests/test_recession.py::test_subpixel_refinement_recovers_a_known_shift."""
+tests/stereo/test_pipeline.py::test_subpixel_refinement_cuts_the_surface_error; a known shift:
+tests/recession/test_analysis.py::test_subpixel_refinement_recovers_a_known_shift."""
 
 import cv2
 import numpy as np

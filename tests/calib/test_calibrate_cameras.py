@@ -1,7 +1,7 @@
 """`dstereo calibrate --cameras DIR` end to end on a rendered K = 3 rig of different cameras with partial
-visibility (tests/test_calib_problem.py's rig, rendered, corners detected by OpenCV): the files, the recovered
+visibility (tests/calib/test_problem.py's rig, rendered, corners detected by OpenCV): the files, the recovered
 rig against the truth, and the refusals. The accuracy acceptance at 60 frames, and OpenCV's calibrateMultiview
-beside it, is tests/test_multiview.py."""
+beside it, is tests/calib/test_multiview.py."""
 
 import json
 from pathlib import Path
@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-import test_calib_problem as rig
+import test_problem as rig
 from conftest import run_cli
 from dstereo.synth.board import Board
 from dstereo.synth.poses import compose

@@ -9,7 +9,7 @@ from dstereo.config.calibration import (Config, Step, config_from_thesis_ini, co
                             load_config, parse_step_flag, template, to_toml, validate)
 from dstereo.errors import DstereoError
 
-SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
+SEED = Path(__file__).resolve().parents[2].parent / "shared" / "seed"
 FIGURE_5_5_STEPS = (
     Step(("re",), (0.5,)), Step(("p1", "p2"), (1.5, 1.5)), Step(("k1", "k2", "k3"), (1.5, 1.5, 1.5)),
     Step(("fx", "fy", "cx", "cy"), (1.0, 1.0, 1.0, 1.0)),

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from experiments.projection_mc import FREE, SIZE, board_fixed_spread, scene  # noqa: E402
 
 from dstereo.calib.cross_validation import solve_halves  # noqa: E402

@@ -10,8 +10,9 @@ from scipy.stats import gaussian_kde
 
 from dstereo.calib.pipeline import CORNER_MIN_PERCENT, corner_coverage
 from dstereo.io import plots
-from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches, log_ticks, tick_label
-from dstereo.io.sigma_maps import colour_limits, projection_uncertainty_png
+from dstereo.io.figures import colour_limits, log_ticks, tick_label
+from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches
+from dstereo.io.sigma_maps import projection_uncertainty_png
 from dstereo.io.stereo_files import frustum_depth
 from dstereo.uncertainty.projection import ProjectionUncertaintyMap
 

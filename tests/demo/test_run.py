@@ -22,6 +22,8 @@ import pytest
 from typer.testing import CliRunner
 
 from dstereo.demo import run as demo
+from dstereo.demo.comparison import rotation_error_deg
+from dstereo.demo.surface import rigid_fit, surface_errors
 from dstereo.calib.stereo import calibrate_stereo
 from dstereo.cli import app
 from dstereo.errors import DstereoError
@@ -153,10 +155,10 @@ def test_surface_errors_on_a_known_plane():
     v, u = np.mgrid[0:48, 0:64].astype(float)
     rays = np.stack([(u - 31.5) / 200.0, (v - 23.5) / 200.0, np.ones_like(u)], axis=-1)
     points = rays * 100.0
-    exact = demo.surface_errors(points, cam, depth)
+    exact = surface_errors(points, cam, depth)
     assert exact["rms_mm"] < 1e-9 and exact["shape_rms_mm"] < 1e-9
     assert exact["off_sample"] > 0 and exact["coverage"] > 0.95
-    moved = demo.surface_errors(points + np.array([0.2, -0.1, 0.5]), cam, depth)
+    moved = surface_errors(points + np.array([0.2, -0.1, 0.5]), cam, depth)
     assert moved["mean_mm"] == pytest.approx(0.5, rel=0.02)
     assert moved["shape_rms_mm"] < 1e-6
 
@@ -166,11 +168,11 @@ def test_rigid_fit_and_rotation_error():
     a = rng.normal(size=(50, 3))
     angle = np.radians(3.0)
     r = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
-    r_fit, t_fit = demo.rigid_fit(a, a @ r.T + [1.0, 2.0, 3.0])
+    r_fit, t_fit = rigid_fit(a, a @ r.T + [1.0, 2.0, 3.0])
     # Exact correspondences: the SVD rigid fit recovers R, t to rounding of a well-conditioned 3x3 (~1e-15); 1e-12 holds on any processor.
     np.testing.assert_allclose(r_fit, r, atol=1e-12)
     np.testing.assert_allclose(t_fit, [1.0, 2.0, 3.0], atol=1e-12)
-    assert demo.rotation_error_deg(r, np.eye(3)) == pytest.approx(3.0)
+    assert rotation_error_deg(r, np.eye(3)) == pytest.approx(3.0)
 
 
 def test_refinement_and_calibration_sigma_in_the_demo_reconstruction(run):
