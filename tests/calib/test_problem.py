@@ -55,8 +55,9 @@ def test_frame_jacobian_matches_autodiff_and_finite_differences(name):
         obs[1, ::3] = np.nan  # corners the second camera did not see: residual and Jacobian exactly 0
     shared = shared_data(object_points(PATTERN, SQUARE), ks, coeffs)
     args = (jnp.asarray(g), jnp.asarray(pose), jnp.asarray(obs), shared)
-    r, jt = frame_linearize(problem)(*args)
-    r_ad, jt_ad = jacfwd_linearize(frame_residual(problem))(*args)
+    # compiled, both: eager dispatch of the many small ops would cost most of this test
+    r, jt = jax.jit(frame_linearize(problem))(*args)
+    r_ad, jt_ad = jax.jit(jacfwd_linearize(frame_residual(problem)))(*args)
     assert jt.shape == (problem.n_shared + 6, 2 * problem.k * 54)
     # one function, two derivative programs: float64 rounding of ~1e3 px values and O(1e3) derivatives
     np.testing.assert_allclose(r, r_ad, atol=1e-9)
