@@ -38,11 +38,8 @@ ORCHESTRATION = {
 
 LEAD_TO_CLEAR: set[str] = set()  # calibration modules waived while the core was rewritten: none left
 
-# `StereoCalibration` (two cameras and their rig, as a calibration file gives them) is defined in
-# io/calib_files.py, so these compute modules import io for a type. The helper unifying the rig type (issue 17
-# item 3, `types`) owns it; once it lives in models/, empty this. Each module may import only io.calib_files.
-RIG_TYPE_IN_IO = {"reference.correction", "reference.dense", "reference.refine", "reference.refinement",
-                  "stereo.matching", "stereo.pair_result"}
+# Compute modules waived to import io.calib_files for the `StereoCalibration` type while it lived there.
+RIG_TYPE_IN_IO: set[str] = set()  # `StereoCalibration` now lives in models/stereo_calibration.py: none left
 
 # Cycles waived while the calibration core was rewritten: none left (`rig_covariance` moved to uncertainty/rig.py).
 LEAD_CYCLES: list[set[str]] = []

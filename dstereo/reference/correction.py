@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.models.camera import Camera
 from dstereo.models.pose import log_rotation, rodrigues
 from dstereo.models.rig import Rig

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.models.camera import project
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.reference.objects import Board, Distances, Sphere
 from dstereo.reference.refinement import Refinement
 

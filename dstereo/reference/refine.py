@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.reference import residuals as res
 from dstereo.reference.correction import PARAM_NAMES, RigBase, free_indices
 from dstereo.reference.mesh import refine_mesh

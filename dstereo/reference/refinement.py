@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.reference.correction import PARAM_NAMES, corrected_calibration
 from dstereo.reference.solve import Solution
 

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.stereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.stereo.pair_result import grey
 from dstereo.stereo.reconstruction_config import ReconstructionConfig

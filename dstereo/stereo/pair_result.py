@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 
 
 @dataclass

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.io.calib_files import StereoCalibration
+from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.io.images import read_image
 from dstereo.io.results import check_output
 from dstereo.stereo.disparity import SGBMParams
