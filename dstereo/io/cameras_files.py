@@ -153,6 +153,8 @@ def write_multiview_results(out, job, force: bool = False, pairs=None, projectio
                     summary["stereo_files"].append(name)
                 if note:
                     summary["stereo_notes"].append(note)
+                    job.warnings.append(note)  # printed by the command too, not only in report.md
+            summary["warnings"] = list(job.warnings)
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)
             write_json(tmp / "summary.json", summary)

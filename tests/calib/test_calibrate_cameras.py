@@ -76,6 +76,9 @@ def test_each_camera_gets_its_own_folder_and_each_adjacent_pair_a_stereo_file(ri
     T = rig.EXT[2][3:] - R @ rig.EXT[1][3:]
     np.testing.assert_allclose(np.asarray(pair.R), R, atol=np.radians(0.3))
     np.testing.assert_allclose(np.asarray(pair.T).ravel(), T, atol=0.01 * np.linalg.norm(T))
+    # cam0 (640x480) and cam1 (800x600): the stereo file comes with a warning that its sizes differ
+    warnings = json.loads((out / "cameras.json").read_text())["warnings"]
+    assert any("stereo_cam0_cam1.yml: the cameras' images differ in size" in w for w in warnings), warnings
     lines = (out / "frames.csv").read_text().splitlines()
     assert lines[0].startswith("frame,cam0_seen,cam0_rms_px") and len(lines) == 21
 
