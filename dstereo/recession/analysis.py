@@ -196,8 +196,8 @@ class _Reference:
         self.face_cells = self.face_cells.reshape(self.grid.shape)
 
 
-def _frame_heights(points: np.ndarray, ref: _Reference, config: RecessionConfig):
-    uvh = ref.sample.coordinates(valid_points(points))
+def _frame_heights(uvh: np.ndarray, ref: _Reference, config: RecessionConfig):
+    """Cell heights of a frame from its valid points' face coordinates (`ref.sample.coordinates`)."""
     uvh = uvh[(uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])]
     height, se, count = cell_heights(uvh, ref.grid, config.min_points_per_cell)
     height[~ref.face_cells], se[~ref.face_cells], count[~ref.face_cells] = np.nan, np.nan, 0
@@ -245,9 +245,12 @@ def _measure(frame: Frame, reconstruct, config: RecessionConfig, ref: _Reference
     out = FrameOutcome()
     try:
         points, sigma_vectors, check = _points_and_sigmas(reconstruct(frame))
-        out.valid_fraction = float(np.all(np.isfinite(points), axis=-1).mean())
+        flat = np.asarray(points, float).reshape(-1, 3)
+        valid = np.all(np.isfinite(flat), axis=1)
+        out.valid_fraction = float(valid.mean())
         current = ref if ref is not None else _Reference(points, config)
-        heights, se, _ = _frame_heights(points, current, config)
+        uvh = current.sample.coordinates(flat[valid])  # the heights' and the random sigmas' points
+        heights, se, _ = _frame_heights(uvh, current, config)
         if ref is None:
             _check_reference(heights, config)
     except DstereoError as exc:
@@ -255,7 +258,7 @@ def _measure(frame: Frame, reconstruct, config: RecessionConfig, ref: _Reference
     else:
         out.heights, out.se, out.check = heights, se, check
         if sigma_vectors is not None:
-            out.sigma, out.sigma_se = _cell_random_sigma(points, sigma_vectors, current, config)
+            out.sigma, out.sigma_se = _cell_random_sigma(flat, sigma_vectors, current, config, (valid, uvh))
     out.log = getattr(reconstruct, "log", {}).get(frame.key)
     return out, current
 
@@ -367,14 +370,16 @@ def _points_and_sigmas(out):
     return (*out, None)[:3] if len(out) == 2 else out
 
 
-def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config):
+def _cell_random_sigma(points: np.ndarray, vectors: np.ndarray, ref: "_Reference", config, known=None):
     """(ny, nx) RMS over each cell's points of the random height std (the displacement along the sample axis),
     and the standard error of the cell's mean height it implies (count / CORRELATION_AREA_PX independent
-    errors); cells of the face slab only, as `_frame_heights`."""
+    errors); cells of the face slab only, as `_frame_heights`. `known` (valid mask, face coordinates of the
+    valid points): the coordinates already computed, reused when the vectors are finite on the same points."""
     p = np.asarray(points, float).reshape(-1, 3)
     vec = np.asarray(vectors, float).reshape(-1, 3)
-    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(vec), axis=1)
-    uvh = ref.sample.coordinates(p[ok])
+    valid = known[0] if known is not None else np.all(np.isfinite(p), axis=1)
+    ok = valid & np.all(np.isfinite(vec), axis=1)
+    uvh = known[1] if known is not None and np.array_equal(ok, valid) else ref.sample.coordinates(p[ok])
     s_h = np.abs(vec[ok] @ ref.sample.axis)
     slab = (uvh[:, 2] >= ref.slab[0]) & (uvh[:, 2] <= ref.slab[1])
     idx = ref.grid.cell_index(uvh[slab, :2])
@@ -416,6 +421,10 @@ def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: in
                            "a lower `min_points`")
 
 
+MAPS_KEPT = 2  # rectifying maps kept per process (one calibration and image size per sequence; 10 MB at 640x480)
+_MAPS: dict = {}  # key of (calibration, configuration, size) -> RectifyingMaps, oldest first
+
+
 def _reconstructor(calib, recon_config, refine: bool):
     return FrameReconstructor(calib, recon_config, refine)
 
@@ -434,16 +443,37 @@ class FrameReconstructor:
         # and cancels in a recession, so its propagation is skipped.
         self.calib, self.config, self.log = calib, replace(recon_config, refine=refine, uncertainty=False), {}
 
+    def _maps(self, size: tuple[int, int]):
+        """The rectifying maps of this calibration and configuration at `size`, made once per process (a worker
+        keeps them for every frame it runs: they travel neither with the tasks nor from the client)."""
+        import hashlib
+        import pickle
+        from dataclasses import replace
+
+        from dstereo.stereo.pipeline import rectifying_maps
+
+        # the search range is set after the first frame and does not change the maps; every other setting may
+        key = hashlib.sha256(pickle.dumps((self.calib, replace(self.config, search_range=None), size))).hexdigest()
+        if key not in _MAPS:
+            maps = rectifying_maps(self.calib, size, self.config)
+            while len(_MAPS) >= MAPS_KEPT:
+                _MAPS.pop(next(iter(_MAPS)))
+            _MAPS[key] = maps
+        return _MAPS[key]
+
     def __call__(self, frame: Frame):
         from dataclasses import replace
 
         from dstereo.stereo.disparity_noise import point_sigma_vectors
-        from dstereo.stereo.pipeline import disparity_sigma_hook, read_image, reconstruct_calibrated
+        from dstereo.stereo.pipeline import check_pair, disparity_sigma_hook, read_image, reconstruct_calibrated
 
         left, right = read_image(frame.left), read_image(frame.right)
         try:
-            r = reconstruct_calibrated(self.calib, left, right, self.config, name=str(frame.left))
-            sigma_d, _ = disparity_sigma_hook(r, self.config, originals=(left, right))
+            check_pair(left, right, self.calib)
+            r = reconstruct_calibrated(self.calib, left, right, self.config, name=str(frame.left),
+                                       maps=self._maps((left.shape[1], left.shape[0])))
+            # the originals' own noise is only reported by `dstereo reconstruct`; a recession does not use it
+            sigma_d, _ = disparity_sigma_hook(r, self.config, originals=(left, right), report_image_noise=False)
             vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
         except DstereoError:
             raise

@@ -358,7 +358,14 @@ def _cell_plane_fit(cell, du, dv, h, w, n_cells):
 
 
 def _per_cell_median(cell: np.ndarray, values: np.ndarray, n_cells: int) -> np.ndarray:
-    order = np.lexsort((values, cell))
+    if n_cells <= 1 << 16:
+        # lexsort((values, cell))'s arrangement (cells ascending, values ascending within each; equal values are
+        # interchangeable) in two passes, 5x faster at 280k points: values by quicksort, then the cells by a
+        # stable sort of 16-bit keys (numpy's radix sort)
+        by_value = np.argsort(values)
+        order = by_value[np.argsort(cell[by_value].astype(np.uint16), kind="stable")]
+    else:
+        order = np.lexsort((values, cell))
     c, x = cell[order], values[order]
     starts = np.searchsorted(c, np.arange(n_cells))
     counts = np.bincount(c, minlength=n_cells)

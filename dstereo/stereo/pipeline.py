@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,43 +31,76 @@ from dstereo.stereo.uncalibrated import reconstruct_uncalibrated, uncalibrated_q
 
 # Names the commands, tests and experiments import from here (the pipeline's public face).
 __all__ = [
-    "LOW_DENSITY", "PairResult", "ReconstructionConfig", "add_uncertainty", "check_pair", "disparity_sigma_hook",
-    "initial_range", "match_in_range", "read_image", "reconstruct_calibrated", "reconstruct_uncalibrated",
-    "run_reconstruction", "sized_sgbm", "uncalibrated_q", "user_sgbm_names",
+    "LOW_DENSITY", "PairResult", "ReconstructionConfig", "RectifyingMaps", "add_uncertainty", "check_pair",
+    "disparity_sigma_hook", "initial_range", "match_in_range", "read_image", "reconstruct_calibrated",
+    "reconstruct_uncalibrated", "rectifying_maps", "run_reconstruction", "sized_sgbm", "uncalibrated_q",
+    "user_sgbm_names",
 ]
 
 
-def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
-                           config: ReconstructionConfig = ReconstructionConfig(), name: str = "pair") -> PairResult:
-    """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
-    import cv2
+@dataclass(frozen=True)
+class RectifyingMaps:
+    """A calibration's rectification at one image size and what resamples its pairs: the exact float64 maps
+    (left, right; the sub-pixel refinement's) and their float32 copies for cv2.remap (None for an already
+    rectified pair), and the rectified pixels whose source lies outside the image. The same for every pair of a
+    sequence: `dstereo recession` makes them once (`rectifying_maps`) and passes them to each frame."""
 
+    rect: object
+    exact: list | None
+    remap: list | None
+    outside: np.ndarray
+
+
+def rectifying_maps(calib: StereoCalibration, size: tuple[int, int],
+                    config: ReconstructionConfig = ReconstructionConfig()) -> RectifyingMaps:
+    """The rectification of `calib` for (width, height) images and its maps (`RectifyingMaps`)."""
     from dstereo.stereo.rectify import rectified_from_projections, rectify_calibration, rectify_map
+
+    if calib.rectified:
+        rect = rectified_from_projections(*calib.projections(), size)
+        outside = np.zeros((size[1], size[0]), bool)
+        outside.flags.writeable = False
+        return RectifyingMaps(rect, None, None, outside)
+    rect = rectify_calibration(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
+                               undistort=config.undistort)
+    if rect.vertical:
+        raise DstereoError(
+            f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
+            "images (and the calibration) by 90 degrees"
+        )
+    exact_maps = [tuple(np.asarray(m, np.float64) for m in rectify_map(k, d, R, P, rect.size))
+                  for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2))]
+    mx, my = exact_maps[0]
+    outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
+    maps = RectifyingMaps(rect, exact_maps, [(x.astype(np.float32), y.astype(np.float32)) for x, y in exact_maps],
+                          outside)
+    for array in (outside, *(m for pair in maps.exact + maps.remap for m in pair)):
+        array.flags.writeable = False  # shared by every pair they resample
+    return maps
+
+
+def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np.ndarray,
+                           config: ReconstructionConfig = ReconstructionConfig(), name: str = "pair",
+                           maps: RectifyingMaps | None = None) -> PairResult:
+    """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration. `maps`:
+    `rectifying_maps(calib, size, config)` made once for many pairs (default: made here)."""
+    import cv2
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    if calib.rectified:
-        rect = rectified_from_projections(*calib.projections(), size)
+    if maps is None:
+        maps = rectifying_maps(calib, size, config)
+    elif maps.outside.shape != left.shape[:2]:
+        raise ValueError(f"maps for {maps.outside.shape[1]}x{maps.outside.shape[0]} images given for a "
+                         f"{size[0]}x{size[1]} pair")
+    rect, exact_maps, outside = maps.rect, maps.exact, maps.outside
+    if maps.remap is None:
         left_rect, right_rect = left, right
-        outside = np.zeros(left.shape[:2], bool)
-        exact_maps = None
     else:
-        rect = rectify_calibration(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
-                                   undistort=config.undistort)
-        if rect.vertical:
-            raise DstereoError(
-                f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
-                "images (and the calibration) by 90 degrees"
-            )
-        exact_maps = [tuple(np.asarray(m, np.float64) for m in rectify_map(k, d, R, P, rect.size))
-                      for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2))]
-        left_rect, right_rect = (cv2.remap(img, mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_CONSTANT)
-                                 for img, (mx, my) in zip((left, right), exact_maps))
-        mx, my = exact_maps[0]
-        outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
+        left_rect, right_rect = (cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                                 for img, (mx, my) in zip((left, right), maps.remap))
     timings["rectify_s"] = time.perf_counter() - t0
     Q = np.asarray(rect.Q)
     t0 = time.perf_counter()
@@ -108,10 +142,11 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
 
 
 def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, params: SGBMParams | None = None,
-                         originals=None):
+                         originals=None, report_image_noise: bool = True):
     """(sigma_d (h, w) px, source) of the result's disparity: the per-pixel model of `dstereo.stereo.disparity_noise`
     (or the configured constant), its level set by the scatter on smooth parts of the map (plane check);
-    the check goes to summary['disparity_noise'], its warnings to the result's."""
+    the check goes to summary['disparity_noise'], its warnings to the result's. `report_image_noise` False:
+    the originals' own noise (reported only) is not estimated."""
     from dstereo.stereo.disparity_noise import disparity_sigma_map
 
     refined = result.exact_rect is not None
@@ -120,7 +155,8 @@ def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, param
     originals = originals if originals is not None else (result.left_rect, result.right_rect)
     block = (params or config.sgbm).block_size
     sigma, info, warnings = disparity_sigma_map(originals, rectified, result.disparity, refined, block,
-                                                config.disparity_sigma, result.name)
+                                                config.disparity_sigma, result.name,
+                                                report_image_noise=report_image_noise)
     result.summary["disparity_noise"] = info
     result.warnings.extend(warnings)
     return sigma, info["basis"] + (f"; scaled by {info['scaled_by']:.3g} by the plane check"

@@ -20,6 +20,8 @@ pixel whose refined disparity leaves +-`max_change` px of SGBM's, or whose windo
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 
@@ -39,28 +41,82 @@ def rectify_exact(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np
     return np.where(outside, np.nan, out)
 
 
-def _normalised(x: np.ndarray, sigma: float) -> np.ndarray:
+class _PerImage:
+    """What the refinement derives from one rectified image (local mean/std normalisation, row spline
+    coefficients), kept while that image lives: `refine_disparity` and its noise model (`refinement_terms`, via
+    `dstereo.stereo.disparity_noise`) see the same pair and would otherwise derive it twice (8 of a frame's 26
+    Gaussian filters). Only read-only arrays are remembered (`exact_pair` makes its pair read-only), so an image
+    changed in place is never served stale values; entries go when their image is freed."""
+
+    def __init__(self):
+        self.values: dict[tuple, object] = {}
+
+    def get(self, x: np.ndarray, what: str, arg, compute):
+        if not isinstance(x, np.ndarray) or x.flags.writeable:
+            return compute()
+        key = (id(x), what, arg)
+        if key not in self.values:
+            if not any(k[0] == id(x) for k in self.values):
+                weakref.finalize(x, self._drop, id(x))
+            self.values[key] = compute()
+        return self.values[key]
+
+    def _drop(self, ident: int) -> None:
+        for key in [k for k in self.values if k[0] == ident]:
+            del self.values[key]
+
+
+_PER_IMAGE = _PerImage()
+
+
+def _local_stats(x: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x normalised by its local mean and std, that std (grey levels, at least 1)) over a Gaussian of sigma px."""
     from scipy.ndimage import gaussian_filter
 
-    x = np.nan_to_num(x, nan=float(np.nanmean(x)))
-    mean = gaussian_filter(x, sigma)
-    var = gaussian_filter(x * x, sigma) - mean * mean
-    return (x - mean) / np.sqrt(np.maximum(var, 1.0))
+    def compute():
+        y = np.nan_to_num(x, nan=float(np.nanmean(x)))
+        mean = gaussian_filter(y, sigma)
+        std = np.sqrt(np.maximum(gaussian_filter(y * y, sigma) - mean * mean, 1.0))
+        return (y - mean) / std, std
+
+    return _PER_IMAGE.get(x, "local_stats", sigma, compute)
 
 
-def _row_spline(coeffs: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic B-spline (row-wise coefficients) and its x-derivative at positions x (h, w), clamped to the row."""
-    h, w = coeffs.shape
+def _normalised(x: np.ndarray, sigma: float) -> np.ndarray:
+    return _local_stats(x, sigma)[0]
+
+
+def _row_coefficients(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Row-wise cubic B-spline coefficients of the normalised image, padded by its edge columns (1 left, 2
+    right) so that `_row_spline` reads the 4 taps of a clamped position without clipping each index."""
+    from scipy.ndimage import spline_filter1d
+
+    def compute():
+        coeffs = spline_filter1d(_normalised(x, sigma), order=3, axis=1, mode="mirror")
+        return np.pad(coeffs, ((0, 0), (1, 2)), mode="edge")
+
+    return _PER_IMAGE.get(x, "row_coefficients", sigma, compute)
+
+
+def _row_spline(padded: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic B-spline (row-wise coefficients, edge-padded as `_row_coefficients`) and its x-derivative at
+    positions x (h, w), clamped to the row. Tap k of position i reads coefficient clip(i + k - 1, 0, w - 1),
+    i.e. padded column i + k."""
+    h, wp = padded.shape
+    w = wp - 3
     x = np.clip(x, 0.0, w - 1.0)
     i = np.floor(x).astype(np.int64)
     t = x - i
-    rows = np.arange(h)[:, None]
-    b = [(1 - t) ** 3 / 6, (3 * t**3 - 6 * t**2 + 4) / 6, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6, t**3 / 6]
-    db = [-((1 - t) ** 2) / 2, (3 * t**2 - 4 * t) / 2, (-3 * t**2 + 2 * t + 1) / 2, t**2 / 2]
+    flat = padded.ravel()
+    base = i + (np.arange(h) * wp)[:, None]
+    # the same expressions as the B-spline basis written out (each power computed once, not per term)
+    s, t2, t3 = 1 - t, t**2, t**3
+    b = [s**3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6, t3 / 6]
+    db = [-(s**2) / 2, (3 * t2 - 4 * t) / 2, (-3 * t2 + 2 * t + 1) / 2, t2 / 2]
     value = np.zeros_like(x)
     slope = np.zeros_like(x)
     for k in range(4):
-        c = coeffs[rows, np.clip(i + k - 1, 0, w - 1)]
+        c = flat.take(base + k)
         value += b[k] * c
         slope += db[k] * c
     return value, slope
@@ -70,10 +126,9 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
                      iterations: int = 6, max_change: float = 1.0) -> np.ndarray:
     """Refined disparity (h, w) px (d = x_left - x_right) of two rectified grey images (float, NaN outside),
     NaN where SGBM's was NaN or the refinement failed."""
-    from scipy.ndimage import gaussian_filter, spline_filter1d
+    from scipy.ndimage import gaussian_filter
 
-    norm_l, norm_r = _normalised(left, 3 * window_sigma), _normalised(right, 3 * window_sigma)
-    coeffs = spline_filter1d(norm_r, order=3, axis=1, mode="mirror")
+    norm_l, coeffs = _normalised(left, 3 * window_sigma), _row_coefficients(right, 3 * window_sigma)
     h, w = disparity.shape
     valid = np.isfinite(disparity) & np.isfinite(left)
     d0 = np.where(valid, disparity, 0.0).astype(np.float64)
@@ -103,9 +158,15 @@ def exact_pair(left: np.ndarray, right: np.ndarray, maps=None) -> tuple[np.ndarr
     """Both rectified grey images (float64) resampled from the originals by cubic B-spline at the exact map
     positions `maps` = ((map_x, map_y) left, (map_x, map_y) right); maps None: the images are already rectified."""
     if maps is None:
-        return _grey(left), _grey(right)
-    (lx, ly), (rx, ry) = maps
-    return rectify_exact(left, lx, ly), rectify_exact(right, rx, ry)
+        pair = _grey(left), _grey(right)
+        if any(np.shares_memory(p, o) for p, o in zip(pair, (left, right))):  # a grey float64 input as it is
+            pair = tuple(p.copy() for p in pair)
+    else:
+        (lx, ly), (rx, ry) = maps
+        pair = rectify_exact(left, lx, ly), rectify_exact(right, rx, ry)
+    for p in pair:  # read-only: the refinement and its noise model share what they derive from it (`_PerImage`)
+        p.flags.writeable = False
+    return pair
 
 
 def homography_maps(H: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -128,19 +189,11 @@ def refinement_terms(left: np.ndarray, right: np.ndarray, disparity: np.ndarray,
     model (`dstereo.stereo.disparity_noise`): the residual e = L(x) - R(x - d) and the gradient g of the normalised
     images at x - d, and the local standard deviations (grey levels) the left image and the warped right image
     were divided by. NaN-free; where `disparity` is NaN the values are taken at d = 0 (the caller masks them)."""
-    from scipy.ndimage import gaussian_filter, spline_filter1d
-
-    def local_std(x):
-        x = np.nan_to_num(x, nan=float(np.nanmean(x)))
-        mean = gaussian_filter(x, 3 * window_sigma)
-        return np.sqrt(np.maximum(gaussian_filter(x * x, 3 * window_sigma) - mean * mean, 1.0))
-
-    norm_r = _normalised(right, 3 * window_sigma)
-    coeffs = spline_filter1d(norm_r, order=3, axis=1, mode="mirror")
+    norm_l, s_left = _local_stats(left, 3 * window_sigma)
+    s_right = _local_stats(right, 3 * window_sigma)[1]
     w = disparity.shape[1]
     xs = np.arange(w, dtype=float)[None, :] - np.nan_to_num(np.asarray(disparity, np.float64))
-    warped, g = _row_spline(coeffs, xs)
-    s_right = local_std(right)
+    warped, g = _row_spline(_row_coefficients(right, 3 * window_sigma), xs)
     cols = np.clip(np.rint(xs), 0, w - 1).astype(np.int64)
-    e = _normalised(left, 3 * window_sigma) - warped
-    return e, g, local_std(left), s_right[np.arange(disparity.shape[0])[:, None], cols]
+    e = norm_l - warped
+    return e, g, s_left, s_right[np.arange(disparity.shape[0])[:, None], cols]
