@@ -54,6 +54,10 @@ from dstereo.recession import RecessionConfig, discover, run_recession
 from dstereo.recession.analysis import FrameReconstructor, _measure, measure_frame
 from dstereo.stereo.pipeline import ReconstructionConfig
 
+try:  # this tree's serial runner holds BLAS to one thread while frames run; an older tree's does not
+    from dstereo.frames.blas_threads import one_blas_thread
+except ImportError:
+    from contextlib import nullcontext as one_blas_thread
 folder = Path(sys.argv[1])
 frames = discover(folder)
 calib = read_stereo_calibration(folder / "stereo.yml")
@@ -74,7 +78,8 @@ def one(i, profile):
     prof = cProfile.Profile() if profile else None
     t0 = time.perf_counter()
     if prof: prof.enable()
-    o = measure_frame(frames[i], rec, ref, cfg)
+    with one_blas_thread():
+        o = measure_frame(frames[i], rec, ref, cfg)
     store.save(f"{i:06d}", *o.to_store(frames[i].key))
     if prof: prof.disable()
     out = {"seconds": time.perf_counter() - t0, "digest": digest(o)}

@@ -127,18 +127,22 @@ class FrameRunner:
             progress=None, stage: str = "frames", done: int = 0, total: int | None = None) -> None:
         """fn(arg) for every (index, arg); on_done(TaskDone) here, in finishing order. `done`/`total`: the
         progress count before these tasks and in all."""
+        from dstereo.frames.blas_threads import one_blas_thread
+
         total = done + len(items) if total is None else total
         ticker = _Ticker(progress, stage, done, total, self)
         if not items:
             return
         if self.auto and self.workers > 1:
-            items = self._auto_first(fn, items, on_done, ticker)
+            with one_blas_thread():
+                items = self._auto_first(fn, items, on_done, ticker)
         if not items:
             return
         if not self.parallel:
-            for index, arg in items:
-                value, seconds, rss, worker = _timed(fn, arg)
-                self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
+            with one_blas_thread():  # one frame at a time here: BLAS as on a worker (`blas_threads`)
+                for index, arg in items:
+                    value, seconds, rss, worker = _timed(fn, arg)
+                    self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
             return
         self._map_dask(fn, items, on_done, ticker)
 
