@@ -403,3 +403,23 @@ def test_subpixel_refinement_recovers_a_known_shift():
         out[d_true] = np.nanmedian(inner) - d_true
         assert np.isfinite(inner).mean() > 0.95
     assert max(abs(e) for e in out.values()) < 0.01, out  # measured <= 0.002 px
+
+
+def test_frame_reconstructor_makes_the_maps_once_per_process(sequence):
+    """A sequence's rectifying maps are made once per process: again for the same calibration and settings (also
+    once the search range is set, and for a copy of the reconstructor, as a Dask task gets), anew for others."""
+    import pickle
+    from dataclasses import replace
+
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.recession.analysis import FrameReconstructor
+    from dstereo.stereo.pipeline import ReconstructionConfig
+
+    folder, _ = sequence
+    calib = read_stereo_calibration(folder / "stereo.yml")
+    rec = FrameReconstructor(calib, ReconstructionConfig(), True)
+    first = rec._maps(SIZE)
+    rec.config = replace(rec.config, search_range=(10, 64))
+    assert rec._maps(SIZE) is first and pickle.loads(pickle.dumps(rec))._maps(SIZE) is first
+    other = FrameReconstructor(calib, ReconstructionConfig(alpha=0.0), True)._maps(SIZE)
+    assert other is not first and not np.array_equal(other.exact[0][0], first.exact[0][0])

@@ -155,3 +155,16 @@ def test_point_sigma_vectors_and_the_recession_cells_random_sigma():
     assert np.isfinite(cells).sum() > 20
     assert np.nanmin(cells) >= expect.min() * (1 - 1e-9) and np.nanmax(cells) <= expect.max() * (1 + 1e-9)
     assert np.nanmedian(cells) == pytest.approx(np.median(expect), rel=0.05)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 8, 1001, 1024])
+def test_fast_median_is_numpy_median(n):
+    """The plane check's median (`_median`, numpy's partition without its generic-axis overhead) gives numpy's
+    value bit for bit, odd and even lengths, with ties, and NaN when a value is NaN."""
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=n)
+    x[: n // 3] = x[0]  # ties
+    assert dn._median(x) == np.median(x)
+    assert dn._median(np.abs(x)) == np.median(np.abs(x))
+    x[-1] = np.nan
+    assert np.isnan(dn._median(x)) and np.isnan(np.median(x))

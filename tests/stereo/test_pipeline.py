@@ -29,6 +29,7 @@ from dstereo.stereo.pipeline import (
     read_image,
     reconstruct_calibrated,
     reconstruct_uncalibrated,
+    rectifying_maps,
     run_reconstruction,
 )
 from dstereo.stereo.point_outliers import remove_statistical_outliers
@@ -268,6 +269,21 @@ def test_subpixel_refinement_cuts_the_surface_error(thesis_sample):
     assert refined.summary["refine"]["dropped_fraction"] == pytest.approx((had & ~kept).sum() / had.sum())
     assert kept.sum() > 0.95 * had.sum()
     assert plain.summary["refine"] == {"enabled": False}
+
+
+def test_maps_made_once_give_the_same_reconstruction(thesis_sample):
+    """`rectifying_maps` made once (a sequence's frames share them) and passed in give the reconstruction made
+    with maps of its own, bit for bit; the shared maps are read-only."""
+    from dataclasses import replace
+
+    calib, left, right, _, _ = thesis_sample
+    config = replace(THESIS_CONFIG, refine=True)
+    maps = rectifying_maps(calib, (left.shape[1], left.shape[0]), config)
+    own = reconstruct_calibrated(calib, left, right, config)
+    shared = reconstruct_calibrated(calib, left, right, config, maps=maps)
+    for name in ("disparity", "points", "left_rect", "right_rect"):
+        assert np.array_equal(getattr(own, name), getattr(shared, name), equal_nan=True), name
+    assert not maps.exact[0][0].flags.writeable and not maps.outside.flags.writeable
 
 
 def test_uncalibrated_path_on_a_synthetic_sphere():

@@ -56,3 +56,49 @@ def test_homography_maps_resample_like_cv2_warp_perspective():
     inner = np.s_[5:-5, 5:-5]
     assert np.isfinite(ours[inner]).all()
     assert np.abs(ours[inner] - theirs[inner]).max() < 0.02 * np.ptp(image)
+
+
+def test_read_only_pair_shares_its_normalisation_and_gives_the_same_numbers(shifted):
+    """`exact_pair` makes its images read-only so that the refinement and its noise model share what they derive
+    from them (`_PerImage`): the shared path equals the path of writable copies bit for bit, and an image
+    changed in place between calls (writable: never remembered) is not served stale values."""
+    from dstereo.stereo.subpixel import exact_pair, refinement_terms
+
+    left, right = shifted
+    shared = exact_pair(left, right)  # maps None: the grey pair as it is, read-only
+    with pytest.raises(ValueError):
+        shared[0][0, 0] = 0.0
+    start = np.full(left.shape, 3.0)
+    fresh = refine_disparity(left.copy(), right.copy(), start)
+    first, again = refine_disparity(*shared, start), refine_disparity(*shared, start)
+    assert np.array_equal(first, fresh, equal_nan=True) and np.array_equal(again, fresh, equal_nan=True)
+    for a, b in zip(refinement_terms(*shared, first), refinement_terms(left.copy(), right.copy(), first)):
+        assert np.array_equal(a, b)
+    changed = left.copy()
+    refine_disparity(changed, right, start)
+    changed[:, :80] *= 0.5
+    assert np.array_equal(refine_disparity(changed, right, start), refine_disparity(changed.copy(), right, start),
+                          equal_nan=True)
+
+
+def test_row_spline_is_the_cubic_b_spline_of_each_row_and_its_slope():
+    """`_row_spline` (edge-padded coefficients, blocks of ROW_BLOCK rows) against scipy's own cubic B-spline
+    evaluated along each row (map_coordinates order 3, mirror) at interior positions, where the two boundary
+    rules do not enter: equal to rounding (1e-9 of values of order 1); its slope against a central difference of
+    step 1e-5 px (truncation ~1e-10, rounding ~1e-11 / 1e-5)."""
+    from scipy.ndimage import map_coordinates, spline_filter1d
+
+    from dstereo.stereo.subpixel import ROW_BLOCK, _row_spline
+
+    rng = np.random.default_rng(4)
+    h, w = 2 * ROW_BLOCK + 5, 50  # more than two blocks, the last one short
+    image = gaussian_filter(rng.normal(size=(h, w)), 1.0)
+    padded = np.pad(spline_filter1d(image, order=3, axis=1, mode="mirror"), ((0, 0), (1, 2)), mode="edge")
+    x = rng.uniform(2.0, w - 3.0, (h, w))
+    value, slope = _row_spline(padded, x)
+    rows = np.repeat(np.arange(h, dtype=float)[:, None], w, axis=1)
+    reference = map_coordinates(image, [rows, x], order=3, mode="mirror")
+    assert np.abs(value - reference).max() < 1e-9
+    step = 1e-5
+    numeric = (_row_spline(padded, x + step)[0] - _row_spline(padded, x - step)[0]) / (2 * step)
+    assert np.abs(slope - numeric).max() < 1e-5
