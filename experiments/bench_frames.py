@@ -54,6 +54,7 @@ def measure(folder: Path, workers: int, grid: float) -> dict:
     return {"workers": workers, "frames": len(frames), "total_s": end - t0, "reference_s": marks[1] - t0,
             "mapped_wall_s": wall, "frames_per_s": mapped / wall,
             "seconds_per_frame_median": run["seconds_per_frame_median"],
+            "cpu_seconds_per_frame_median": run["cpu_seconds_per_frame_median"],
             "worker_peak_rss_mb": run["worker_peak_rss_mb"],
             "this_process_peak_rss_mb": _peak_rss_mb(),
             "heights": result.heights, "recession_stagnation": [f.recession.value for f in result.frames]}
@@ -103,10 +104,10 @@ def write_report(path: Path, rows: list[dict], loads: dict, cores: int) -> None:
              "other jobs: load averages 1/5/15 min below). The reference frame (frame 0, with compilation) runs "
              "first in the calling process; *mapped* is the rest, on the workers (wall time includes starting the "
              "local cluster and each worker's first-frame start-up).", "",
-             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | steady frames/s "
-             "| steady speed-up | mapped wall s | reference s | peak RSS per worker MB | stagnation RMS mm "
-             "| same as serial |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | median CPU s/frame "
+             "| steady frames/s | steady speed-up | mapped wall s | reference s | peak RSS per worker MB "
+             "| stagnation RMS mm | same as serial |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     base, steady_base = {}, {}
     for r in rows:
         base.setdefault(r["size"], r["frames_per_s"])
@@ -115,13 +116,14 @@ def write_report(path: Path, rows: list[dict], loads: dict, cores: int) -> None:
         rss = ", ".join(f"{v:.0f}" for v in r["worker_peak_rss_mb"].values())
         lines.append(f"| {r['size']} | {r['workers']} | {r['frames_per_s']:.2f} | "
                      f"{r['frames_per_s'] / base[r['size']]:.2f}x | {r['seconds_per_frame_median']:.2f} | "
-                     f"{steady:.2f} | {steady / steady_base[r['size']]:.2f}x | "
+                     f"{r['cpu_seconds_per_frame_median']:.2f} | {steady:.2f} | {steady / steady_base[r['size']]:.2f}x | "
                      f"{r['mapped_wall_s']:.1f} | {r['reference_s']:.1f} | {rss} | {r['stagnation_rms_mm']:.4f} | "
                      f"{'yes' if r['equal_to_first'] else 'NO'} |")
     lines += ["", "Load averages (1, 5, 15 min): " + "; ".join(f"{k}: {v}" for k, v in loads.items()), "",
               "*steady*: workers / median time of a frame on a worker (the workers ran concurrently, so it holds "
               "the contention between them), the rate once the cluster is up and every worker has done its first "
-              "frame; *mapped* includes that start-up. "
+              "frame; *mapped* includes that start-up. *CPU*: the CPU time (user + system) of the process during a "
+              "frame, median (less sensitive to the other jobs' load than the wall time). "
               "Serial (workers 1) runs in the calling process, whose peak RSS is the serial figure. *same as "
               "serial*: every height map equal bit for bit.", ""]
     path.parent.mkdir(parents=True, exist_ok=True)

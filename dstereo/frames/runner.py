@@ -37,7 +37,9 @@ XLA_SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_thr
 @dataclass
 class TaskDone:
     """One finished task: its index, value (None when it failed), why it failed ('' if it did not), its time on
-    the worker (s), the worker process's peak resident memory so far (MB) and the worker."""
+    the worker (s), the worker process's peak resident memory so far (MB), the worker, and the CPU time its
+    process spent on it (s: user + system of every thread; on a loaded machine the wall time also holds the
+    waits for a core, the CPU time much less)."""
 
     index: int
     value: Any
@@ -45,6 +47,7 @@ class TaskDone:
     seconds: float
     peak_rss_mb: float
     worker: str
+    cpu_seconds: float = float("nan")
 
 
 def worker_env() -> dict:
@@ -61,7 +64,8 @@ def worker_env() -> dict:
 
 
 def _timed(fn: Callable, arg):
-    """Runs on the worker: the task's value, its wall time, this process's peak memory and its name."""
+    """Runs on the worker: the task's value, its wall time, this process's peak memory, its name and the CPU
+    time the task took."""
     import socket
 
     if os.environ.get("DSTEREO_WORKER_THREADS") == "1":
@@ -72,9 +76,16 @@ def _timed(fn: Callable, arg):
         # A frame compiles many small functions (each under the 0.5 s dstereo caches by default, together
         # seconds): a worker caches them all, so the next run's workers start warm.
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     value = fn(arg)
-    return value, time.perf_counter() - start, _peak_rss_mb(), f"{socket.gethostname()}:{os.getpid()}"
+    return (value, time.perf_counter() - start, _peak_rss_mb(), f"{socket.gethostname()}:{os.getpid()}",
+            time.process_time() - cpu)
+
+
+def _task_fields(timed: tuple) -> tuple:
+    """TaskDone's fields after the index from what `_timed` returned (a finished task: failed is '')."""
+    value, seconds, rss, worker, cpu = timed
+    return value, "", seconds, rss, worker, cpu
 
 
 def _peak_rss_mb() -> float:
@@ -106,6 +117,7 @@ class FrameRunner:
         self.scheduler, self.retries = scheduler, retries
         self.decision = ""  # auto: why the frames ran where they did
         self.times: list[float] = []
+        self.cpu_times: list[float] = []
         self.peak_rss_mb: dict[str, float] = {}
 
     @property
@@ -121,6 +133,7 @@ class FrameRunner:
                 "retries_after_worker_death": self.retries if self.parallel else None,
                 "frames_timed": len(self.times),
                 "seconds_per_frame_median": statistics.median(self.times) if self.times else None,
+                "cpu_seconds_per_frame_median": statistics.median(self.cpu_times) if self.cpu_times else None,
                 "worker_peak_rss_mb": {k: round(v, 1) for k, v in sorted(self.peak_rss_mb.items())}}
 
     def map(self, fn: Callable, items: list[tuple[int, Any]], on_done: Callable[[TaskDone], None],
@@ -141,16 +154,16 @@ class FrameRunner:
         if not self.parallel:
             with one_blas_thread():  # one frame at a time here: BLAS as on a worker (`blas_threads`)
                 for index, arg in items:
-                    value, seconds, rss, worker = _timed(fn, arg)
-                    self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
+                    self._record(TaskDone(index, *_task_fields(_timed(fn, arg))), on_done, ticker)
             return
         self._map_dask(fn, items, on_done, ticker)
 
     def _auto_first(self, fn, items, on_done, ticker) -> list:
         """Run the first task here, timed; keep the rest here too when they would not pay for a cluster."""
         index, arg = items[0]
-        value, seconds, rss, worker = _timed(fn, arg)
-        self._record(TaskDone(index, value, "", seconds, rss, worker), on_done, ticker)
+        task = TaskDone(index, *_task_fields(_timed(fn, arg)))
+        seconds = task.seconds
+        self._record(task, on_done, ticker)
         rest = items[1:]
         serial_s = seconds * len(rest)
         if serial_s < PAYOFF_S:
@@ -166,6 +179,7 @@ class FrameRunner:
     def _record(self, task: TaskDone, on_done, ticker) -> None:
         if not task.failed:
             self.times.append(task.seconds)
+            self.cpu_times.append(task.cpu_seconds)
             self.peak_rss_mb[task.worker] = max(task.peak_rss_mb, self.peak_rss_mb.get(task.worker, 0.0))
         on_done(task)
         ticker.tick(task)
@@ -205,8 +219,7 @@ class FrameRunner:
                 for fut in as_completed([f for _, f in futures.values()]):
                     index = futures[fut.key][0]
                     try:
-                        value, seconds, rss, worker = fut.result()
-                        task = TaskDone(index, value, "", seconds, rss, worker)
+                        task = TaskDone(index, *_task_fields(fut.result()))
                     except KilledWorker:
                         task = TaskDone(index, None, f"the worker processes holding it died {self.retries + 1} "
                                         "time(s) (killed or out of memory; see the workers' logs); the frame "
