@@ -207,11 +207,12 @@ def _autocorrelation(x: np.ndarray, ok: np.ndarray, lags: int) -> np.ndarray:
     h, w = x.shape
     out = np.zeros((2 * lags + 1, 2 * lags + 1))
     n = float(np.sum(x * x))
-    for a in range(-lags, lags + 1):
-        for b in range(-lags, lags + 1):
+    for a in range(0, lags + 1):
+        for b in range(-lags if a > 0 else 0, lags + 1):
             u = x[max(a, 0):h + min(a, 0), max(b, 0):w + min(b, 0)]
             v = x[max(-a, 0):h + min(-a, 0), max(-b, 0):w + min(-b, 0)]
-            out[a + lags, b + lags] = float(np.sum(u * v)) / max(n, 1e-300)
+            # lag (-a, -b) multiplies the same pairs, u and v swapped: the same products, the same sum
+            out[a + lags, b + lags] = out[lags - a, lags - b] = float(np.sum(u * v)) / max(n, 1e-300)
     return out
 
 
@@ -305,28 +306,73 @@ def fit_survival(kind: str, scale: float, tile: int = TILE) -> float:
     return float(np.median([o[0] for o in out if o is not None]))
 
 
+def _masked_medians(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """np.median of each row's values under `mask` (rows of (n, m)): the same values (sorted, the middle one or
+    the middle two summed and halved), NaN for a row with none."""
+    k = mask.sum(axis=1)
+    ordered = np.sort(np.where(mask, x, np.inf), axis=1)  # the masked-out values sort last
+    rows = np.arange(len(x))
+    lo = ordered[rows, np.maximum((k - 1) // 2, 0)]
+    hi = ordered[rows, np.maximum(k // 2, 0)]
+    return np.where(k == 0, np.nan, np.where(k % 2 == 1, lo, (lo + hi) / 2))
+
+
+def _tile_fits(d: np.ndarray, tile: int):
+    """`_tile_fit` of many tiles at once (d: (n, tile * tile), NaN where not usable): (robust std per tile, NaN
+    for a tile it refuses; kept-pixel masks (n, tile * tile)). The same robust passes and medians; each
+    quadratic solved by its normal equations (batched) instead of one lstsq per tile, which agrees to rounding
+    (the 6 x 6 system of a tile at least half full is well conditioned: x, y in [-0.5, 0.5])."""
+    n = len(d)
+    std, masks = np.full(n, np.nan), np.zeros(d.shape, bool)
+    ok_all = np.isfinite(d)
+    used = np.flatnonzero(ok_all.mean(axis=1) >= 0.5)  # half the tile, as `_tile_fit`
+    if not len(used):
+        return std, masks
+    ok = ok_all[used]
+    k = np.arange(tile * tile)
+    x, y = (k % tile - tile / 2) / tile, (k // tile - tile / 2) / tile
+    a = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)  # (m, 6)
+    products = (a[:, :, None] * a[:, None, :]).reshape(len(k), 36)
+    z = np.where(ok, d[used], 0.0)
+    keep, r = ok, z
+    for _ in range(2):
+        w = keep.astype(float)
+        normal = (w @ products).reshape(-1, 6, 6)
+        coef = np.linalg.solve(normal, ((w * z) @ a)[..., None])[..., 0]
+        r = z - coef @ a.T
+        med = _masked_medians(r, keep)
+        spread = MAD_TO_STD * _masked_medians(np.abs(r - med[:, None]), keep)
+        keep = ok & (np.abs(r) <= np.maximum(4.0 * spread, 1e-9)[:, None])
+    good = keep.sum(axis=1) / ok.sum(axis=1) >= 0.9
+    found = MAD_TO_STD * _masked_medians(np.abs(r - _masked_medians(r, keep)[:, None]), keep)
+    std[used] = np.where(good, found, np.nan)
+    masks[used] = keep & good[:, None]
+    return std, masks
+
+
 def plane_check(disparity: np.ndarray, sigma_d: np.ndarray, kind: str, scale: float, tile: int = TILE,
                 min_tiles: int = 6) -> dict:
     """Observed scatter about local quadratic fits vs the predicted sigma_d on the same pixels (module
     docstring): {'ratio': median observed / predicted, 'tiles', 'pixels', 'observed_px', 'predicted_px', ...};
-    ratio None when fewer than `min_tiles` smooth tiles were found."""
+    ratio None when fewer than `min_tiles` smooth tiles were found. Tiles in row order, all fitted at once
+    (`_tile_fits`)."""
     kappa = fit_survival(kind, scale, tile)
     h, w = disparity.shape
+    ny, nx = h // tile, w // tile
+
+    def tiles(x):
+        return x[:ny * tile, :nx * tile].reshape(ny, tile, nx, tile).swapaxes(1, 2).reshape(ny * nx, tile * tile)
+
+    s = tiles(np.asarray(sigma_d, float))
+    std, masks = _tile_fits(np.where(np.isfinite(s), tiles(np.asarray(disparity, float)), np.nan), tile)
     ratios, obs, pred, pixels = [], [], [], 0
-    for i in range(0, h - tile + 1, tile):
-        for j in range(0, w - tile + 1, tile):
-            d = disparity[i:i + tile, j:j + tile]
-            s = sigma_d[i:i + tile, j:j + tile]
-            fit = _tile_fit(np.where(np.isfinite(s), d, np.nan), tile)
-            if fit is None:
-                continue
-            std, mask = fit
-            p = kappa * float(np.sqrt(np.mean(s[mask] ** 2)))
-            if p > 0:
-                ratios.append(std / p)
-                obs.append(std / kappa)
-                pred.append(p / kappa)
-                pixels += int(mask.sum())
+    for t in np.flatnonzero(np.isfinite(std)):
+        p = kappa * float(np.sqrt(np.mean(s[t][masks[t]] ** 2)))
+        if p > 0:
+            ratios.append(std[t] / p)
+            obs.append(std[t] / kappa)
+            pred.append(p / kappa)
+            pixels += int(masks[t].sum())
     out = {"tiles": len(ratios), "pixels": pixels, "tile_px": tile, "fit_survival_kappa": kappa,
            "band": list(CHECK_BAND), "method": "robust std of residuals about quadratic fits of d(u, v) over "
            f"{tile} x {tile} px tiles without edges, / (kappa x RMS predicted sigma_d there); median over tiles"}
