@@ -14,8 +14,11 @@ into the left image of frame 0.
 
 Seconds per frame once started: each tool runs the whole sequence (N frames) and its first M frames (the same
 files), each as its own process; per frame = (time of N - time of M) / (N - M), so imports, JIT compilation
-(dstereo's JAX, pyALDIC's numba) and each tool's fixed set-up cancel. Wall time and the process's CPU time
+(dstereo's JAX, pyALDIC's numba) and each tool's fixed set-up cancel (the short run has 12 frames or more, so
+dstereo draws the same figures in both: its map figure shows up to 12 frames). Wall time and the process's CPU time
 (user + system of the child, from getrusage) are both reported: the machine is shared and its load is recorded.
+pyALDIC-3D spreads its work over all cores (numba prange kernels, thread pools), dstereo's serial run keeps a
+frame on about one thread: so dstereo and the first node spacing run again pinned to one core (taskset -c 0).
 
 Accuracy at the stagnation point, RMS over the frames against the rendered truth: dstereo's own value per frame
 (recession.csv: auto axis and stagnation point, quadratic over its 2 mm disc); pyALDIC-3D's tracked 3D
@@ -25,7 +28,7 @@ dstereo does not get.
 
 Skips (exit 0, reason printed) when the pyALDIC-3D environment is absent. Not part of `make test`.
 
-    python -m experiments.aldic_compare [--frames 21] [--short 6] [--aldic /tmp/aldic_venv]
+    python -m experiments.aldic_compare [--frames 24] [--short 12] [--aldic /tmp/aldic_venv]
         [--out experiments/results/aldic_compare.md]
 """
 
@@ -185,10 +188,13 @@ def rms(got: np.ndarray, truth: np.ndarray) -> float:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=21)
-    parser.add_argument("--short", type=int, default=6, help="frames of the short run whose time is subtracted")
+    parser.add_argument("--frames", type=int, default=24)
+    # 12 or more: dstereo's recession_maps.png shows up to 12 frames, so both runs draw the same figures
+    parser.add_argument("--short", type=int, default=12, help="frames of the short run whose time is subtracted")
     parser.add_argument("--aldic", type=Path, default=Path("/tmp/aldic_venv"))
     parser.add_argument("--winstep", type=int, nargs="+", default=[16, 8], help="pyALDIC-3D node spacings, px")
+    parser.add_argument("--pinned", action=argparse.BooleanOptionalAction, default=True,
+                        help="also run dstereo and the first node spacing pinned to one core (taskset -c 0)")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "aldic_compare.md")
     args = parser.parse_args(argv)
     cli = args.aldic / "bin" / "al-dic-3d"
@@ -212,32 +218,36 @@ def main(argv=None) -> None:
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         runs = {}
 
-        def dstereo(folder: Path, tag: str) -> dict:
-            out = tmp / f"dstereo_{tag}"
-            r = timed([sys.executable, "-m", "dstereo.cli", "recession", str(folder), "--calib",
-                       str(folder / "stereo.yml"), "--out", str(out), "--workers", "1", "-q"], env)
+        def dstereo(folder: Path, tag: str, pin: list[str]) -> dict:
+            out = tmp / f"dstereo_{tag}{'_pinned' if pin else ''}"
+            r = timed(pin + [sys.executable, "-m", "dstereo.cli", "recession", str(folder), "--calib",
+                             str(folder / "stereo.yml"), "--out", str(out), "--workers", "1", "-q"], env)
             r["summary"] = json.loads((out / "summary.json").read_text())
             r["stagnation"] = dstereo_stagnation(out)
             return r
 
-        def aldic(folder: Path, tag: str, winstep: int) -> dict:
-            out = tmp / f"aldic_{tag}_{winstep}"
-            r = timed([str(cli), "run", str(aldic_config(folder, out, winstep)), "-q", "--formats", "npz"])
+        def aldic(folder: Path, tag: str, winstep: int, pin: list[str]) -> dict:
+            out = tmp / f"aldic_{tag}_{winstep}{'_pinned' if pin else ''}"
+            r = timed(pin + [str(cli), "run", str(aldic_config(folder, out, winstep)), "-q", "--formats", "npz"])
             r["stagnation"], r["nodes"] = aldic_stagnation(out / "run.npz", truth)
             return r
 
+        # pyALDIC-3D runs numba (prange) kernels and thread pools over all cores, dstereo's serial run one frame
+        # on about one thread: the same runs pinned to one core (taskset -c 0) compare the two on one core
+        pin = ["taskset", "-c", "0"]
+        jobs = [("dstereo", lambda f, t: dstereo(f, t, []))]
+        jobs += [(f"aldic{ws}", lambda f, t, ws=ws: aldic(f, t, ws, [])) for ws in args.winstep]
+        if args.pinned:
+            jobs += [("dstereo-1core", lambda f, t: dstereo(f, t, pin)),
+                     (f"aldic{args.winstep[0]}-1core", lambda f, t: aldic(f, t, args.winstep[0], pin))]
         for tag, folder in (("short", short), ("full", seq)):  # the short runs first: both tools' caches warm
-            loads[f"dstereo {tag}"] = load()
-            runs[("dstereo", tag)] = dstereo(folder, tag)
-            print("dstereo", tag, {k: v for k, v in runs[("dstereo", tag)].items() if k.endswith("_s")}, flush=True)
-            for ws in args.winstep:
-                loads[f"pyALDIC-3D step {ws} {tag}"] = load()
-                runs[(f"aldic{ws}", tag)] = aldic(folder, tag, ws)
-                print("aldic", ws, tag, {k: v for k, v in runs[(f"aldic{ws}", tag)].items() if k.endswith("_s")},
-                      flush=True)
+            for tool, job in jobs:
+                loads[f"{tool} {tag}"] = load()
+                runs[(tool, tag)] = job(folder, tag)
+                print(tool, tag, {k: v for k, v in runs[(tool, tag)].items() if k.endswith("_s")}, flush=True)
         loads["end"] = load()
     rows = []
-    for tool in ["dstereo"] + [f"aldic{ws}" for ws in args.winstep]:
+    for tool, _ in jobs:
         full, part = runs[(tool, "full")], runs[(tool, "short")]
         per_wall = (full["wall_s"] - part["wall_s"]) / (args.frames - args.short)
         per_cpu = (full["cpu_s"] - part["cpu_s"]) / (args.frames - args.short)
@@ -246,8 +256,9 @@ def main(argv=None) -> None:
                "short_cpu_s": part["cpu_s"], "rms_mm": rms(full["stagnation"], true_r),
                "frames_measured": int(np.isfinite(full["stagnation"]).sum()),
                "stagnation_mm": full["stagnation"].tolist()}
-        if tool == "dstereo":
+        if tool.startswith("dstereo"):
             row["runner_median_s"] = full["summary"]["run"]["seconds_per_frame_median"]
+            row["runner_cpu_median_s"] = full["summary"]["run"].get("cpu_seconds_per_frame_median")
         else:
             row["nodes"] = full["nodes"]
         rows.append(row)
@@ -255,7 +266,8 @@ def main(argv=None) -> None:
 
 
 def write_report(path: Path, rows, loads, args, version, true_r) -> None:
-    names = {"dstereo": "dstereo recession --workers 1"}
+    names = {"dstereo": "dstereo recession --workers 1",
+             "dstereo-1core": "dstereo recession --workers 1, pinned to one core"}
     lines = ["# dstereo recession against pyALDIC-3D: seconds per frame and stagnation-point accuracy (issue 19)", "",
              f"Rendered 640x480 sequence, {args.frames} frames over 40 s, 0 -> 2 mm at the stagnation point (cork "
              "sample, reduced Plasmatron rig, true calibration); `python -m experiments.aldic_compare`. "
@@ -264,18 +276,23 @@ def write_report(path: Path, rows, loads, args, version, true_r) -> None:
              "into the left image; our stereo.yml with the nodes renamed). Per frame once started: (run of all "
              f"{args.frames} frames - run of the first {args.short}) / {args.frames - args.short}, each run its "
              f"own process (start-up, imports and JIT compilation cancel). {os.cpu_count()} cores shared with "
-             "other jobs: wall times carry their load, CPU times (user + system of the process) much less.", "",
+             "other jobs: wall times carry their load, CPU times (user + system of the process) much less. "
+             "pyALDIC-3D runs its kernels on all cores (numba prange, thread pools), dstereo's serial run a frame "
+             "on about one thread; *pinned*: `taskset -c 0`, both on one core.", "",
              "| tool | s per frame, wall | s per frame, CPU | whole run wall / CPU s | short run wall / CPU s "
              "| stagnation RMS vs truth, mm | frames |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
-        name = names.get(r["tool"], f"pyALDIC-3D, nodes every {r['tool'][5:]} px ({r.get('nodes')} in the disc)")
+        spacing = r["tool"][5:].replace("-1core", "")
+        name = names.get(r["tool"], f"pyALDIC-3D, nodes every {spacing} px ({r.get('nodes')} nodes fitted)"
+                         + (", pinned to one core" if r["tool"].endswith("-1core") else ""))
         lines.append(f"| {name} | {r['per_frame_wall_s']:.3f} | {r['per_frame_cpu_s']:.3f} | "
                      f"{r['full_wall_s']:.1f} / {r['full_cpu_s']:.1f} | {r['short_wall_s']:.1f} / "
                      f"{r['short_cpu_s']:.1f} | {r['rms_mm']:.4f} | {r['frames_measured']} |")
     d = rows[0]
-    lines += ["", f"dstereo's own per-frame time (summary.json run.seconds_per_frame_median, frames after the "
-                  f"reference): {d['runner_median_s']:.3f} s.", "",
+    cpu = d.get("runner_cpu_median_s")
+    lines += ["", f"dstereo's own per-frame time (summary.json run, median over the frames after the reference): "
+                  f"{d['runner_median_s']:.3f} s wall" + (f", {cpu:.3f} s CPU" if cpu is not None else "") + ".", "",
               "Accuracy: dstereo's stagnation value is its own (auto axis and point from the first frame, quadratic "
               f"over the cells within 2 mm); pyALDIC-3D's is its tracked displacement along the TRUE axis, the "
               f"same quadratic over its nodes within {DISC_MM:g} mm of the TRUE stagnation point (at least the "

@@ -4,10 +4,10 @@ A rendered 640x480 recession sequence (`dstereo.recession.synthetic`, the reduce
 by two server processes, one importing dstereo from this tree and one from `--against` (default /work/main),
 each warmed up on the reference frame (compilation, rectification) and then asked for the same frames in
 turn, alternating which goes first, so that both see the same load on a shared machine. Reported: the median
-time of a frame (unprofiled), its stages (median over the profiled frames, cProfile cumulative times, which
-add cProfile's overhead to both alike), whether the frame's outcome (heights, standard errors, random sigmas,
-noise check, search range) is equal bit for bit, and the stagnation-point RMS of a whole serial run against the
-rendered truth in both.
+time of a frame (unprofiled; wall and the process's CPU time), its stages (median over the profiled frames,
+cProfile's cumulative CPU times, which add cProfile's overhead to both alike), whether the frame's outcome
+(heights, standard errors, random sigmas, noise check, search range) is equal bit for bit (else by how much it
+differs), and the stagnation-point RMS of a whole serial run against the rendered truth in both.
 
     python -m experiments.frame_profile [--frames 10] [--against /work/main]
         [--out experiments/results/frame_profile.md]
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 STAGES = [
     ("load images", ["read_image"]),
     ("rectification maps (JAX)", ["rectify_map", "rectify_calibration", "rectified_maps"]),
-    ("remap (cv2, bilinear)", ["<built-in method cv2.remap>", "<built-in method remap>"]),
+    ("remap (cv2, bilinear)", ["<remap>", "<built-in method cv2.remap>"]),
     ("SGBM + search range", ["match_in_range"]),
     ("exact cubic re-rectification", ["exact_pair"]),
     ("sub-pixel refinement", ["refine_disparity"]),
@@ -76,14 +76,17 @@ def digest(o):
     return h.hexdigest()
 
 def one(i, profile):
-    prof = cProfile.Profile() if profile else None
-    t0 = time.perf_counter()
+    prof = cProfile.Profile(time.process_time) if profile else None
+    t0, c0 = time.perf_counter(), time.process_time()
     if prof: prof.enable()
     with one_blas_thread():
         o = measure_frame(frames[i], rec, ref, cfg)
     store.save(f"{i:06d}", *o.to_store(frames[i].key))
     if prof: prof.disable()
-    out = {"seconds": time.perf_counter() - t0, "digest": digest(o)}
+    out = {"seconds": time.perf_counter() - t0, "cpu": time.process_time() - c0, "digest": digest(o)}
+    if not profile:
+        np.savez(Path(sys.argv[2]) / f"{i:06d}.npz", **{k: getattr(o, k) for k in o.ARRAYS})
+        out["check"] = o.check
     if prof:
         stats = pstats.Stats(prof).stats
         cum = {}
@@ -110,10 +113,11 @@ for line in sys.stdin:
 
 
 class Server:
-    def __init__(self, tree: Path, folder: Path):
+    def __init__(self, tree: Path, folder: Path, arrays: Path):
         env = dict(os.environ, PYTHONPATH=str(tree))
-        self.tree = tree
-        self.proc = subprocess.Popen([sys.executable, "-c", SERVER, str(folder)], stdin=subprocess.PIPE,
+        self.tree, self.arrays = tree, arrays
+        arrays.mkdir(parents=True)
+        self.proc = subprocess.Popen([sys.executable, "-c", SERVER, str(folder), str(arrays)], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True, env=env, cwd=str(tree))
         assert json.loads(self.proc.stdout.readline())["ready"]
 
@@ -126,6 +130,19 @@ class Server:
         self.proc.stdin.write(json.dumps({"do": "stop"}) + "\n")
         self.proc.stdin.close()
         self.proc.wait()
+
+
+def compare_arrays(servers: dict, i: int, got: dict, diffs: dict) -> None:
+    """Per array of the frame's outcome: whether it is equal bit for bit, else the largest difference relative
+    to the array's largest value; and the noise check's ratio."""
+    a, b = (np.load(s.arrays / f"{i:06d}.npz") for s in servers.values())
+    for k in a.files:
+        x, y = a[k], b[k]
+        same = np.array_equal(x, y, equal_nan=True)
+        rel = 0.0 if same else float(np.nanmax(np.abs(x - y)) / np.nanmax(np.abs(y)))
+        diffs.setdefault(k, []).append(rel)
+    ra, rb = (got[name]["check"].get("ratio") for name in servers)
+    diffs.setdefault("noise check ratio", []).append(0.0 if ra == rb else abs(ra / rb - 1))
 
 
 def stage_times(cumulative: dict) -> dict:
@@ -158,17 +175,21 @@ def main(argv=None) -> None:
 
         n = len(discover(folder))
         loads = {"start": load()}
-        servers = {"this tree": Server(ROOT, folder), "against": Server(args.against, folder)}
+        servers = {"this tree": Server(ROOT, folder, Path(tmp) / "a"),
+                   "against": Server(args.against, folder, Path(tmp) / "b")}
         plain = {k: [] for k in servers}
+        cpu = {k: [] for k in servers}
         stages = {k: [] for k in servers}
-        equal = []
+        equal, diffs = [], {}
         order = list(servers)
         for i in range(1, n):
             got = {}
             for name in order:
                 got[name] = servers[name].ask(do="frame", i=i, profile=False)
                 plain[name].append(got[name]["seconds"])
+                cpu[name].append(got[name]["cpu"])
             equal.append(got["this tree"]["digest"] == got["against"]["digest"])
+            compare_arrays(servers, i, got, diffs)
             order.reverse()
         loads["timed"] = load()
         for i in range(1, n):
@@ -180,11 +201,12 @@ def main(argv=None) -> None:
         loads["end"] = load()
         for s in servers.values():
             s.close()
-    write_report(args.out, args.against, n, plain, stages, equal, rms, loads)
+    write_report(args.out, args.against, n, plain, cpu, stages, equal, diffs, rms, loads)
 
 
-def write_report(path: Path, against: Path, n: int, plain, stages, equal, rms, loads) -> None:
+def write_report(path: Path, against: Path, n: int, plain, cpu, stages, equal, diffs, rms, loads) -> None:
     med = {k: float(np.median(v)) for k, v in plain.items()}
+    med_cpu = {k: float(np.median(v)) for k, v in cpu.items()}
     lines = ["# One frame of `dstereo recession` after start-up: stages, this tree against another (issue 19)", "",
              f"Rendered 640x480 sequence ({n} frames, 0 -> 2 mm), `python -m experiments.frame_profile`: two "
              f"server processes (this tree, and `{against}`), each warmed up on the reference frame, asked for "
@@ -194,16 +216,21 @@ def write_report(path: Path, against: Path, n: int, plain, stages, equal, rms, l
              + "; ".join(f"{k}: {v}" for k, v in loads.items()) + ".", "",
              "| | this tree | against | ratio |", "|---|---|---|---|",
              f"| median s per frame (unprofiled, {len(plain['this tree'])} frames) | {med['this tree']:.3f} | "
-             f"{med['against']:.3f} | {med['against'] / med['this tree']:.2f}x |"]
+             f"{med['against']:.3f} | {med['against'] / med['this tree']:.2f}x |",
+             f"| median CPU s per frame (unprofiled) | {med_cpu['this tree']:.3f} | {med_cpu['against']:.3f} | "
+             f"{med_cpu['against'] / med_cpu['this tree']:.2f}x |"]
     for label, _ in STAGES:
         a = float(np.median([s[label] for s in stages["this tree"]]))
         b = float(np.median([s[label] for s in stages["against"]]))
-        lines.append(f"| {label} (profiled, median s) | {a:.4f} | {b:.4f} | "
+        lines.append(f"| {label} (profiled, median CPU s) | {a:.4f} | {b:.4f} | "
                      + (f"{b / a:.2f}x" if a > 0 else "-") + " |")
     lines += [f"| stagnation RMS of a serial run against the truth, mm | {rms['this tree']['rms']:.5f} | "
               f"{rms['against']['rms']:.5f} | |", "",
-              f"Frame outcomes equal bit for bit: {sum(equal)} of {len(equal)}; whole-run height maps equal: "
-              f"{'yes' if rms['this tree']['heights'] == rms['against']['heights'] else 'NO'}.", ""]
+              f"Frame outcomes equal bit for bit (every array, the noise check, the log): {sum(equal)} of "
+              f"{len(equal)}; whole-run height maps equal: "
+              f"{'yes' if rms['this tree']['heights'] == rms['against']['heights'] else 'NO'}. Per array over "
+              "the frames (largest difference / largest value of the array; 0 = equal bit for bit): "
+              + "; ".join(f"{k} {max(v):.2g}" for k, v in diffs.items()) + ".", ""]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines))
     print("\n".join(lines))
