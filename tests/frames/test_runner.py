@@ -232,7 +232,7 @@ def test_default_runner_stays_serial_when_a_cluster_would_not_pay(monkeypatch):
     started = []
     slow = runner_mod.FrameRunner()
     slow.workers = 2
-    monkeypatch.setattr(runner_mod, "_timed", lambda fn, arg: (fn(arg), runner_mod.PAYOFF_S, 0.0, "here"))
+    monkeypatch.setattr(runner_mod, "_timed", lambda fn, arg: (fn(arg), runner_mod.PAYOFF_S, 0.0, "here", 0.0))
     monkeypatch.setattr(runner_mod.FrameRunner, "_map_dask", lambda self, fn, items, on_done, ticker:
                         started.append(len(items)))
     slow.map(lambda x: x, [(i, i) for i in range(3)], lambda t: None)
