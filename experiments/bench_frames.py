@@ -7,7 +7,7 @@ per size and worker count: the wall time of the frames after the reference (the 
 runs first, here), frames/s over it, the median time of one frame on a worker, the cluster's start-up (in the
 wall time), the peak resident memory per worker process, and whether the results equal the serial ones.
 
-    python -m experiments.bench_frames [--sizes 640x480 320x240] [--frames 20] [--workers 1 2]
+    python -m experiments.bench_frames [--sizes 640x480 320x240] [--frames 20] [--workers 1 2] [--repeat 1]
         [--out experiments/results/bench_frames.md]
 """
 
@@ -65,6 +65,8 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", nargs="+", default=["640x480", "320x240"])
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--repeat", type=int, default=1, help="rounds of all worker counts, alternated (the load of "
+                        "a shared machine changes between runs)")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "bench_frames.md")
     args = parser.parse_args(argv)
     from dstereo.recession.synthetic import write_synthetic_sequence
@@ -78,10 +80,10 @@ def main(argv=None) -> None:
                                              image_size=size)
             grid = 0.5 if size[0] >= 640 else 1.0
             serial = None
-            for w in args.workers:
-                loads[f"{text} w={w} before"] = load()
+            for rnd, w in ((rnd, w) for rnd in range(args.repeat) for w in args.workers):
+                loads[f"{text} round {rnd + 1} w={w} before"] = load()
                 row = measure(folder, w, grid)
-                row["size"] = text
+                row["size"], row["round"] = text, rnd + 1
                 rms = np.sqrt(np.nanmean((np.array(row["recession_stagnation"])
                                           - np.array(truth["recession_stagnation_mm"])) ** 2))
                 row["stagnation_rms_mm"] = float(rms)
@@ -104,21 +106,35 @@ def write_report(path: Path, rows: list[dict], loads: dict, cores: int) -> None:
              "other jobs: load averages 1/5/15 min below). The reference frame (frame 0, with compilation) runs "
              "first in the calling process; *mapped* is the rest, on the workers (wall time includes starting the "
              "local cluster and each worker's first-frame start-up).", "",
-             "| size | workers | mapped frames/s | speed-up | median s/frame on a worker | median CPU s/frame "
+             "| size | round | workers | mapped frames/s | speed-up | median s/frame on a worker | median CPU s/frame "
              "| steady frames/s | steady speed-up | mapped wall s | reference s | peak RSS per worker MB "
              "| stagnation RMS mm | same as serial |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    base, steady_base = {}, {}
-    for r in rows:
-        base.setdefault(r["size"], r["frames_per_s"])
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    base, steady_base, cpu_base, ratios = {}, {}, {}, {}
+    for r in rows:  # speed-ups against the serial run of the same round
+        key = (r["size"], r.get("round", 1))
         steady = r["workers"] / r["seconds_per_frame_median"]
-        steady_base.setdefault(r["size"], steady)
+        if r["workers"] == 1:
+            base[key], steady_base[key], cpu_base[key] = r["frames_per_s"], steady, r["cpu_seconds_per_frame_median"]
+        base.setdefault(key, r["frames_per_s"])
+        steady_base.setdefault(key, steady)
+        cpu_base.setdefault(key, r["cpu_seconds_per_frame_median"])
+        if r["workers"] > 1:
+            ratios.setdefault((r["size"], r["workers"]), []).append(
+                (r["frames_per_s"] / base[key], steady / steady_base[key],
+                 r["workers"] * cpu_base[key] / r["cpu_seconds_per_frame_median"]))
         rss = ", ".join(f"{v:.0f}" for v in r["worker_peak_rss_mb"].values())
-        lines.append(f"| {r['size']} | {r['workers']} | {r['frames_per_s']:.2f} | "
-                     f"{r['frames_per_s'] / base[r['size']]:.2f}x | {r['seconds_per_frame_median']:.2f} | "
-                     f"{r['cpu_seconds_per_frame_median']:.2f} | {steady:.2f} | {steady / steady_base[r['size']]:.2f}x | "
+        lines.append(f"| {r['size']} | {key[1]} | {r['workers']} | {r['frames_per_s']:.2f} | "
+                     f"{r['frames_per_s'] / base[key]:.2f}x | {r['seconds_per_frame_median']:.2f} | "
+                     f"{r['cpu_seconds_per_frame_median']:.2f} | {steady:.2f} | {steady / steady_base[key]:.2f}x | "
                      f"{r['mapped_wall_s']:.1f} | {r['reference_s']:.1f} | {rss} | {r['stagnation_rms_mm']:.4f} | "
                      f"{'yes' if r['equal_to_first'] else 'NO'} |")
+    for (size, workers), got in ratios.items():
+        whole, steady, cpu = (float(np.median([g[i] for g in got])) for i in range(3))
+        lines += ["", f"{size}, {workers} workers, median over {len(got)} round(s) against the serial run of the same "
+                      f"round: {whole:.2f}x over the mapped run, {steady:.2f}x steady; from the CPU times, "
+                      f"{workers} x serial CPU per frame / a worker's CPU per frame = {cpu:.2f}x (the steady rate "
+                      f"{workers} workers would reach with a core each to themselves)."]
     lines += ["", "Load averages (1, 5, 15 min): " + "; ".join(f"{k}: {v}" for k, v in loads.items()), "",
               "*steady*: workers / median time of a frame on a worker (the workers ran concurrently, so it holds "
               "the contention between them), the rate once the cluster is up and every worker has done its first "
