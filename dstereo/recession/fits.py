@@ -7,9 +7,16 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import stats
 
 from dstereo.errors import DstereoError
+
+
+def _t_quantile(q, dof):
+    """Student's t quantile. scipy.stats is imported here, not with the module: it takes ~1 s, and a frame's
+    worker process imports this room without ever fitting a line."""
+    from scipy import stats
+
+    return stats.t.ppf(q, dof)
 
 STAGNATION_MODELS = ("quadratic", "mean")
 
@@ -83,7 +90,7 @@ def line_fit(t: np.ndarray, r: np.ndarray, sigma: np.ndarray | None = None) -> L
     if n > 2:
         s2 = float(w @ res**2) / (n - 2)
         se = np.sqrt(np.diag(cov_unit) * s2)
-        half = stats.t.ppf(0.975, n - 2) * se[1]
+        half = _t_quantile(0.975, n - 2) * se[1]
     else:
         se, half = np.full(2, np.nan), float("nan")
     return LineFit(float(coef[1]), float(se[1]), (float(coef[1] - half), float(coef[1] + half)), float(coef[0]),
@@ -106,7 +113,7 @@ def rate_map(t: np.ndarray, maps: np.ndarray, min_frames: int = 3) -> dict[str, 
         res = np.where(ok, maps - rm - rate * (t - tm), 0.0)
         s2 = (res * res).sum(0) / (n - 2)
         se = np.sqrt(s2 / sxx)
-        half = stats.t.ppf(0.975, np.maximum(n - 2, 1)) * se
+        half = _t_quantile(0.975, np.maximum(n - 2, 1)) * se
     few = n < min_frames
     return {"rate": np.where(few, np.nan, rate), "rate_se": np.where(few, np.nan, se),
             "ci95_half": np.where(few, np.nan, half), "frames": n.astype(int)}
@@ -120,4 +127,4 @@ def line_band(fit: LineFit, t: np.ndarray, r: np.ndarray, at: np.ndarray) -> np.
     resid = r - (fit.intercept + fit.rate * t)
     s = np.sqrt(resid @ resid / (fit.n - 2))
     sxx = ((t - t.mean()) ** 2).sum()
-    return stats.t.ppf(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (at - t.mean()) ** 2 / sxx)
+    return _t_quantile(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (at - t.mean()) ** 2 / sxx)
