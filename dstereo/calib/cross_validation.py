@@ -34,6 +34,7 @@ from dstereo.models.camera import project
 from dstereo.models.distortion import COEFF_NAMES
 from dstereo.models.pose import rodrigues
 from dstereo.uncertainty.point_jacobians import newton_step
+from dstereo.uncertainty.view_scatter import view_scatter
 from dstereo.uncertainty.projection import (CAMERA_NAMES, _invertible, _undistorted, mean_board_distance,
                                             projection_uncertainty_map)
 from dstereo.solver.lm import LMOptions
@@ -58,6 +59,7 @@ class HalfSolution:
     poses: np.ndarray
     converged: bool
     rms: float
+    view_scale: float = 1.0  # the view-scatter factor its covariances carry (`uncertainty.view_scatter`)
 
 
 def _lens_names(full) -> tuple[str, ...]:
@@ -93,14 +95,16 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             sse, n_res = float(res.sse[i]), 2 * int(inliers[w[i] > 0].sum())
             params = np.zeros(12)
             params[free_idx] = res.g[i][keep]
-            cov = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
-            joint = joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
+            # each half is scaled by its own views' scatter, as the tool scales a calibration's uncertainty
+            scale = view_scatter(np.asarray(res.normal[i]), g, sse / max(n_res - g - 6 * m, 1), w[i]).scale
+            cov = scale * covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
+            joint = scale * joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
             # marginalising the sag = dropping its rows and columns (shared first, then the poses)
             kept = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
                 params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(kept, kept)],
                 poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
-                rms=float(np.sqrt(sse / (m * n_pts)))))
+                rms=float(np.sqrt(sse / (m * n_pts))), view_scale=scale))
     return out
 
 
@@ -196,6 +200,7 @@ class CrossValidation:
     halves: list[tuple[list[int], list[int]]]
     u: np.ndarray
     v: np.ndarray
+    view_scales: list[float] | None = None  # per half (A, B of split 0, ...)
 
     @property
     def ratio(self) -> float:  # geometric mean over splits
@@ -259,7 +264,7 @@ class CrossValidation:
                 "mahalanobis_median": self.mahalanobis_median,
                 "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
                 "inside_corner_field": self.covered_figures(),
-                "trusted": self.trusted, "verdict": self.verdict(),
+                "trusted": self.trusted, "verdict": self.verdict(), "view_scatter_scales": self.view_scales,
                 "halves": [[list(map(int, a)), list(map(int, b))] for a, b in self.halves]}
 
 
@@ -300,4 +305,4 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid, corners)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
-                           np.linspace(0.0, h - 1.0, grid[1]))
+                           np.linspace(0.0, h - 1.0, grid[1]), [s.view_scale for s in sols])

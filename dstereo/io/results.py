@@ -327,6 +327,8 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
              "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
     if fallback:
         entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
+    if pmap.view_scatter is not None and pmap.view_scatter.alarm:
+        entry["view_scatter_warning"] = "projection uncertainty: " + pmap.view_scatter.message()
     if pmap.masked:
         entry["warning"] = (f"projection uncertainty: {pmap.masked} of {pmap.mask.size} grid pixels masked (grey in "
                             "plots/projection_uncertainty.png): the distortion model cannot be inverted there (not "
@@ -380,9 +382,10 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
     summary["projection_uncertainty"] = projection
     for entry in (summary["projection_uncertainty"],):
-        if entry.get("warning"):
-            summary["warnings"].append(entry["warning"])
-            cal.warnings.append(entry["warning"])  # printed after writing, with the others
+        for key in ("warning", "view_scatter_warning"):
+            if entry.get(key):
+                summary["warnings"].append(entry[key])
+                cal.warnings.append(entry[key])  # printed after writing, with the others
     if getattr(cal, "cross_validation", None) is not None:
         from dstereo.io.cross_validation_files import write_cross_validation
 
