@@ -311,11 +311,13 @@ def _pm(value: float, spread: float) -> str:
 
 
 def _render(cal, out: Path) -> None:
-    """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
+    """Final console table: full set +- std (Jacobian x view scatter), subset mean +- spread; then counts and timings."""
+    from dstereo.uncertainty.view_scatter import reported_std
+
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final
     rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
-            for n, v, s in zip(full.names, full.values, full.std)]
+            for n, v, s in zip(full.names, full.values, reported_std(full))]
     subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"

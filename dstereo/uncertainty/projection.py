@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
 from dstereo.models import fisheye
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
@@ -240,7 +241,7 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * _inliers(sol).sum())
+        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum())
         keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
         pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * joint[np.ix_(keep, keep)],
                                           image_size, range_, grid, poses=sol.poses, method=method)
@@ -248,28 +249,6 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * sol.cov[np.ix_(lens, lens)],
                                           image_size, range_, grid, method=method)
     return replace(pmap, view_scatter=scatter)
-
-
-def _inliers(sol) -> np.ndarray:
-    """(V, n) the corners the solve fitted (rejected outliers keep their residuals in `sol.residuals`)."""
-    inl = getattr(sol, "inliers", None)
-    return np.ones(np.shape(sol.residuals)[:2], bool) if inl is None else np.asarray(inl, bool)
-
-
-def sse_of(sol) -> float:
-    """The solve's sum of squares over the corners it fitted: an outlier's residual is not corner noise."""
-    return float(np.sum(np.sum(np.asarray(sol.residuals, float) ** 2, axis=-1) * _inliers(sol)))
-
-
-def solution_view_scatter(sol):
-    """`view_scatter.ViewScatter` of a solve that kept its per-view normal blocks (None if it did not)."""
-    from dstereo.uncertainty.view_scatter import view_scatter
-
-    if getattr(sol, "normal", None) is None:
-        return None
-    n_res = 2 * int(_inliers(sol).sum())
-    n_par = len(sol.values) + 6 * len(sol.poses)
-    return view_scatter(sol.normal, len(sol.values), sse_of(sol) / max(n_res - n_par, 1))
 
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:

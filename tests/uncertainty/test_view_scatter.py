@@ -14,7 +14,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
 
 from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.uncertainty.projection import solution_map, solution_view_scatter, sse_of  # noqa: E402
+from dstereo.uncertainty.projection import solution_map  # noqa: E402
+from dstereo.uncertainty.view_scatter import reported_std, solution_view_scatter, sse_of  # noqa: E402
 
 VIEWS = 16
 
@@ -45,6 +46,7 @@ def test_errors_moving_together_within_views_raise_the_alarm_and_the_map(solves)
     x = solution_view_scatter(solves["per view"])
     assert x.alarm and x.kappa > 2.0, x.kappa
     assert "scaled by sqrt(kappa)" in x.message()
+    np.testing.assert_allclose(reported_std(solves["per view"]), np.sqrt(x.kappa) * solves["per view"].std, rtol=1e-12)
     sol = solves["per view"]
     pmap = solution_map(sol, SIZE, 500.0, grid=(8, 6))
     assert pmap.view_scatter is not None and pmap.summary()["view_scatter"]["scale_applied"] == pytest.approx(x.kappa)
