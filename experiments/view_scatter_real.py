@@ -13,7 +13,8 @@ from pathlib import Path
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SETS = [("opencv_stereo L", "opencv_stereo", "left*.jpg", None), ("opencv_stereo R", "opencv_stereo", "right*.jpg", None),
         ("rig640 L", "rig640", "left*.jpg", None), ("rig640 R", "rig640", "right*.jpg", None),
-        ("fisheye640 rational", "fisheye640", "view*.jpg", "rational")]
+        ("fisheye640 rational", "fisheye640", "view*.jpg", "rational"),
+        ("fisheye640 fisheye", "fisheye640", "view*.jpg", "fisheye")]
 SPLITS = 12
 
 
