@@ -87,6 +87,9 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("image_format_right", "images.format_right"),
     _opt("glob", "images.glob", "--glob", "Only images whose name matches, e.g. 'left*.jpg'."),
     _opt("model", "calibration.model", "--model"),
+    _opt("model_right", "calibration.model_right", "--model-right",
+         "Stereo: the right camera's lens model when it differs from the left's --model (e.g. fisheye); "
+         "default: --model for both."),
     _opt("per_set", "calibration.per_set", "--per-set", type=int),
     _opt("max_subsets", "calibration.max_subsets", "--max-subsets", type=int),
     _opt("seed", "calibration.seed", "--seed", type=int),
