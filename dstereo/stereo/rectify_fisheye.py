@@ -32,7 +32,7 @@ from jaxtyping import Array, Float
 from dstereo.errors import DstereoError
 from dstereo.models import fisheye
 from dstereo.models.camera import Camera, project
-from dstereo.models.distortion import lens_model, undistort
+from dstereo.models.distortion import undistort
 from dstereo.models.pose import rotation_matrix
 from dstereo.models.rig import Rig
 from dstereo.stereo.rectify import Rectification, _half_rotations, q_matrix, rectifying_rotations
@@ -44,11 +44,6 @@ MAX_HALF_FIELD_DEG = 75.0
 MAX_AXES_DEG = 90.0
 FOLD_SAMPLES = 4096  # theta grid on [0, pi) on which the fisheye polynomial's first fold is searched
 ROI_GRID = 33  # rectified pixels sampled per side for the valid rectangles
-
-
-def lens_of(camera: Camera) -> str:
-    """'fisheye' or 'pinhole': the lens model the camera's coefficient names say (`distortion.lens_model`)."""
-    return lens_model(tuple(camera.dist.free))
 
 
 def fold_angle(d: Float[Array, "4"]) -> Float[Array, ""]:
@@ -134,7 +129,7 @@ def _axes_angle_deg(rvec) -> float:
 def stereo_rectify_lenses(left: Camera, right: Camera, rig: Rig, image_size: tuple[int, int], *,
                           balance: float = 0.0, fov_scale: float = 1.0, zero_disparity: bool = True,
                           new_size: tuple[int, int] | None = None, where: str = "stereo calibration") -> Rectification:
-    """Rectify a pair of any two lens models (pinhole + distortion or fisheye, `lens_of`) to one pinhole pair
+    """Rectify a pair of any two lens models (pinhole + distortion or fisheye, `Camera.lens`) to one pinhole pair
     (module docstring; cv2.fisheye.stereoRectify for a horizontal fisheye pair). Rig: x_right = R x_left + T.
 
     Raises DstereoError (naming `where`) for a pair whose optical axes are more than 90 degrees apart, an edge
@@ -155,7 +150,7 @@ def stereo_rectify_lenses(left: Camera, right: Camera, rig: Rig, image_size: tup
         raise DstereoError(f"{where}: balance {balance} / fov_scale {fov_scale} must be finite numbers")
     t = np.asarray(_half_rotations(jnp.asarray(rvec), jnp.asarray(T))[1])
     idx = 1 if abs(t[0]) <= abs(t[1]) else 0
-    lenses = (lens_of(left), lens_of(right))
+    lenses = (left.lens, right.lens)
     R1, R2, P1, P2, Q, ok = _rectify_lenses(
         jnp.asarray(left.k, float), jnp.asarray(left.dist.coeffs, float), jnp.asarray(right.k, float),
         jnp.asarray(right.dist.coeffs, float), jnp.asarray(rvec), jnp.asarray(T), jnp.asarray(float(balance)),
@@ -209,7 +204,7 @@ def _valid_rectangle(camera: Camera, R, P, new_size, size) -> np.ndarray:
     grid = (ROI_GRID, ROI_GRID)
     scale_p = jnp.diag(jnp.array([(ROI_GRID - 1) / (nw - 1), (ROI_GRID - 1) / (nh - 1), 1.0])) @ P
     mx, my = (np.asarray(m) for m in lens_map(jnp.asarray(camera.k), jnp.asarray(camera.dist.coeffs), R, scale_p,
-                                               lens_of(camera), grid))
+                                               camera.lens, grid))
     w, h = size
     inside = np.isfinite(mx) & np.isfinite(my) & (mx >= 0) & (my >= 0) & (mx <= w - 1) & (my <= h - 1)
     if not inside.any():
@@ -260,7 +255,7 @@ def rectification_maps(calib, rect: Rectification) -> list[tuple[np.ndarray, np.
     out = []
     for cam, R, P in zip(calib.cameras(), (rect.R1, rect.R2), (rect.P1, rect.P2)):
         if has_fisheye(calib):
-            maps = lens_map(cam.k, cam.dist.coeffs, R, P, lens_of(cam), rect.size)
+            maps = lens_map(cam.k, cam.dist.coeffs, R, P, cam.lens, rect.size)
         else:
             maps = rectify_map(cam.k, cam.dist.coeffs, R, P, rect.size)
         out.append(tuple(np.asarray(m, np.float64) for m in maps))
