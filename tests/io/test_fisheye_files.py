@@ -103,3 +103,37 @@ def test_config_key_and_right_model_refusal(tmp_path):
                            "--out", tmp_path / "out")
     assert code == 1 and "--model-right: only for a stereo rig" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_stereo_file_of_a_mixed_rig_reads_back_exactly(tmp_path):
+    """stereo.yml of a pinhole left and a fisheye right: each camera's model field, the fisheye's D as
+    cv2.fisheye's 4-vector, and every number read back bit for bit (FileStorage writes 17 significant digits)."""
+    from dstereo.io.calib_files import read_stereo_calibration, write_opencv_stereo
+    from dstereo.io.stereo_files import write_stereo_yml
+    from dstereo.models.stereo_calibration import StereoCalibration
+    from dstereo.synth import fisheye_rig
+
+    rig = fisheye_rig(mixed=True)
+    R, T = rig.rotation_translation()
+    left, right = rig.left, rig.right
+    write_stereo_yml(tmp_path / "stereo.yml", left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R, T,
+                     np.eye(3), np.eye(3), left.image_size, models=("pinhole", "fisheye"))
+    text = (tmp_path / "stereo.yml").read_text()
+    assert "distortion_model1: pinhole" in text and "distortion_model2: fisheye" in text
+    fs = cv2.FileStorage(str(tmp_path / "stereo.yml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("D2").mat().shape == (1, 4) and fs.getNode("D1").mat().shape == (1, 8)
+    fs.release()
+    c = read_stereo_calibration(tmp_path / "stereo.yml")
+    assert c.models == ("pinhole", "fisheye")
+    for ours, ref in ((c.K1, left.matrix()), (c.D1, left.coeffs()), (c.K2, right.matrix()), (c.D2, right.coeffs()),
+                      (c.R, R), (c.T, T)):
+        assert np.array_equal(ours, np.asarray(ref, float).reshape(np.shape(ours)))
+    cams = c.cameras()
+    assert (cams[0].lens, cams[1].lens) == ("pinhole", "fisheye")
+    write_opencv_stereo(tmp_path / "again.yml", c)  # the other writer: the same fields, read back the same
+    again = read_stereo_calibration(tmp_path / "again.yml")
+    assert again.models == c.models and np.array_equal(again.D2, c.D2) and np.array_equal(again.K1, c.K1)
+    plain = StereoCalibration(c.K1, c.D1, c.K1, c.D1, c.R, c.T, c.image_size)
+    write_opencv_stereo(tmp_path / "pinhole.yml", plain)  # a pinhole pair's file keeps OpenCV's own layout
+    assert "distortion_model" not in (tmp_path / "pinhole.yml").read_text()
+    assert read_stereo_calibration(tmp_path / "pinhole.yml").models == ("pinhole", "pinhole")
