@@ -265,10 +265,11 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
 def stereo_summary(job) -> dict:
     """summary.json / stereo.json of a stereo job."""
     from dstereo.config.calibration import as_dict
-    from dstereo.models.distortion import COEFF_NAMES
+    from dstereo.models.distortion import coeff_slots
 
     s, det = job.full, job.detection
-    cams = {side: {"camera_matrix": c.matrix(), "coeffs": dict(zip(COEFF_NAMES, map(float, c.coeffs()))),
+    cams = {side: {"camera_matrix": c.matrix(), "lens": c.lens,  # a fisheye's coefficients are named fk1..fk4
+                   "coeffs": {n: float(v) for n, v in zip(coeff_slots(tuple(c.dist.free)), c.coeffs()) if n},
                    "free": list(c.dist.free), "image_size": list(c.image_size)}
             for side, c in (("left", s.left), ("right", s.right))}
     full_std = dict(zip(s.names, map(float, s.std))) | {"Tnorm": s.baseline_std, "RVnorm": s.angle_std}

@@ -78,6 +78,11 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
                "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
+    if not calib.rectified and has_fisheye(calib):
+        from dstereo.stereo.rectify_fisheye import field_of_view
+
+        summary |= {"lenses": list(calib.models), "rectified_field_of_view_deg": field_of_view(rect),
+                    "balance": config.alpha if config.alpha >= 0 else 0.0}
     exact = None
     if config.refine:
         disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
