@@ -108,7 +108,8 @@ def calibrate(rig, work: Path, mixed: bool, seed: int) -> tuple[Path, dict, floa
             "fx_rel_error": float(got[0] / truth[0] - 1), "fy_rel_error": float(got[1] / truth[1] - 1),
             "cx_error_px": float(got[2] - truth[2]), "cy_error_px": float(got[3] - truth[3]),
             "cx_sigma_px": float(std["cx"]), "cy_sigma_px": float(std["cy"]),
-            "cx_in_sigmas": float((got[2] - truth[2]) / std["cx"]), "cy_in_sigmas": float((got[3] - truth[3]) / std["cy"]),
+            "cx_in_sigmas": float((got[2] - truth[2]) / std["cx"]),
+            "cy_in_sigmas": float((got[3] - truth[3]) / std["cy"]),
             "rms_px": float(summary["individual"][side]["rms"]),
         }
     R_true, T_true = rig.rotation_translation()
@@ -263,7 +264,8 @@ def report(r: dict) -> str:
         d, fov = v["relative_difference"], v["field_of_view"]
         lines.append(f"| {k.split()[1]} | {d['R1']:.1e} | {d['R2']:.1e} | {d['P1']:.1e} | {d['P2']:.1e} | "
                      f"{d['Q']:.1e} | {v['map_max_difference_px']:.1e} | "
-                     f"{min(v['map_share_both_defined']):.3f} | {fov['horizontal_deg']:.1f} x {fov['vertical_deg']:.1f} |")
+                     f"{min(v['map_share_both_defined']):.3f} | "
+                     f"{fov['horizontal_deg']:.1f} x {fov['vertical_deg']:.1f} |")
     lines += ["", "Relative differences: max |ours - cv2| / max |cv2|. The maps differ by cv2's float32 output "
               "(half a float32 step at 640 px is 3e-5 px).", ""]
     for name in ("fisheye pair", "pinhole + fisheye"):

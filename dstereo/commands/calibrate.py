@@ -27,7 +27,7 @@ def calibrate(
         "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
     model_right: Optional[str] = typer.Option(
         None, "--model-right", help="Stereo: the right camera's lens model when it differs from the left's --model "
-        "(e.g. --model default --model-right fisheye); default: --model for both."),
+        "(e.g. fisheye); default: --model for both."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -91,9 +91,9 @@ def calibrate(
         raise DstereoError("--pair: only with --cameras DIR (a rig of several cameras)")
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
-        pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model, model_right=model_right,
-        per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
-        outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
+        pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
+        model_right=model_right, per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets,
+        final=final, outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)

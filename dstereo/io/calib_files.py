@@ -27,6 +27,7 @@ ALIASES = {
     "R": ("R",),
     "T": ("T",),
 }
+LENS_MODELS = ("pinhole", "fisheye")  # a file's `distortion_model` values (none: pinhole)
 # Keys of a one-camera file (dstereo calibrate's camera.yml, OpenCV's calibration samples).
 MONO_KEYS = ("camera_matrix", "cameraMatrix", "distortion_coefficients", "distCoeffs")
 
@@ -181,8 +182,6 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
 def _lens_models(data: dict, path: Path) -> tuple[str, str]:
     """Each camera's lens model: `distortion_model1` / `distortion_model2` (dstereo's stereo.yml), else one
     `distortion_model` for both, else pinhole (OpenCV's own files)."""
-    from dstereo.io.camera_file import LENS_MODELS
-
     both = data.get("distortion_model") or "pinhole"
     models = []
     for key in ("distortion_model1", "distortion_model2"):

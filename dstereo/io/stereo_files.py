@@ -154,7 +154,7 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
     """
     import cv2
 
-    from dstereo.io.camera_file import LENS_MODELS
+    from dstereo.io.calib_files import LENS_MODELS
 
     if any(m not in LENS_MODELS for m in models):
         raise DstereoError(f"{path}: lens models {models}; each is one of {list(LENS_MODELS)}")

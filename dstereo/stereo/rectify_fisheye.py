@@ -18,8 +18,9 @@ that (OpenCV's numbers are then far outside the image: its rule is undefined the
 inside the midpoints, so it keeps at most 2 x MAX_HALF_FIELD_DEG across; with balance 1 it reaches past them along
 the less constraining axis (still under 180 degrees, a pinhole's edges being finite). `field_of_view` says what
 the rectified images keep: for the rig of `synth.fisheye_rig` (128 deg across its 640 px) 110 x 94 deg at balance
-0, 129 x 115 deg at balance 1 (experiments/results/fisheye_rig.md). Maps (`lens_map`): NaN where a rectified pixel's ray has no source pixel (behind a
-pinhole camera, or past the angle where the fisheye polynomial folds back), never a number.
+0, 129 x 115 deg at balance 1 (experiments/results/fisheye_rig.md).
+Maps (`lens_map`): NaN where a rectified pixel's ray has no source pixel (behind a pinhole camera, or past the angle
+where the fisheye polynomial folds back), never a number.
 Conventions: x_right = R x_left + T (OpenCV), pixel (0, 0) is the centre of the top-left pixel.
 """
 
@@ -148,7 +149,8 @@ def stereo_rectify_lenses(left: Camera, right: Camera, rig: Rig, image_size: tup
     apart = _axes_angle_deg(rvec)
     if apart > MAX_AXES_DEG:
         raise DstereoError(f"{where}: the cameras' optical axes are {apart:.1f} deg apart (more than "
-                           f"{MAX_AXES_DEG:g}); no rectified pinhole pair sees both views; check R or pair other cameras")
+                           f"{MAX_AXES_DEG:g}); no rectified pinhole pair sees both views; check R, or pair other "
+                           "cameras")
     if not (np.isfinite(balance) and np.isfinite(fov_scale)):
         raise DstereoError(f"{where}: balance {balance} / fov_scale {fov_scale} must be finite numbers")
     t = np.asarray(_half_rotations(jnp.asarray(rvec), jnp.asarray(T))[1])
@@ -201,8 +203,8 @@ def lens_map(k, coeffs, R, P, lens: str, size: tuple[int, int]):
 
 
 def _valid_rectangle(camera: Camera, R, P, new_size, size) -> np.ndarray:
-    """(x, y, w, h): bounding box of the rectified pixels (sampled on a ROI_GRID grid) whose source lies in the
-    image; zeros when none does."""
+    """(x, y, w, h): bounding box of the rectified pixels whose source lies in the image, sampled on a ROI_GRID x
+    ROI_GRID grid (so to a grid step, 1/32 of the image); zeros when no sample does."""
     nw, nh = new_size
     grid = (ROI_GRID, ROI_GRID)
     scale_p = jnp.diag(jnp.array([(ROI_GRID - 1) / (nw - 1), (ROI_GRID - 1) / (nh - 1), 1.0])) @ P

@@ -24,7 +24,8 @@ from dstereo.synth.writers import write_calibration_set, write_multiview_set, wr
 __all__ = [
     "CALIBRATION_OPTIONS", "OBJECT_OPTIONS", "Board", "CalibrationSet", "MultiviewRig", "MultiviewSet", "Plane",
     "RecessionProfile", "RenderOptions", "Sample", "Speckle", "Sphere", "StereoRender", "StereoRig",
-    "board_pose_set", "calibration_set", "camera_rays", "compose", "corner_coverage", "fisheye_rig", "invert", "look_at",
+    "board_pose_set", "calibration_set", "camera_rays", "compose", "corner_coverage", "fisheye_rig", "invert",
+    "look_at",
     "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
     "pose_matrix", "profile_for_total", "read_truth", "receded", "recession_sequence", "render_board",
     "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners",

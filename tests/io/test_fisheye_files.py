@@ -1,5 +1,6 @@
 """`dstereo calibrate --model fisheye` end to end on the real fisheye640 camera, its camera.yml (OpenCV layout
-with `distortion_model: fisheye`) read back, the config key, and the refusals (bad files, a right-camera model without a rig)."""
+with `distortion_model: fisheye`) read back, a mixed rig's stereo file read back, the config key, and the refusals
+(bad files, a right-camera model without a rig)."""
 
 import json
 

@@ -22,9 +22,8 @@ PLANE_Z, TILT_DEG, BASELINE = 450.0, 20.0, 120.0
 def scene(tmp_path_factory):
     folder = tmp_path_factory.mktemp("fisheye_plane")
     rig = fisheye_rig(scale=0.5)  # 320 x 240, the rig's fields of view
-    t = np.radians(TILT_DEG)
-    pose = np.concatenate([rotation_vector(np.array([[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]])),
-                           [0.0, 0.0, PLANE_Z]])
+    pose = np.concatenate([np.asarray(rotation_vector(rotation_matrix(np.array([0.0, np.radians(TILT_DEG), 0.0])))),
+                           [0.0, 0.0, PLANE_Z]])  # tilted about y, PLANE_Z ahead of the left camera
     pair = object_pair(rig, Plane(260.0, 200.0), pose, seed=2, speckle_mm=4.0)
     for side, image in (("left", pair.left), ("right", pair.right)):
         cv2.imwrite(str(folder / f"{side}.png"), image)

@@ -123,12 +123,21 @@ def _with(c: StereoCalibration, **changes) -> StereoCalibration:
     return replace(c, **changes)
 
 
+_R30 = np.asarray(rodrigues(np.array([0.0, np.radians(30.0), 0.0])))
+# a 128-degree fisheye beside an 18-degree pinhole looking 30 degrees away: the rectified pair keeps the fisheye's
+# field and the pinhole's principal point of its own focal length (cv2.fisheye's rule), so no rectified pixel
+# sees the pinhole's image
+_NARROW = dict(K2=np.array([[2000.0, 0, 320], [0, 2000, 240], [0, 0, 1]]), D2=np.zeros(8), R=_R30,
+               T=-_R30 @ np.array([120.0, 0, 0]), models=("fisheye", "pinhole"))
+
+
 @pytest.mark.parametrize("change, message", [
+    (_NARROW, "the rectified field would be empty: no rectified pixel of the right camera sees its image"),
     (dict(R=np.asarray(rodrigues(np.array([0.0, np.radians(120.0), 0.0])))), "optical axes are 120.0 deg apart"),
     (dict(D2=np.array([-0.5, 0, 0, 0, 0, 0, 0, 0])), "right lens model has no ray for an image edge midpoint"),
     (dict(T=np.zeros(3)), "baseline T is zero"),
 ])
 def test_bad_fisheye_rigs_are_one_line_errors(change, message):
     with pytest.raises(DstereoError, match=message) as err:
-        rectify_any(_with(FISHEYE, source="rig.yml", **change), SIZE)
+        rectify_any(_with(FISHEYE, source="rig.yml", **change), SIZE, zero_disparity=False)
     assert "\n" not in str(err.value) and "rig.yml" in str(err.value)
