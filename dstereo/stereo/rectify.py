@@ -238,6 +238,10 @@ def stereo_rectify(
     """
     if undistort not in ("opencv", "exact"):
         raise DstereoError(f"undistort={undistort!r}: use 'opencv' (reproduce cv2) or 'exact' (Newton inverse)")
+    for side, cam in (("left", left), ("right", right)):
+        if cam.lens == "fisheye":  # its coefficients are cv2.fisheye's, not OpenCV's pinhole distortion
+            raise DstereoError(f"stereo_rectify: the {side} camera is a fisheye; rectify the pair with "
+                               "dstereo.stereo.rectify_fisheye.stereo_rectify_lenses (rectify_any for a calibration)")
     w, h = (int(v) for v in image_size)
     if w < 2 or h < 2:
         raise DstereoError(f"image_size {image_size}: need width and height of at least 2 pixels")

@@ -141,3 +141,10 @@ def test_bad_fisheye_rigs_are_one_line_errors(change, message):
     with pytest.raises(DstereoError, match=message) as err:
         rectify_any(_with(FISHEYE, source="rig.yml", **change), SIZE, zero_disparity=False)
     assert "\n" not in str(err.value) and "rig.yml" in str(err.value)
+
+
+def test_the_pinhole_rectification_refuses_a_fisheye_camera():
+    from dstereo.stereo.rectify import stereo_rectify
+
+    with pytest.raises(DstereoError, match="the right camera is a fisheye"):
+        stereo_rectify(*MIXED.cameras(), MIXED.rig, SIZE)
