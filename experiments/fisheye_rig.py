@@ -237,7 +237,9 @@ def main() -> dict:
     jax.config.update("jax_enable_x64", True)
     from dstereo.synth import fisheye_rig
 
-    results = {"views": N_VIEWS, "square_mm": SQUARE_MM}
+    import os
+
+    results = {"views": N_VIEWS, "square_mm": SQUARE_MM, "load_average_start": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory(prefix="fisheye_rig_") as tmp:
         for name, mixed in (("fisheye pair", False), ("pinhole + fisheye", True)):
             rig = fisheye_rig(mixed=mixed)
@@ -251,6 +253,7 @@ def main() -> dict:
             true_path = write_true_calibration(rig, work / "true_stereo.yml")
             entry["reconstruction_true_calibration"] = reconstruct(true_path, work / "plane", work / "rec_true", mask)
             results[name] = entry
+    results["load_average_end"] = os.getloadavg()[0]
     OUT.mkdir(exist_ok=True)
     (OUT / "fisheye_rig.json").write_text(json.dumps(results, indent=1))
     (OUT / "fisheye_rig.md").write_text(report(results))
@@ -273,7 +276,10 @@ def report(r: dict) -> str:
     lines = ["# Stereo rigs with fisheye cameras (experiments/fisheye_rig.py)", "",
              f"Renders with known truth: {r['views']} board views (9x6, {r['square_mm']:g} mm squares), 640 x 480 px; "
              f"a speckled plane tilted {PLANE_TILT_DEG:g} deg at {PLANE_DISTANCE_MM:g} mm. Rigs: "
-             "`dstereo.synth.fisheye_rig` (two cv2.fisheye lenses, ~128 deg across; or a 75 deg pinhole left).", ""]
+             "`dstereo.synth.fisheye_rig` (two cv2.fisheye lenses, ~128 deg across; or a 75 deg pinhole left).", "",
+             "Timings (render, calibrate, reconstruct s) were taken on a shared 2-core machine under load: "
+             + (f"load average {r['load_average_start']:.1f} at the start, {r['load_average_end']:.1f} at the end."
+                if "load_average_start" in r else "load average 9-22 during this run (`uptime`)."), ""]
     rect = r["fisheye pair"]["rectification_vs_opencv"]
     lines += ["## Rectification vs cv2.fisheye.stereoRectify / initUndistortRectifyMap (fisheye pair)", "",
               "| balance | R1 | R2 | P1 | P2 | Q | maps max diff (px) | both defined | field kept (h x v deg) |",
