@@ -215,7 +215,11 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     for side, files, fmt in (("left", sources.mono_left, config.image_format_left),
                              ("right", sources.mono_right, config.image_format_right)):
         t0 = time.perf_counter()
-        cfg = config.with_overrides(image_format=fmt)
+        cfg = config.with_overrides(image_format=fmt, model=config.model_right if side == "right" else None)
+        if cfg.model != config.model:  # the right camera's own lens model: its steps are checked against it
+            from dstereo.config.calibration import validate
+
+            cfg = validate(cfg)
         try:
             cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
                                           use_cache=use_cache, scratch=scratch)
