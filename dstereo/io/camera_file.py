@@ -14,7 +14,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 
-LENS_MODELS = ("pinhole", "fisheye")
+from dstereo.io.calib_files import LENS_MODELS  # noqa: F401  (the lens models a file may name)
 
 
 @dataclass(frozen=True)
