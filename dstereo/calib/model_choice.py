@@ -31,7 +31,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models.distortion import PRESETS, lens_model
 
-CANDIDATES: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # presets, fewest parameters first
+PARAMETRIC: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # presets, fewest parameters first
+CANDIDATES: tuple[str, ...] = PARAMETRIC
 MAX_FOLDS = 30  # up to this many views: leave one view out; beyond: this many folds of equal size
 FIT_MARGIN = 0.01  # a chosen model's training RMS may exceed the held-out-best model's by at most 1 %
 POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-set pose (converges in < 10)

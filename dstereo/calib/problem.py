@@ -251,10 +251,20 @@ def prior_matrix(problem: Problem) -> np.ndarray | None:
 # --- the compiled solver and how it is called --------------------------------------------------------------
 
 
-def chunk_rows(n_frames: int, n_points: int) -> int:
+# A problem's cost grows with the square of its shared parameters (each frame's normal block is (G + 7)^2): above
+# SMALL_SHARED (a splined lens's knots), fewer problems share a call, in that proportion. Below it, as before.
+SMALL_SHARED = 32
+
+
+def chunk_rows(n_frames: int, n_points: int, n_shared: int | None = None) -> int:
     """Problems per compiled call for frames of `n_points` corner observations (all cameras together), fixed
-    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`)."""
-    return int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`); fewer for a
+    problem of more than SMALL_SHARED shared parameters (`n_shared`; the one chunked call pads a single full-set
+    solve to this many problems, so a splined lens would otherwise solve ~20 copies of itself)."""
+    rows = int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+    if n_shared is not None and n_shared > SMALL_SHARED:
+        rows = max(1, rows * (SMALL_SHARED + POSE_SIZE + 1) ** 2 // (n_shared + POSE_SIZE + 1) ** 2)
+    return rows
 
 
 def threads(requested: int | None = None) -> int:
@@ -302,7 +312,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
     chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen."""
     n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
-    rows = chunk_rows(n_frames, k * n_pts)
+    rows = chunk_rows(n_frames, k * n_pts, problem.n_shared)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
         parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,

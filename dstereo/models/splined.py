@@ -33,12 +33,18 @@ DOMAIN = 1.25  # half-width of the control grid in half-images: covers the image
 DEFAULT_GRID = (10, 8)  # (NX, NY) of the `splined` preset: 7 x 5 spans over the square
 # The prior (`prior_rows`), in the cost's own unit (px^2, like a corner residual): each second difference of a
 # surface between neighbouring knots (along x, along y, and the mixed one with thin-plate energy's weight sqrt 2)
-# weighs CURVATURE_WEIGHT, each knot value RIDGE_WEIGHT. With C corner residuals of noise sigma on a knot, the
-# prior is CURVATURE_WEIGHT^2 / C of the data there (< 1 % for C >= 2): it bends the fit only where few corners
-# are; where none are, a second difference has a standard deviation of sigma / CURVATURE_WEIGHT = 10 sigma per knot,
-# compounding with the distance from the corners (the projection uncertainty grows there, as it should).
-CURVATURE_WEIGHT = 0.1
-RIDGE_WEIGHT = 1e-2  # pins the directions the corners cannot see (shift, scale, roll); ~no pull elsewhere
+# is a residual row of weight CURVATURE_WEIGHT, each knot value one of weight RIDGE_WEIGHT. A knot that C corner
+# residuals reach holds ~C / 10 of data information (cubic B-spline weights are <= 2/3, ~0.3 on average) against
+# ~20 CURVATURE_WEIGHT^2 of the prior: 0.2 % for one corner, so the prior bends the fit only where no corner is.
+# There a second difference has a standard deviation of sigma / CURVATURE_WEIGHT = 100 sigma per knot, compounding
+# with the distance from the corners: the projection uncertainty grows there, large, as it should. Measured on the
+# rendered odd lens (experiments/splined_odd_lens.py): weight 0.1 left the 10 x 8 fit at 0.22 px RMS on 0.1 px
+# noise (the prior bent a fisheye's ~100 px correction), 0.01 at 0.136 px (the noise).
+CURVATURE_WEIGHT = 0.01
+# The ridge pins what the corners cannot see (the surface's shift, scale and roll, which fx fy cx cy and the board
+# poses also hold). Measured on the odd lens: 1e-2 converges in 38 iterations at 0.132 px RMS; 1e-3 leaves those
+# directions so flat that LM crawls along them (200 iterations, unconverged) for no better fit.
+RIDGE_WEIGHT = 1e-2
 VALID_MIN_CORNERS = 4  # a span of the grid is in the valid region when at least this many corners fell in it
 NEWTON_ITERATIONS = 30
 ROUND_TRIP_PX = 1e-6  # an unprojected pixel's ray must project back within this (Newton converges to ~1e-12)
