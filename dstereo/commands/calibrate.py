@@ -97,6 +97,8 @@ def calibrate(
     from dstereo.io import figure_pool
 
     figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
+    _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
+                                      cross_validate)
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
@@ -122,6 +124,7 @@ def calibrate(
         if lens_model(tuple(cfg.model)) == "fisheye":
             raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
                                "calibrate each camera alone with --images DIR")
+        _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
@@ -269,6 +272,22 @@ def _stereo_view_warnings(job) -> list[str]:
     out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
            for w in _view_warnings(cal)]
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
+
+
+def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> None:
+    """The splined lens (models/splined.py) is for one camera's full-set calibration (issue 16 item 2)."""
+    from dstereo.errors import DstereoError
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(cfg.model)) != "splined":
+        return
+    if rig:
+        raise DstereoError("--model splined: stereo rigs and --cameras with splined cameras are not supported; "
+                           "calibrate each camera alone with --images DIR --model splined, the rig with a "
+                           "parametric model")
+    if cross_validate or cfg.per_set is not None:
+        raise DstereoError("--model splined: subsets (`per_set`) and --cross-validate are not available for the "
+                           "splined lens (its knots are ~160 parameters); run it on the full set alone")
 
 
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,

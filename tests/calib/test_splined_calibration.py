@@ -82,3 +82,18 @@ def test_projection_uncertainty_grows_where_no_corner_is():
     assert np.isfinite(covered).all()
     # where corners are the map is about the noise's share of a pixel; where none are it must be tens of times that
     assert np.nanmedian(bare) > 20 * np.median(covered), (np.median(covered), np.nanmedian(bare))
+
+
+def test_cli_refuses_a_splined_rig_and_subsets_in_one_line(tmp_path):
+    from conftest import run_cli
+
+    (tmp_path / "l").mkdir()
+    (tmp_path / "r").mkdir()
+    code, _, err = run_cli("calibrate", "--left", tmp_path / "l", "--right", tmp_path / "r", "--pattern", "9x6",
+                           "--model", "splined", "--out", tmp_path / "out")
+    assert code == 1 and "stereo rigs and --cameras with splined cameras are not supported" in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    code, _, err = run_cli("calibrate", "--images", tmp_path / "l", "--pattern", "9x6", "--model", "splined:6x5",
+                           "--per-set", "5", "--out", tmp_path / "out")
+    assert code == 1 and "--cross-validate are not available for the splined lens" in err
+    assert not (tmp_path / "out").exists()
