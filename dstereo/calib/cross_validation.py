@@ -269,9 +269,9 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     full-set start; see the module docstring."""
     from dstereo.models.distortion import lens_model
 
-    if lens_model(tuple(full.free)) == "fisheye":
-        raise DstereoError("`cross_validate`: not available for the fisheye model yet; use it with the pinhole "
-                           "models (e.g. `model` rational)")
+    if lens_model(tuple(full.free)) in ("fisheye", "splined"):
+        raise DstereoError(f"`cross_validate`: not available for the {lens_model(tuple(full.free))} model yet; use it "
+                           "with the pinhole models (e.g. `model` rational)")
     n_views = len(obs)
     if n_views < 2 * MIN_HALF_VIEWS:
         raise DstereoError(f"`cross_validate`: {n_views} views; two disjoint halves need at least "

@@ -313,10 +313,12 @@ def _choose_model(config, det, obs, progress):
     """--model auto: (the config with the chosen model, the ModelChoice)."""
     from dataclasses import replace
 
-    from dstereo.calib.model_choice import choose_model
+    from dstereo.calib.model_choice import CANDIDATES, PARAMETRIC, choose_model
 
     report = None if progress is None else (lambda i, n: progress("model choice", i, n))
-    choice = choose_model(det.object_points, obs, det.image_size, progress=report)
+    # the subset analysis is not available for the splined lens (~160 knots): with `per_set`, parametric only
+    candidates = CANDIDATES if config.per_set is None else PARAMETRIC
+    choice = choose_model(det.object_points, obs, det.image_size, candidates, progress=report)
     return validate(replace(config, model=choice.chosen_candidate.free, model_auto=False)), choice
 
 

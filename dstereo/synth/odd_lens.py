@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dstereo.models.pose import rotation_matrix
+
 
 @dataclass(frozen=True)
 class OddLens:
@@ -39,17 +41,10 @@ class OddLens:
 
 
 def board_points(cols: int, rows: int, square: float) -> np.ndarray:
-    """(cols rows, 3) inner corners of a planar board, row-major, z = 0."""
-    return np.array([[i * square, j * square, 0.0] for j in range(rows) for i in range(cols)], float)
+    """(cols rows, 3) inner corners of a planar board (`models.board.Board`'s order), z = 0."""
+    from dstereo.models.board import Board
 
-
-def _rotation(rvec: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(rvec)
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rvec / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    return np.asarray(Board(cols, rows, square).object_points(), float)
 
 
 def views(lens: OddLens, obj: np.ndarray, n_views: int, seed: int = 0, noise_px: float = 0.1,
@@ -65,7 +60,7 @@ def views(lens: OddLens, obj: np.ndarray, n_views: int, seed: int = 0, noise_px:
     for _ in range(200000):
         if len(out) == n_views:
             break
-        rot = _rotation(rng.normal(0.0, 0.45, 3))
+        rot = np.asarray(rotation_matrix(rng.normal(0.0, 0.45, 3)), float)
         # aim the board's centre along a random ray of the wanted region, at a random distance
         target = rng.uniform(lo, hi)
         d = (target - lens.centre) / lens.f  # the equidistant lens's angle and azimuth of that pixel
