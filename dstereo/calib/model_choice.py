@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.models.distortion import PRESETS, lens_model
+from dstereo.models.distortion import PRESETS, lens_model, model_label
 
 PARAMETRIC: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # presets, fewest parameters first
 # ... and the splined lens (models/splined.py, its default grid) for lenses none of them fits: with the most
@@ -105,7 +105,7 @@ class ModelChoice:
             diff = "best" if c.preset == self.best else (
                 f"{c.diff_mse:.2e} +- {c.diff_se:.1e}" if np.isfinite(c.diff_mse) else "-")
             mark = "**chosen**" if c.preset == self.chosen else (c.note or "")
-            lines.append(f"| {c.preset} ({','.join(c.free)}) | {c.n_params} | {c.rms:.4f} | {c.heldout_rms:.4f} | "
+            lines.append(f"| {c.preset} ({model_label(c.free)}) | {c.n_params} | {c.rms:.4f} | {c.heldout_rms:.4f} | "
                          f"{diff} | {c.identifiability_text()} | {mark} |")
         return lines
 
@@ -244,7 +244,7 @@ def choice_warning(choice: ModelChoice) -> str | None:
     c = choice.chosen_candidate
     if c.identifiable:
         return None
-    return (f"model auto chose {c.preset} ({','.join(c.free)}), which is not identifiable from these views "
+    return (f"model auto chose {c.preset} ({model_label(c.free)}), which is not identifiable from these views "
             f"({c.identifiability_text()}), because no simpler model predicts held-out views as well "
             f"({c.heldout_rms:.4f} px); add views that tilt the board and fill the image corners")
 

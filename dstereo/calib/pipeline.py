@@ -249,9 +249,11 @@ def calibrate_camera(
         warnings.append(full.conditioning.message())
     pattern = solution_pattern(obs, full) if outliers.enabled else pattern_all
     worst = min((pattern, pattern_all), key=lambda p: (not p.significant, p.p_value))
-    if worst.message(",".join(config.model)):
+    from dstereo.models.distortion import model_label
+
+    if worst.message(model_label(config.model)):
         where = "" if worst is pattern else " (on every corner, before outlier rejection)"
-        warnings.append(worst.message(",".join(config.model)) + where)
+        warnings.append(worst.message(model_label(config.model)) + where)
 
     subsets = filtering = final_solution = subset_mean = None
     final = dict(zip(full.names, map(float, full.values)))

@@ -334,7 +334,8 @@ def _render(cal, out: Path) -> None:
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final
     rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
-            for n, v, s in zip(full.names, full.values, full.std)]
+            for n, v, s in zip(full.names, full.values, full.std) if full.lens_model != "splined" or n[:3] not in
+            ("sx_", "sy_")]  # a splined lens's knots (~160) are in camera.yml's splined section, not on the console
     subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
@@ -368,9 +369,11 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
                    f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
     if cal.model_choice is not None:
+        from dstereo.models.distortion import model_label
+
         c = cal.model_choice.chosen_candidate
         others = ", ".join(f"{o.preset} {o.heldout_rms:.4f}" for o in cal.model_choice.candidates if o is not c)
-        typer.echo(f"model auto: {c.preset} ({','.join(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
+        typer.echo(f"model auto: {c.preset} ({model_label(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
                    f"{others}); the table is in report.md")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))

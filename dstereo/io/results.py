@@ -486,13 +486,17 @@ def _fmt_px(value) -> str:
 
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
+    from dstereo.models.distortion import model_label
+
     full, cfg, board = cal.full, cal.config, cal.detection.board  # the board summary.json reports, too
     lines = [f"# Camera calibration: {cal.folder}", "",
              f"- board: {board.cols} x {board.rows} inner corners, square {board.square:g} {cfg.unit}",
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
-             f"- distortion model: {full.lens_model}, {', '.join(full.free) or 'none'}",
+             f"- distortion model: {full.lens_model}, "
+             + (f"{model_label(full.free)} (knots in camera.yml's splined section)" if full.lens_model == "splined"
+                else f"{', '.join(full.free) or 'none'}"),
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]

@@ -44,6 +44,14 @@ def lens_model(free: tuple[str, ...]) -> str:
     return "fisheye" if any(n in FISHEYE_NAMES for n in free) else "pinhole"
 
 
+def model_label(free: tuple[str, ...]) -> str:
+    """A free set as people read it: 'k1,k2,p1,p2,k3', 'none', or a splined lens's 'splined:NXxNY' (not its knots)."""
+    if is_splined(tuple(free)):
+        nx, ny = grid_of(tuple(free))
+        return f"splined:{nx}x{ny}"
+    return ",".join(free) or "none"
+
+
 def coeff_slots(free: tuple[str, ...]) -> tuple[str, ...]:
     """Names of the coefficient slots for the lens model of `free`: 8 (OpenCV order, or fisheye k1..k4 + 4
     unused); a splined lens has one slot per knot, all of them free (its coefficient vector is `free` itself)."""
