@@ -53,9 +53,10 @@ def main() -> None:
         c, b = np.nanmedian(covered), np.nanmedian(bare)
         md.append(f"| {name} | {sol.rms:.4f} | {c:.4f} | {b:.4f} | {b / c:.1f} | {pmap.masked} |")
         print(md[-1], flush=True)
-    md += ["", "The parametric models extrapolate their few coefficients into the bare part and report it nearly as "
-           "certain as the covered one; the splined surface there is decided by the prior (models/splined.py's weight "
-           "rule), and its uncertainty says so.", ""]
+    md += ["", "The parametric models extrapolate their few coefficients into the bare part: their uncertainty there "
+           "is a few times the covered part's; the splined surface there is decided by the prior (models/splined.py's "
+           "weight rule), and its uncertainty says so: tens of times the covered part's. Grid pixels without a ray "
+           "are where the splined inverse is refused (outside the knot grid's square, or no convergence).", ""]
     OUT.mkdir(exist_ok=True)
     (OUT / "splined_odd_lens.md").write_text("\n".join(md) + "\n")
 

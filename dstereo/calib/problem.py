@@ -251,19 +251,16 @@ def prior_matrix(problem: Problem) -> np.ndarray | None:
 # --- the compiled solver and how it is called --------------------------------------------------------------
 
 
-# A problem's cost grows with the square of its shared parameters (each frame's normal block is (G + 7)^2): above
-# SMALL_SHARED (a splined lens's knots), fewer problems share a call, in that proportion. Below it, as before.
-SMALL_SHARED = 32
-
-
-def chunk_rows(n_frames: int, n_points: int, n_shared: int | None = None) -> int:
+def chunk_rows(n_frames: int, n_points: int, problem: Problem | None = None) -> int:
     """Problems per compiled call for frames of `n_points` corner observations (all cameras together), fixed
-    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`); fewer for a
-    problem of more than SMALL_SHARED shared parameters (`n_shared`; the one chunked call pads a single full-set
-    solve to this many problems, so a splined lens would otherwise solve ~20 copies of itself)."""
+    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`). A `problem` with
+    a splined camera gets fewer, in proportion to the square of its shared parameters against a rational camera's
+    (each frame's normal block is (G + 7)^2; the one chunked call pads a single full-set solve to this many
+    problems: a splined full-set solve would otherwise compute ~20 copies of itself, 103 s instead of 7 s)."""
     rows = int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
-    if n_shared is not None and n_shared > SMALL_SHARED:
-        rows = max(1, rows * (SMALL_SHARED + POSE_SIZE + 1) ** 2 // (n_shared + POSE_SIZE + 1) ** 2)
+    if problem is not None and any(lens_model(c.free) == "splined" for c in problem.cameras):
+        rational = 4 + 8 + POSE_SIZE + 1
+        rows = max(1, rows * rational ** 2 // (problem.n_shared + POSE_SIZE + 1) ** 2)
     return rows
 
 
@@ -312,7 +309,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
     chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen."""
     n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
-    rows = chunk_rows(n_frames, k * n_pts, problem.n_shared)
+    rows = chunk_rows(n_frames, k * n_pts, problem)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
         parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,
