@@ -30,12 +30,14 @@ from dstereo.calib.mono import _run
 from dstereo.calib.problem import WARP_NAMES
 from dstereo.uncertainty.covariance import covariance, joint_covariance
 from dstereo.errors import DstereoError
-from dstereo.models.camera import project
+from dstereo.models import fisheye
+from dstereo.models.distortion import lens_model
 from dstereo.models.distortion import COEFF_NAMES
 from dstereo.models.pose import rodrigues
 from dstereo.uncertainty.point_jacobians import newton_step
-from dstereo.uncertainty.projection import (CAMERA_NAMES, _invertible, _undistorted, mean_board_distance,
-                                            projection_uncertainty_map)
+from dstereo.uncertainty.projection import (CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _invertible, _project, _undistorted,
+                                            mean_board_distance, projection_uncertainty_map)
+from dstereo.uncertainty.view_scatter import view_scatter
 from dstereo.solver.lm import LMOptions
 
 # The band the issue asks for, and the Mahalanobis median of a right prediction (median of sqrt(chi^2_2)).
@@ -58,6 +60,12 @@ class HalfSolution:
     poses: np.ndarray
     converged: bool
     rms: float
+    view_scale: float = 1.0  # the view-scatter factor its covariances carry (`uncertainty.view_scatter`)
+
+
+def _names_of(model: str) -> tuple[str, ...]:
+    """The 12 slots of a half's `params` for a lens model (fisheye: cv2.fisheye's D in the first four)."""
+    return FISHEYE_CAMERA_NAMES if model == "fisheye" else CAMERA_NAMES
 
 
 def _lens_names(full) -> tuple[str, ...]:
@@ -78,7 +86,7 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
     inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
     shared = _shared(obj)
     lens = _lens_names(full)
-    free_idx = [CAMERA_NAMES.index(n) for n in lens]
+    free_idx = [_names_of(lens_model(tuple(full.free))).index(n) for n in lens]
     keep = np.arange(len(lens))  # the lens parameters lead the shared vector; a board sag (last) is marginalised
     out = []
     for c in range(0, len(weights), rows):
@@ -93,51 +101,58 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             sse, n_res = float(res.sse[i]), 2 * int(inliers[w[i] > 0].sum())
             params = np.zeros(12)
             params[free_idx] = res.g[i][keep]
-            cov = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
-            joint = joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
+            # each half is scaled by its own views' scatter, as the tool scales a calibration's uncertainty
+            scale = view_scatter(np.asarray(res.normal[i]), g, sse / max(n_res - g - 6 * m, 1), w[i]).scale
+            cov = scale * covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m)
+            joint = scale * joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i])
             # marginalising the sag = dropping its rows and columns (shared first, then the poses)
             kept = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
                 params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(kept, kept)],
                 poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
-                rms=float(np.sqrt(sse / (m * n_pts)))))
+                rms=float(np.sqrt(sse / (m * n_pts))), view_scale=scale))
     return out
 
 
-def _ray_point(params, q, range_):
+def _ray_point(params, q, range_, model: str = "pinhole"):
     k, c = params[:4], params[4:]
+    if model == "fisheye":  # the model's own inverse (Newton in theta, derivative through the converged steps)
+        ray, ok = fisheye.unproject(k, c[:4], q)
+        ok = ok & (ray[2] > 0)  # a point behind the camera has no pinhole-like transform fit
+        return range_ * jnp.where(ok, ray, jnp.array([0.0, 0.0, 1.0])), ok
     x_conv = jax.lax.stop_gradient(_undistorted(k, c, q))
     x = newton_step(k, c, q, x_conv)  # exact at the root; derivative is the implicit-function one
     ray = jnp.append(x, 1.0)
     return range_ * ray / jnp.linalg.norm(ray), _invertible(k, c, q, x_conv)
 
 
-def _diff(params_a, params_b, transform, q, range_):
+def _diff(params_a, params_b, transform, q, range_, model: str = "pinhole"):
     """e(q) (N, 2) for all grid pixels q (N, 2)."""
-    p_a = jax.vmap(lambda qq: _ray_point(params_a, qq, range_)[0])(q)
+    p_a = jax.vmap(lambda qq: _ray_point(params_a, qq, range_, model)[0])(q)
     p_b = p_a @ rodrigues(transform[:3]).T + transform[3:]
-    return jax.vmap(lambda p: project(params_b[:4], params_b[4:], p))(p_b) - q
+    return jax.vmap(lambda p: _project(params_b[:4], params_b[4:], p, model))(p_b) - q
 
 
 @functools.lru_cache(maxsize=None)
-def _compiled(index: tuple[int, ...]):
+def _compiled(index: tuple[int, ...], model: str = "pinhole"):
     idx = np.array(index)
+    _diff_m = functools.partial(_diff, model=model)
 
     def fit_and_linearise(params_a, params_b, q, range_, weight):
-        ok = jax.vmap(lambda qq: _ray_point(params_a, qq, range_)[1])(q) & \
-            jax.vmap(lambda qq: _ray_point(params_b, qq, range_)[1])(q) & (weight > 0)
+        ok = jax.vmap(lambda qq: _ray_point(params_a, qq, range_, model)[1])(q) & \
+            jax.vmap(lambda qq: _ray_point(params_b, qq, range_, model)[1])(q) & (weight > 0)
         w = jnp.repeat(ok.astype(float), 2)
 
         def gn(_, t):  # Gauss-Newton on the 6 transform parameters (a small, smooth problem; 10 steps converge)
-            r = _diff(params_a, params_b, t, q, range_).ravel() * w
-            jt = jax.jacfwd(lambda tt: _diff(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
+            r = _diff_m(params_a, params_b, t, q, range_).ravel() * w
+            jt = jax.jacfwd(lambda tt: _diff_m(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
             return t - jnp.linalg.solve(jt.T @ jt + 1e-12 * jnp.eye(6), jt.T @ r)
 
         t = jax.lax.fori_loop(0, 10, gn, jnp.zeros(6))
-        e = _diff(params_a, params_b, t, q, range_)
-        jt = jax.jacfwd(lambda tt: _diff(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
-        fa = jax.jacfwd(lambda th: _diff(params_a.at[idx].set(th), params_b, t, q, range_).ravel())(params_a[idx])
-        fb = jax.jacfwd(lambda th: _diff(params_a, params_b.at[idx].set(th), t, q, range_).ravel())(params_b[idx])
+        e = _diff_m(params_a, params_b, t, q, range_)
+        jt = jax.jacfwd(lambda tt: _diff_m(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
+        fa = jax.jacfwd(lambda th: _diff_m(params_a.at[idx].set(th), params_b, t, q, range_).ravel())(params_a[idx])
+        fb = jax.jacfwd(lambda th: _diff_m(params_a, params_b.at[idx].set(th), t, q, range_).ravel())(params_b[idx])
         proj = jnp.eye(len(w)) - jt @ jnp.linalg.pinv(jt.T @ jt) @ jt.T
         return e, ok, proj @ (fa * w[:, None]), proj @ (fb * w[:, None]), t
 
@@ -157,11 +172,12 @@ class SplitResult:
 
 def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
                    grid: tuple[int, int] = (16, 12), corners: np.ndarray | None = None) -> SplitResult:
-    index = tuple(CAMERA_NAMES.index(n) for n in names)
+    model = lens_model(tuple(names))
+    index = tuple(_names_of(model).index(n) for n in names)
     w, h = image_size
     u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
     q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-    e, ok, pa, pb, t = (np.array(x) for x in _compiled(index)(
+    e, ok, pa, pb, t = (np.array(x) for x in _compiled(index, model)(
         jnp.asarray(a.params), jnp.asarray(b.params), jnp.asarray(q), float(range_), jnp.ones(len(q))))
     c = pa @ a.cov @ pa.T + pb @ b.cov @ pb.T
     n = len(q)
@@ -196,6 +212,7 @@ class CrossValidation:
     halves: list[tuple[list[int], list[int]]]
     u: np.ndarray
     v: np.ndarray
+    view_scales: list[float] | None = None  # per half (A, B of split 0, ...)
 
     @property
     def ratio(self) -> float:  # geometric mean over splits
@@ -259,7 +276,7 @@ class CrossValidation:
                 "mahalanobis_median": self.mahalanobis_median,
                 "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
                 "inside_corner_field": self.covered_figures(),
-                "trusted": self.trusted, "verdict": self.verdict(),
+                "trusted": self.trusted, "verdict": self.verdict(), "view_scatter_scales": self.view_scales,
                 "halves": [[list(map(int, a)), list(map(int, b))] for a, b in self.halves]}
 
 
@@ -269,9 +286,9 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     full-set start; see the module docstring."""
     from dstereo.models.distortion import lens_model
 
-    if lens_model(tuple(full.free)) in ("fisheye", "splined"):
-        raise DstereoError(f"`cross_validate`: not available for the {lens_model(tuple(full.free))} model yet; use it "
-                           "with the pinhole models (e.g. `model` rational)")
+    if lens_model(tuple(full.free)) == "splined":
+        raise DstereoError("`cross_validate`: not available for the splined model yet; use it with the pinhole or "
+                           "fisheye models")
     n_views = len(obs)
     if n_views < 2 * MIN_HALF_VIEWS:
         raise DstereoError(f"`cross_validate`: {n_views} views; two disjoint halves need at least "
@@ -300,4 +317,4 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid, corners)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
-                           np.linspace(0.0, h - 1.0, grid[1]))
+                           np.linspace(0.0, h - 1.0, grid[1]), [s.view_scale for s in sols])

@@ -65,26 +65,29 @@ def _mono_residual(pose, k, coeffs, obj, obs_v, rig, lens=project):
     return (jax.vmap(lens, in_axes=(None, None, 0))(k, coeffs, p) - obs_v).ravel()
 
 
-def _pair_residual(pose, cams, obj, obs_v, rig):
-    """Both cameras' residuals of one pair; `pose` is the board in the left camera, `rig` maps left -> right."""
+def _pair_residual(pose, cams, obj, obs_v, rig, lenses=(project, project)):
+    """Both cameras' residuals of one pair; `pose` is the board in the left camera, `rig` maps left -> right;
+    `lenses`: each camera's projection (k, coeffs, p) (`mono.lens_functions`)."""
     (k_l, c_l), (k_r, c_r) = cams
     p_l = obj @ rodrigues(pose[:3]).T + pose[3:6]
     p_r = p_l @ rodrigues(rig[:3]).T + rig[3:6]
-    proj = jax.vmap(project, in_axes=(None, None, 0))
-    return jnp.concatenate([(proj(k_l, c_l, p_l) - obs_v[0]).ravel(), (proj(k_r, c_r, p_r) - obs_v[1]).ravel()])
+    proj_l, proj_r = (jax.vmap(lens, in_axes=(None, None, 0)) for lens in lenses)
+    return jnp.concatenate([(proj_l(k_l, c_l, p_l) - obs_v[0]).ravel(), (proj_r(k_r, c_r, p_r) - obs_v[1]).ravel()])
 
 
 @functools.lru_cache(maxsize=None)
-def _refit(stereo: bool, free: tuple[str, ...] = ()):
+def _refit(stereo: bool, free: tuple[str, ...] = (), right_free: tuple[str, ...] = ()):
     """Compiled: every view's pose refitted by LM for fixed camera(s) (and rig); returns poses and SSE per view.
-    `free` names the mono camera's lens model (`mono.lens_functions`: pinhole or fisheye); stereo is pinhole."""
+    `free` names the mono (or the left) camera's lens model (`mono.lens_functions`: pinhole or fisheye),
+    `right_free` the right camera's of a pair."""
     from dstereo.calib.mono import lens_functions
 
     lens = lens_functions(free)[0]
+    lenses = (lens, lens_functions(right_free)[0])
 
     def one(pose0, cams, obj, obs_v, rig, w_v):
         # w_v: residual weights (0 = an outlier corner, calib/outliers.py), as in the solve
-        res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig) * w_v) if stereo else \
+        res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig, lenses) * w_v) if stereo else \
             (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens) * w_v)
         cost0 = jnp.sum(res(pose0) ** 2)
 
@@ -150,16 +153,18 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = (), inli
     return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1))), poses
 
 
-def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses, inliers=None) -> float:
+def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses, inliers=None, frees=((), ())) -> float:
     """RMS px over both cameras' corners of fixed cameras (k, coeffs) and rig (6,), board poses refitted;
-    `inliers` (V, 2, n): the corners that count (the rig solve's outlier mask; default all)."""
+    `inliers` (V, 2, n): the corners that count (the rig solve's outlier mask; default all); `frees`: the two
+    cameras' free sets, which name their lens models (pinhole or fisheye)."""
     from dstereo.calib.stereo import pair_weights
 
     cams = tuple((np.asarray(c[0], float), np.asarray(c[1], float)) for c in (left, right))
     data = np.stack([np.asarray(obs_l, float), np.asarray(obs_r, float)], axis=1)  # (V, 2, n, 2)
     mask = np.ones((len(data), 2, data.shape[2]), bool) if inliers is None else np.asarray(inliers, bool)
-    _, sse = _refit(True)(np.asarray(start_poses, float), cams, np.asarray(obj, float), data,
-                          np.asarray(rig, float), pair_weights(mask))
+    refit = _refit(True, *(tuple(f) for f in frees))
+    _, sse = refit(np.asarray(start_poses, float), cams, np.asarray(obj, float), data, np.asarray(rig, float),
+                   pair_weights(mask))
     return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1)))
 
 
@@ -314,7 +319,8 @@ def rig_final(choice: str, filtering, plan, obj, obs_l, obs_r, full, subset_mean
         inliers=None if full.inliers is None else full.inliers[views])  # the cameras' outlier masks carry over
     cams = [(np.asarray(c.k), np.asarray(c.dist.coeffs)) for c in (solution.left, solution.right)]
     mean_rig = np.array([subset_mean[n] for n in RIG])
-    rms = [refit_pairs_rms(*cams, rig, obj, obs_l[views], obs_r[views], solution.poses, solution.inliers)
+    frees = (solution.left.dist.free, solution.right.dist.free)
+    rms = [refit_pairs_rms(*cams, rig, obj, obs_l[views], obs_r[views], solution.poses, solution.inliers, frees)
            for rig in (np.asarray(solution.values[:6]), mean_rig)]
     return RigFinal(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms[0], rms[1]))
 

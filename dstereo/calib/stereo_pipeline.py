@@ -30,7 +30,7 @@ from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolut
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.io.corners import list_images
-from dstereo.io.stereo_files import StereoDetection, detect_pairs
+from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs
 from dstereo.uncertainty.rig import FIXED_STRUCTURE, JOINT_STRUCTURE
 
 LEFT_FOLDERS = ("images_left", "calibrate_left")
@@ -215,7 +215,11 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     for side, files, fmt in (("left", sources.mono_left, config.image_format_left),
                              ("right", sources.mono_right, config.image_format_right)):
         t0 = time.perf_counter()
-        cfg = config.with_overrides(image_format=fmt)
+        cfg = config.with_overrides(image_format=fmt, model=config.model_right if side == "right" else None)
+        if cfg.model != config.model:  # the right camera's own lens model: its steps are checked against it
+            from dstereo.config.calibration import validate
+
+            cfg = validate(cfg)
         try:
             cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
                                           use_cache=use_cache, scratch=scratch)
@@ -227,6 +231,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         if cams[side].detection.image_size != stereo_size:
             raise DstereoError(f"{side} camera: individual images are {cams[side].detection.image_size} px but its "
                                f"stereo images are {stereo_size} px; one camera has one image size")
+    _drop_pairs_rejected_by_both(det, cams, warnings)
     obs_l, obs_r = det.observations()
     t0 = time.perf_counter()
     if progress is not None:
@@ -290,6 +295,23 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     attach_rig_uncertainty(job)
     timings["rig_covariance_s"] = time.perf_counter() - t0
     return job
+
+
+def _drop_pairs_rejected_by_both(det, cams, warnings: list[str]) -> None:
+    """A pair whose two images were both rejected whole by their cameras' outlier rejection leaves the rig solve:
+    kept, it would have no inlier corner, and the solve would have to fit all its (bad) corners to place it."""
+    gone = [{v for v, _ in cams[side].outliers.views} if cams[side].outliers is not None else set()
+            for side in ("left", "right")]
+    bad = [(a, b) for a, b in det.pairs if a in gone[0] and b in gone[1]]
+    if not bad:
+        return
+    if len(det.pairs) - len(bad) < 3:
+        raise DstereoError(f"stereo: only {len(det.pairs) - len(bad)} pairs left after both cameras' outlier rejection "
+                           f"dropped {len(bad)}; add pairs or check --pattern")
+    reason = "both images rejected whole by their cameras' outlier rejection"
+    det.pairs = [p for p in det.pairs if p not in bad]
+    det.dropped += [DroppedPair(a, b, reason) for a, b in bad]
+    warnings += [f"stereo pair {a} / {b} dropped: {reason}" for a, b in bad]
 
 
 def _pair_inliers(det, cams, obs_l, obs_r) -> np.ndarray | None:

@@ -25,6 +25,9 @@ def calibrate(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
         "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or auto (the model that "
         "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
+    model_right: Optional[str] = typer.Option(
+        None, "--model-right", help="Stereo: the right camera's lens model when it differs from the left's --model "
+        "(e.g. fisheye); default: --model for both."),
     per_set: Optional[int] = typer.Option(
         None, "--per-set", help="Images per subset m (subset analysis); without it only the full set is solved."),
     max_subsets: Optional[int] = typer.Option(None, "--max-subsets", help="Cap on subsets (random sample above)."),
@@ -89,8 +92,8 @@ def calibrate(
     config_path = config if config is not None else (find_project_config(project) if project is not None else None)
     flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
         pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
-        per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets, final=final,
-        outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
+        model_right=model_right, per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets,
+        final=final, outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
@@ -105,6 +108,8 @@ def calibrate(
         if cross_validate or cfg.model_auto or stereo_steps:
             raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
                                "N cameras yet; calibrate a camera alone for those")
+        if cfg.model_right is not None:
+            raise DstereoError("--model-right: only for a stereo rig (--left/--right); --cameras takes one --model")
         _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, not no_cache, started, projection_range)
         return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
@@ -112,8 +117,6 @@ def calibrate(
         if cross_validate:
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
-        from dstereo.models.distortion import lens_model
-
         if cfg.model_auto:
             raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
                                "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
@@ -121,13 +124,13 @@ def calibrate(
         if cfg.board_sag:
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")
-        if lens_model(tuple(cfg.model)) == "fisheye":
-            raise DstereoError("--model fisheye: stereo rigs with fisheye cameras are not supported yet (issue 16); "
-                               "calibrate each camera alone with --images DIR")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
+    if cfg.model_right is not None:
+        raise DstereoError("--model-right: only for a stereo rig; give --left DIR --right DIR (or "
+                           "images/images_left + images/images_right)")
     if stereo_steps:
         raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
                            "stereo run; give --left DIR --right DIR (or images/images_left + images/images_right)")
@@ -279,6 +282,10 @@ def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> No
     from dstereo.errors import DstereoError
     from dstereo.models.distortion import lens_model
 
+    right = getattr(cfg, "model_right", None)
+    if rig and right is not None and lens_model(tuple(right)) == "splined":
+        raise DstereoError("--model-right splined: stereo rigs with splined cameras are not supported; calibrate "
+                           "that camera alone with --images DIR --model splined")
     if lens_model(tuple(cfg.model)) != "splined":
         return
     if rig:
@@ -330,12 +337,14 @@ def _pm(value: float, spread: float) -> str:
 
 
 def _render(cal, out: Path) -> None:
-    """Final console table: full set +- Jacobian std, subset mean +- spread; then counts and timings."""
+    """Final console table: full set +- std (Jacobian x view scatter), subset mean +- spread; then counts and timings."""
+    from dstereo.uncertainty.view_scatter import reported_std
+
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final
     rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
-            for n, v, s in zip(full.names, full.values, full.std) if full.lens_model != "splined" or n[:3] not in
-            ("sx_", "sy_")]  # a splined lens's knots (~160) are in camera.yml's splined section, not on the console
+            for n, v, s in zip(full.names, full.values, reported_std(full)) if full.lens_model != "splined" or
+            n[:3] not in ("sx_", "sy_")]  # a splined lens's knots (~160) are in camera.yml's splined section
     subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"

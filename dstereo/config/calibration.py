@@ -52,6 +52,9 @@ class Config:
     # `model = "auto"` / --model auto: the pipeline chooses the model by held-out views (calib/model_choice.py)
     # and runs on with it; `model` is then replaced by the chosen one
     model_auto: bool = False
+    # A stereo rig's right camera when its lens differs from the left's (`model`): e.g. a pinhole left and a
+    # fisheye right (--model-right fisheye); None: the right camera takes `model` too
+    model_right: tuple[str, ...] | None = None
     per_set: int | None = None  # images per subset m; None: full-set solve only
     max_subsets: int = 2000
     seed: int = 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dstereo.config.merge import given
 from dstereo.config.steps import parse_step_flags
-from dstereo.config.values import model_layer
+from dstereo.config.values import model_layer, right_model
 
 
 def flag_layer(values: dict) -> dict:
@@ -12,7 +12,7 @@ def flag_layer(values: dict) -> dict:
     `outlier_rejection`: True when --no-outlier-rejection was given). Returns the parameters they set."""
     raw = given(values)
     layer = {k: v for k, v in raw.items()
-             if k not in ("pattern", "model", "steps", "outlier_rejection", "images", "board_sag")}
+             if k not in ("pattern", "model", "model_right", "steps", "outlier_rejection", "images", "board_sag")}
     if raw.get("board_sag"):
         layer["board_sag"] = True
     if "pattern" in raw:
@@ -23,6 +23,8 @@ def flag_layer(values: dict) -> dict:
         layer["images"] = str(raw["images"])
     if "model" in raw:
         layer |= model_layer(raw["model"], "`model`")
+    if "model_right" in raw:
+        layer["model_right"] = right_model(raw["model_right"], "`model_right`")
     if raw.get("outlier_rejection"):
         layer["outlier_rejection"] = False
     mono, stereo = parse_step_flags(list(raw.get("steps") or []))

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dstereo.config.files import check_known, table
 from dstereo.config.options import CALIBRATE
 from dstereo.config.steps import Step, make_step
-from dstereo.config.values import flag, model_layer, number, optional_whole, suffix, whole
+from dstereo.config.values import flag, model_layer, right_model, number, optional_whole, suffix, whole
 from dstereo.errors import DstereoError
 
 # Top-level TOML tables that belong to other commands and are ignored here.
@@ -58,6 +58,8 @@ def toml_layer(data: dict, where: str) -> dict:
         layer["glob"] = str(img["glob"])
     if "model" in cal:
         layer |= model_layer(cal["model"], f"{where}: [calibration] model")
+    if "model_right" in cal:
+        layer["model_right"] = right_model(cal["model_right"], f"{where}: [calibration] model_right")
     for key, minimum in (("per_set", 3), ("max_subsets", 1), ("seed", 0), ("min_subsets", 1)):
         if key in cal:
             layer[key] = (optional_whole if key in ("per_set", "min_subsets") else whole)(

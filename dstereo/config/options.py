@@ -87,6 +87,9 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("image_format_right", "images.format_right"),
     _opt("glob", "images.glob", "--glob", "Only images whose name matches, e.g. 'left*.jpg'."),
     _opt("model", "calibration.model", "--model"),
+    _opt("model_right", "calibration.model_right", "--model-right",
+         "Stereo: the right camera's lens model when it differs from the left's --model (e.g. fisheye); "
+         "default: --model for both."),
     _opt("per_set", "calibration.per_set", "--per-set", type=int),
     _opt("max_subsets", "calibration.max_subsets", "--max-subsets", type=int),
     _opt("seed", "calibration.seed", "--seed", type=int),
@@ -117,7 +120,8 @@ RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:Reconstruction
     _opt("z_min", "reconstruct.z_min", "--z-min", "Nearest depth of the scene, mm (sets the range).", float,
          in_config=False),  # z_min and z_max set depth_range
     _opt("z_max", "reconstruct.z_max", "--z-max", "Farthest depth of the scene, mm.", float, in_config=False),
-    _opt("alpha", "reconstruct.alpha", "--alpha", "Rectification free scaling: -1 default, 0..1.", float),
+    _opt("alpha", "reconstruct.alpha", "--alpha", "Rectification free scaling: -1 default, 0..1 (a rig with a "
+         "fisheye: cv2.fisheye's balance, 0 by default).", float),
     _opt("zero_disparity", "reconstruct.zero_disparity", "--zero-disparity/--own-centres",
          "Share one principal point (OpenCV's default) or centre each view.", bool),
     _opt("sgbm.lr_check", "sgbm.lr_check", "--lr-check", "Left-right consistency tolerance, px.", float,

@@ -47,6 +47,14 @@ def model(spec, where: str) -> tuple[str, ...]:
         raise DstereoError(f"{where}: {exc}") from None
 
 
+def right_model(spec, where: str) -> tuple[str, ...]:
+    """A stereo rig's right-camera lens model (`model_right`): a model spec, not "auto" (the rig's model is
+    chosen per camera alone)."""
+    if is_auto_model(spec):
+        raise DstereoError(f"{where}: auto is not available for one camera of a rig; name its model (e.g. fisheye)")
+    return model(spec, where)
+
+
 def model_layer(spec, where: str) -> dict:
     """The parameters a lens-model spec sets: `model_auto`, and `model` unless the data chooses it ("auto")."""
     if is_auto_model(spec):

@@ -27,6 +27,7 @@ ALIASES = {
     "R": ("R",),
     "T": ("T",),
 }
+LENS_MODELS = ("pinhole", "fisheye")  # a file's `distortion_model` values (none: pinhole)
 # Keys of a one-camera file (dstereo calibrate's camera.yml, OpenCV's calibration samples).
 MONO_KEYS = ("camera_matrix", "cameraMatrix", "distortion_coefficients", "distCoeffs")
 
@@ -137,9 +138,6 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
         other = path.with_name(partner + path.suffix)
         if other.is_file():
             data = {**_read_storage(other), **data}
-    if str(data.get("distortion_model") or "pinhole").strip().lower() != "pinhole":
-        raise DstereoError(f"{path}: distortion_model {data['distortion_model']!r}: stereo rigs with fisheye cameras "
-                           "are not supported yet (issue 16); only one camera can be calibrated with `model` fisheye")
     missing = [n for n in ("K1", "K2", "R", "T") if _pick(data, n) is None]
     if missing and any(k in data for k in MONO_KEYS):
         raise DstereoError(
@@ -168,17 +166,45 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     R = R.reshape(3, 3)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
+    models = _lens_models(data, path)
     return StereoCalibration(
         extras=_covariance_extras(data, path) | _board_depth_extras(data),
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
-        D1=_coeffs8(_pick(data, "D1"), f"{path}: D1"),
+        D1=_lens_coeffs(_pick(data, "D1"), models[0], f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
-        D2=_coeffs8(_pick(data, "D2"), f"{path}: D2"),
+        D2=_lens_coeffs(_pick(data, "D2"), models[1], f"{path}: D2"),
+        models=models,
         R=R,
         T=T.reshape(3),
         image_size=_image_size(data),
         source=str(path),
     )
+
+
+def _lens_models(data: dict, path: Path) -> tuple[str, str]:
+    """Each camera's lens model: `distortion_model1` / `distortion_model2` (dstereo's stereo.yml), else one
+    `distortion_model` for both, else pinhole (OpenCV's own files)."""
+    both = data.get("distortion_model") or "pinhole"
+    models = []
+    for key in ("distortion_model1", "distortion_model2"):
+        value = data.get(key) or both
+        model = str(value).strip().lower() if isinstance(value, str) else value
+        if model not in LENS_MODELS:
+            raise DstereoError(f"{path}: {key if key in data else 'distortion_model'} {value!r} is not one of "
+                               f"{list(LENS_MODELS)}; fix the file")
+        models.append(model)
+    return models[0], models[1]
+
+
+def _lens_coeffs(d: np.ndarray | None, model: str, where: str) -> np.ndarray:
+    """D padded to 8 slots: OpenCV's vector (`_coeffs8`), or cv2.fisheye's 4 coefficients in the first four."""
+    if model != "fisheye":
+        return _coeffs8(d, where)
+    d = np.zeros(0) if d is None else np.asarray(d, float).ravel()
+    if d.size != 4 or not np.all(np.isfinite(d)):
+        raise DstereoError(f"{where}: a fisheye camera needs 4 finite distortion coefficients (cv2.fisheye's k1..k4), "
+                           f"got {d.tolist()}; fix the file")
+    return np.concatenate([d, np.zeros(4)])
 
 
 def _covariance_extras(data: dict, path: Path) -> dict:
@@ -264,14 +290,20 @@ def read_stereo_calibration(path: str | Path) -> StereoCalibration:
 
 
 def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.ndarray) -> None:
-    """Write M1 D1 M2 D2 R T (+ imageSize, + any extra matrices such as R1 P1 Q) as OpenCV YAML."""
+    """Write M1 D1 M2 D2 R T (+ imageSize, + any extra matrices such as R1 P1 Q) as OpenCV YAML; a rig with a
+    fisheye camera adds distortion_model1/2, and a fisheye camera's D is cv2.fisheye's 4 coefficients."""
     import cv2
 
+    D1, D2 = (np.asarray(d, float).ravel()[:4] if m == "fisheye" else d for d, m in zip((calib.D1, calib.D2),
+                                                                                           calib.models))
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     try:
-        for key, value in (("M1", calib.K1), ("D1", calib.D1), ("M2", calib.K2), ("D2", calib.D2),
+        for key, value in (("M1", calib.K1), ("D1", D1), ("M2", calib.K2), ("D2", D2),
                            ("R", calib.R), ("T", calib.T.reshape(3, 1)), *extra.items()):
             fs.write(key, np.asarray(value, dtype=float))
+        if "fisheye" in calib.models:
+            fs.write("distortion_model1", calib.models[0])
+            fs.write("distortion_model2", calib.models[1])
         if calib.image_size is not None:
             fs.write("imageSize", np.array(calib.image_size, dtype=np.int32).reshape(1, 2))
     finally:

@@ -27,7 +27,8 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 
-LENS_MODELS = ("pinhole", "fisheye", "splined")
+from dstereo.io.calib_files import LENS_MODELS  # noqa: F401  (the lens models a file may name)
+CAMERA_LENS_MODELS = LENS_MODELS + ("splined",)  # one camera's file may also hold a splined lens
 
 
 @dataclass(frozen=True)
@@ -110,8 +111,8 @@ def read_camera_file(path: str | Path) -> CameraFile:
     if data.get("camera_matrix") is None:
         raise DstereoError(f"{path}: no camera_matrix; expected a camera.yml as `dstereo calibrate` writes it")
     model = str(data.get("distortion_model") or "pinhole").strip().lower()
-    if model not in LENS_MODELS:
-        raise DstereoError(f"{path}: distortion_model {model!r} is not one of {list(LENS_MODELS)}")
+    if model not in CAMERA_LENS_MODELS:
+        raise DstereoError(f"{path}: distortion_model {model!r} is not one of {list(CAMERA_LENS_MODELS)}")
     w, h = data.get("image_width"), data.get("image_height")
     size = (int(w), int(h)) if w is not None and h is not None else None
     k = _check_matrix(data["camera_matrix"], f"{path}: camera_matrix")

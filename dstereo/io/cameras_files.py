@@ -82,15 +82,12 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
 
     sol = job.solution
     ca, cb = sol.cameras[a], sol.cameras[b]
-    if "fisheye" in (_lens(ca), _lens(cb)):
-        return None, (f"{job.labels[a]}-{job.labels[b]}: no stereo file, fisheye rectification is not supported by "
-                      "dstereo reconstruct yet")
     R, T = sol.relative(a, b)
     E = np.asarray(essential_matrix(rotation_vector(R), T))
     F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
-                     ca.image_size, cb.image_size, rms=float(sol.rms))
+                     ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)))
     if tuple(ca.image_size) != tuple(cb.image_size):
         return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
                       "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")

@@ -228,8 +228,13 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
 
 def summary_dict(cal) -> dict:
     """summary.json of a `CameraCalibration`."""
+    from dstereo.uncertainty.view_scatter import reported_std, solution_view_scatter
+
     full, det = cal.full, cal.detection
     names = list(full.names)
+    scatter = solution_view_scatter(full)
+    # the +- every file shows: the Jacobian's, times sqrt(view scatter) when the views scatter more than it says
+    std = reported_std(full)
     summary = {
         "config": as_dict(cal.config),
         "image_size": list(det.image_size),
@@ -239,7 +244,9 @@ def summary_dict(cal) -> dict:
         "images": {"folder": str(cal.folder), "used": list(cal.used), "rejected": dict(det.rejected),
                    "considered": list(det.names)},
         "full_set": {**dict(zip(names, map(float, full.values))), "rms": float(full.rms),
-                     "std": dict(zip(names, map(float, full.std))),
+                     "std": dict(zip(names, map(float, std))),
+                     "std_jacobian": dict(zip(names, map(float, full.std))),
+                     "view_scatter": None if scatter is None else scatter.summary(names),
                      "per_image_rms": dict(zip(cal.used, map(float, full.per_view_rms))),
                      "iterations": int(full.iterations), "status": full.status_text, "converged": bool(full.converged),
                      "conditioning": {"identifiable": bool(full.conditioning.identifiable),
@@ -254,7 +261,7 @@ def summary_dict(cal) -> dict:
         "comparison": [{"parameter": n, "full_set": float(v), "full_set_std": float(s),
                         "subset_mean": cal.subset_mean[n] if cal.subset_mean is not None else None,
                         "subset_spread": cal.spread[n] if cal.filtering is not None else None}
-                       for n, v, s in zip(names, full.values, full.std)],
+                       for n, v, s in zip(names, full.values, std)],
         "coverage": {"percent": cal.coverage.percent, "image_corner_percent": cal.coverage.corner_percent,
                      "points": cal.coverage.points},
         "model_advice": cal.model_advice,
@@ -337,6 +344,8 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
              "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
     if fallback:
         entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
+    if pmap.view_scatter is not None and pmap.view_scatter.alarm:
+        entry["view_scatter_warning"] = "projection uncertainty: " + pmap.view_scatter.message()
     if pmap.masked:
         entry["warning"] = (f"projection uncertainty: {pmap.masked} of {pmap.mask.size} grid pixels masked (grey in "
                             "plots/projection_uncertainty.png): the distortion model cannot be inverted there (not "
@@ -397,9 +406,10 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
     summary["projection_uncertainty"] = projection
     for entry in (summary["projection_uncertainty"],):
-        if entry.get("warning"):
-            summary["warnings"].append(entry["warning"])
-            cal.warnings.append(entry["warning"])  # printed after writing, with the others
+        for key in ("warning", "view_scatter_warning"):
+            if entry.get(key):
+                summary["warnings"].append(entry[key])
+                cal.warnings.append(entry[key])  # printed after writing, with the others
     if getattr(cal, "cross_validation", None) is not None:
         from dstereo.io.cross_validation_files import write_cross_validation
 
@@ -527,10 +537,14 @@ def report_markdown(cal, summary: dict) -> str:
                   "", "Per parameter through the steps: "
                   + ", ".join(f"[{n[10:-4]}](stats/{n})" for n in files if n.startswith("parameter")),
                   "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
+    vs = summary["full_set"].get("view_scatter")
+    scaled = (f" times sqrt(view scatter) = {vs['scale_applied'] ** 0.5:.2f} (the views scatter the solve more "
+              "than independent corner noise says; `std_jacobian` in summary.json has them unscaled)"
+              if vs and vs["scale_applied"] > 1.0 else "")
     lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
-              "standard deviations, and the thesis's mean and spread (standard deviation) across the surviving "
-              "subsets.", "",
-              "| parameter | final | full set | +- std (Jacobian) | subset mean | subset spread |",
+              f"standard deviations{scaled}, and the thesis's mean and spread (standard deviation) across the "
+              "surviving subsets.", "",
+              "| parameter | final | full set | +- std | subset mean | subset spread |",
               "|---|---|---|---|---|---|"]
     for row in summary["comparison"]:
         spread, mean = row["subset_spread"], row["subset_mean"]

@@ -5,7 +5,8 @@
   silently, and images without a partner are listed in `warnings`.
 - `write_stereo_yml`: OpenCV FileStorage YAML with the keys of OpenCV's stereo_calib sample (M1 D1 M2 D2 R T)
   plus E, F and `imageSize` [w, h] (`imageSize2` when the right camera's differs), readable by
-  `dstereo.io.calib_files.read_stereo_calibration`.
+  `dstereo.io.calib_files.read_stereo_calibration`. A rig with a fisheye camera adds `distortion_model1` and
+  `distortion_model2` (pinhole or fisheye); a fisheye camera's D is then cv2.fisheye's 1x4 (k1 k2 k3 k4).
 - `write_stereo_json`, `write_stereo_corners` (`left/<file>`, `right/<file>`, `object_points`).
 Every file is written under a temporary name and renamed, so none is ever left half-written.
 """
@@ -144,7 +145,7 @@ from dstereo.io.atomic_files import replace_atomically as _replace_atomically  #
 def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, int],
                      image_size_right: tuple[int, int] | None = None, rms: float | None = None, *,
                      cov: np.ndarray | None = None, cov_names: tuple[str, ...] | None = None,
-                     cov_structure: str | None = None) -> Path:
+                     cov_structure: str | None = None, models: tuple[str, str] = ("pinhole", "pinhole")) -> Path:
     """OpenCV YAML with M1 D1 M2 D2 R T E F imageSize (+ imageSize2, rms). D as 1x8 rows in OpenCV's order.
 
     With `cov`: the calibration covariance as `cov` (G x G matrix), `cov_names` (one string, comma separated:
@@ -153,6 +154,11 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
     """
     import cv2
 
+    from dstereo.io.calib_files import LENS_MODELS
+
+    if any(m not in LENS_MODELS for m in models):
+        raise DstereoError(f"{path}: lens models {models}; each is one of {list(LENS_MODELS)}")
+    D1, D2 = (np.asarray(d, float).ravel()[:4] if m == "fisheye" else d for d, m in zip((D1, D2), models))
     if cov is not None:
         cov = np.asarray(cov, dtype=float)
         if cov_names is None or cov.shape != (len(cov_names), len(cov_names)):
@@ -166,6 +172,9 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
             for key, value, shape in (("M1", K1, (3, 3)), ("D1", D1, (1, -1)), ("M2", K2, (3, 3)), ("D2", D2, (1, -1)),
                                       ("R", R, (3, 3)), ("T", T, (3, 1)), ("E", E, (3, 3)), ("F", F, (3, 3))):
                 fs.write(key, np.asarray(value, dtype=float).reshape(shape))
+            if "fisheye" in models:  # without the fields a reader takes both cameras as OpenCV's pinhole model
+                fs.write("distortion_model1", models[0])
+                fs.write("distortion_model2", models[1])
             fs.write("imageSize", np.array(image_size, dtype=np.int32).reshape(1, 2))
             if image_size_right is not None and tuple(image_size_right) != tuple(image_size):
                 fs.write("imageSize2", np.array(image_size_right, dtype=np.int32).reshape(1, 2))
@@ -256,10 +265,11 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
 def stereo_summary(job) -> dict:
     """summary.json / stereo.json of a stereo job."""
     from dstereo.config.calibration import as_dict
-    from dstereo.models.distortion import COEFF_NAMES
+    from dstereo.models.distortion import coeff_slots
 
     s, det = job.full, job.detection
-    cams = {side: {"camera_matrix": c.matrix(), "coeffs": dict(zip(COEFF_NAMES, map(float, c.coeffs()))),
+    cams = {side: {"camera_matrix": c.matrix(), "lens": c.lens,  # a fisheye's coefficients are named fk1..fk4
+                   "coeffs": {n: float(v) for n, v in zip(coeff_slots(tuple(c.dist.free)), c.coeffs()) if n},
                    "free": list(c.dist.free), "image_size": list(c.image_size)}
             for side, c in (("left", s.left), ("right", s.right))}
     full_std = dict(zip(s.names, map(float, s.std))) | {"Tnorm": s.baseline_std, "RVnorm": s.angle_std}
@@ -312,9 +322,12 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     from dstereo.uncertainty.rig import rig_covariance
 
     cov_names, cov, cov_structure = job.calibration_covariance or rig_covariance(job)
+    from dstereo.models.distortion import lens_model
+
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
                      job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
-                     cov_names=cov_names, cov_structure=cov_structure)
+                     cov_names=cov_names, cov_structure=cov_structure,
+                     models=tuple(lens_model(tuple(c.dist.free)) for c in (s.left, s.right)))
     summary = stereo_summary(job)
     from dstereo.io.cameramodel import write_rig_cameramodels  # mrcal's format, the left camera as reference
 

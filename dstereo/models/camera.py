@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dstereo.models.distortion import PRESETS, Distortion, distort, undistort
+from dstereo.models.distortion import PRESETS, Distortion, distort, lens_model, undistort
 from dstereo.models.pose import transform
 
 INTRINSIC_NAMES: tuple[str, ...] = ("fx", "fy", "cx", "cy")
@@ -28,6 +28,12 @@ class Camera(eqx.Module):
     def create(cls, fx, fy, cx, cy, coeffs=None, free=PRESETS["default"], image_size=(0, 0)) -> "Camera":
         c = jnp.zeros(8) if coeffs is None else jnp.zeros(8).at[: len(coeffs)].set(jnp.asarray(coeffs, float))
         return cls(jnp.array([fx, fy, cx, cy], dtype=float), Distortion(c, tuple(free)), tuple(image_size))
+
+    @property
+    def lens(self) -> str:
+        """'fisheye' (cv2.fisheye's k1..k4 in coeffs[:4], `dstereo.models.fisheye`) or 'pinhole' (OpenCV's
+        distortion): what the coefficient names in `dist.free` say (`distortion.lens_model`)."""
+        return lens_model(tuple(self.dist.free))
 
     # --- flat parameter vector used by the solvers ---------------------------------------------------------
     def free_names(self) -> tuple[str, ...]:

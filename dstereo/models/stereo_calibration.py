@@ -10,6 +10,7 @@ import numpy as np
 
 from dstereo.models.camera import Camera
 from dstereo.models.distortion import Distortion
+from dstereo.models.fisheye import FISHEYE_NAMES
 from dstereo.models.rig import Rig
 
 
@@ -18,7 +19,8 @@ class StereoCalibration:
     """A stereo pair's calibration in numpy (mm, px): x_right = R x_left + T.
 
     `rectified` marks a pair that needs no rectification (Middlebury); then P1, P2 are [K1 | 0], [K2 | -f B].
-    `image_size` is (width, height) or None when the file does not say.
+    `image_size` is (width, height) or None when the file does not say. `models` names each camera's lens model,
+    "pinhole" (OpenCV's 8 coefficients in D) or "fisheye" (cv2.fisheye's k1..k4 in D[:4], the rest zero).
     """
 
     K1: np.ndarray
@@ -31,6 +33,7 @@ class StereoCalibration:
     rectified: bool = False
     source: str = ""
     extras: dict = field(default_factory=dict)
+    models: tuple[str, str] = ("pinhole", "pinhole")
 
     @staticmethod
     def k_vector(K: np.ndarray) -> np.ndarray:
@@ -49,13 +52,17 @@ class StereoCalibration:
         return float(np.linalg.norm(self.T))
 
     def cameras(self) -> tuple[Camera, Camera]:
-        """(left, right) as `dstereo.models.camera.Camera`, no coefficient free (a calibration being used)."""
+        """(left, right) as `dstereo.models.camera.Camera`: a pinhole camera with no coefficient free (a calibration
+        being used); a fisheye camera names cv2.fisheye's coefficients (`FISHEYE_NAMES`) so that its `dist.free`
+        says its lens model (`distortion.lens_model`), as every calibration's cameras do."""
         size = tuple(self.image_size) if self.image_size is not None else (0, 0)
-        def camera(K, D):
-            coeffs = jnp.asarray(np.asarray(D, float).ravel()[:8])
-            return Camera(jnp.asarray(self.k_vector(K)), Distortion(coeffs, ()), size)
 
-        return camera(self.K1, self.D1), camera(self.K2, self.D2)
+        def camera(K, D, model):
+            coeffs = jnp.asarray(np.asarray(D, float).ravel()[:8])
+            free = FISHEYE_NAMES if model == "fisheye" else ()
+            return Camera(jnp.asarray(self.k_vector(K)), Distortion(coeffs, free), size)
+
+        return camera(self.K1, self.D1, self.models[0]), camera(self.K2, self.D2, self.models[1])
 
     @property
     def rig(self) -> Rig:

@@ -41,7 +41,8 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     """Rectify (unless already rectified), SGBM, and triangulate one pair with a stereo calibration."""
     import cv2
 
-    from dstereo.stereo.rectify import rectified_from_projections, rectify_calibration, rectify_map
+    from dstereo.stereo.rectify import rectified_from_projections
+    from dstereo.stereo.rectify_fisheye import has_fisheye, rectification_maps, rectify_any
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
@@ -53,20 +54,19 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
         outside = np.zeros(left.shape[:2], bool)
         exact_maps = None
     else:
-        rect = rectify_calibration(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
-                                   undistort=config.undistort)
+        rect = rectify_any(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
+                           undistort=config.undistort)  # a pair with a fisheye: rectify_fisheye's rule
         if rect.vertical:
             raise DstereoError(
                 f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
                 "images (and the calibration) by 90 degrees"
             )
-        exact_maps = [tuple(np.asarray(m, np.float64) for m in rectify_map(k, d, R, P, rect.size))
-                      for k, d, R, P in ((calib.k1, calib.D1, rect.R1, rect.P1), (calib.k2, calib.D2, rect.R2, rect.P2))]
-        left_rect, right_rect = (cv2.remap(img, mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_CONSTANT)
-                                 for img, (mx, my) in zip((left, right), exact_maps))
+        exact_maps = rectification_maps(calib, rect)  # NaN where a ray has no source pixel (fisheye pairs)
+        left_rect, right_rect = (cv2.remap(img, *(np.nan_to_num(m, nan=-1e6).astype(np.float32) for m in maps),
+                                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                                 for img, maps in zip((left, right), exact_maps))
         mx, my = exact_maps[0]
-        outside = (mx < 0) | (my < 0) | (mx > size[0] - 1) | (my > size[1] - 1)
+        outside = ~((mx >= 0) & (my >= 0) & (mx <= size[0] - 1) & (my <= size[1] - 1))  # NaN counts as outside
     timings["rectify_s"] = time.perf_counter() - t0
     Q = np.asarray(rect.Q)
     t0 = time.perf_counter()
@@ -78,13 +78,21 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
                "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
+    if not calib.rectified and has_fisheye(calib):
+        from dstereo.stereo.rectify_fisheye import field_of_view
+
+        summary |= {"lenses": list(calib.models), "rectified_field_of_view_deg": field_of_view(rect),
+                    "balance": config.alpha if config.alpha >= 0 else 0.0}
     exact = None
     if config.refine:
         disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
     result = points_and_summary(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
                      timings, warnings)
     result.exact_rect = exact
-    if config.uncertainty:
+    if config.uncertainty and not calib.rectified and has_fisheye(calib):
+        result.warnings.append(f"{name}: point uncertainties are not computed for a rig with a fisheye camera yet "
+                               "(they propagate through the pinhole rectification); the points are written without")
+    elif config.uncertainty:
         add_uncertainty(result, calib, config, params, originals=(left, right))
     return result
 

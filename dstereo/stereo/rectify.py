@@ -138,9 +138,10 @@ def _half_rotations(rvec, T):
     return r_r, r_r @ T
 
 
-@partial(jax.jit, static_argnames=("idx", "method"))
-def _rectify(k1, c1, k2, c2, rvec, T, alpha, zero_disparity, sizes, *, idx, method):
-    nx, ny, new_w, new_h = sizes  # traced: one compilation serves every image size
+def rectifying_rotations(rvec, T, idx: int):
+    """Bouguet's R1, R2 (original -> rectified camera) and the rectified baseline (R2 T)[idx]: half the relative
+    rotation each, then the rotation that turns the baseline onto image axis `idx` (0: x, 1: y). Shared by every
+    lens model's rectification (cv2.stereoRectify and cv2.fisheye.stereoRectify rotate alike)."""
     r_r, t = _half_rotations(rvec, T)
     c = t[idx]
     uu = jnp.zeros(3).at[idx].set(jnp.where(c > 0, 1.0, -1.0))
@@ -151,7 +152,13 @@ def _rectify(k1, c1, k2, c2, rvec, T, alpha, zero_disparity, sizes, *, idx, meth
     w_r = rodrigues(ww * jnp.where(small, 1.0 / jnp.abs(c), jnp.arctan2(nw, jnp.abs(c)) / nw))
     R1 = w_r @ r_r.T
     R2 = w_r @ r_r
-    t_idx = (R2 @ T)[idx]
+    return R1, R2, (R2 @ T)[idx]
+
+
+@partial(jax.jit, static_argnames=("idx", "method"))
+def _rectify(k1, c1, k2, c2, rvec, T, alpha, zero_disparity, sizes, *, idx, method):
+    nx, ny, new_w, new_h = sizes  # traced: one compilation serves every image size
+    R1, R2, t_idx = rectifying_rotations(rvec, T, idx)
 
     ratio = (new_w / nx if idx == 1 else new_h / ny) / 2.0
     fc = (k1[idx ^ 1] + k2[idx ^ 1]) * ratio
@@ -231,6 +238,10 @@ def stereo_rectify(
     """
     if undistort not in ("opencv", "exact"):
         raise DstereoError(f"undistort={undistort!r}: use 'opencv' (reproduce cv2) or 'exact' (Newton inverse)")
+    for side, cam in (("left", left), ("right", right)):
+        if cam.lens == "fisheye":  # its coefficients are cv2.fisheye's, not OpenCV's pinhole distortion
+            raise DstereoError(f"stereo_rectify: the {side} camera is a fisheye; rectify the pair with "
+                               "dstereo.stereo.rectify_fisheye.stereo_rectify_lenses (rectify_any for a calibration)")
     w, h = (int(v) for v in image_size)
     if w < 2 or h < 2:
         raise DstereoError(f"image_size {image_size}: need width and height of at least 2 pixels")

@@ -17,7 +17,9 @@ from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
 from dstereo.models.board import Board as BoardGeometry
+from dstereo.models import fisheye
 from dstereo.models.camera import Camera, project_view
+from dstereo.models.pose import transform
 
 
 @dataclass(frozen=True)
@@ -76,14 +78,21 @@ def object_points(pattern: tuple[int, int], square: float) -> np.ndarray:
 def true_corners(camera: Camera, pose, pattern: tuple[int, int], square: float) -> np.ndarray:
     """(n, 2) pixel positions of the inner corners seen by `camera` at `pose` (T_cam_board as (rvec, tvec)).
 
-    Uses `dstereo.models.project_view`, i.e. exactly the model the calibration engine fits.
+    Uses `dstereo.models.project_view` (a fisheye camera: `models.fisheye.project`), i.e. exactly the model the
+    calibration engine fits.
     """
     pose = jnp.asarray(np.asarray(pose, float).reshape(6))
     pts = jnp.asarray(object_points(pattern, square))
-    return np.asarray(_project_view_points(camera.k, camera.dist.coeffs, pose, pts))
+    view = _project_view_points_fisheye if camera.lens == "fisheye" else _project_view_points
+    return np.asarray(view(camera.k, camera.dist.coeffs, pose, pts))
+
+
+def _project_view_fisheye(k, coeffs, pose, p_world):
+    return fisheye.project(k, coeffs[:4], transform(pose[:3], pose[3:6], p_world))
 
 
 _project_view_points = jax.jit(jax.vmap(project_view, in_axes=(None, None, None, 0)))
+_project_view_points_fisheye = jax.jit(jax.vmap(_project_view_fisheye, in_axes=(None, None, None, 0)))
 
 
 def _triangle(t: Float[Array, ""]) -> Float[Array, ""]:

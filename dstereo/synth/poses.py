@@ -66,7 +66,7 @@ def _project_many(camera: Camera, pose_cam_world, pts: np.ndarray) -> tuple[np.n
     """(n, 2) pixels and (n,) depths of world points; numpy in and out."""
     m = pose_matrix(pose_cam_world)
     p_cam = pts @ m[:3, :3].T + m[:3, 3]
-    q = project_points(camera.k, camera.dist.coeffs, jnp.asarray(p_cam))
+    q = project_points(camera.k, camera.dist.coeffs, jnp.asarray(p_cam), camera.lens)
     return np.asarray(q), p_cam[:, 2]
 
 
@@ -94,7 +94,7 @@ def board_visible(camera: Camera, pose_cam_board, board: Board, margin_px: float
     lo, hi = margin_px, np.array([w - 1, h - 1]) - margin_px
     if not np.all((q >= lo) & (q <= hi)):
         return False
-    rays = np.asarray(unproject_points(camera.k, camera.dist.coeffs, jnp.asarray(q)))
+    rays = np.asarray(unproject_points(camera.k, camera.dist.coeffs, jnp.asarray(q), camera.lens))
     m = pose_matrix(pose_cam_board)
     p_cam = pts @ m[:3, :3].T + m[:3, 3]
     if np.max(np.abs(rays - p_cam[:, :2] / p_cam[:, 2:3])) > 1e-9:
@@ -118,7 +118,7 @@ def _candidate_pose(rng: np.random.Generator, camera: Camera, board: Board, anch
     outline = board.outline()
     board_width = np.linalg.norm(outline[1] - outline[0])
     depth = float(camera.k[0]) * board_width / (fill * w)
-    xy = np.asarray(unproject_points(camera.k, camera.dist.coeffs, jnp.asarray(anchor, float)[None]))[0]
+    xy = np.asarray(unproject_points(camera.k, camera.dist.coeffs, jnp.asarray(anchor, float)[None], camera.lens))[0]
     ray = np.array([xy[0], xy[1], 1.0])
     tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform())  # more large tilts than a uniform draw gives
     axis_angle = rng.uniform(0.0, 2 * np.pi)

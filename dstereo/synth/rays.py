@@ -1,4 +1,8 @@
-"""Per-pixel rays through the exact inverse of a camera's distortion, for supersampled rendering.
+"""Per-pixel rays through the exact inverse of a camera's lens model, for supersampled rendering.
+
+Two lens models (`Camera.lens`): OpenCV's pinhole + distortion (Newton inverse) and cv2.fisheye's Kannala-Brandt
+(`models.fisheye.unproject`, its convergence checked). `lens` is a static argument of the compiled functions, so
+a pinhole camera runs exactly the code it always ran (its renders are unchanged).
 
 Pixel (u, v) covers [u - 1/2, u + 1/2] x [v - 1/2, v + 1/2] (pixel (0, 0) is centred on the origin, OpenCV's
 convention). A supersample factor s places s x s samples at the centres of an s x s subdivision of that square.
@@ -16,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
+from dstereo.models import fisheye
 from dstereo.models.camera import Camera, project
 from dstereo.models.distortion import undistort
 
@@ -31,14 +36,32 @@ def unproject_point(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Ar
     return undistort(coeffs, (q - k[2:4]) / k[0:2], NEWTON_ITERATIONS)
 
 
-@jax.jit
-def unproject_points(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "n 2"]) -> Float[Array, "n 2"]:
-    return jax.vmap(unproject_point, in_axes=(None, None, 0))(k, coeffs, q)
+def unproject_point_fisheye(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "2"]) -> Float[Array, "2"]:
+    """Pixel -> (x, y) of its ray on z = 1 through the fisheye model (D in coeffs[:4]); NaN where the inverse did
+    not converge or the ray is at or beyond 90 degrees (no point on z = 1)."""
+    ray, ok = fisheye.unproject(k, coeffs[:4], q)
+    front = ok & (ray[2] > 0)
+    return jnp.where(front, ray[:2] / jnp.where(front, ray[2], 1.0), jnp.nan)
 
 
-@jax.jit
-def project_points(k: Float[Array, "4"], coeffs: Float[Array, "8"], p_cam: Float[Array, "n 3"]) -> Float[Array, "n 2"]:
-    return jax.vmap(project, in_axes=(None, None, 0))(k, coeffs, p_cam)
+def _unproject_fn(lens: str):
+    return unproject_point_fisheye if lens == "fisheye" else unproject_point
+
+
+def _project_fn(lens: str):
+    return (lambda k, c, p: fisheye.project(k, c[:4], p)) if lens == "fisheye" else project
+
+
+@partial(jax.jit, static_argnames=("lens",))
+def unproject_points(k: Float[Array, "4"], coeffs: Float[Array, "8"], q: Float[Array, "n 2"],
+                     lens: str = "pinhole") -> Float[Array, "n 2"]:
+    return jax.vmap(_unproject_fn(lens), in_axes=(None, None, 0))(k, coeffs, q)
+
+
+@partial(jax.jit, static_argnames=("lens",))
+def project_points(k: Float[Array, "4"], coeffs: Float[Array, "8"], p_cam: Float[Array, "n 3"],
+                   lens: str = "pinhole") -> Float[Array, "n 2"]:
+    return jax.vmap(_project_fn(lens), in_axes=(None, None, 0))(k, coeffs, p_cam)
 
 
 def map_chunked(fn, xs: Float[Array, "n d"]):
@@ -61,13 +84,14 @@ def subpixel_offsets(supersample: int) -> np.ndarray:
     return np.stack([du.ravel(), dv.ravel()], axis=1)
 
 
-@partial(jax.jit, static_argnames=("image_size", "supersample"))
-def _rays(k, coeffs, image_size: tuple[int, int], supersample: int):
+@partial(jax.jit, static_argnames=("image_size", "supersample", "lens"))
+def _rays(k, coeffs, image_size: tuple[int, int], supersample: int, lens: str = "pinhole"):
     w, h = image_size
     v, u = jnp.meshgrid(jnp.arange(h, dtype=float), jnp.arange(w, dtype=float), indexing="ij")
     centres = jnp.stack([u, v], axis=-1)[:, :, None, :]
     q = (centres + jnp.asarray(subpixel_offsets(supersample))[None, None]).reshape(-1, 2)
-    xy = map_chunked(lambda qi: unproject_point(k, coeffs, qi), q)
+    inverse = _unproject_fn(lens)
+    xy = map_chunked(lambda qi: inverse(k, coeffs, qi), q)
     return xy.reshape(h, w, supersample * supersample, 2)
 
 
@@ -75,14 +99,19 @@ def camera_rays(camera: Camera, supersample: int = 1) -> Float[Array, "h w s2 2"
     """Normalised ray directions (x, y) for every sample of every pixel, shape (height, width, s*s, 2).
 
     Raises `DstereoError` where the distortion is not invertible over the image (the Newton inverse would not
-    reproduce the pixel), because the render would then disagree with the model it is meant to test.
+    reproduce the pixel), because the render would then disagree with the model it is meant to test; for a
+    fisheye also where a pixel sees 90 degrees or more off the axis (a ray (x, y, 1) cannot hold it).
     """
     w, h = camera.image_size
     if w <= 0 or h <= 0:
         raise DstereoError(f"camera image_size {camera.image_size}: give the camera a (width, height) to render")
     if supersample < 1:
         raise DstereoError(f"supersample={supersample}: need an integer >= 1")
-    xy = _rays(camera.k, camera.dist.coeffs, (int(w), int(h)), int(supersample))
+    xy = _rays(camera.k, camera.dist.coeffs, (int(w), int(h)), int(supersample), camera.lens)
+    if camera.lens == "fisheye" and not bool(jnp.all(jnp.isfinite(xy))):
+        raise DstereoError(f"fisheye camera f = {np.asarray(camera.k[:2]).round(2).tolist()} px: some of its {w}x{h} "
+                           "pixels see 90 degrees or more off the axis (or the lens model folds back there); the "
+                           "renderer needs every ray in front of the camera: lengthen the focal or shrink the image")
     check_invertible(camera, xy)
     return xy
 
@@ -97,7 +126,7 @@ def check_invertible(camera: Camera, xy: Float[Array, "h w s2 2"]) -> None:
     sub = np.asarray(xy)[rr.ravel(), cc.ravel()]  # (81, s2, 2)
     q_expected = np.stack([cc.ravel(), rr.ravel()], axis=1)[:, None, :] + subpixel_offsets(s)[None]
     p = np.concatenate([sub, np.ones(sub.shape[:2] + (1,))], axis=-1).reshape(-1, 3)
-    q = np.asarray(project_points(camera.k, camera.dist.coeffs, jnp.asarray(p))).reshape(q_expected.shape)
+    q = np.asarray(project_points(camera.k, camera.dist.coeffs, jnp.asarray(p), camera.lens)).reshape(q_expected.shape)
     err = np.max(np.abs(q - q_expected)) if np.all(np.isfinite(q)) else np.inf
     if not err <= 1e-6:
         raise DstereoError(

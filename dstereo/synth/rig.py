@@ -95,3 +95,29 @@ def sample_pose(length_mm: float = 50.0, distance_mm: float = 600.0, yaw_deg: fl
     head = np.array([0.0, 0.0, distance_mm])
     tvec = head - rmat @ np.array([0.0, 0.0, length_mm])
     return np.concatenate([rotation_vector(rmat), tvec])
+
+
+# A wide-angle rig for the fisheye paths (issue 16): two cv2.fisheye lenses of ~128 degrees across a 640 px width
+# (corners 74 degrees off axis), 120 mm apart and converging by 4.6 degrees; the mixed rig swaps the left camera
+# for a pinhole lens of 75 degrees. The two fisheye lenses differ (focal, centre, k1..k4), as real ones do.
+FISHEYE_LEFT = ((285.0, 284.6, 322.4, 238.1), (0.05, -0.01, 0.003, -0.0005))
+FISHEYE_RIGHT = ((290.2, 290.6, 317.5, 243.2), (0.03, 0.004, -0.002, 0.0003))
+PINHOLE_LEFT = ((420.0, 420.5, 318.2, 241.7), (-0.2, 0.05, 0.0005, -0.0004, 0.0))
+FISHEYE_RIG = (0.01, -0.08, 0.005, -120.0, 1.5, 3.0)  # T_right_left: rvec (rad), tvec (mm)
+
+
+def fisheye_rig(mixed: bool = False, scale: float = 1.0) -> StereoRig:
+    """Two fisheye cameras (or, `mixed`, a pinhole left and a fisheye right) at 640 x 480 px times `scale` (focal
+    lengths and centres scaled alike: the same fields of view), in the FISHEYE_RIG pose; world = left camera."""
+    from dstereo.models.distortion import PRESETS
+
+    size = (int(round(640 * scale)), int(round(480 * scale)))
+
+    def camera(spec, lens):
+        (fx, fy, cx, cy), coeffs = spec
+        c = lambda v: (v + 0.5) * scale - 0.5  # noqa: E731  (pixel centres scale about the image's corner)
+        free = PRESETS["fisheye"] if lens == "fisheye" else PRESETS["default"]
+        return Camera.create(fx * scale, fy * scale, c(cx), c(cy), coeffs, free, size)
+
+    left = camera(PINHOLE_LEFT, "pinhole") if mixed else camera(FISHEYE_LEFT, "fisheye")
+    return stereo_rig(left, camera(FISHEYE_RIGHT, "fisheye"), np.array(FISHEYE_RIG))

@@ -16,21 +16,25 @@ from dstereo.errors import DstereoError
 from dstereo.io.atomic_files import replace_atomically
 from dstereo.io.json_files import jsonable
 from dstereo.models.camera import Camera
-from dstereo.models.distortion import COEFF_NAMES
+from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, PRESETS
 
 
 def camera_truth(camera: Camera) -> dict:
-    """JSON-ready intrinsics: fx, fy, cx, cy (px), distortion in OpenCV order, image size (width, height)."""
+    """JSON-ready intrinsics: fx, fy, cx, cy (px), distortion in OpenCV order, image size (width, height); a
+    fisheye camera adds `model: fisheye` and its coefficients are cv2.fisheye's k1..k4 (then four zeros)."""
     fx, fy, cx, cy = (float(v) for v in np.asarray(camera.k))
+    fish = camera.lens == "fisheye"
     return {
         "fx": fx, "fy": fy, "cx": cx, "cy": cy,
-        "coeffs": [float(v) for v in np.asarray(camera.dist.coeffs)], "coeff_names": list(COEFF_NAMES),
+        "coeffs": [float(v) for v in np.asarray(camera.dist.coeffs)],
+        "coeff_names": list(FISHEYE_SLOTS if fish else COEFF_NAMES),
         "image_size": [int(v) for v in camera.image_size],
-    }
+    } | ({"model": "fisheye"} if fish else {})
 
 
 def camera_from_truth(d: dict) -> Camera:
-    return Camera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["coeffs"], image_size=tuple(d["image_size"]))
+    free = PRESETS["fisheye"] if d.get("model") == "fisheye" else PRESETS["default"]
+    return Camera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["coeffs"], free, image_size=tuple(d["image_size"]))
 
 
 def split_truth(truth: dict) -> tuple[dict, dict[str, np.ndarray]]:

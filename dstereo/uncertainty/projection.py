@@ -24,13 +24,14 @@ or where the Newton inversion does not reproduce the pixel. No unconverged inver
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
 from dstereo.models import fisheye, splined
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
@@ -174,6 +175,7 @@ class ProjectionUncertaintyMap:
     note: str = NOTE
     mask: np.ndarray | None = None
     method: str = "intrinsics-only"
+    view_scatter: object | None = None  # `view_scatter.ViewScatter` whose scale the covariances carry
 
     @property
     def masked(self) -> int:
@@ -184,8 +186,11 @@ class ProjectionUncertaintyMap:
         stats = ({"min": float(good.min()), "median": float(np.median(good)), "max": float(good.max())}
                  if good.size else {"min": None, "median": None, "max": None})
         stats["pixels_without_ray"] = int(self.std.size - good.size)  # masked, or no finite covariance
-        return {"method": self.method, "range": self.range_, "std_px": stats, "grid": [len(self.u), len(self.v)],
-                "masked_pixels": self.masked, "note": self.note}
+        out = {"method": self.method, "range": self.range_, "std_px": stats, "grid": [len(self.u), len(self.v)],
+               "masked_pixels": self.masked, "note": self.note}
+        if self.view_scatter is not None:
+            out["view_scatter"] = self.view_scatter.summary()
+        return out
 
     def at(self, uv) -> float:
         """Std (px) at the grid pixel nearest to `uv` (NaN where masked)."""
@@ -250,19 +255,23 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
     sag is the board's, not the camera's: marginalised (its rows and columns dropped from the covariance)."""
     lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
     names = tuple(sol.names[i] for i in lens)
+    scatter = solution_view_scatter(sol)
+    scale = 1.0 if scatter is None else scatter.scale
     if method == "pose-compensated":
         from dstereo.uncertainty.covariance import joint_covariance
 
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        n_obs = int(np.prod(np.shape(sol.residuals)))  # 2 per corner
-        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), n_obs, prior=knot_prior(sol.names))
+        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
+                                 prior=knot_prior(sol.names))
         keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
-        return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, joint[np.ix_(keep, keep)], image_size,
-                                          range_, grid, poses=sol.poses, method=method)
-    return projection_uncertainty_map(sol.values[:4], sol.coeffs, names, sol.cov[np.ix_(lens, lens)], image_size,
-                                      range_, grid, method=method)
+        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * joint[np.ix_(keep, keep)],
+                                          image_size, range_, grid, poses=sol.poses, method=method)
+    else:
+        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * sol.cov[np.ix_(lens, lens)],
+                                          image_size, range_, grid, method=method)
+    return replace(pmap, view_scatter=scatter)
 
 
 def knot_prior(names) -> np.ndarray | None:
@@ -275,10 +284,6 @@ def knot_prior(names) -> np.ndarray | None:
         out[4:4 + a.shape[1], 4:4 + a.shape[1]] = a.T @ a
         return out
     return None
-
-
-def sse_of(sol) -> float:
-    return float(np.sum(np.asarray(sol.residuals, float) ** 2))
 
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:

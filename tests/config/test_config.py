@@ -354,6 +354,8 @@ CALIBRATE_CASES = {
     "image_format_right": ('[images]\nformat_right = "tif"\n', None, "image_format_right", "tif"),
     "glob": ('[images]\nglob = "a*.png"\n', ["--glob", "a*.png"], "glob", "a*.png"),
     "model": ('[calibration]\nmodel = "k1k2"\n', ["--model", "k1k2"], "model", ("k1", "k2")),
+    "model_right": ('[calibration]\nmodel_right = "fisheye"\n', ["--model-right", "fisheye"], "model_right",
+                    ("fk1", "fk2", "fk3", "fk4")),
     "per_set": ("[calibration]\nper_set = 7\n", ["--per-set", "7"], "per_set", 7),
     "max_subsets": ("[calibration]\nmax_subsets = 50\n", ["--max-subsets", "50"], "max_subsets", 50),
     "seed": ("[calibration]\nseed = 3\n", ["--seed", "3"], "seed", 3),

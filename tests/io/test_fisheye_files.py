@@ -1,5 +1,6 @@
 """`dstereo calibrate --model fisheye` end to end on the real fisheye640 camera, its camera.yml (OpenCV layout
-with `distortion_model: fisheye`) read back, the config key, and the refusals (fisheye rigs, bad files)."""
+with `distortion_model: fisheye`) read back, a mixed rig's stereo file read back, the config key, and the refusals
+(bad files, a right-camera model without a rig)."""
 
 import json
 
@@ -78,22 +79,62 @@ def test_bad_fisheye_file_is_refused(tmp_path):
     write_camera_files(tmp_path, K, np.zeros(5), (640, 640), {}, model="fisheye")
     with pytest.raises(DstereoError, match="needs 4 distortion coefficients"):
         read_camera_file(tmp_path / "camera.yml")
-    fs = cv2.FileStorage(str(tmp_path / "stereo.yml"), cv2.FILE_STORAGE_WRITE)
-    fs.write("distortion_model", "fisheye")
-    for name, value in (("M1", K), ("D1", np.zeros(4)), ("M2", K), ("D2", np.zeros(4)), ("R", np.eye(3)),
-                        ("T", np.array([[-100.0], [0], [0]]))):
-        fs.write(name, value)
-    fs.release()
-    with pytest.raises(DstereoError, match="fisheye cameras are not supported yet"):
-        read_opencv_stereo(tmp_path / "stereo.yml")
+    # A stereo file with one `distortion_model` for both cameras: read as a fisheye pair (OpenCV's own fisheye
+    # files carry no such field; dstereo's carry one per camera, tests/stereo/test_fisheye_calibration_files.py)
+    for d, model in ((np.zeros(4), "fisheye"), (np.zeros(5), "fisheye"), (np.zeros(4), "kannala")):
+        fs = cv2.FileStorage(str(tmp_path / "stereo.yml"), cv2.FILE_STORAGE_WRITE)
+        fs.write("distortion_model", model)
+        for name, value in (("M1", K), ("D1", d), ("M2", K), ("D2", d), ("R", np.eye(3)),
+                            ("T", np.array([[-100.0], [0], [0]]))):
+            fs.write(name, value)
+        fs.release()
+        if d.size == 4 and model == "fisheye":
+            assert read_opencv_stereo(tmp_path / "stereo.yml").models == ("fisheye", "fisheye")
+        else:
+            with pytest.raises(DstereoError, match="needs 4 finite distortion|is not one of"):
+                read_opencv_stereo(tmp_path / "stereo.yml")
 
 
-def test_config_key_and_stereo_refusal(tmp_path):
+def test_config_key_and_right_model_refusal(tmp_path):
     (tmp_path / "dstereo.toml").write_text('[calibration]\nmodel = "fisheye"\n')
     assert tuple(load_config(tmp_path / "dstereo.toml").model) == PRESETS["fisheye"]
-    for side in ("l", "r"):
-        (tmp_path / side).mkdir()
-    code, _, err = run_cli("calibrate", "--left", tmp_path / "l", "--right", tmp_path / "r", "--pattern", "9x6",
-                           "--model", "fisheye", "--out", tmp_path / "out")
-    assert code == 1 and "fisheye cameras are not supported yet" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "l").mkdir()
+    # one camera has one lens: a right camera's model without a rig is refused, before any work
+    code, _, err = run_cli("calibrate", "--images", tmp_path / "l", "--pattern", "9x6", "--model-right", "fisheye",
+                           "--out", tmp_path / "out")
+    assert code == 1 and "--model-right: only for a stereo rig" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_stereo_file_of_a_mixed_rig_reads_back_exactly(tmp_path):
+    """stereo.yml of a pinhole left and a fisheye right: each camera's model field, the fisheye's D as
+    cv2.fisheye's 4-vector, and every number read back bit for bit (FileStorage writes 17 significant digits)."""
+    from dstereo.io.calib_files import read_stereo_calibration, write_opencv_stereo
+    from dstereo.io.stereo_files import write_stereo_yml
+    from dstereo.models.stereo_calibration import StereoCalibration
+    from dstereo.synth import fisheye_rig
+
+    rig = fisheye_rig(mixed=True)
+    R, T = rig.rotation_translation()
+    left, right = rig.left, rig.right
+    write_stereo_yml(tmp_path / "stereo.yml", left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R, T,
+                     np.eye(3), np.eye(3), left.image_size, models=("pinhole", "fisheye"))
+    text = (tmp_path / "stereo.yml").read_text()
+    assert "distortion_model1: pinhole" in text and "distortion_model2: fisheye" in text
+    fs = cv2.FileStorage(str(tmp_path / "stereo.yml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("D2").mat().shape == (1, 4) and fs.getNode("D1").mat().shape == (1, 8)
+    fs.release()
+    c = read_stereo_calibration(tmp_path / "stereo.yml")
+    assert c.models == ("pinhole", "fisheye")
+    for ours, ref in ((c.K1, left.matrix()), (c.D1, left.coeffs()), (c.K2, right.matrix()), (c.D2, right.coeffs()),
+                      (c.R, R), (c.T, T)):
+        assert np.array_equal(ours, np.asarray(ref, float).reshape(np.shape(ours)))
+    cams = c.cameras()
+    assert (cams[0].lens, cams[1].lens) == ("pinhole", "fisheye")
+    write_opencv_stereo(tmp_path / "again.yml", c)  # the other writer: the same fields, read back the same
+    again = read_stereo_calibration(tmp_path / "again.yml")
+    assert again.models == c.models and np.array_equal(again.D2, c.D2) and np.array_equal(again.K1, c.K1)
+    plain = StereoCalibration(c.K1, c.D1, c.K1, c.D1, c.R, c.T, c.image_size)
+    write_opencv_stereo(tmp_path / "pinhole.yml", plain)  # a pinhole pair's file keeps OpenCV's own layout
+    assert "distortion_model" not in (tmp_path / "pinhole.yml").read_text()
+    assert read_stereo_calibration(tmp_path / "pinhole.yml").models == ("pinhole", "pinhole")
