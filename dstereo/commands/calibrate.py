@@ -23,8 +23,10 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or auto (the model that "
-        "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
+        "correction surface over a stereographic lens, splined:NXxNY knots, default 10x8; one camera, full set), or "
+        "auto (the model that best predicts held-out views, of k1k2, default, fisheye, rational, splined; one "
+        "camera)."),
     model_right: Optional[str] = typer.Option(
         None, "--model-right", help="Stereo: the right camera's lens model when it differs from the left's --model "
         "(e.g. fisheye); default: --model for both."),
