@@ -284,6 +284,11 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
                    grid: tuple[int, int] = (16, 12)) -> CrossValidation:
     """`splits` random halvings of the views of the full-set solve `full`, each half calibrated from the
     full-set start; see the module docstring."""
+    from dstereo.models.distortion import lens_model
+
+    if lens_model(tuple(full.free)) == "splined":
+        raise DstereoError("`cross_validate`: not available for the splined model yet; use it with the pinhole or "
+                           "fisheye models")
     n_views = len(obs)
     if n_views < 2 * MIN_HALF_VIEWS:
         raise DstereoError(f"`cross_validate`: {n_views} views; two disjoint halves need at least "

@@ -1,6 +1,6 @@
 """`--model auto`: the lens model chosen by how well it predicts views it was not fitted to.
 
-For each candidate (CANDIDATES: k1k2, the 5-coefficient default, fisheye, rational) the full set is solved, then
+For each candidate (CANDIDATES: k1k2, the 5-coefficient default, fisheye, rational, splined) the full set is solved, then
 the views are split into folds (leave-one-view-out up to MAX_FOLDS views, else MAX_FOLDS folds of equal size):
 each fold's training set is the full set with the fold's views weighted 0, so all folds of one model are one batch
 of the same compiled solver as the full set (`mono.solve_subsets`; one compile per model). Each held-out view's
@@ -29,9 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.models.distortion import PRESETS, lens_model
+from dstereo.models.distortion import PRESETS, lens_model, model_label
 
-CANDIDATES: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # presets, fewest parameters first
+PARAMETRIC: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # presets, fewest parameters first
+# ... and the splined lens (models/splined.py, its default grid) for lenses none of them fits: with the most
+# parameters it is chosen only where its held-out error beats theirs by more than the noise
+CANDIDATES: tuple[str, ...] = PARAMETRIC + ("splined",)
 MAX_FOLDS = 30  # up to this many views: leave one view out; beyond: this many folds of equal size
 FIT_MARGIN = 0.01  # a chosen model's training RMS may exceed the held-out-best model's by at most 1 %
 POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-set pose (converges in < 10)
@@ -102,7 +105,7 @@ class ModelChoice:
             diff = "best" if c.preset == self.best else (
                 f"{c.diff_mse:.2e} +- {c.diff_se:.1e}" if np.isfinite(c.diff_mse) else "-")
             mark = "**chosen**" if c.preset == self.chosen else (c.note or "")
-            lines.append(f"| {c.preset} ({','.join(c.free)}) | {c.n_params} | {c.rms:.4f} | {c.heldout_rms:.4f} | "
+            lines.append(f"| {c.preset} ({model_label(c.free)}) | {c.n_params} | {c.rms:.4f} | {c.heldout_rms:.4f} | "
                          f"{diff} | {c.identifiability_text()} | {mark} |")
         return lines
 
@@ -162,7 +165,7 @@ def evaluate(preset: str, obj, obs, image_size) -> Candidate:
     full = calibrate_full(obj, obs, image_size, free=free)
     plan, held = fold_plan(len(obs))
     sub = solve_subsets(obj, obs, plan, full)
-    coeffs = np.zeros((len(plan), 8))
+    coeffs = np.zeros((len(plan), len(coeff_slots(free))))  # 8, or a splined lens's knots
     coeffs[:, [coeff_slots(free).index(n) for n in free]] = sub.values[:, 4:]
     f_idx = np.repeat(np.arange(len(plan)), held.shape[1])
     views = held.ravel()
@@ -241,7 +244,7 @@ def choice_warning(choice: ModelChoice) -> str | None:
     c = choice.chosen_candidate
     if c.identifiable:
         return None
-    return (f"model auto chose {c.preset} ({','.join(c.free)}), which is not identifiable from these views "
+    return (f"model auto chose {c.preset} ({model_label(c.free)}), which is not identifiable from these views "
             f"({c.identifiability_text()}), because no simpler model predicts held-out views as well "
             f"({c.heldout_rms:.4f} px); add views that tilt the board and fill the image corners")
 

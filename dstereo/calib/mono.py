@@ -70,7 +70,8 @@ class CameraSolution:
     values: np.ndarray  # (G,) shared parameters in `names` order
     std: np.ndarray  # (G,) Jacobian standard deviations
     cov: np.ndarray  # (G, G)
-    coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order (fisheye: cv2.fisheye's D in [:4])
+    coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order (fisheye: cv2.fisheye's D in [:4]); a
+    # splined lens: its knots (2 NX NY,), `splined.knot_names` order
     poses: np.ndarray  # (V, 6) rvec, tvec per view
     rms: float  # sqrt(SSE / points), OpenCV's reprojection error, over the inlier corners
     per_view_rms: np.ndarray  # (V,) over each view's inlier corners
@@ -140,8 +141,10 @@ def calibrate_full(
         if board_warp and len(g0) == 4 + len(free):
             g0 = np.concatenate([g0, np.zeros(WARP_SIZE)])
     else:
-        fish = lens_model(tuple(free)) == "fisheye"
+        fish = lens_model(tuple(free)) in ("fisheye", "splined")
         # Zhang's homographies assume a pinhole; a fisheye starts from the equidistant lens that best fits the views
+        # (and so does the splined lens, whose stereographic base matches the equidistant one near the axis, and
+        # which may be a fisheye)
         k0, p0 = initial_guess_fisheye(obj, obs, image_size) if fish else initial_guess(obj, obs, image_size)
         g0, lam = np.concatenate([k0, np.zeros(len(free) + WARP_SIZE * board_warp)]), options.lambda0
     shared = _shared(obj)
@@ -163,7 +166,7 @@ def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
     warp = len(out.g) == 4 + len(free) + WARP_SIZE
     names = INTRINSIC_NAMES + tuple(free) + (WARP_NAMES if warp else ())
     g = out.g
-    coeffs = np.zeros(8)
+    coeffs = np.zeros(len(coeff_slots(free)))  # 8, or a splined lens's knots
     coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:4 + len(free)]
     n_params = len(g) + 6 * int(mask.any(axis=1).sum())
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)

@@ -249,9 +249,11 @@ def calibrate_camera(
         warnings.append(full.conditioning.message())
     pattern = solution_pattern(obs, full) if outliers.enabled else pattern_all
     worst = min((pattern, pattern_all), key=lambda p: (not p.significant, p.p_value))
-    if worst.message(",".join(config.model)):
+    from dstereo.models.distortion import model_label
+
+    if worst.message(model_label(config.model)):
         where = "" if worst is pattern else " (on every corner, before outlier rejection)"
-        warnings.append(worst.message(",".join(config.model)) + where)
+        warnings.append(worst.message(model_label(config.model)) + where)
 
     subsets = filtering = final_solution = subset_mean = None
     final = dict(zip(full.names, map(float, full.values)))
@@ -313,10 +315,12 @@ def _choose_model(config, det, obs, progress):
     """--model auto: (the config with the chosen model, the ModelChoice)."""
     from dataclasses import replace
 
-    from dstereo.calib.model_choice import choose_model
+    from dstereo.calib.model_choice import CANDIDATES, PARAMETRIC, choose_model
 
     report = None if progress is None else (lambda i, n: progress("model choice", i, n))
-    choice = choose_model(det.object_points, obs, det.image_size, progress=report)
+    # the subset analysis is not available for the splined lens (~160 knots): with `per_set`, parametric only
+    candidates = CANDIDATES if config.per_set is None else PARAMETRIC
+    choice = choose_model(det.object_points, obs, det.image_size, candidates, progress=report)
     return validate(replace(config, model=choice.chosen_candidate.free, model_auto=False)), choice
 
 

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
-from dstereo.models import camera, fisheye
+from dstereo.models import camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
 from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
@@ -89,7 +89,12 @@ class Problem(NamedTuple):
 
 def lens_functions(free: tuple[str, ...]):
     """(project, project_jacobian) of the lens model that `free` names, both on (k, coeffs (8,), p_cam): the
-    fisheye model reads its k1..k4 from the first four slots (`distortion.coeff_slots`)."""
+    fisheye model reads its k1..k4 from the first four slots (`distortion.coeff_slots`); the splined model's
+    coefficients are its knots (as many as `free` names)."""
+    if lens_model(free) == "splined":
+        nx, ny = splined.grid_of(free)
+        return ((lambda k, c, p: splined.project(k, c, p, nx, ny)),
+                (lambda k, c, p: splined.project_jacobian(k, c, p, nx, ny)))
     if lens_model(free) == "fisheye":
         return (lambda k, c, p: fisheye.project(k, c[:4], p)), (lambda k, c, p: fisheye.project_jacobian(k, c[:4], p))
     return camera.project, camera.project_jacobian
@@ -196,7 +201,7 @@ def frame_linearize(problem: Problem):
             dp_dw = None
             if problem.board_warp:
                 dp_dw = dref_dw if c == 0 else sum(rot_c[:, j, None, None] * dref_dw[j] for j in range(3))
-            q, dk, dc, dq_dp = lens_functions(spec.free)[1](k, coeffs, p)  # (2,n) (2,4,n) (2,8|4,n) (2,3,n)
+            q, dk, dc, dq_dp = lens_functions(spec.free)[1](k, coeffs, p)  # (2,n) (2,4,n) (2,8|4|knots,n) (2,3,n)
             chain = lambda d_i: sum(dq_dp[:, i, None, :] * d_i[i][None] for i in range(3))  # noqa: E731
             rows = jnp.zeros((2, n_g + POSE_SIZE, n))
             if c > 0:
@@ -204,8 +209,11 @@ def frame_linearize(problem: Problem):
                 rows = rows.at[:, at:at + 3].set(chain(dp_de_rot))
                 rows = rows.at[:, at + 3:at + 6].set(dq_dp)
             if slices[c] is not None:
-                cols = [coeff_slots(spec.free).index(name) for name in spec.free]
-                rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, *(dc[:, i:i + 1] for i in cols)], axis=1))
+                if lens_model(spec.free) == "splined":  # its coefficients are its free knots, in order
+                    rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, dc], axis=1))
+                else:
+                    cols = [coeff_slots(spec.free).index(name) for name in spec.free]
+                    rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, *(dc[:, i:i + 1] for i in cols)], axis=1))
             if dp_dw is not None:
                 rows = rows.at[:, problem.warp_slice].set(chain(dp_dw))
             rows = rows.at[:, n_g:n_g + 3].set(chain(dp_drot))
@@ -222,13 +230,38 @@ def frame_linearize(problem: Problem):
     return linearize
 
 
+def prior_matrix(problem: Problem) -> np.ndarray | None:
+    """The solver's quadratic prior (G + 1, G + 1) on the shared vector (`lm.solve_structured_batch`): the rows of
+    each refined splined camera's `splined.prior_rows` on its knots; None when no camera has one (the other lens
+    models have no prior: their solves are as before)."""
+    blocks = [(sl, spec.free) for spec, sl in zip(problem.cameras, problem.intrinsic_slices())
+              if sl is not None and lens_model(spec.free) == "splined"]
+    if not blocks:
+        return None
+    rows = []
+    for sl, free in blocks:
+        a = splined.prior_rows(*splined.grid_of(free))
+        full = np.zeros((len(a), problem.n_shared + 1))
+        full[:, sl.start + 4:sl.stop] = a
+        rows.append(full)
+    a = np.concatenate(rows)
+    return a.T @ a
+
+
 # --- the compiled solver and how it is called --------------------------------------------------------------
 
 
-def chunk_rows(n_frames: int, n_points: int) -> int:
+def chunk_rows(n_frames: int, n_points: int, problem: Problem | None = None) -> int:
     """Problems per compiled call for frames of `n_points` corner observations (all cameras together), fixed
-    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`)."""
-    return int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`). A `problem` with
+    a splined camera gets fewer, in proportion to the square of its shared parameters against a rational camera's
+    (each frame's normal block is (G + 7)^2; the one chunked call pads a single full-set solve to this many
+    problems: a splined full-set solve would otherwise compute ~20 copies of itself, 103 s instead of 7 s)."""
+    rows = int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+    if problem is not None and any(lens_model(c.free) == "splined" for c in problem.cameras):
+        rational = 4 + 8 + POSE_SIZE + 1
+        rows = max(1, rows * rational ** 2 // (problem.n_shared + POSE_SIZE + 1) ** 2)
+    return rows
 
 
 def threads(requested: int | None = None) -> int:
@@ -244,10 +277,11 @@ def compiled_solver(problem: Problem, options: LMOptions):
     each with its own start, frame weights (0 = left out), residual weights (0 = unseen or an outlier) and
     initial damping. The full set and subsets of the same frames share its shape, so a calibration with subsets
     compiles once (compile time dominates a cold run), whatever the outlier mask."""
-    res, lin = frame_residual(problem), frame_linearize(problem)
+    res, lin, prior = frame_residual(problem), frame_linearize(problem), prior_matrix(problem)
 
     def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared):
-        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight)
+        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight,
+                                      None if prior is None else jnp.asarray(prior))
 
     return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
 
@@ -275,7 +309,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
     chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen."""
     n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
-    rows = chunk_rows(n_frames, k * n_pts)
+    rows = chunk_rows(n_frames, k * n_pts, problem)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
         parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,

@@ -47,7 +47,7 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
     if not gathered:
         # Every chunk of a masked plan shares the start, frames and linearisation; only the weights differ.
         # Put them on the device once, at the full chunk size, instead of copying them for every chunk.
-        full_rows = chunk_rows(n_frames, n_obs)
+        full_rows = chunk_rows(n_frames, n_obs, problem)
         put = lambda a: jax.device_put(np.ascontiguousarray(np.broadcast_to(a, (full_rows, *np.shape(a)))))  # noqa: E731
         common = (put(start.values), put(poses), put(obs))
         lam_all = put(np.float64(options.lambda0))
@@ -68,7 +68,7 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
         args, start_ne, r_w = chunk_args(rows)
         return run(problem, options, *args, shared, start_ne, r_w)._replace(normal=None, residuals=None)
 
-    rows = chunk_rows(m if gathered else n_frames, n_obs)
+    rows = chunk_rows(m if gathered else n_frames, n_obs, problem)
     chunks = [index[c: c + rows] for c in range(0, n_sub, rows)]
     outs, done = [], 0
     with ThreadPoolExecutor(min(threads(n_threads), len(chunks))) as pool:

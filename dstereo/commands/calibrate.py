@@ -23,8 +23,10 @@ def calibrate(
     unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
-        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or auto (the model that "
-        "best predicts held-out views, of k1k2, default, fisheye, rational; one camera)."),
+        "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
+        "correction surface over a stereographic lens, splined:NXxNY knots, default 10x8; one camera, full set), or "
+        "auto (the model that best predicts held-out views, of k1k2, default, fisheye, rational, splined; one "
+        "camera)."),
     model_right: Optional[str] = typer.Option(
         None, "--model-right", help="Stereo: the right camera's lens model when it differs from the left's --model "
         "(e.g. fisheye); default: --model for both."),
@@ -100,6 +102,8 @@ def calibrate(
     from dstereo.io import figure_pool
 
     figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
+    _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
+                                      cross_validate)
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
@@ -122,6 +126,7 @@ def calibrate(
         if cfg.board_sag:
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")
+        _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
                     projection_range)
         return
@@ -274,6 +279,26 @@ def _stereo_view_warnings(job) -> list[str]:
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
+def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> None:
+    """The splined lens (models/splined.py) is for one camera's full-set calibration (issue 16 item 2)."""
+    from dstereo.errors import DstereoError
+    from dstereo.models.distortion import lens_model
+
+    right = getattr(cfg, "model_right", None)
+    if rig and right is not None and lens_model(tuple(right)) == "splined":
+        raise DstereoError("--model-right splined: stereo rigs with splined cameras are not supported; calibrate "
+                           "that camera alone with --images DIR --model splined")
+    if lens_model(tuple(cfg.model)) != "splined":
+        return
+    if rig:
+        raise DstereoError("--model splined: stereo rigs and --cameras with splined cameras are not supported; "
+                           "calibrate each camera alone with --images DIR --model splined, the rig with a "
+                           "parametric model")
+    if cross_validate or cfg.per_set is not None:
+        raise DstereoError("--model splined: subsets (`per_set`) and --cross-validate are not available for the "
+                           "splined lens (its knots are ~160 parameters); run it on the full set alone")
+
+
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,
          projection_range: float | None = None, projection_method: str = "pose-compensated",
          cross_validate: int = 0) -> None:
@@ -320,7 +345,8 @@ def _render(cal, out: Path) -> None:
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final
     rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
-            for n, v, s in zip(full.names, full.values, reported_std(full))]
+            for n, v, s in zip(full.names, full.values, reported_std(full)) if full.lens_model != "splined" or
+            n[:3] not in ("sx_", "sy_")]  # a splined lens's knots (~160) are in camera.yml's splined section
     subsets = "subset mean +- spread"
     if cal.filtering is not None:
         subsets += f" ({int(cal.filtering.survivors.sum())} of {int(cal.filtering.usable.sum())} subsets)"
@@ -354,9 +380,11 @@ def _render(cal, out: Path) -> None:
         typer.echo(f"  fit on the surviving views (poses refitted): solve {c.rms_solution:.4f} px, subset mean "
                    f"{c.rms_mean:.4f} px ({c.ratio:.3f}x)")
     if cal.model_choice is not None:
+        from dstereo.models.distortion import model_label
+
         c = cal.model_choice.chosen_candidate
         others = ", ".join(f"{o.preset} {o.heldout_rms:.4f}" for o in cal.model_choice.candidates if o is not c)
-        typer.echo(f"model auto: {c.preset} ({','.join(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
+        typer.echo(f"model auto: {c.preset} ({model_label(c.free)}), held-out RMS {c.heldout_rms:.4f} px (others: "
                    f"{others}); the table is in report.md")
     t = cal.timings
     typer.echo("timings: " + ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in t.items()))

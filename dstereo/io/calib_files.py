@@ -82,6 +82,8 @@ def _read_storage(path: Path) -> dict:
         for key in root.keys():
             node = fs.getNode(key)
             if node.isMap() and not node.empty():
+                if node.getNode("dt").empty():  # a section, not a matrix (a splined camera's): its reader reads it
+                    continue
                 value = node.mat()
                 out[key] = value if value is not None else None
             elif node.isSeq():

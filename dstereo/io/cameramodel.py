@@ -31,6 +31,9 @@ OPENCV_MODELS = {"LENSMODEL_PINHOLE": 0, "LENSMODEL_OPENCV4": 4, "LENSMODEL_OPEN
 NO_TWIN = ("the fisheye model (Kannala-Brandt, cv2.fisheye) has no mrcal twin (mrcal's models: PINHOLE, "
            "STEREOGRAPHIC, LONLAT, LATLON, OPENCV4/5/8/12, CAHVOR, CAHVORE, SPLINED_STEREOGRAPHIC): no "
            "camera.cameramodel written")
+NO_SPLINED_TWIN = ("dstereo's splined lens has no mrcal twin: mrcal's LENSMODEL_SPLINED_STEREOGRAPHIC scales its "
+                   "surface by the focal length, spans the grid by a field of view and lays its knots otherwise, so "
+                   "the two models differ: no camera.cameramodel written")
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,8 @@ def lensmodel_for(free: Sequence[str]) -> tuple[str | None, str]:
     free = set(free)
     if lens_model(tuple(free)) == "fisheye":
         return None, NO_TWIN
+    if lens_model(tuple(free)) == "splined":
+        return None, NO_SPLINED_TWIN
     for name, n in OPENCV_MODELS.items():
         if free <= set(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")[:n]):
             return name, f"{name}: the OpenCV model holding {', '.join(sorted(free)) or 'no distortion'}"

@@ -181,6 +181,8 @@ def distortion_vector(coeffs8: np.ndarray, free: Sequence[str]) -> np.ndarray:
 
     if lens_model(tuple(free)) == "fisheye":
         return np.asarray(coeffs8, float)[:4]
+    if lens_model(tuple(free)) == "splined":  # no OpenCV vector: its knots are in the file's splined section
+        return np.zeros(0)
     return np.asarray(coeffs8, float)[: 8 if set(free) & {"k4", "k5", "k6"} else 5]
 
 
@@ -190,14 +192,17 @@ def distortion_names(free: Sequence[str], n: int) -> list[str]:
 
     if lens_model(tuple(free)) == "fisheye":
         return ["k1", "k2", "k3", "k4"]
+    if lens_model(tuple(free)) == "splined":
+        return []
     return ["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"][:n]
 
 
 def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict,
-                       model: str = "pinhole") -> None:
+                       model: str = "pinhole", splined=None) -> None:
     """camera.yml (cv2.FileStorage) and camera.json with the same numbers. A fisheye camera adds
     `distortion_model: fisheye` (D is then cv2.fisheye's 4-vector); without the field the camera is OpenCV's
-    pinhole + distortion model, as before."""
+    pinhole + distortion model, as before. A splined camera: `splined` = (knots, free, valid spans), written as
+    the file's splined section (`camera_file.write_splined_section`)."""
     import cv2
 
     fs = cv2.FileStorage(str(folder / "camera.yml"), cv2.FILE_STORAGE_WRITE)
@@ -207,7 +212,12 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
         if model != "pinhole":
             fs.write("distortion_model", model)
         fs.write("camera_matrix", np.asarray(K, np.float64))
-        fs.write("distortion_coefficients", np.asarray(D, np.float64).reshape(1, -1))
+        if splined is not None:
+            from dstereo.io.camera_file import write_splined_section
+
+            write_splined_section(fs, *splined)
+        else:
+            fs.write("distortion_coefficients", np.asarray(D, np.float64).reshape(1, -1))
     finally:
         fs.release()
     flag = {} if model == "pinhole" else {"distortion_model": model}
@@ -355,7 +365,14 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
     figures = Figures()  # drawn in the figure workers (when started) while this process writes the rest
     K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
     names = distortion_names(full.free, len(D))
-    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, extra={
+    section = None
+    if full.lens_model == "splined":
+        from dstereo.models import splined
+
+        k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
+        section = (cal.final_coefficients, full.free,
+                   splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free))))
+    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, extra={
         "distortion_names": names, "source": summary["final_source"],
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
@@ -418,6 +435,8 @@ def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> 
     import cv2
 
     folder.mkdir()
+    if cal.full.lens_model == "splined":  # OpenCV cannot undistort this lens
+        return []
     w, h = cal.detection.image_size
     reach = np.max(np.linalg.norm(cal.observations - np.array([w / 2, h / 2]), axis=2), axis=1)
     by_name = {p.name: p for p in cal.files}
@@ -477,13 +496,17 @@ def _fmt_px(value) -> str:
 
 def report_markdown(cal, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
+    from dstereo.models.distortion import model_label
+
     full, cfg, board = cal.full, cal.config, cal.detection.board  # the board summary.json reports, too
     lines = [f"# Camera calibration: {cal.folder}", "",
              f"- board: {board.cols} x {board.rows} inner corners, square {board.square:g} {cfg.unit}",
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
-             f"- distortion model: {full.lens_model}, {', '.join(full.free) or 'none'}",
+             f"- distortion model: {full.lens_model}, "
+             + (f"{model_label(full.free)} (knots in camera.yml's splined section)" if full.lens_model == "splined"
+                else f"{', '.join(full.free) or 'none'}"),
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]

@@ -14,6 +14,7 @@ from jaxtyping import Array, Float
 
 from dstereo.errors import DstereoError
 from dstereo.models.fisheye import FISHEYE_NAMES
+from dstereo.models.splined import DEFAULT_GRID, grid_of, is_splined, knot_names
 
 COEFF_NAMES: tuple[str, ...] = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 # The fisheye lens (dstereo.models.fisheye) keeps cv2.fisheye's D = (k1..k4) in the first four of the same
@@ -30,17 +31,45 @@ PRESETS: dict[str, tuple[str, ...]] = {
     "default": ("k1", "k2", "p1", "p2", "k3"),
     "rational": COEFF_NAMES,
     "fisheye": FISHEYE_NAMES,
+    # the splined lens (dstereo.models.splined): every knot of its grid is free; "splined:NXxNY" picks the grid
+    "splined": knot_names(*DEFAULT_GRID),
 }
 
 
 def lens_model(free: tuple[str, ...]) -> str:
-    """'fisheye' when the free set names fisheye coefficients (fk1..fk4), else 'pinhole' (OpenCV's rational)."""
+    """'fisheye' when the free set names fisheye coefficients (fk1..fk4), 'splined' when it names spline knots
+    (sx_0_0, ...), else 'pinhole' (OpenCV's rational)."""
+    if is_splined(tuple(free)):
+        return "splined"
     return "fisheye" if any(n in FISHEYE_NAMES for n in free) else "pinhole"
 
 
+def model_label(free: tuple[str, ...]) -> str:
+    """A free set as people read it: 'k1,k2,p1,p2,k3', 'none', or a splined lens's 'splined:NXxNY' (not its knots)."""
+    if is_splined(tuple(free)):
+        nx, ny = grid_of(tuple(free))
+        return f"splined:{nx}x{ny}"
+    return ",".join(free) or "none"
+
+
 def coeff_slots(free: tuple[str, ...]) -> tuple[str, ...]:
-    """Names of the 8 coefficient slots for the lens model of `free` (OpenCV order, or fisheye k1..k4 + 4 unused)."""
+    """Names of the coefficient slots for the lens model of `free`: 8 (OpenCV order, or fisheye k1..k4 + 4
+    unused); a splined lens has one slot per knot, all of them free (its coefficient vector is `free` itself)."""
+    if is_splined(tuple(free)):
+        return tuple(free)
     return FISHEYE_SLOTS if lens_model(free) == "fisheye" else COEFF_NAMES
+
+
+def _splined_spec(key: str) -> tuple[str, ...]:
+    """'splined:NXxNY' -> its knot names."""
+    try:
+        nx, ny = (int(v) for v in key.split(":", 1)[1].split("x"))
+    except ValueError:
+        nx = ny = 0
+    if nx < 4 or ny < 4:
+        raise DstereoError(f"model: {key!r}: write a splined grid as splined:NXxNY with NX, NY >= 4 knots "
+                           f"(e.g. splined:{DEFAULT_GRID[0]}x{DEFAULT_GRID[1]}, the default)")
+    return knot_names(nx, ny)
 
 
 def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
@@ -49,9 +78,17 @@ def parse_model(spec: str | tuple[str, ...] | list[str]) -> tuple[str, ...]:
         key = spec.strip().lower()
         if key in PRESETS:
             return PRESETS[key]
+        if key.startswith("splined:"):
+            return _splined_spec(key)
         names = [s.strip().lower() for s in key.replace(" ", ",").split(",") if s.strip()]
     else:
         names = [s.strip().lower() for s in spec]
+    if names and is_splined(tuple(names)):
+        try:
+            grid_of(tuple(names))
+        except ValueError as exc:
+            raise DstereoError(f"model: {exc}") from None
+        return tuple(names)
     bad = [n for n in names if n not in COEFF_NAMES + FISHEYE_NAMES]
     if bad:
         raise DstereoError(
@@ -73,6 +110,8 @@ def with_free(coeffs: Float[Array, "8"], free: tuple[str, ...], values: Float[Ar
     Built from static slices rather than an indexed update: inside a compiled solver an `.at[].set` becomes
     a scatter loop, which costs compile time for nothing when the positions are known at trace time.
     """
+    if is_splined(free):  # every knot is free: the vector is the values
+        return values
     parts = []
     for i, name in enumerate(coeff_slots(free)):
         parts.append(values[free.index(name)][None] if name in free else coeffs[i:i + 1])

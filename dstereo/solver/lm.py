@@ -120,6 +120,15 @@ def _blocks(ne: _Normal, active, n_g: int) -> _Blocks:
     )
 
 
+def _with_prior(b: _Blocks, g, prior) -> _Blocks:
+    """The blocks plus a quadratic prior on the shared vector, [g 1] P [g 1]' (P = [A -y]'[A -y] of prior rows
+    A g - y, (G + 1, G + 1)), or unchanged without one (None: the problem has no prior)."""
+    if prior is None:
+        return b
+    z = jnp.append(g, 1.0)
+    return b._replace(sse=b.sse + z @ prior @ z, u=b.u + prior[:-1, :-1], bg=b.bg - prior[:-1] @ z)
+
+
 def _scaled_solve(a, b):
     """Solve a x = b for symmetric positive definite a after Jacobi scaling (unit diagonal).
 
@@ -179,14 +188,14 @@ def _start(g0, p0, r_shape, normal0, lambda0) -> _State:
     return _State(g0, p0, _Normal(r, m), lambda0, jnp.asarray(2.0), jnp.asarray(given).astype(int), jnp.asarray(0))
 
 
-def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _State) -> _State:
+def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _State, prior=None) -> _State:
     """One LM pass of one problem: solve for a damped step, linearise the trial point there, accept or
     reject it, and test convergence. The model is evaluated once per pass, so the compiled loop holds one
     copy of it. Pass 0 (no linearisation given) takes a zero step: it linearises the start."""
     first = s.it == 0
     done = s.status != 0  # in a batch, a finished problem keeps its point, status and count (never accepts)
     used = (active > 0)[:, None]
-    cur = _blocks(s.ne, active, s.g.shape[0])
+    cur = _with_prior(_blocks(s.ne, active, s.g.shape[0]), s.g, prior)
     # Largest cosine between the residual vector and a Jacobian column at the current point (MINPACK's gtol
     # test). Shared and per-view parts are reduced apart: a max over their concatenation compiles into a
     # slow tree reduction.
@@ -199,6 +208,8 @@ def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _Sta
     g_t, p_t = s.g + dg, s.p + dp
     ne_t = _normal_equations(linearize, g_t, p_t, data, shared, r_weight)
     sse_t = jnp.sum(active * ne_t.m[:, -1, -1])
+    if prior is not None:
+        sse_t = sse_t + jnp.append(g_t, 1.0) @ prior @ jnp.append(g_t, 1.0)
     sse = jnp.where(first, jnp.inf, cur.sse)
     actual = 0.5 * (sse - sse_t)
     finite = jnp.isfinite(sse_t) & jnp.all(jnp.isfinite(g_t)) & jnp.all(jnp.isfinite(p_t))
@@ -235,12 +246,12 @@ def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _Sta
                   jnp.where(done, s.status, status))
 
 
-def _result(s: _State, active, r_weight) -> LMResult:
+def _result(s: _State, active, r_weight, prior=None) -> LMResult:
     # Only residuals of positive weight count (the residual dof and sigma^2 of an outlier-masked solve are the
     # inliers'); views count with their weights.
     n_res = jnp.round(jnp.sum(active * jnp.sum(r_weight > 0, axis=1))).astype(int)
-    b = _blocks(s.ne, active, s.g.shape[0])
-    return LMResult(s.g, s.p, b.sse, s.it - 1, s.status, schur_complement(b), n_res,
+    b = _blocks(s.ne, active, s.g.shape[0])  # sse: the residuals' alone; the Schur complement: with the prior
+    return LMResult(s.g, s.p, b.sse, s.it - 1, s.status, schur_complement(_with_prior(b, s.g, prior)), n_res,
                     s.ne.r * jnp.sqrt(active)[:, None], s.ne.m)
 
 
@@ -298,8 +309,12 @@ def solve_structured_batch(
     lambda0: Float[Array, " N"] | None = None,
     normal0: tuple | None = None,
     r_weight: Float[Array, "N V R"] | None = None,
+    prior: Float[Array, "G1 G1"] | None = None,
 ) -> LMResult:
     """`solve_structured` for N problems at once (every argument but `shared` has a leading axis N).
+
+    `prior` (G + 1, G + 1), shared by the batch: a quadratic prior [g 1] P [g 1]' added to the cost (prior rows on
+    the shared vector, e.g. a splined lens's curvature), in the steps and the Schur complement, not in `sse`.
 
     The loop is written around the batch (one while loop whose pass is vmapped; finished problems idle)
     rather than as `jax.vmap` of the one-problem loop: the result is the same, but JAX traces the pass once
@@ -311,6 +326,6 @@ def solve_structured_batch(
     lam0 = jnp.full(n, options.lambda0) if lambda0 is None else jnp.asarray(lambda0, float)
     r_weight = jnp.ones((n, *r_shape)) if r_weight is None else jnp.asarray(r_weight, float)
     start = jax.vmap(lambda g, p, l, ne: _start(g, p, r_shape, ne, l))(g0, p0, lam0, normal0)
-    step = jax.vmap(lambda s, d, a, w: _pass(linearize, d, shared, options, a, w, s))
+    step = jax.vmap(lambda s, d, a, w: _pass(linearize, d, shared, options, a, w, s, prior))
     end = jax.lax.while_loop(lambda s: jnp.any(s.status == 0), lambda s: step(s, data, active, r_weight), start)
-    return jax.vmap(_result)(end, active, r_weight)
+    return jax.vmap(lambda s, a, w: _result(s, a, w, prior))(end, active, r_weight)

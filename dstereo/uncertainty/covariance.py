@@ -157,8 +157,11 @@ def joint_normal(normal: np.ndarray, n_shared: int, weight: np.ndarray | None = 
 
 
 def joint_covariance(normal: np.ndarray, n_shared: int, sse: float, n_residuals: int,
-                     weight: np.ndarray | None = None) -> np.ndarray:
+                     weight: np.ndarray | None = None, prior: np.ndarray | None = None) -> np.ndarray:
     """Covariance of (shared parameters, all view poses) of a solve, sigma^2 (J'J)^-1 with the unbiased sigma^2
-    of `covariance`; its shared block equals `covariance(schur, ...)` (the Schur complement's inverse)."""
+    of `covariance`; its shared block equals `covariance(schur, ...)` (the Schur complement's inverse). `prior`
+    (G, G): the information a prior on the shared vector adds (a splined lens's), as in the solve."""
     jtj = joint_normal(normal, n_shared, weight)
+    if prior is not None:
+        jtj[:n_shared, :n_shared] += prior
     return covariance(jtj, sse, n_residuals, len(jtj))

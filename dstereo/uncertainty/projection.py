@@ -32,7 +32,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
-from dstereo.models import fisheye
+from dstereo.models import fisheye, splined
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
 from dstereo.models.pose import rodrigues, rotation_matrix
@@ -82,9 +82,28 @@ def _invertible(k, coeffs, q, x):
     return ok_trip & jnp.all(slopes > 0) & jnp.all(den > 0) & (det > 0) & jnp.all(jnp.isfinite(x))
 
 
+def _splined_grid(model: str) -> tuple[int, int]:
+    """(NX, NY) of a model key 'splined:NXxNY' (`model_key`)."""
+    nx, ny = model.split(":")[1].split("x")
+    return int(nx), int(ny)
+
+
+def model_key(names) -> str:
+    """The lens model of a camera's parameter names as the compiled maps' key: pinhole, fisheye, splined:NXxNY."""
+    coeffs = tuple(n for n in names if n not in INTRINSIC_NAMES and not n.startswith("board_sag"))
+    model = lens_model(coeffs)
+    if model == "splined":
+        nx, ny = splined.grid_of(coeffs)
+        return f"splined:{nx}x{ny}"
+    return model
+
+
 def _point(k, coeffs, q, range_, model: str = "pinhole"):
-    """The point at `range_` along q's ray and whether the ray was found (fisheye: the model's own inverse, with
-    its convergence check, in front of the camera)."""
+    """The point at `range_` along q's ray and whether the ray was found (fisheye, splined: the model's own
+    inverse, with its convergence check; fisheye: in front of the camera)."""
+    if model.startswith("splined"):
+        ray, ok = splined.unproject(k, coeffs, q, *_splined_grid(model))
+        return range_ * ray, ok
     if model == "fisheye":
         ray, ok = fisheye.unproject(k, coeffs[:4], q)
         ok = ok & jnp.all(jnp.isfinite(ray)) & (ray[2] > 0)
@@ -95,6 +114,8 @@ def _point(k, coeffs, q, range_, model: str = "pinhole"):
 
 
 def _project(k, coeffs, p, model: str = "pinhole"):
+    if model.startswith("splined"):
+        return splined.project(k, coeffs, p, *_splined_grid(model))
     return fisheye.project(k, coeffs[:4], p) if model == "fisheye" else project(k, coeffs, p)
 
 
@@ -198,8 +219,9 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
         raise DstereoError(f"projection uncertainty method {method!r}: use one of {', '.join(METHODS)}")
     if not np.isfinite(range_) or range_ <= 0:
         raise DstereoError(f"projection uncertainty range {range_}: give a positive distance (board unit)")
-    model = lens_model(tuple(names))
-    known = FISHEYE_CAMERA_NAMES if model == "fisheye" else CAMERA_NAMES
+    model = model_key(names)
+    known = (FISHEYE_CAMERA_NAMES if model == "fisheye" else
+             INTRINSIC_NAMES + tuple(names[4:]) if model.startswith("splined") else CAMERA_NAMES)
     unknown = [n for n in names if n not in known or not n]
     if unknown:
         raise DstereoError(f"projection uncertainty: unknown camera parameter(s) {unknown}; use {list(CAMERA_NAMES)} "
@@ -241,7 +263,8 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum())
+        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
+                                 prior=knot_prior(sol.names))
         keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
         pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * joint[np.ix_(keep, keep)],
                                           image_size, range_, grid, poses=sol.poses, method=method)
@@ -249,6 +272,18 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * sol.cov[np.ix_(lens, lens)],
                                           image_size, range_, grid, method=method)
     return replace(pmap, view_scatter=scatter)
+
+
+def knot_prior(names) -> np.ndarray | None:
+    """(G, G) the information a splined lens's prior adds to the shared block of J'J (its knots follow fx fy cx cy;
+    `splined.prior_rows`, as in the solve), or None for the other lens models."""
+    key = model_key(names)
+    if key.startswith("splined"):
+        a = splined.prior_rows(*_splined_grid(key))
+        out = np.zeros((len(names), len(names)))
+        out[4:4 + a.shape[1], 4:4 + a.shape[1]] = a.T @ a
+        return out
+    return None
 
 
 def mean_board_distance(poses: np.ndarray, object_points: np.ndarray) -> float:
