@@ -37,6 +37,7 @@ PARAMETRIC: tuple[str, ...] = ("k1k2", "default", "fisheye", "rational")  # pres
 CANDIDATES: tuple[str, ...] = PARAMETRIC + ("splined",)
 MAX_FOLDS = 30  # up to this many views: leave one view out; beyond: this many folds of equal size
 FIT_MARGIN = 0.01  # a chosen model's training RMS may exceed the held-out-best model's by at most 1 %
+SPLINE_GATE_P = 1e-3  # residual-pattern p-value below which the splined lens is worth its minutes of solving
 POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-set pose (converges in < 10)
 WEAK_Z = 2.0  # a coefficient whose |value| is below WEAK_Z of its standard deviations is not told from zero
 # Residual structure: corners in STRUCTURE_RINGS rings of equal count around the principal point; a ring whose
@@ -225,18 +226,43 @@ def choose_model(obj, obs, image_size, candidates: tuple[str, ...] = CANDIDATES,
     for i, preset in enumerate(candidates):
         if progress is not None:
             progress(i, len(candidates))
+        skip = _spline_not_needed(rows, obs) if preset == "splined" else None
+        if skip is not None:
+            rows.append(_left_out(preset, len(obs), skip))
+            continue
         try:
             rows.append(evaluate(preset, obj, obs, image_size))
         except DstereoError as exc:  # a model whose full-set solve fails outright is out, with the reason
-            rows.append(Candidate(preset, PRESETS[preset], 4 + len(PRESETS[preset]), float("nan"), float("nan"),
-                                  np.full(len(obs), np.nan), False, False, float("nan"), ("", float("nan")),
-                                  note=f"failed: {exc}"))
+            rows.append(_left_out(preset, len(obs), f"failed: {exc}"))
     if progress is not None:
         progress(len(candidates), len(candidates))
     chosen, best = choose(rows)
     _, held = fold_plan(len(obs))
     return ModelChoice(rows, chosen, best, folds=len(held), heldout_views=int(held.size), rule=RULE,
                        timings={"model_choice_s": time.perf_counter() - t0})
+
+
+def _left_out(preset: str, n_views: int, note: str) -> Candidate:
+    return Candidate(preset, PRESETS[preset], 4 + len(PRESETS[preset]), float("nan"), float("nan"),
+                     np.full(n_views, np.nan), False, False, float("nan"), ("", float("nan")), note=note)
+
+
+def _spline_not_needed(rows: list[Candidate], obs) -> str | None:
+    """Why the splined lens is not evaluated (None: evaluate it). Its folds cost minutes where a parametric
+    model's cost seconds, and it can only win where the best parametric model leaves structure: so it is solved
+    when the best parametric candidate's residuals show a pattern across the image (`calib.misfit`, p below
+    SPLINE_GATE_P, far looser than the warning's 1e-6), or when no parametric candidate is usable."""
+    from dstereo.calib.misfit import solution_pattern
+
+    usable = [c for c in rows if c.converged and np.isfinite(c.heldout_rms) and c.solution is not None]
+    if not usable:
+        return None
+    best = min(usable, key=lambda c: c.heldout_rms)
+    pattern = solution_pattern(obs, best.solution)
+    if pattern.p_value < SPLINE_GATE_P:
+        return None
+    return (f"not evaluated: the best parametric model ({best.preset}) leaves no residual pattern across the image "
+            f"(p = {pattern.p_value:.2g} >= {SPLINE_GATE_P:g}), so no spline can predict held-out views better")
 
 
 def choice_warning(choice: ModelChoice) -> str | None:

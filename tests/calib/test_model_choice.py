@@ -205,3 +205,12 @@ def test_fisheye640_auto_is_no_worse_than_opencvs_best(tmp_path):
     assert "## Model choice (--model auto)" in report
     if choice["chosen"] in ("fisheye", "splined"):  # no mrcal twin: no camera.cameramodel, and the report says so
         assert not (tmp_path / "out" / "camera.cameramodel").exists() and "no mrcal twin" in report
+
+
+def test_splined_lens_is_solved_only_where_the_best_parametric_model_leaves_a_pattern(fisheye_choice, pinhole_choice):
+    """Both synthetic lenses are parametric (cv2.fisheye's, a k1 k2 pinhole): their best candidate leaves noise
+    only, so the minutes of spline folds are skipped with the reason; the odd lens (no parametric twin) is the
+    other side of the gate (tests/calib/test_splined_calibration.py)."""
+    for choice, _ in (fisheye_choice, pinhole_choice):
+        row = _by_name(choice)["splined"]
+        assert not row.converged and row.note.startswith("not evaluated"), row.note

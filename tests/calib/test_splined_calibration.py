@@ -97,3 +97,15 @@ def test_cli_refuses_a_splined_rig_and_subsets_in_one_line(tmp_path):
                            "--per-set", "5", "--out", tmp_path / "out")
     assert code == 1 and "--cross-validate are not available for the splined lens" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_auto_gate_opens_for_the_odd_lens(odd_views):
+    """`--model auto` solves the splined lens when the best parametric model leaves a residual pattern: the odd
+    lens's 2 px wave leaves one under every parametric model."""
+    from dstereo.calib.model_choice import Candidate, _spline_not_needed
+
+    train = odd_views[0]
+    sol = calibrate_full(OBJ, train, LENS.image_size, free=PRESETS["fisheye"])
+    row = Candidate("fisheye", PRESETS["fisheye"], 8, sol.rms, 0.8, np.zeros(len(train)), True, True, 1.0, ("", 0.0),
+                    solution=sol)
+    assert _spline_not_needed([row], train) is None
