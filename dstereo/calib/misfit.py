@@ -118,3 +118,29 @@ def solution_pattern(obs: np.ndarray, sol) -> ResidualPattern:
     mask = np.ones(obs.shape[:2], bool) if sol.inliers is None else sol.inliers
     sigma = noise_sigma(sol.residuals, mask, len(sol.values) + 6 * int(mask.any(axis=1).sum()))
     return residual_pattern(obs, sol.residuals, sol.image_size, sigma, mask)
+
+
+def neighbour_correlation(obs: np.ndarray, residuals: np.ndarray, inliers: np.ndarray | None = None
+                          ) -> tuple[float, float]:
+    """(rho, z): how alike the residual vectors of neighbouring corners of one view are. Each inlier corner is
+    paired with its nearest inlier corner of the same view; rho = sum r_i . r_j / sum |r_i|^2 over the pairs, and
+    z = sum r_i . r_j / sqrt(sum (r_i . r_j)^2) (about N(0, 1) when corner errors are independent: each product
+    then has mean 0). A lens model that does not fit leaves residuals that vary smoothly over the board (rho near
+    1); detection noise alone leaves rho near 0. The coarse cell test (`residual_pattern`) misses a misfit whose
+    poses absorb a different part in each view; this one does not care where in the image it is."""
+    obs, residuals = np.asarray(obs, float), np.asarray(residuals, float)
+    mask = np.ones(obs.shape[:2], bool) if inliers is None else np.asarray(inliers, bool)
+    dots, norms = [], []
+    for v in range(len(obs)):
+        p, r = obs[v][mask[v]], residuals[v][mask[v]]
+        if len(p) < 2:
+            continue
+        d2 = np.sum((p[:, None] - p[None]) ** 2, axis=-1)
+        np.fill_diagonal(d2, np.inf)
+        j = np.argmin(d2, axis=1)
+        dots.append(np.sum(r * r[j], axis=1))
+        norms.append(np.sum(r * r, axis=1))
+    if not dots:
+        return float("nan"), float("nan")
+    dots, norms = np.concatenate(dots), np.concatenate(norms)
+    return float(dots.sum() / max(norms.sum(), 1e-300)), float(dots.sum() / max(np.sqrt(np.sum(dots ** 2)), 1e-300))

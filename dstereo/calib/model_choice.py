@@ -38,6 +38,7 @@ CANDIDATES: tuple[str, ...] = PARAMETRIC + ("splined",)
 MAX_FOLDS = 30  # up to this many views: leave one view out; beyond: this many folds of equal size
 FIT_MARGIN = 0.01  # a chosen model's training RMS may exceed the held-out-best model's by at most 1 %
 SPLINE_GATE_P = 1e-3  # residual-pattern p-value below which the splined lens is worth its minutes of solving
+SPLINE_GATE_Z = 3.1  # ... or neighbour-correlation z above which (one-sided p ~ 1e-3 when errors are independent)
 POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-set pose (converges in < 10)
 WEAK_Z = 2.0  # a coefficient whose |value| is below WEAK_Z of its standard deviations is not told from zero
 # Residual structure: corners in STRUCTURE_RINGS rings of equal count around the principal point; a ring whose
@@ -251,18 +252,22 @@ def _spline_not_needed(rows: list[Candidate], obs) -> str | None:
     """Why the splined lens is not evaluated (None: evaluate it). Its folds cost minutes where a parametric
     model's cost seconds, and it can only win where the best parametric model leaves structure: so it is solved
     when the best parametric candidate's residuals show a pattern across the image (`calib.misfit`, p below
-    SPLINE_GATE_P, far looser than the warning's 1e-6), or when no parametric candidate is usable."""
-    from dstereo.calib.misfit import solution_pattern
+    SPLINE_GATE_P, far looser than the warning's 1e-6) or vary smoothly along the board (neighbouring corners'
+    residuals alike: z above SPLINE_GATE_Z), or when no parametric candidate is usable."""
+    from dstereo.calib.misfit import neighbour_correlation, solution_pattern
 
     usable = [c for c in rows if c.converged and np.isfinite(c.heldout_rms) and c.solution is not None]
     if not usable:
         return None
     best = min(usable, key=lambda c: c.heldout_rms)
-    pattern = solution_pattern(obs, best.solution)
-    if pattern.p_value < SPLINE_GATE_P:
+    sol = best.solution
+    pattern = solution_pattern(obs, sol)
+    rho, z = neighbour_correlation(obs, sol.residuals, sol.inliers)
+    if pattern.p_value < SPLINE_GATE_P or not z <= SPLINE_GATE_Z:
         return None
-    return (f"not evaluated: the best parametric model ({best.preset}) leaves no residual pattern across the image "
-            f"(p = {pattern.p_value:.2g} >= {SPLINE_GATE_P:g}), so no spline can predict held-out views better")
+    return (f"not evaluated: the best parametric model ({best.preset}) leaves residuals like noise (no pattern "
+            f"across the image, p = {pattern.p_value:.2g}; neighbouring corners' residuals correlate {rho:+.2f}, "
+            f"z = {z:.1f} <= {SPLINE_GATE_Z:g}), so no spline can predict held-out views better")
 
 
 def choice_warning(choice: ModelChoice) -> str | None:

@@ -82,3 +82,19 @@ def test_the_webcams_wild_rational_fit_is_flagged_where_the_condition_number_pas
     assert not c.identifiable and {"k1", "k3"} <= {w[0] for w in c.wild}
     assert "smaller distortion model" in c.message()
     assert mono.calibrate_full(d.object_points, obs, d.image_size, PRESETS["default"]).conditioning.identifiable
+
+
+def test_neighbour_correlation_separates_a_smooth_misfit_from_noise():
+    """Independent residuals: rho ~ 0 and z ~ N(0, 1); residuals that are a smooth field over the board (what a
+    lens model that does not fit leaves), plus the same noise: rho near 1 and z far beyond the gate."""
+    from dstereo.calib.misfit import neighbour_correlation
+
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(np.arange(9.0), np.arange(6.0)), -1).reshape(-1, 2) * 30.0
+    obs = np.stack([grid + rng.uniform(0, 300, 2) for _ in range(12)])
+    noise = rng.normal(0, 0.1, obs.shape)
+    rho, z = neighbour_correlation(obs, noise)
+    assert abs(rho) < 0.1 and abs(z) < 3.5
+    field = 0.5 * np.stack([np.sin(obs[..., 1] / 120.0), np.cos(obs[..., 0] / 150.0)], axis=-1)
+    rho, z = neighbour_correlation(obs, field + noise)
+    assert rho > 0.8 and z > 10.0
