@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import statistics
 import subprocess
 import sys
@@ -37,7 +36,7 @@ def uptime() -> str:
 def run(images: Path, out: Path, cache: Path, flags: list[str], aot: bool) -> dict:
     env = dict(os.environ, DSTEREO_JAX_CACHE=str(cache), DSTEREO_AOT="1" if aot else "0")
     cmd = [sys.executable, "-m", "experiments._profiled_cli", "calibrate", "--images", str(images), "--pattern",
-           "9x6", "--out", str(out), "--force", *flags]
+           "9x6", "--out", str(out), "--force", "-q", *flags]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     wall = time.perf_counter() - t0
@@ -45,8 +44,6 @@ def run(images: Path, out: Path, cache: Path, flags: list[str], aot: bool) -> di
         raise SystemExit(f"failed: {' '.join(cmd)}\n{done.stderr[-3000:]}")
     profile = json.loads(next(ln for ln in done.stderr.splitlines() if ln.startswith("PROFILE "))[8:])
     row = {"wall_s": wall, **profile["totals"]}
-    timings = next((ln for ln in done.stdout.splitlines() if ln.startswith("timings:")), "")
-    row.update({k: float(v) for k, v in re.findall(r"(\w+) ([\d.]+) s", timings)})
     return row
 
 
