@@ -85,7 +85,8 @@ def main() -> None:
     load.append(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     if proc.returncode != 0:
         raise SystemExit(f"failed ({proc.returncode}):\n{output[-3000:]}")
-    lines = [ln for ln in output.splitlines() if ln.startswith(("subsets:", "timings:", "dstereo: warning: subsets"))]
+    lines = [ln for ln in output.splitlines() if ln.startswith(("subsets:", "timings:", "dstereo: warning: subsets"))
+             and " ETA " not in ln]  # the progress lines (not a terminal: one per update) left out
     csv = work / "out" / "subsets.csv"
     rows = sum(1 for _ in csv.open()) - 1 if csv.exists() else None
     rss_text = ", ".join(f"{t:.0f} s {r / 1024:.0f} MB" for t, r, _ in samples[:: max(1, len(samples) // 12)])
