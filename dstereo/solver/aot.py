@@ -153,11 +153,12 @@ class AotFunction:
 
     def _load_or_build(self, sig: tuple, args: tuple):
         """(callable, its output on `args`)."""
-        path = None if jax.config.jax_disable_jit else self.path(self.key(sig))
+        key = None if jax.config.jax_disable_jit or cache_folder() is None else self.key(sig)
+        path = None if key is None else self.path(key)
         if path is None:
             self.events.append("plain jit: no cache folder, DSTEREO_AOT=0 or jit disabled")
             return self.jitted, self.jitted(*args)
-        key, why = self.key(sig), "no file"
+        why = "no file"
         if path.exists():
             try:
                 exe = _load(path, key)
