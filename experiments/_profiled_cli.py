@@ -83,6 +83,9 @@ def _report() -> None:
 
 
 if __name__ == "__main__":
+    import os
+
+    os.environ.setdefault("DSTEREO_AOT", "1")  # builds executables as the `dstereo` command's process does
     import dstereo
 
     dstereo._configure_jax = _after_jax(dstereo._configure_jax)

@@ -18,7 +18,9 @@ version, edit or machine), a colliding, truncated or unreadable one is never use
 compiled as `jax.jit` would) and overwritten. A loaded executable's first call is waited for, and a runtime
 refusal there also rebuilds; the executable checks its arguments' types at every call. Without a compilation
 cache folder (DSTEREO_JAX_CACHE=0), with DSTEREO_AOT=0, under `jax.disable_jit`, or where an executable cannot be
-serialized, the function runs as plain `jax.jit`. Results are the same either way, bit for bit (tests): the file
+serialized, the function runs as plain `jax.jit`; a missing file is built only in the `dstereo` command's own
+process or with DSTEREO_AOT=1 (`builds_here`), elsewhere (tests, library use) the function runs as plain `jax.jit`
+then, and existing files are loaded everywhere. Results are the same either way, bit for bit (tests): the file
 holds what the same compile produces. Two jaxlib 0.10.2 limits shape the build (`jax_workarounds`).
 """
 
@@ -108,6 +110,21 @@ def cache_folder() -> Path | None:
     return Path(base) / FOLDER
 
 
+def builds_here() -> bool:
+    """Whether a missing executable is compiled afresh and stored (DSTEREO_AOT=1), or the function runs as plain
+    `jax.jit` instead (the persistent cache still fetches its compile). Default: only in the `dstereo` command's
+    own process. A fresh compile costs about a cold one, and every edit of the package asks for one per program:
+    a test session or a library user after an edit would pay it where the persistent cache alone fetched the
+    compile; a command run pays it once and loads the file from then on."""
+    setting = os.environ.get("DSTEREO_AOT", "")
+    if setting:
+        return setting == "1"
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return (getattr(spec, "name", None) == "dstereo.cli"
+            or Path(getattr(main, "__file__", "") or "").name in ("dstereo", "dstereo.exe", "dstereo-script.py"))
+
+
 def _count_cache_hits(event: str, **_) -> None:
     if event == CACHE_HIT_EVENT and hasattr(_compiling, "hits"):
         _compiling.hits += 1
@@ -170,6 +187,9 @@ class AotFunction:
                 why = str(exc)
             except Exception as exc:  # noqa: BLE001 - unreadable, truncated, refused by the runtime: rebuild it
                 why = f"unusable ({type(exc).__name__}: {str(exc)[:200]})"
+        if not builds_here():
+            self.events.append(f"plain jit: {why}, and this process does not build (DSTEREO_AOT)")
+            return self.jitted, self.jitted(*args)
         compiled, fresh = self._compile(args)
         if fresh:
             try:

@@ -40,6 +40,7 @@ def _args(n=4):
 @pytest.fixture
 def folder(tmp_path, monkeypatch):
     monkeypatch.setattr(aot, "cache_folder", lambda: tmp_path)
+    monkeypatch.setenv("DSTEREO_AOT", "1")  # build here (a test process is not the command's)
     return tmp_path
 
 
@@ -80,6 +81,21 @@ def test_stale_foreign_or_broken_files_are_rebuilt(folder, monkeypatch):
     again = aot.jit(_toy, "test.toy", ())
     assert np.array_equal(np.asarray(again(*args)), traced)
     assert again.events[0].startswith("rebuilt: unusable")
+
+
+def test_outside_the_command_files_are_loaded_but_not_built(folder, monkeypatch):
+    args = _args()
+    monkeypatch.delenv("DSTEREO_AOT")
+    assert not aot.builds_here()  # pytest's process
+    plain = aot.jit(_toy, "test.toy", ())
+    assert np.array_equal(np.asarray(plain(*args)), np.asarray(jax.jit(_toy)(*args)))
+    assert plain.events[0].startswith("plain jit: no file") and not list(folder.glob("*.jaxexe"))
+    monkeypatch.setenv("DSTEREO_AOT", "1")
+    aot.jit(_toy, "test.toy", ())(*args)  # a command run would have built it
+    monkeypatch.delenv("DSTEREO_AOT")
+    loaded = aot.jit(_toy, "test.toy", ())
+    loaded(*args)
+    assert loaded.events == ["loaded"]
 
 
 def test_without_a_cache_folder_it_is_plain_jit(monkeypatch):
