@@ -32,7 +32,9 @@ def _enable_compilation_cache(jax) -> None:
     except OSError:
         return  # read-only home: run without the cache
     jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # Every program, however quick to compile: a warm run compiled ~10 small ones (eager ops, rotations) afresh
+    # each time under the 0.5 s threshold JAX suggests, 10-540 ms each, where a fetch takes a few ms.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 class _ConfigureJaxOnImport(importlib.abc.MetaPathFinder):

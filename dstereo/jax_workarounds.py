@@ -13,6 +13,17 @@ Settings (used by the code through the names below):
   16-24 x 20 x 54 ran in every trial. Calls stay below that with margin, at most two at once (no gain past two
   on the 2-core machines measured; `DSTEREO_THREADS=1` runs one call at a time).
 
+Executables loaded from disk (`solver/aot.py`, `jax.experimental.serialize_executable`):
+- `prepare_loaded_executables`: a loaded executable that calls LAPACK (Cholesky, LU) segfaulted in a new process
+  until something had lowered a LAPACK op there: jaxlib sets its LAPACK kernel pointers while lowering
+  (`prepare_lapack_call`), and a loaded executable is never lowered (jax issues 24982, 28908). Initialising them
+  first makes it run and match the traced program bit for bit.
+- `fresh_compile`: an executable that the compile fetched from JAX's persistent compilation cache, serialized
+  again, fails in a new process ("NOT_FOUND: Function ..._fusion not found"); only a fresh compile serializes
+  whole. `aot` compiles its programs under a name of their own (a cache key no earlier program has), inside this
+  context, which also keeps that one-off compile out of the persistent cache (a thread-local setting of a JAX
+  option that jax exposes only under jax._src), and it does not keep an executable whose compile was a cache hit.
+
 Closed forms written instead of a LAPACK call (code where they are used; listed here so they are re-checked):
 - `models/distortion.py` undistortion (`newton_step`, which `undistort` iterates and `point_jacobians.py`, the
   projection uncertainty, the renderer and the reference refinement call): a 2 x 2 Newton step solved in
@@ -27,6 +38,31 @@ COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 CALL_POINTS = 16 * 20 * 54
 MAX_CHUNK = 32
 MAX_CONCURRENT_CALLS = 2
+
+
+def prepare_loaded_executables() -> None:
+    """Initialise jaxlib's LAPACK kernels before running executables loaded from disk (see above)."""
+    try:
+        from jax._src.lib import lapack
+
+        lapack._lapack.initialize()  # what lowering a LAPACK op does first
+    except (ImportError, AttributeError):  # moved in another jaxlib: lower one, which initialises them
+        import jax
+        import numpy as np
+
+        jax.jit(jax.numpy.linalg.cholesky).lower(np.eye(1))
+
+
+def fresh_compile():
+    """Context (this thread): compiles are not written to the persistent compilation cache (see above)."""
+    try:
+        from jax._src import config
+
+        return config.persistent_cache_min_compile_time_secs(float("inf"))
+    except (ImportError, AttributeError, TypeError):  # another jax: the one-off entries are written, harmlessly
+        import contextlib
+
+        return contextlib.nullcontext()
 
 
 def installed_jaxlib() -> str:

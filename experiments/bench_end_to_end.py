@@ -11,7 +11,9 @@ beforehand and cached, so neither side pays detection):
     subset means), as the thesis's tool did per subset; no figures (in its favour);
   - plain: `dstereo calibrate` without subsets (warm cache, results folder included) vs a new Python process that
     loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage.
-Each case runs `--repeat` times (best and all times printed); `uptime` before and after says the load.
+Each case runs `--repeat` times (best and all times printed); `uptime` before and after says the load. The dstereo
+runs go through experiments/_profiled_cli.py (the same CLI, plus a breakdown: when JAX had imported, JAX's tracing,
+lowering and compile-or-fetch sums, executables loaded from disk, and the command's own stage timings).
 `python -m experiments.bench_end_to_end [--sizes 286,1140,4845] [--repeat 2]`; writes
 experiments/results/bench_end_to_end.md.
 """
@@ -19,8 +21,9 @@ experiments/results/bench_end_to_end.md.
 from __future__ import annotations
 
 import argparse
-import itertools
+import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -32,7 +35,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "rig640"
 CASES = {286: (13, 10), 1140: (20, 17), 4845: (20, 16)}  # C: (images, m), every combination
-DSTEREO = [str(Path(sys.executable).with_name("dstereo"))]
+DSTEREO = [sys.executable, "-m", "experiments._profiled_cli"]  # = the `dstereo` script, with a breakdown
+BREAKDOWN = ("jax_imported_at_s", "trace_s", "lower_s", "xla_compile_or_fetch_s", "aot_load_s", "detect",
+             "full_solve", "outliers", "subsets", "final", "write")
 
 THESIS = r'''
 import csv, itertools, os, sys, multiprocessing as mp
@@ -74,12 +79,19 @@ def uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def timed(cmd: list[str], env: dict | None = None) -> float:
+PROFILES: dict = {}  # (case, kind) -> breakdowns of the dstereo runs
+
+
+def timed(cmd: list[str], env: dict | None = None, profile: tuple | None = None) -> float:
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     elapsed = time.perf_counter() - t0
     if done.returncode != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{done.stderr[-2000:]}")
+    if profile is not None:
+        line = next(ln for ln in done.stderr.splitlines() if ln.startswith("PROFILE "))
+        row = json.loads(line[8:])["totals"]
+        PROFILES.setdefault(profile, []).append(row)
     return elapsed
 
 
@@ -125,8 +137,8 @@ def main() -> None:
             env = dict(env_base, DSTEREO_JAX_CACHE=str(work / f"jax{c}-{r}"))  # a new empty cache each repeat
             run = [*DSTEREO, "calibrate", "--images", str(folder), "--pattern", "9x6", "--per-set", str(m),
                    "--max-subsets", str(c), "--out", str(work / "out"), "--force", "-q"]
-            cold.append(timed(run, env))
-            warm.append(timed(run, env))
+            cold.append(timed(run, env, (c, "cold")))
+            warm.append(timed(run, env, (c, "warm")))
             thesis.append(timed([sys.executable, str(work / "thesis.py"), str(corners), str(m), str(work / "th")]))
             print(f"C={c}: cold {cold[-1]:.2f} s, warm {warm[-1]:.2f} s, thesis {thesis[-1]:.2f} s", flush=True)
         rows.append((c, n, m, cold, warm, thesis))
@@ -138,7 +150,7 @@ def main() -> None:
         timed(run, env)  # fills the compile cache: the plain case is measured warm
         ds, cv = [], []
         for _ in range(max(args.repeat, 3)):
-            ds.append(timed(run, env))
+            ds.append(timed(run, env, ("plain", "warm")))
             cv.append(timed([sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]))
             print(f"plain: dstereo {ds[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
         plain_row = (ds, cv)
@@ -155,7 +167,18 @@ def main() -> None:
         lines += ["", "| plain calibration, 20 views | dstereo calibrate (warm cache, results folder) | "
                   "python + cv2.calibrateCamera + yml | ratio |", "|---|---|---|---|",
                   f"| whole run, new process | {best(ds)} | {best(cv)} | {min(ds) / min(cv):.2f}x |"]
-    lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process."]
+    lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process.", "",
+              "Breakdown of the dstereo runs (medians, s): jax_imported_at_s when `import jax` had finished in the "
+              "process; trace_s, lower_s, xla_compile_or_fetch_s JAX's own sums over the run's programs; aot_load_s "
+              "executables loaded from disk (dstereo/solver/aot.py); the rest the command's stage timings.", "",
+              "| run | wall | " + " | ".join(BREAKDOWN) + " |", "|---|---|" + "---|" * len(BREAKDOWN)]
+    walls = {**{(c, "cold"): cold for c, _, _, cold, _, _ in rows}, **{(c, "warm"): warm for c, _, _, _, warm, _ in rows}}
+    if plain_row is not None:
+        walls["plain", "warm"] = plain_row[0]
+    for key, profiles in PROFILES.items():
+        med = lambda name: statistics.median([p.get(name, 0.0) for p in profiles])  # noqa: E731
+        lines.append(f"| {key[0]} {key[1]} | {statistics.median(walls[key]):.2f} | "
+                     + " | ".join(f"{med(name):.2f}" for name in BREAKDOWN) + " |")
     text = "\n".join(lines) + "\n"
     print(text)
     out = ROOT / "experiments" / "results" / "bench_end_to_end.md"

@@ -105,7 +105,9 @@ def _refit(stereo: bool, free: tuple[str, ...] = (), right_free: tuple[str, ...]
         pose, _, cost = jax.lax.fori_loop(0, POSE_ITERATIONS, body, (pose0, 1e-3, cost0))
         return pose, cost
 
-    return jax.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)))
+    from dstereo.solver import aot  # kept on disk: a new process skips tracing it
+
+    return aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit", (stereo, free))
 
 
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:

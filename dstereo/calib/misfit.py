@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy.special import chdtrc  # chi2.sf itself; scipy.stats's import costs ~0.7 s CPU, measured
 
 CELLS = (8, 6)
 MIN_PER_CELL = 5
@@ -107,7 +107,7 @@ def residual_pattern(obs: np.ndarray, residuals: np.ndarray, image_size: tuple[i
     excess = max(energy - dof * sigma ** 2, 0.0)
     r2 = np.sum(residuals ** 2, axis=2)[mask & used.take(np.minimum(cell, n_cells - 1))]
     rms = float(np.sqrt(np.mean(r2))) if r2.size else 0.0
-    return ResidualPattern(z2, dof, float(stats.chi2.sf(z2, dof)) if dof else 1.0, float(np.sqrt(excess / n)),
+    return ResidualPattern(z2, dof, float(chdtrc(dof, z2)) if dof else 1.0, float(np.sqrt(excess / n)),
                            rms, int(used.sum()), mean.reshape(rows, cols, 2))
 
 

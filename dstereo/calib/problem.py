@@ -30,6 +30,7 @@ from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
 from dstereo.models import camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
+from dstereo.solver import aot
 from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
 
 POSE_SIZE = 6  # rvec, tvec: of a frame's board pose and of a camera's extrinsics
@@ -283,7 +284,8 @@ def compiled_solver(problem: Problem, options: LMOptions):
         return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight,
                                       None if prior is None else jnp.asarray(prior))
 
-    return jax.jit(batch, compiler_options=COMPILE_OPTIONS)
+    # kept on disk as an executable: a new process skips tracing it too (solver/aot.py)
+    return aot.jit(batch, "calib.problem.compiled_solver", (problem, options), COMPILE_OPTIONS)
 
 
 def residual_weights(mask: np.ndarray) -> np.ndarray:

@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dstereo.calib.init_zhang import homography, pose_from_homography
 from dstereo.calib.mono import CameraSolution
@@ -84,8 +83,11 @@ def _rig_matrices(rig, k_left, k_right):
 
 @functools.lru_cache(maxsize=None)
 def _normalised_points():
+    from dstereo.solver import aot  # kept on disk: a new process skips tracing it (the final solution's start)
+
     one = jax.vmap(undistort, in_axes=(None, 0))
-    return jax.jit(lambda k, coeffs, q: jax.vmap(one, in_axes=(None, 0))(coeffs, (q - k[2:4]) / k[0:2]))
+    return aot.jit(lambda k, coeffs, q: jax.vmap(one, in_axes=(None, 0))(coeffs, (q - k[2:4]) / k[0:2]),
+                   "calib.stereo.normalised_points", ())
 
 
 # --- start ---------------------------------------------------------------------------------------------------
@@ -115,6 +117,8 @@ def initial_rig(left: Camera, right: Camera, obj: np.ndarray, obs_left: np.ndarr
                 obs_right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rig (6,), board poses in the left camera (V, 6)): the median of the per-pair relative poses."""
     p_l, p_r = board_poses(left, obj, obs_left), board_poses(right, obj, obs_right)
+    from scipy.spatial.transform import Rotation  # here: a one-camera run imports this module, not scipy's
+
     r_l, r_r = Rotation.from_rotvec(p_l[:, :3]), Rotation.from_rotvec(p_r[:, :3])
     r_rl = r_r * r_l.inv()
     t_rl = p_r[:, 3:] - r_rl.apply(p_l[:, 3:])

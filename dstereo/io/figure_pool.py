@@ -60,12 +60,15 @@ def start() -> None:
 
         pool = ProcessPoolExecutor(workers_wanted(), mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_warm)
-        # spawn launches the processes at the first job, in this thread; each would import the parent's main
-        # module (the CLI: typer, pydantic, ~0.3-0.5 s): an empty stand-in for that moment, so it imports nothing.
+        # spawn launches a process per job submitted while none is idle (up to the pool's size), in this thread;
+        # each would import the parent's main module (the CLI: typer, pydantic, ~0.3-0.5 s): an empty stand-in
+        # for that moment, so it imports nothing. One job per worker, so that all start now, under the stand-in
+        # (one job started one worker; the second started at the first figure, importing the CLI).
         main = sys.modules["__main__"]
         sys.modules["__main__"] = types.ModuleType("__main__")
         try:
-            pool.submit(_noop)
+            for _ in range(workers_wanted()):
+                pool.submit(_noop)
         finally:
             sys.modules["__main__"] = main
     except Exception:  # noqa: BLE001 - no process support here: draw in the calling process

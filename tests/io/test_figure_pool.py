@@ -40,3 +40,29 @@ def test_worker_error_reaches_caller(pool, tmp_path):
     figures.draw(plots.per_image_rms, ["a.png"], np.array([0.1]), tmp_path / "missing" / "r.png")
     with pytest.raises(FileNotFoundError):
         figures.wait()
+
+
+MAIN = r'''
+import os, sys
+from pathlib import Path
+if __name__ != "__main__":  # a spawned worker importing this main module (as __mp_main__): what start() avoids
+    Path(os.environ["MARKER"]).write_text(__name__)
+else:
+    from dstereo.io import figure_pool
+    figure_pool.start()
+    print(len(figure_pool._POOL._processes))  # every worker started at once, under the stand-in main module
+    figure_pool.stop()
+'''
+
+
+def test_every_worker_starts_without_importing_the_main_module(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    script, marker = tmp_path / "main.py", tmp_path / "imported"
+    script.write_text(MAIN)
+    env = dict(os.environ, DSTEREO_FIGURE_WORKERS="2", MARKER=str(marker))
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["2"] and not marker.exists()

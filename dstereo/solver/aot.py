@@ -1,0 +1,281 @@
+"""Compiled programs kept on disk as executables, so a new process skips tracing and lowering as well as compiling.
+
+JAX's persistent compilation cache (`dstereo/__init__.py`) saves the XLA compile, but its key is a hash of the
+lowered program, so every new process still traces the Python function and lowers it to find that key (about
+0.9 s for the calibration solver, measured in a new process with the cache warm, against 0.2 s to load it from
+here). `jit(fn, name, static)` is `jax.jit(fn)` that looks first for an executable serialized by an earlier
+process (`jax.experimental.serialize_executable`, JAX's API for this) under a key known before tracing:
+
+- what the program is: `name`, the `static` values its closure was built from (a problem layout, options) and
+  the arguments' tree structure, shapes, dtypes;
+- what built it: a digest of every source file of the dstereo package (any edit rebuilds), the versions of
+  Python, jax, jaxlib and numpy, the JAX options that change traced programs (x64, promotion, matmul precision),
+  XLA_FLAGS, the compile options, the backend's platform and version, and the processor's instruction-set flags
+  (an executable built for AVX-512 must not run on an AVX2 machine).
+
+The whole key is written at the head of the file and compared on load, so a stale or foreign file (another
+version, edit or machine), a colliding, truncated or unreadable one is never used: it is rebuilt (traced and
+compiled as `jax.jit` would) and overwritten. A loaded executable's first call is waited for, and a runtime
+refusal there also rebuilds; the executable checks its arguments' types at every call. Without a compilation
+cache folder (DSTEREO_JAX_CACHE=0), with DSTEREO_AOT=0, under `jax.disable_jit`, or where an executable cannot be
+serialized, the function runs as plain `jax.jit`; a missing file is built only in the `dstereo` command's own
+process or with DSTEREO_AOT=1 (`builds_here`), elsewhere (tests, library use) the function runs as plain `jax.jit`
+then, and existing files are loaded everywhere. Results are the same either way, bit for bit (tests): the file
+holds what the same compile produces. Two jaxlib 0.10.2 limits shape the build (`jax_workarounds`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import platform
+import sys
+import tempfile
+import threading
+import uuid
+from pathlib import Path
+from typing import Callable, Hashable
+
+import jax
+import numpy as np
+
+from dstereo.jax_workarounds import fresh_compile, prepare_loaded_executables
+
+FORMAT = "dstereo-aot-1"  # bump when the file layout below changes
+FOLDER = "dstereo-aot"  # under the JAX compilation cache folder
+# JAX options that change what a function traces to (the others change logging, caching or debugging only)
+TRACE_OPTIONS = ("jax_enable_x64", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion",
+                 "jax_default_matmul_precision", "jax_default_prng_impl", "jax_enable_checks", "jax_debug_nans",
+                 "jax_debug_infs", "jax_platforms")
+CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
+UNUSED_DAYS = 14  # a file neither loaded nor written for this long is removed when another is written (each edit
+# of the package leaves its programs' files behind)
+
+_state: dict = {}  # environment text, source digest, whether LAPACK is prepared, the cache-hit listener
+_compiling = threading.local()  # .hits: persistent-cache hits counted in this thread while it compiles
+
+
+def source_digest() -> str:
+    """sha256 of every .py file of the dstereo package, names and contents (~4 ms for ~150 files, measured)."""
+    if "source" not in _state:
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+        _state["source"] = h.hexdigest()
+    return _state["source"]
+
+
+def _cpu_flags() -> str:
+    """The processor's instruction-set flags (Linux: /proc/cpuinfo), else what `platform` says."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith(("flags", "Features")):
+                    return " ".join(sorted(line.split(":", 1)[1].split()))
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def environment() -> str:
+    """Everything outside a program's own description that decides the executable it compiles to."""
+    if "environment" not in _state:
+        import jaxlib
+
+        device = jax.devices()[0]
+        options = {name: getattr(jax.config, name, None) for name in TRACE_OPTIONS}
+        _state["environment"] = "\n".join([
+            f"python {sys.version}", f"jax {jax.__version__}", f"jaxlib {jaxlib.__version__}",
+            f"numpy {np.__version__}", f"options {sorted(options.items())}",
+            f"XLA_FLAGS {os.environ.get('XLA_FLAGS', '')}",
+            f"backend {device.platform} {device.client.platform_version} {device.device_kind}",
+            f"machine {platform.machine()} {_cpu_flags()}", f"dstereo {source_digest()}"])
+    return _state["environment"]
+
+
+def signature(args: tuple) -> tuple:
+    """The arguments' tree structure and (shape, dtype, weak type) per leaf: what a compiled program is for."""
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return (str(tree), tuple((tuple(np.shape(x)), str(x.dtype) if hasattr(x, "dtype") else type(x).__name__,
+                              bool(getattr(x, "weak_type", False))) for x in leaves))
+
+
+def cache_folder() -> Path | None:
+    """Where executables go: FOLDER in JAX's compilation cache folder; None when the cache or this is off."""
+    base = jax.config.jax_compilation_cache_dir
+    if not base or os.environ.get("DSTEREO_AOT", "") == "0":
+        return None
+    return Path(base) / FOLDER
+
+
+def builds_here() -> bool:
+    """Whether a missing executable is compiled afresh and stored (DSTEREO_AOT=1), or the function runs as plain
+    `jax.jit` instead (the persistent cache still fetches its compile). Default: only in the `dstereo` command's
+    own process. A fresh compile costs about a cold one, and every edit of the package asks for one per program:
+    a test session or a library user after an edit would pay it where the persistent cache alone fetched the
+    compile; a command run pays it once and loads the file from then on."""
+    setting = os.environ.get("DSTEREO_AOT", "")
+    if setting:
+        return setting == "1"
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return (getattr(spec, "name", None) == "dstereo.cli"
+            or Path(getattr(main, "__file__", "") or "").name in ("dstereo", "dstereo.exe", "dstereo-script.py"))
+
+
+def _count_cache_hits(event: str, **_) -> None:
+    if event == CACHE_HIT_EVENT and hasattr(_compiling, "hits"):
+        _compiling.hits += 1
+
+
+class StaleExecutable(Exception):
+    """A file whose recorded key is not the one asked for."""
+
+
+class AotFunction:
+    """`jax.jit(fn, compiler_options=...)` backed by executables on disk (module docstring)."""
+
+    def __init__(self, fn: Callable, name: str, static: Hashable, compiler_options: dict | None = None):
+        self.fn, self.name, self.static = fn, name, static
+        self.compiler_options = dict(compiler_options or {})
+        self.jitted = jax.jit(fn, compiler_options=compiler_options or None)
+        self._loaded: dict[tuple, Callable] = {}
+        self._lock = threading.Lock()
+        self.events: list[str] = []  # per new signature: "loaded", "built", "rebuilt: <why>", "plain jit: <why>"
+
+    def __call__(self, *args):
+        sig = signature(args)
+        exe = self._loaded.get(sig)
+        if exe is not None:
+            return exe(*args)
+        with self._lock:  # two threads' first calls build once
+            exe = self._loaded.get(sig)
+            if exe is not None:
+                return exe(*args)
+            exe, out = self._load_or_build(sig, args)
+            self._loaded[sig] = exe
+            return out
+
+    def key(self, sig: tuple) -> str:
+        return "\n".join([FORMAT, f"program {self.name}", f"static {self.static!r}", f"arguments {sig!r}",
+                          f"compiler options {sorted(self.compiler_options.items())!r}", environment()])
+
+    def path(self, key: str) -> Path | None:
+        folder = cache_folder()
+        if folder is None:
+            return None
+        return folder / f"{_safe(self.name)}-{hashlib.sha256(key.encode()).hexdigest()[:40]}.jaxexe"
+
+    def _load_or_build(self, sig: tuple, args: tuple):
+        """(callable, its output on `args`)."""
+        key = None if jax.config.jax_disable_jit or cache_folder() is None else self.key(sig)
+        path = None if key is None else self.path(key)
+        if path is None:
+            self.events.append("plain jit: no cache folder, DSTEREO_AOT=0 or jit disabled")
+            return self.jitted, self.jitted(*args)
+        why = "no file"
+        if path.exists():
+            try:
+                exe = _load(path, key)
+                out = exe(*args)
+                jax.block_until_ready(out)  # a runtime refusal surfaces here, not in the caller
+                self.events.append("loaded")
+                return exe, out
+            except StaleExecutable as exc:
+                why = str(exc)
+            except Exception as exc:  # noqa: BLE001 - unreadable, truncated, refused by the runtime: rebuild it
+                why = f"unusable ({type(exc).__name__}: {str(exc)[:200]})"
+        if not builds_here():
+            self.events.append(f"plain jit: {why}, and this process does not build (DSTEREO_AOT)")
+            return self.jitted, self.jitted(*args)
+        compiled, fresh = self._compile(args)
+        if fresh:
+            try:
+                _store(path, key, compiled)
+            except Exception as exc:  # noqa: BLE001 - not serializable here, or no room: this process only
+                why += f"; not stored ({type(exc).__name__})"
+        else:
+            why += "; not stored (the compile came from the persistent cache)"
+        self.events.append(("built" if why.startswith("no file") else "rebuilt: ") + why.removeprefix("no file"))
+        return compiled, compiled(*args)
+
+    def _compile(self, args: tuple):
+        """Lower and compile under a name of this build's own, so that XLA compiles afresh (`jax_workarounds`);
+        returns (compiled, fresh: no persistent-cache hit in this thread meanwhile)."""
+        if "listener" not in _state:
+            jax.monitoring.register_event_listener(_count_cache_hits)
+            _state["listener"] = True
+        fn = self.fn
+
+        def program(*a):
+            return fn(*a)
+
+        program.__name__ = program.__qualname__ = f"{_safe(self.name)}_{uuid.uuid4().hex[:12]}"
+        _compiling.hits = 0
+        try:
+            with fresh_compile():
+                compiled = jax.jit(program, compiler_options=self.compiler_options or None).lower(*args).compile()
+            return compiled, _compiling.hits == 0
+        finally:
+            del _compiling.hits
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c == "_" else "_" for c in name)
+
+
+def _load(path: Path, key: str) -> Callable:
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    data = path.read_bytes()
+    head, sep, rest = data.partition(b"\0")
+    if not sep or head.decode(errors="replace") != key:
+        raise StaleExecutable("stale or foreign (its recorded key differs)")
+    if "lapack" not in _state:
+        prepare_loaded_executables()
+        _state["lapack"] = True
+    blob, in_tree, out_tree = pickle.loads(rest)
+    exe = deserialize_and_load(blob, in_tree, out_tree)
+    try:
+        os.utime(path)  # in use: kept by `_prune`
+    except OSError:
+        pass
+    return exe
+
+
+def _store(path: Path, key: str, compiled) -> None:
+    """Write key NUL pickle(executable, trees) atomically (a reader never sees half a file)."""
+    from jax.experimental.serialize_executable import serialize
+
+    payload = key.encode() + b"\0" + pickle.dumps(serialize(compiled), protocol=pickle.HIGHEST_PROTOCOL)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(payload)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _prune(path.parent)
+
+
+def _prune(folder: Path) -> None:
+    """Remove executables unused for UNUSED_DAYS (other processes may be reading any newer one)."""
+    import time
+
+    limit = time.time() - UNUSED_DAYS * 86400
+    for old in folder.glob("*.jaxexe"):
+        try:
+            if old.stat().st_mtime < limit:
+                old.unlink()
+        except OSError:
+            pass
+
+
+def jit(fn: Callable, name: str, static: Hashable, compiler_options: dict | None = None) -> AotFunction:
+    """`jax.jit(fn)` with executables kept on disk. `static` must hold every value `fn`'s closure was built from
+    (its repr is part of the key); `name` names the program (one name per function that builds `fn`)."""
+    return AotFunction(fn, name, static, compiler_options)
