@@ -27,7 +27,9 @@ def _case(seed=0, n=24):
 def test_hand_jacobian_matches_central_differences():
     coeffs, p = _case()
     q, dk, dc, dp = jax.jit(splined.project_jacobian, static_argnums=(3, 4))(K, coeffs, p, NX, NY)
-    np.testing.assert_allclose(np.asarray(q), np.asarray(project(K, coeffs, p, NX, NY)), rtol=1e-14)
+    # the same formula in two programs (jitted with its Jacobian, eager alone): O(1000) px from a few dozen roundings;
+    # FMA contraction or another ISA moves each by ~1e-16 relative, so 1e-12 holds on any processor
+    np.testing.assert_allclose(np.asarray(q), np.asarray(project(K, coeffs, p, NX, NY)), rtol=1e-12)
 
     def central(fn, x, h):
         """(out..., m) central differences of fn along each of x's m coordinates, in one compiled batch."""
@@ -71,10 +73,12 @@ def test_linear_knots_give_a_linear_surface_which_the_curvature_prior_leaves_fre
     s, _, _ = jax.jit(splined._surfaces, static_argnums=(2, 3))(coeffs, a, NX, NY)
     t = (np.asarray(a) + splined.DOMAIN) / (2 * splined.DOMAIN) * (np.array([NX, NY]) - 3)[:, None]
     expected = alpha * (t[0] + 1) + beta * (t[1] + 1) + gamma
+    # a 16-term sum of O(10) knots times basis weights against the closed form: rounding ~1e-14, any processor
     np.testing.assert_allclose(np.asarray(s[0]), expected, atol=1e-12)
     np.testing.assert_allclose(np.asarray(s[1]), -expected, atol=1e-12)
     rows = splined.prior_rows(NX, NY)
     curvature = rows[:-2 * NX * NY]
+    # second differences of O(10) knots on a plane: a few exact-ish float64 sums, zero up to ~1e-14 anywhere
     np.testing.assert_allclose(curvature @ np.asarray(coeffs), 0.0, atol=1e-12)
     bumpy = np.asarray(coeffs).copy()
     bumpy[NX * 2 + 3] += 1.0
