@@ -72,3 +72,14 @@ def test_outlier_residuals_are_not_corner_noise():
     inl[1, 2] = False
     assert sse_of(SimpleNamespace(residuals=res, inliers=inl)) == pytest.approx(10.0)
     assert sse_of(SimpleNamespace(residuals=res, inliers=None)) == pytest.approx(10.0 + 2500.0)
+
+
+def test_a_solve_with_a_prior_has_no_view_scatter():
+    """The splined lens's prior pulls on its knots: the views' scores do not sum to zero and kappa is not 1 under
+    independent noise (1.93 measured), so no scale is derived from it."""
+    from dstereo.models.distortion import parse_model
+
+    sol = SimpleNamespace(normal=np.zeros((3, 8, 8)), free=parse_model("splined:5x4"), residuals=np.zeros((3, 4, 2)),
+                          values=np.zeros(1), poses=np.zeros((3, 6)), std=np.ones(1), inliers=None)
+    assert solution_view_scatter(sol) is None
+    np.testing.assert_array_equal(reported_std(sol), sol.std)
