@@ -27,7 +27,8 @@ from dstereo.models.distortion import PRESETS
 from dstereo.models.pose import rotation_vectors
 from dstereo.models.rig import RIG_NAMES
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
-from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
+from dstereo.uncertainty.covariance import Conditioning, conditioning, scaled_inverse
+from dstereo.uncertainty.view_effects import solve_covariance
 
 EXTRINSIC_NAMES = RIG_NAMES  # a camera's pose in the reference: the rig of (reference, camera)
 MODES = ("fixed", "joint")
@@ -44,8 +45,8 @@ class MultiviewSolution:
     labels: tuple[str, ...]
     names: tuple[str, ...]
     values: np.ndarray  # (G,) in `names` order
-    std: np.ndarray  # (G,) Jacobian standard deviations
-    cov: np.ndarray  # (G, G)
+    std: np.ndarray  # (G,) standard deviations with the frames' effects (`view_effects`)
+    cov: np.ndarray  # (G, G) the same
     cameras: list[Camera]
     rvecs: np.ndarray  # (K, 3), row 0 zero
     T: np.ndarray  # (K, 3), row 0 zero
@@ -59,6 +60,7 @@ class MultiviewSolution:
     conditioning: Conditioning
     flipped: list[tuple[int, int]] = field(default_factory=list)  # (frame, camera) read in reversed corner order
     timings: dict = field(default_factory=dict)
+    std_jacobian: np.ndarray | None = None  # (G,) the Jacobian's alone (independent corner noise)
 
     @property
     def converged(self) -> bool:
@@ -324,7 +326,8 @@ def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iter
     g = out.g
     names = _names(problem, labels)
     n_params = len(g) + POSE_SIZE * len(out.p)
-    cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
+    # the +- reported: with the frames' effects (`uncertainty/view_effects.py`), the Jacobian one beside it
+    cov, jac, _ = solve_covariance(out, n_params)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     k, n = visible.shape[1], obj.shape[0]
     resid = (out.residuals * r_w).reshape(len(out.p), k, n, 2)
@@ -335,6 +338,7 @@ def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iter
     ext = np.vstack([np.zeros(6), g[:problem.n_extrinsic].reshape(-1, 6)])
     return MultiviewSolution(
         mode=mode, labels=labels, names=names, values=g, std=std, cov=cov, cameras=_cameras_from(problem, g, cameras),
+        std_jacobian=np.sqrt(np.maximum(np.diag(jac), 0.0)),
         rvecs=ext[:, :3], T=ext[:, 3:], poses=out.p, visible=visible,
         rms=float(np.sqrt(out.sse / max(float(w.sum()), 1.0))), per_view_rms=per_view, residuals=resid,
         iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),

@@ -27,7 +27,8 @@ from dstereo.calib.mono import CameraSolution
 from dstereo.calib.problem import Problem, frame_linearize, frame_residual, residual_weights, run, shared_data
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.calib.subsets import SubsetPlan
-from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
+from dstereo.uncertainty.covariance import Conditioning, conditioning, scaled_inverse
+from dstereo.uncertainty.view_effects import solve_covariance
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
 from dstereo.models.distortion import lens_model, undistort
@@ -136,8 +137,8 @@ class StereoSolution:
     mode: str
     names: tuple[str, ...]
     values: np.ndarray  # (G,)
-    std: np.ndarray  # (G,) Jacobian standard deviations
-    cov: np.ndarray  # (G, G)
+    std: np.ndarray  # (G,) standard deviations: a full solve's with the pairs' effects (`view_effects`)
+    cov: np.ndarray  # (G, G) the same
     left: Camera  # intrinsics used (fixed mode) or refined (joint mode)
     right: Camera
     rvec: np.ndarray  # (3,) R as an axis-angle vector
@@ -154,6 +155,7 @@ class StereoSolution:
     conditioning: Conditioning
     inliers: np.ndarray | None = None  # (V, 2, n) bool: corners the solve used [left, right] (None: all)
     timings: dict = field(default_factory=dict)
+    std_jacobian: np.ndarray | None = None  # (G,) the Jacobian's alone (independent corner noise)
 
     @property
     def converged(self) -> bool:
@@ -299,7 +301,8 @@ def _solution_from(out, spec: Problem, mode: str, obj, data, left: Camera, right
                    iterations: int, mask: np.ndarray) -> StereoSolution:
     g = out.g
     names = _names(spec)
-    cov = covariance(out.schur, float(out.sse), int(out.n_residuals), len(g) + out.p.size)
+    # the +- reported: with the pairs' effects (`uncertainty/view_effects.py`), the Jacobian one beside it
+    cov, jac, _ = solve_covariance(out, len(g) + out.p.size)
     cam_l, cam_r = cameras_from(spec, g, left, right)
     shared = _shared(obj, left, right)
     resid = np.asarray(_residuals_fn(spec)(g[None], out.p[None], data[None], shared))[0]
@@ -307,7 +310,8 @@ def _solution_from(out, spec: Problem, mode: str, obj, data, left: Camera, right
     resid = resid.reshape(len(out.p), 2, n, 2)
     R, E, F = (np.array(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
     return StereoSolution(
-        mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, left=cam_l,
+        mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov,
+        std_jacobian=np.sqrt(np.maximum(np.diag(jac), 0.0)), left=cam_l,
         right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
         poses=out.p, rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
         per_pair_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=3) * mask, axis=(1, 2))

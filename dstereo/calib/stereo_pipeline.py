@@ -337,7 +337,7 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     unit = job.config.unit
     full_std = dict(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), s.std))
     full_std |= {"Tnorm": s.baseline_std, "RVnorm": s.angle_std, "stereo_re": float("nan")}
-    kind = "Jacobian"
+    kind = "Jacobian with the pairs' effects"
     if job.full_set_sigma is not None:  # the honest +-: intrinsics errors carried into the rig
         full_std |= job.full_set_sigma.std
         kind = job.full_set_sigma.label.split(":")[0]

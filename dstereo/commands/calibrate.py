@@ -340,7 +340,7 @@ def _pm(value: float, spread: float) -> str:
 
 def _render(cal, out: Path) -> None:
     """Final console table: full set +- std (Jacobian x view scatter), subset mean +- spread; then counts and timings."""
-    from dstereo.uncertainty.view_scatter import reported_std
+    from dstereo.uncertainty.view_effects import reported_std
 
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final

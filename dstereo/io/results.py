@@ -228,13 +228,15 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
 
 def summary_dict(cal) -> dict:
     """summary.json of a `CameraCalibration`."""
-    from dstereo.uncertainty.view_scatter import reported_std, solution_view_scatter
+    from dstereo.uncertainty.view_effects import reported_std, solution_effects
+    from dstereo.uncertainty.view_scatter import solution_view_scatter
 
     full, det = cal.full, cal.detection
     names = list(full.names)
     scatter = solution_view_scatter(full)
-    # the +- every file shows: the Jacobian's, times sqrt(view scatter) when the views scatter more than it says
+    # the +- every file shows: with the views' effects (the Jacobian's when the views agree as the noise says)
     std = reported_std(full)
+    effects = solution_effects(full)
     summary = {
         "config": as_dict(cal.config),
         "image_size": list(det.image_size),
@@ -247,6 +249,7 @@ def summary_dict(cal) -> dict:
                      "std": dict(zip(names, map(float, std))),
                      "std_jacobian": dict(zip(names, map(float, full.std))),
                      "view_scatter": None if scatter is None else scatter.summary(names),
+                     "view_effects": None if effects is None else effects.summary(names),
                      "per_image_rms": dict(zip(cal.used, map(float, full.per_view_rms))),
                      "iterations": int(full.iterations), "status": full.status_text, "converged": bool(full.converged),
                      "conditioning": {"identifiable": bool(full.conditioning.identifiable),
@@ -537,13 +540,14 @@ def report_markdown(cal, summary: dict) -> str:
                   "", "Per parameter through the steps: "
                   + ", ".join(f"[{n[10:-4]}](stats/{n})" for n in files if n.startswith("parameter")),
                   "", "Per-subset values and fates: [subsets.csv](subsets.csv)", ""]
-    vs = summary["full_set"].get("view_scatter")
-    scaled = (f" times sqrt(view scatter) = {vs['scale_applied'] ** 0.5:.2f} (the views scatter the solve more "
-              "than independent corner noise says; `std_jacobian` in summary.json has them unscaled)"
-              if vs and vs["scale_applied"] > 1.0 else "")
-    lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its Jacobian "
-              f"standard deviations{scaled}, and the thesis's mean and spread (standard deviation) across the "
-              "surviving subsets.", "",
+    ve = summary["full_set"].get("view_effects")
+    ratios = sorted((ve or {}).get("std_ratio", {}).values())
+    scaled = (f" with the views' effects ({ratios[0]:.2f}-{ratios[-1]:.2f}x the Jacobian's: the views scatter the "
+              "solve more than independent corner noise says; `std_jacobian` in summary.json has the Jacobian's)"
+              if ratios and ratios[-1] > 1.0 + 1e-9 else "")
+    lines += ["## Result", "", summary["final_source"] + ". Beside it: the full-set solve with its "
+              f"standard deviations{scaled or ' (the Jacobian ones)'}, and the thesis's mean and spread (standard "
+              "deviation) across the surviving subsets.", "",
               "| parameter | final | full set | +- std | subset mean | subset spread |",
               "|---|---|---|---|---|---|"]
     for row in summary["comparison"]:

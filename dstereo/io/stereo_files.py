@@ -286,7 +286,9 @@ def stereo_summary(job) -> dict:
         "final_source": (f"mean over the {int(job.filtering.survivors.sum())} surviving subsets (the thesis's answer)"
                          if job.filtering is not None else "full-set solve (no subsets: set images per set)"),
         "full_set": {"mode": s.mode, "R": s.R, "rvec": s.rvec, "T": s.T, "E": s.E, "F": s.F, **s.columns(),
-                     "std": full_std, "std_kind": sigma.label if sigma is not None else "Jacobian",
+                     "std": full_std,
+                     "std_kind": sigma.label if sigma is not None else "Jacobian with the pairs' effects (view_effects)",
+                     "std_jacobian": None if s.std_jacobian is None else dict(zip(s.names, map(float, s.std_jacobian))),
                      "std_intrinsics_exact": None if sigma is None else sigma.intrinsics_exact,
                      "baseline": {"value": s.baseline, "std": full_std["Tnorm"]},
                      "rms": s.rms, "stereo_re": s.stereo_re, "status": s.status_text, "iterations": s.iterations,

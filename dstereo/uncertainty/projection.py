@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
+from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
 from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
 from dstereo.models import fisheye, splined
 from dstereo.models.camera import INTRINSIC_NAMES, project
@@ -178,7 +179,8 @@ class ProjectionUncertaintyMap:
     note: str = NOTE
     mask: np.ndarray | None = None
     method: str = "intrinsics-only"
-    view_scatter: object | None = None  # `view_scatter.ViewScatter` whose scale the covariances carry
+    view_scatter: object | None = None  # `view_scatter.ViewScatter` of the solve (kappa, its alarm)
+    covariance: str = "jacobian"  # or "per-view random effects" (`view_effects`): which covariance it maps
 
     @property
     def masked(self) -> int:
@@ -191,6 +193,7 @@ class ProjectionUncertaintyMap:
         stats["pixels_without_ray"] = int(self.std.size - good.size)  # masked, or no finite covariance
         out = {"method": self.method, "range": self.range_, "std_px": stats, "grid": [len(self.u), len(self.v)],
                "masked_pixels": self.masked, "note": self.note}
+        out["covariance"] = self.covariance
         if self.view_scatter is not None:
             out["view_scatter"] = self.view_scatter.summary()
         return out
@@ -259,22 +262,25 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
     lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
     names = tuple(sol.names[i] for i in lens)
     scatter = solution_view_scatter(sol)
-    scale = 1.0 if scatter is None else scatter.scale
+    effects = solution_effects(sol)  # the views' effects: the covariance every +- of the tool carries
     if method == "pose-compensated":
         from dstereo.uncertainty.covariance import joint_covariance
 
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
-                                 prior=knot_prior(sol.names))
+        joint = (effects.joint(sol.normal) if effects is not None else
+                 joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
+                                  prior=knot_prior(sol.names)))
         keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
-        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * joint[np.ix_(keep, keep)],
+        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, joint[np.ix_(keep, keep)],
                                           image_size, range_, grid, poses=sol.poses, method=method)
     else:
-        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, scale * sol.cov[np.ix_(lens, lens)],
+        cov = reported_covariance(sol)
+        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, cov[np.ix_(lens, lens)],
                                           image_size, range_, grid, method=method)
-    return replace(pmap, view_scatter=scatter)
+    return replace(pmap, view_scatter=scatter,
+                   covariance="jacobian" if effects is None else "per-view random effects")
 
 
 def knot_prior(names) -> np.ndarray | None:

@@ -68,13 +68,15 @@ def rig_covariance(job, propagate: bool = True, solution=None, pairs=None,
         return tuple(s.names[i] for i in order), s.cov[np.ix_(order, order)], JOINT_STRUCTURE
     from scipy.linalg import block_diag
 
+    from dstereo.uncertainty.view_effects import reported_covariance
+
     names = (tuple(f"left.{n}" for n in job.left.full.names) + tuple(f"right.{n}" for n in job.right.full.names)
              + tuple(s.names))
     # `cameras`: the CameraSolutions whose covariance goes with the intrinsics used (default the full sets');
     # `pairs`: (V,) bool of the pairs `solution` was solved on (default all)
     left, right = cameras if cameras is not None else (job.left.full, job.right.full)
-    # each camera's covariance as its own files report it: the Jacobian one times its view-scatter scale
-    c_k = block_diag(_view_scale(left) * left.cov, _view_scale(right) * right.cov)
+    # each camera's covariance as its own files report it: with the views' effects (`view_effects`)
+    c_k = block_diag(reported_covariance(left), reported_covariance(right))
     if not propagate:
         return names, block_diag(c_k, s.cov), BLOCK_STRUCTURE
     obs_l, obs_r = job.detection.observations()
@@ -84,10 +86,3 @@ def rig_covariance(job, propagate: bool = True, solution=None, pairs=None,
     cross = a @ c_k
     return names, np.block([[c_k, cross.T], [cross, s.cov + cross @ a.T]]), FIXED_STRUCTURE
 
-
-def _view_scale(camera) -> float:
-    """`view_scatter.solution_view_scatter(camera).scale` (1 for a solve without per-view blocks)."""
-    from dstereo.uncertainty.view_scatter import solution_view_scatter
-
-    scatter = solution_view_scatter(camera)
-    return 1.0 if scatter is None else scatter.scale

@@ -20,10 +20,10 @@ it stands). Its standard error under the premise is about sqrt(2 / ((V - 1) G)) 
 one constraint; on a synthetic 16-view scene 8 seeds gave kappa 0.71-1.15, spread 0.15 against 0.12 from the
 formula). Everything comes from the solver's per-view normal blocks [J r]'[J r]: no second linearisation.
 
-What the tool does with it: every uncertainty it reports (the camera's +-, the projection map, each
-cross-validation half) is the Jacobian one times max(1, kappa), and kappa above 1 + 3 standard errors is a warning
-with the figures. A scalar cannot follow the direction of the excess: on the real sets it removes every optimistic
-cross-validation result but leaves some pessimistic ones (experiments/results/view_scatter_real.md).
+What the tool does with it: kappa above 1 + 3 standard errors is a warning with the figures. The uncertainty it
+reports is not kappa times the Jacobian's: a scalar cannot follow the direction of the excess, and on the real sets
+it left half the cross-validations 1.5-3x pessimistic (experiments/results/view_scatter_real.md). Every +- and map
+carries the per-view random effects of `view_effects` instead, fitted to the same scores direction by direction.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-POSE = 6
+from dstereo.uncertainty.view_effects import profiled
+
 ALARM_SIGMAS = 3.0  # kappa above 1 + this many standard errors: the premise of independent corners fails
 
 
@@ -46,12 +47,6 @@ class ViewScatter:
     jacobian: np.ndarray | None = None  # (G, G) sigma^2 S^-1
 
     @property
-    def scale(self) -> float:
-        """The factor on the Jacobian covariance the tool reports: never below 1 (the corner noise's share is
-        always there), kappa when the views scatter more."""
-        return max(1.0, self.kappa) if np.isfinite(self.kappa) else 1.0
-
-    @property
     def alarm(self) -> bool:
         return bool(np.isfinite(self.kappa) and self.kappa > 1.0 + ALARM_SIGMAS * self.standard_error)
 
@@ -59,12 +54,12 @@ class ViewScatter:
         return (f"the {self.views} views scatter the calibration {np.sqrt(self.kappa):.2f}x (std) more than "
                 f"independent corner noise explains (view scatter kappa {self.kappa:.2f}, {1.0:.0f} +- "
                 f"{self.standard_error:.2f} if it were): corner errors move together within views (blur, "
-                f"perspective, or a lens the model does not fit); every uncertainty reported is scaled by "
-                f"sqrt(kappa) = {np.sqrt(self.scale):.2f}")
+                f"perspective, or a lens the model does not fit); every uncertainty reported carries the views' "
+                f"effects (per-view random effects: summary.json full_set.view_effects)")
 
     def summary(self, names=None) -> dict:
         ratios = [float(r) for r in self.std_ratio]
-        return {"kappa": self.kappa, "scale_applied": self.scale, "views": self.views,
+        return {"kappa": self.kappa, "views": self.views,
                 "standard_error": self.standard_error, "alarm": self.alarm,
                 "std_ratio": dict(zip(names, ratios)) if names is not None else ratios,
                 "method": "cluster-robust (per view) sandwich against the Jacobian covariance"}
@@ -76,16 +71,10 @@ def view_scatter(normal: np.ndarray, n_shared: int, sigma2: float, weight: np.nd
     normal = np.asarray(normal, float)
     views = np.arange(len(normal)) if weight is None else np.flatnonzero(np.asarray(weight) > 0)
     g = n_shared
-    s_views, scores = [], []
-    for v in views:
-        m = normal[v]
-        hgp, hpp = m[:g, g: g + POSE], m[g: g + POSE, g: g + POSE]
-        solve = np.linalg.solve(hpp, np.c_[hgp.T, m[g: g + POSE, -1]])
-        s_views.append(m[:g, :g] - hgp @ solve[:, :g])
-        scores.append(m[:g, -1] - hgp @ solve[:, g])
+    s_views, scores = profiled(normal, g, views)
     n = len(views)
     s_inv = np.linalg.pinv(np.sum(s_views, axis=0), hermitian=True)
-    b = np.einsum("vi,vj->ij", np.array(scores), np.array(scores))
+    b = np.einsum("vi,vj->ij", scores, scores)
     leverage = sum(float(np.sum((s_inv @ sv) * (s_inv @ sv).T)) for sv in s_views)
     # fewer views than the shared parameters can carry (leverage near G) leave nothing to compare: no kappa
     kappa = (float(np.trace(s_inv @ b) / (sigma2 * (g - leverage))) if n > 1 and sigma2 > 0 and g - leverage > 0.5
@@ -118,10 +107,3 @@ def solution_view_scatter(sol):
     n_res = 2 * int(inliers_of(sol).sum())
     n_par = len(sol.values) + 6 * len(sol.poses)
     return view_scatter(sol.normal, len(sol.values), sse_of(sol) / max(n_res - n_par, 1))
-
-
-def reported_std(sol) -> np.ndarray:
-    """(G,) the +- the tool shows for a solve's shared parameters: the Jacobian std times sqrt(view scatter
-    scale) (exactly the Jacobian's when the views agree as the corner noise says, or no per-view blocks)."""
-    scatter = solution_view_scatter(sol)
-    return np.asarray(sol.std, float) * np.sqrt(1.0 if scatter is None else scatter.scale)

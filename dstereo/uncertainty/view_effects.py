@@ -1,0 +1,183 @@
+"""Per-view random effects: the covariance the tool reports, following the direction in which the views scatter.
+
+The Jacobian covariance sigma^2 S^-1 assumes independent corner errors. Real views are not independent inside:
+a hand-held board flexes differently in every view, an autofocus breathes, blur and perspective bias a view's
+detections together. `view_scatter` measures by how much the views scatter the shared parameters more than
+sigma^2 S^-1 says (kappa, one number). One number cannot follow a direction: scaling every direction by kappa
+made half of the real cameras' cross-validations 1.5-3x pessimistic (experiments/results/view_scatter_real.md).
+
+Model: view v's corner errors are e_v = n_v + J_gv delta_v + c_v, with n_v white (sigma^2), delta_v ~ N(0, Omega)
+the view seeing its own shared parameters (Omega = diag(omega) in the solver's parameters: focal lengths,
+principal point, distortion, the board's sag when solved), and c_v a smooth within-view error whose score
+covariance is tau S_v (shaped like the view's own information: e.g. a board flexing in a way the model has no
+parameter for). With J~_v the view's shared Jacobian with its pose profiled out, t_v = J~_v' e_v has covariance
+Q_v = (sigma^2 + tau) S_v + S_v Omega S_v, and the estimate's error is S^-1 sum_v t_v, so
+
+    Cov(g) = (sigma^2 + tau) S^-1 + S^-1 (sum_v S_v Omega S_v) S^-1.
+
+tau and omega come from the views' profiled scores at the solution, s_v = t_v - S_v S^-1 sum_w t_w, whose
+expectation E[s_v s_v'] = Q_v - S_v S^-1 Q_v - Q_v S^-1 S_v + S_v S^-1 (sum_w Q_w) S^-1 S_v is linear in them:
+non-negative least squares over every view's s_v s_v' (whitened by S^-1/2, so all directions weigh alike). 1 + G
+variances from V views' G x G outer products are determined where the full sandwich S^-1 (sum s_v s_v') S^-1 from
+a dozen rank-one scores is not (it has rank V - 1 and measured 3-6x off in the Mahalanobis sense). sigma^2 is the
+solve's unbiased estimate less the energy the effects leave in the residuals, sum_v tr((S_v - S_v S^-1 S_v) Omega).
+With no excess (tau = omega = 0) this is exactly the Jacobian covariance.
+
+Measured against a Monte Carlo of synthetic calibrations (experiments/results/view_effects_mc.md): independent
+noise, each view seeing its own camera, and a board flexing per view all give predicted / MC std 0.8-1.2 at 7-16
+views; the scalar kappa is 1.6-2x off (Mahalanobis) for the camera jitter. The pose block follows the same model:
+`joint` adds each view's effect through (J'J)^-1 [U_v; W_v'] with the view's pose rows, for the pose-compensated
+projection map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+POSE = 6
+ROUNDS = 5  # sigma^2 <-> (tau, omega) alternations: the correction is a few % of sigma^2, settled in 2-3 rounds
+SIGMA2_FLOOR = 0.1  # the effects never take more than 90 % of the residual energy (a guard: the real sets use 1-25 %)
+
+
+@dataclass(frozen=True)
+class ViewEffects:
+    omega: np.ndarray  # (G,) per-view variance of each shared parameter (its unit squared)
+    tau: float  # px^2, the smooth within-view error's share, shaped like the views' information
+    sigma2: float  # px^2, the white corner noise with the effects' energy taken out
+    sigma2_solve: float  # px^2, the solve's unbiased estimate (all residual energy counted as white noise)
+    cov: np.ndarray  # (G, G) Cov(g) with the effects
+    jacobian: np.ndarray  # (G, G) sigma2_solve S^-1, the covariance without them
+    views: np.ndarray  # indices of the used views
+    s_views: np.ndarray  # (V, G, G) their profiled information S_v
+
+    @property
+    def std_ratio(self) -> np.ndarray:
+        """(G,) reported / Jacobian standard deviation per shared parameter."""
+        return np.sqrt(np.diag(self.cov) / np.diag(self.jacobian))
+
+    def joint(self, normal: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+        """Covariance of (shared parameters, the used views' poses), the model above; its shared block is `cov`.
+
+        Each view's delta_v enters the normal equations through J'J_gv = [U_v at the shared rows, W_v' at its
+        own pose rows], so the joint error is (J'J)^-1 sum_v J'J_gv delta_v plus the white and tau parts."""
+        from dstereo.uncertainty.covariance import joint_normal, scaled_inverse
+
+        normal = np.asarray(normal, float)
+        g = len(self.omega)
+        n_inv = scaled_inverse(joint_normal(normal, g, weight))
+        out = (self.sigma2 + self.tau) * n_inv
+        if np.any(self.omega > 0):
+            for j, v in enumerate(self.views):
+                c = np.zeros((len(n_inv), g))
+                c[:g] = normal[v, :g, :g]
+                c[g + POSE * j: g + POSE * (j + 1)] = normal[v, g: g + POSE, :g]
+                x = n_inv @ c
+                out += (x * self.omega) @ x.T
+        return out
+
+    def summary(self, names=None) -> dict:
+        names = list(names) if names is not None else [str(i) for i in range(len(self.omega))]
+        return {"method": "per-view random effects (view-shared parameters and smooth within-view errors)",
+                "per_view_std": dict(zip(names, map(float, np.sqrt(self.omega)))),
+                "tau_over_sigma2": float(self.tau / self.sigma2) if self.sigma2 > 0 else None,
+                "sigma_px": float(np.sqrt(self.sigma2)), "sigma_px_solve": float(np.sqrt(self.sigma2_solve)),
+                "std_ratio": dict(zip(names, map(float, self.std_ratio)))}
+
+
+def profiled(normal: np.ndarray, g: int, views) -> tuple[np.ndarray, np.ndarray]:
+    """(S_v (V, G, G), s_v (V, G)): each view's shared information and score with its pose profiled out."""
+    s_views, scores = [], []
+    for v in views:
+        m = normal[v]
+        hgp, hpp = m[:g, g: g + POSE], m[g: g + POSE, g: g + POSE]
+        solve = np.linalg.solve(hpp, np.c_[hgp.T, m[g: g + POSE, -1]])
+        s_views.append(m[:g, :g] - hgp @ solve[:, :g])
+        scores.append(m[:g, -1] - hgp @ solve[:, g])
+    return np.array(s_views), np.array(scores)
+
+
+def _expected(q: np.ndarray, s_views: np.ndarray, s_inv: np.ndarray) -> np.ndarray:
+    """E[s_v s_v'] (V, G, G) for per-view score covariances q (V, G, G) (the module docstring's formula)."""
+    a = np.einsum("vij,jk,vkl->vil", s_views, s_inv, q)  # S_v S^-1 Q_v
+    total = s_inv @ q.sum(axis=0) @ s_inv
+    return q - a - np.swapaxes(a, 1, 2) + np.einsum("vij,jk,vkl->vil", s_views, total, s_views)
+
+
+def view_effects(normal: np.ndarray, n_shared: int, sigma2: float, dof: int,
+                 weight: np.ndarray | None = None) -> ViewEffects:
+    """`normal` (V, P+1, P+1) the solver's per-view [J r]'[J r] at the solution (P = n_shared + 6); `sigma2` the
+    solve's unbiased corner noise variance, `dof` its residuals minus free parameters; `weight` (V,) > 0 for the
+    views the solve used."""
+    from dstereo.uncertainty.covariance import scaled_inverse
+
+    normal = np.asarray(normal, float)
+    views = np.arange(len(normal)) if weight is None else np.flatnonzero(np.asarray(weight) > 0)
+    g = n_shared
+    s_views, scores = profiled(normal, g, views)
+    s = s_views.sum(axis=0)
+    s_inv = scaled_inverse(s)
+    d = 1.0 / np.sqrt(np.maximum(np.diag(s), 1e-300))  # Jacobi scaling first: fx and k3 differ by 10^6
+    lam, vec = np.linalg.eigh(s * d[:, None] * d[None, :])
+    # W with W S W' = I on the directions the views determine; a near-null direction (a rational model's
+    # cancelling pair: scaled eigenvalue below 1e-12 of the largest) carries no information to fit, left out
+    inv_root = np.where(lam > 1e-12 * lam.max(), 1.0 / np.sqrt(np.maximum(lam, 1e-300)), 0.0)
+    w_half = ((vec * inv_root) @ vec.T) * d[None, :]
+    white = lambda m: np.einsum("ij,...jk,lk->...il", w_half, m, w_half)  # noqa: E731
+    observed = white(np.einsum("vi,vj->vij", scores, scores)).ravel()
+    null = white(_expected(s_views, s_views, s_inv)).ravel()  # per unit of white (or tau) variance
+    columns = [null] + [white(_expected(np.einsum("vi,vj->vij", s_views[:, :, k], s_views[:, :, k]), s_views,
+                                        s_inv)).ravel() for k in range(g)]  # omega_k: Q_v = S_v e_k e_k' S_v
+    left = np.einsum("vkk->k", s_views - np.einsum("vij,jk,vkl->vil", s_views, s_inv, s_views))
+    tau, omega, sigma2_c = 0.0, np.zeros(g), float(sigma2)
+    fit = len(views) > 1 and sigma2 > 0 and dof > 0 and np.isfinite(observed).all() and np.isfinite(columns).all()
+    for _ in range(ROUNDS if fit else 0):
+        x, _ = nnls(np.array(columns).T, observed - sigma2_c * null)
+        tau, omega = float(x[0]), x[1:]
+        sigma2_c = max(sigma2 * dof - float(left @ omega), SIGMA2_FLOOR * sigma2 * dof) / dof
+    extra = np.einsum("vik,k,vjk->ij", s_views, omega, s_views)
+    cov = (sigma2_c + tau) * s_inv + s_inv @ extra @ s_inv
+    return ViewEffects(omega, tau, sigma2_c, float(sigma2), cov, sigma2 * s_inv, views, s_views)
+
+
+def solution_effects(sol) -> ViewEffects | None:
+    """`ViewEffects` of a solve that kept its per-view normal blocks; None without them, or for a solve with a
+    prior (the splined lens's curvature rows pull on its knots: its views' scores do not sum to zero, and the
+    moment equations above do not hold)."""
+    from dstereo.models.distortion import lens_model
+    from dstereo.uncertainty.view_scatter import inliers_of, sse_of
+
+    if getattr(sol, "normal", None) is None or lens_model(tuple(getattr(sol, "free", ()))) == "splined":
+        return None
+    n_res = 2 * int(inliers_of(sol).sum())
+    dof = n_res - len(sol.values) - POSE * len(sol.poses)
+    return view_effects(sol.normal, len(sol.values), sse_of(sol) / max(dof, 1), dof) if dof > 0 else None
+
+
+def reported_covariance(sol) -> np.ndarray:
+    """(G, G) the covariance the tool reports for a solve's shared parameters: with the views' effects where the
+    solve kept its per-view blocks, the Jacobian one otherwise."""
+    effects = solution_effects(sol)
+    return np.asarray(sol.cov, float) if effects is None else effects.cov
+
+
+def reported_std(sol) -> np.ndarray:
+    """(G,) the +- the tool shows for a solve's shared parameters (`reported_covariance`; the solve's own Jacobian
+    std where it has no per-view blocks)."""
+    effects = solution_effects(sol)
+    return np.asarray(sol.std, float) if effects is None else np.sqrt(np.maximum(np.diag(effects.cov), 0.0))
+
+
+def solve_covariance(out, n_params: int) -> tuple[np.ndarray, np.ndarray, ViewEffects | None]:
+    """(reported covariance, Jacobian covariance, effects) of one solve's `LMResult` (a rig or N cameras: its
+    frames are the views) with `n_params` free parameters, poses included."""
+    from dstereo.uncertainty.covariance import covariance
+
+    jac = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
+    dof = int(out.n_residuals) - n_params
+    if getattr(out, "normal", None) is None or dof <= 0:
+        return jac, jac, None
+    effects = view_effects(np.asarray(out.normal), len(out.g), float(out.sse) / dof, dof)
+    return effects.cov, jac, effects

@@ -1,0 +1,79 @@
+"""Per-view random effects (`uncertainty/view_effects.py`): the covariance every +- of the tool carries.
+
+Checked against a Monte Carlo of synthetic calibrations (the truth: the spread of re-solved estimates), for
+independent corner noise and for views that each see their own camera (the model's premise), where the Jacobian
+covariance alone is measurably optimistic; exactly the Jacobian's without excess; the joint covariance's shared
+block is the marginal one; the projection map carries it."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+import experiments.view_effects_mc as mc  # noqa: E402
+
+from dstereo.calib.mono import calibrate_full  # noqa: E402
+from dstereo.uncertainty.covariance import joint_covariance, scaled_inverse  # noqa: E402
+from dstereo.uncertainty.projection import projection_uncertainty_map, solution_map  # noqa: E402
+from dstereo.uncertainty.view_effects import profiled, reported_std, solution_effects, view_effects  # noqa: E402
+
+DRAWS = 60
+
+
+@pytest.fixture(scope="module")
+def monte_carlo():
+    return {p: mc.run(p, DRAWS, views=12)[0] for p in ("independent", "camera jitter")}
+
+
+@pytest.mark.parametrize("process", ["independent", "camera jitter"])
+def test_random_effects_match_the_monte_carlo(monte_carlo, process):
+    rows = {name: m2 for _, name, _, m2 in monte_carlo[process]}
+    # m2 = mean over draws of e' C^-1 e / G (1 if C is right). Its sampling error with 60 draws x 9 parameters
+    # (correlated) is ~0.1, and each draw's C is itself an estimate from 12 views (Jensen: E[e'C^-1e] > G when C is
+    # noisy); the experiment measured 0.93-1.24 at 12-16 views over 200 draws. The band is 3x that noise wide.
+    assert 0.65 <= rows["random effects"] <= 1.45, rows
+    if process == "camera jitter":  # the check has power: the Jacobian covariance alone is 2.5-2.9 there
+        assert rows["jacobian"] > 1.8, rows
+
+
+def _solve(seed=0, views=12):
+    rng = np.random.default_rng(seed)
+    cam0 = mc._camera(np.r_[mc.TRUE[:4], mc.TRUE[4]])
+    poses = mc.board_pose_set([cam0], [np.zeros(6)], mc.Board(mc.PATTERN, mc.SQUARE, mc.SQUARE), views, seed)
+    obj = mc.object_points(mc.PATTERN, mc.SQUARE)
+    return calibrate_full(obj, mc.corners(rng, "camera jitter", poses, obj), mc.SIZE, mc.FREE)
+
+
+def test_without_excess_it_is_the_jacobian_covariance():
+    sol = _solve()
+    normal = np.array(sol.normal)
+    normal[:, :, -1] = normal[:, -1, :] = 0.0  # scores zero: nothing the views disagree on
+    g, dof = len(sol.values), sol.residuals.size - len(sol.values) - 6 * len(sol.poses)
+    x = view_effects(normal, g, 0.04, dof)
+    assert x.tau == 0.0 and not np.any(x.omega)
+    s = profiled(normal, g, np.arange(len(normal)))[0].sum(axis=0)
+    # the same scaled inverse of the same sum, times the same number: equal to rounding (1e-12 holds anywhere)
+    np.testing.assert_allclose(x.cov, 0.04 * scaled_inverse(s), rtol=1e-12)
+
+
+def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
+    sol = _solve(1)
+    x = solution_effects(sol)
+    assert x is not None and (x.tau > 0 or np.any(x.omega > 0))
+    joint = x.joint(sol.normal)
+    g = len(sol.values)
+    # (J'J)^-1's shared block against the Schur complement's inverse: two factorisations of a matrix whose scaled
+    # condition number is ~1e6 here, so agreement to ~1e-9 relative; 1e-7 leaves room for any processor
+    np.testing.assert_allclose(joint[:g, :g], x.cov, rtol=1e-7, atol=1e-12 * np.abs(x.cov).max())
+    np.testing.assert_allclose(reported_std(sol), np.sqrt(np.diag(x.cov)), rtol=1e-12)
+    pmap = solution_map(sol, mc.SIZE, 500.0, grid=(8, 6))
+    direct = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, mc.SIZE, 500.0, (8, 6),
+                                        poses=sol.poses)
+    # the same covariance through the same compiled map: equal to rounding
+    np.testing.assert_allclose(pmap.std, direct.std, rtol=1e-10)
+    plain = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names,
+                                       joint_covariance(sol.normal, g, float(np.sum(sol.residuals ** 2)),
+                                                        sol.residuals.size), mc.SIZE, 500.0, (8, 6), poses=sol.poses)
+    assert np.nanmedian(pmap.std / plain.std) > 1.05  # the views' effects show in the map
