@@ -181,7 +181,7 @@ def test_rig640_baseline_std_and_subset_spread():
     # residuals correlate (0.38) and per-pair shifts take 17 % of the SSE, so a pair carries less information
     # than its 216 residuals suggest and the Jacobian is optimistic by that factor.
     spread = np.std(cols["Tnorm"], ddof=1)
-    predicted = np.sqrt(np.mean(sub.norm_std[:, 0] ** 2) - s.baseline_std ** 2)
+    predicted = np.sqrt(np.mean(sub.norm_std[:, 0] ** 2) - s.baseline_std_jacobian ** 2)  # Jacobian vs Jacobian
     assert 1.5 < spread / predicted < 6.0
     assert np.all(np.abs(cols["Tnorm"] - s.baseline) < 10 * sub.norm_std[:, 0])
     # The subsets' mean per-pair RMS is the thesis's stereo_re; every subset fits to about the full set's level.

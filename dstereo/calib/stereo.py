@@ -155,7 +155,7 @@ class StereoSolution:
     conditioning: Conditioning
     inliers: np.ndarray | None = None  # (V, 2, n) bool: corners the solve used [left, right] (None: all)
     timings: dict = field(default_factory=dict)
-    std_jacobian: np.ndarray | None = None  # (G,) the Jacobian's alone (independent corner noise)
+    cov_jacobian: np.ndarray | None = None  # (G, G) the Jacobian's alone (independent corner noise)
 
     @property
     def converged(self) -> bool:
@@ -175,13 +175,22 @@ class StereoSolution:
         return float(np.linalg.norm(self.T))
 
     @property
+    def std_jacobian(self) -> np.ndarray | None:
+        return None if self.cov_jacobian is None else np.sqrt(np.maximum(np.diag(self.cov_jacobian), 0.0))
+
+    @property
     def baseline_std(self) -> float:
-        """Jacobian standard deviation of |T| (first-order propagation of the T covariance)."""
+        """Standard deviation of |T| (first-order propagation of the T covariance, `cov`)."""
         return _norm_std(self.T, self.cov[3:6, 3:6])
 
     @property
+    def baseline_std_jacobian(self) -> float:
+        """The same from the Jacobian covariance alone (a subset's std is that kind)."""
+        return _norm_std(self.T, (self.cov if self.cov_jacobian is None else self.cov_jacobian)[3:6, 3:6])
+
+    @property
     def angle_std(self) -> float:
-        """Jacobian standard deviation of |rvec| (rad)."""
+        """Standard deviation of |rvec| (rad), from `cov`."""
         return _norm_std(self.rvec, self.cov[0:3, 0:3])
 
     def columns(self) -> dict[str, float]:
@@ -311,7 +320,7 @@ def _solution_from(out, spec: Problem, mode: str, obj, data, left: Camera, right
     R, E, F = (np.array(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
     return StereoSolution(
         mode=mode, names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov,
-        std_jacobian=np.sqrt(np.maximum(np.diag(jac), 0.0)), left=cam_l,
+        cov_jacobian=jac, left=cam_l,
         right=cam_r, rvec=g[:3].copy(), R=R, T=g[3:6].copy(), E=E, F=F,
         poses=out.p, rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
         per_pair_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=3) * mask, axis=(1, 2))

@@ -66,7 +66,8 @@ def cameras_summary(job) -> dict:
         "joint": {"rms": float(sol.rms), "status": sol.status_text, "iterations": sol.iterations,
                   "parameters": dict(zip(sol.names, map(float, sol.values))),
                   "std": dict(zip(sol.names, map(float, sol.std))),  # with the frames' effects (`view_effects`)
-                  "std_jacobian": None if sol.std_jacobian is None else dict(zip(sol.names, map(float, sol.std_jacobian)))},
+                  "std_jacobian": (None if sol.std_jacobian is None
+                                   else dict(zip(sol.names, map(float, sol.std_jacobian))))},
         "held": {"rms": float(held.rms), "status": held.status_text,
                  "parameters": dict(zip(held.names, map(float, held.values))),
                  "std": dict(zip(held.names, map(float, held.std)))},

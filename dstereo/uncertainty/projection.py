@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
-from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
+from dstereo.uncertainty.view_effects import inliers_of, reported_covariance, solution_effects, sse_of
+from dstereo.uncertainty.view_scatter import solution_view_scatter
 from dstereo.models import fisheye, splined
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort

@@ -35,7 +35,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import nnls
 
 POSE = 6
 ROUNDS = 5  # sigma^2 <-> (tau, omega) alternations: the correction is a few % of sigma^2, settled in 2-3 rounds
@@ -99,6 +98,31 @@ def profiled(normal: np.ndarray, g: int, views) -> tuple[np.ndarray, np.ndarray]
     return np.array(s_views), np.array(scores)
 
 
+def nnls(a: np.ndarray, b: np.ndarray, max_iter: int = 200) -> np.ndarray:
+    """min |a x - b| subject to x >= 0 (Lawson and Hanson's active set; a few columns here). Written out rather
+    than taken from scipy.optimize, whose import pulls scipy.spatial into every calibration's start-up."""
+    n = a.shape[1]
+    x, passive = np.zeros(n), np.zeros(n, bool)
+    tol = 1e-12 * max(float(np.abs(a).max()), 1e-300) * max(float(np.abs(b).max()), 1e-300)
+    for _ in range(max_iter):
+        w = a.T @ (b - a @ x)
+        if passive.all() or np.max(np.where(passive, -np.inf, w)) <= tol:
+            break
+        passive[int(np.argmax(np.where(passive, -np.inf, w)))] = True
+        while True:
+            z = np.zeros(n)
+            z[passive] = np.linalg.lstsq(a[:, passive], b, rcond=None)[0]
+            if np.all(z[passive] > 0):
+                x = z
+                break
+            neg = passive & (z <= 0)
+            alpha = np.min(x[neg] / np.maximum(x[neg] - z[neg], 1e-300))
+            x = x + alpha * (z - x)
+            passive &= x > 1e-15 * max(float(np.abs(x).max()), 1e-300)
+            x[~passive] = 0.0
+    return x
+
+
 def _expected(q: np.ndarray, s_views: np.ndarray, s_inv: np.ndarray) -> np.ndarray:
     """E[s_v s_v'] (V, G, G) for per-view score covariances q (V, G, G) (the module docstring's formula)."""
     a = np.einsum("vij,jk,vkl->vil", s_views, s_inv, q)  # S_v S^-1 Q_v
@@ -134,7 +158,7 @@ def view_effects(normal: np.ndarray, n_shared: int, sigma2: float, dof: int,
     tau, omega, sigma2_c = 0.0, np.zeros(g), float(sigma2)
     fit = len(views) > 1 and sigma2 > 0 and dof > 0 and np.isfinite(observed).all() and np.isfinite(columns).all()
     for _ in range(ROUNDS if fit else 0):
-        x, _ = nnls(np.array(columns).T, observed - sigma2_c * null)
+        x = nnls(np.array(columns).T, observed - sigma2_c * null)
         tau, omega = float(x[0]), x[1:]
         sigma2_c = max(sigma2 * dof - float(left @ omega), SIGMA2_FLOOR * sigma2 * dof) / dof
     extra = np.einsum("vik,k,vjk->ij", s_views, omega, s_views)
@@ -142,12 +166,22 @@ def view_effects(normal: np.ndarray, n_shared: int, sigma2: float, dof: int,
     return ViewEffects(omega, tau, sigma2_c, float(sigma2), cov, sigma2 * s_inv, views, s_views)
 
 
+def inliers_of(sol) -> np.ndarray:
+    """(V, n) the corners the solve fitted (rejected outliers keep their residuals in `sol.residuals`)."""
+    inl = getattr(sol, "inliers", None)
+    return np.ones(np.shape(sol.residuals)[:2], bool) if inl is None else np.asarray(inl, bool)
+
+
+def sse_of(sol) -> float:
+    """The solve's sum of squares over the corners it fitted: an outlier's residual is not corner noise."""
+    return float(np.sum(np.sum(np.asarray(sol.residuals, float) ** 2, axis=-1) * inliers_of(sol)))
+
+
 def solution_effects(sol) -> ViewEffects | None:
     """`ViewEffects` of a solve that kept its per-view normal blocks; None without them, or for a solve with a
     prior (the splined lens's curvature rows pull on its knots: its views' scores do not sum to zero, and the
     moment equations above do not hold)."""
     from dstereo.models.distortion import lens_model
-    from dstereo.uncertainty.view_scatter import inliers_of, sse_of
 
     if getattr(sol, "normal", None) is None or lens_model(tuple(getattr(sol, "free", ()))) == "splined":
         return None

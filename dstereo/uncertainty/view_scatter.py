@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dstereo.uncertainty.view_effects import profiled
+from dstereo.uncertainty.view_effects import inliers_of, profiled, sse_of
 
 ALARM_SIGMAS = 3.0  # kappa above 1 + this many standard errors: the premise of independent corners fails
 
@@ -83,17 +83,6 @@ def view_scatter(normal: np.ndarray, n_shared: int, sigma2: float, weight: np.nd
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.sqrt(np.diag(sandwich) / (sigma2 * np.diag(s_inv)))
     return ViewScatter(kappa, ratio, n, float(np.sqrt(2.0 / max((n - 1) * g, 1))), sandwich, sigma2 * s_inv)
-
-
-def inliers_of(sol) -> np.ndarray:
-    """(V, n) the corners the solve fitted (rejected outliers keep their residuals in `sol.residuals`)."""
-    inl = getattr(sol, "inliers", None)
-    return np.ones(np.shape(sol.residuals)[:2], bool) if inl is None else np.asarray(inl, bool)
-
-
-def sse_of(sol) -> float:
-    """The solve's sum of squares over the corners it fitted: an outlier's residual is not corner noise."""
-    return float(np.sum(np.sum(np.asarray(sol.residuals, float) ** 2, axis=-1) * inliers_of(sol)))
 
 
 def solution_view_scatter(sol):

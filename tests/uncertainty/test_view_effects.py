@@ -77,3 +77,20 @@ def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
                                        joint_covariance(sol.normal, g, float(np.sum(sol.residuals ** 2)),
                                                         sol.residuals.size), mc.SIZE, 500.0, (8, 6), poses=sol.poses)
     assert np.nanmedian(pmap.std / plain.std) > 1.05  # the views' effects show in the map
+
+
+def test_own_nnls_equals_scipys():
+    """The module's active-set NNLS (kept off scipy.optimize for start-up) against scipy's on random problems:
+    both are exact solvers of the same convex problem, so their residual norms agree to rounding."""
+    from scipy.optimize import nnls as scipy_nnls
+
+    from dstereo.uncertainty.view_effects import nnls
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        m, n = rng.integers(5, 60), rng.integers(1, 14)
+        a, b = rng.normal(size=(m, n)) * rng.uniform(0.1, 10, size=n), rng.normal(size=m)
+        x = nnls(a, b)
+        assert np.all(x >= 0)
+        # residual norms O(1-10): 1e-9 is ~1e6 roundings, far below any wrong active set's excess (~1e-2)
+        assert np.linalg.norm(a @ x - b) <= np.linalg.norm(a @ scipy_nnls(a, b)[0] - b) + 1e-9
