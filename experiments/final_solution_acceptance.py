@@ -183,7 +183,7 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     ap = argparse.ArgumentParser()
     ap.add_argument("--cap", type=int, default=300, help="subsets per camera (a seeded sample above)")
-    ap.add_argument("--skip-cameras", action="store_true")
+    ap.add_argument("--skip-cameras", action="store_true", help="rigs only: writes final_solution_rigs.md/.json")
     ap.add_argument("--rational", action="store_true", help="cameras only, rational model (k1..k6, p1, p2)")
     args = ap.parse_args()
     global MODEL
@@ -196,7 +196,8 @@ def main() -> None:
     for r in rigs:
         print(r["set"], "RMS z", r["rms_z"], "old", r["rms_z_intrinsics_exact"])
     OUT.mkdir(exist_ok=True)
-    name = "final_solution_rational" if args.rational else "final_solution"
+    name = "final_solution_rational" if args.rational else "final_solution_rigs" if args.skip_cameras else \
+        "final_solution"
     (OUT / f"{name}.json").write_text(json.dumps({"model": MODEL, "cameras": cams, "rigs": rigs}, indent=1,
                                                  default=float))
     (OUT / f"{name}.md").write_text(markdown(cams, rigs, args.cap))
