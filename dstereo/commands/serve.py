@@ -28,7 +28,7 @@ def serve(
         raise DstereoError("--stop and --status: give one of them")
     path = wire.socket_path()
     if stop or status:
-        state = _ask(path, "stop" if stop else "status")
+        state = ask(path, "stop" if stop else "status")
         if state is None:
             typer.echo(f"dstereo serve: no server at {path}")
             if status:
@@ -48,7 +48,7 @@ def serve(
     Server(path).run()
 
 
-def _ask(path: str, op: str) -> dict | None:
+def ask(path: str, op: str) -> dict | None:
     from dstereo import serve_client as wire
 
     try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import os
+import signal
 import sys
 import threading
 import traceback
@@ -47,6 +48,27 @@ def client_stream(conn, kind: bytes, traits: dict, lock: threading.Lock, line_bu
     raw = _FrameWriter(conn, kind, bool(traits.get("tty")), lock)
     return io.TextIOWrapper(io.BufferedWriter(raw), encoding=traits.get("encoding") or "utf-8",
                             errors=traits.get("errors") or "strict", line_buffering=line_buffering)
+
+
+# The client's Ctrl-C reaches the command as this signal, simulated in the main thread by the server's watcher
+# (SIGINT stays the server's own: a server started in the background has it ignored, and Ctrl-C in its terminal
+# stops the server). It interrupts the command only while the command runs, never the restoring around it.
+INTERRUPT_SIGNAL = signal.SIGUSR1
+_command_running = False
+
+
+class ClientInterrupt(KeyboardInterrupt):
+    """The client's Ctrl-C (or its disconnection) inside the command."""
+
+
+def _interrupt_command(signum, frame) -> None:
+    if _command_running:
+        raise ClientInterrupt
+
+
+def install_interrupt() -> None:
+    """In the server's main thread, before serving."""
+    signal.signal(INTERRUPT_SIGNAL, _interrupt_command)
 
 
 class _ProcessExit(BaseException):
@@ -102,8 +124,13 @@ def _forget_temp_folder() -> None:
 def _exit_code(main) -> int:
     """What the interpreter would exit with after `main()`, printing what it would print (SystemExit's message,
     an uncaught exception's traceback)."""
+    global _command_running
     try:
-        main()
+        try:
+            _command_running = True
+            main()
+        finally:
+            _command_running = False
         return 0
     except SystemExit as exc:
         if exc.code is None or isinstance(exc.code, int):
@@ -112,7 +139,7 @@ def _exit_code(main) -> int:
         return 1
     except _ProcessExit as exc:
         return exc.code
-    except KeyboardInterrupt:  # the client's Ctrl-C, passed on by the server
+    except ClientInterrupt:  # exit 130 as Python does; the server's own Ctrl-C (KeyboardInterrupt) stops the server
         return 130
     except BaseException:  # noqa: BLE001 - a crash ends this command only, with the traceback Python would show
         traceback.print_exc()

@@ -19,7 +19,7 @@ import threading
 import time
 
 from dstereo import serve_client as wire
-from dstereo.commands.serve_request import client_stream, run_request
+from dstereo.commands.serve_request import INTERRUPT_SIGNAL, client_stream, install_interrupt, run_request
 from dstereo.errors import DstereoError
 
 GREETING_TIMEOUT_S = 5.0  # a connection that sends no request in this time is dropped
@@ -53,13 +53,14 @@ class Server:
         self.path, self.key = path, wire.code_key()
         self.requests: queue.Queue = queue.Queue()
         self.lock = threading.Lock()
-        self.busy = self.stopping = self.interrupt_pending = False
+        self.busy = self.stopping = False
         self.served, self.since = 0, time.time()
         self.listener: socket.socket | None = None
 
     def run(self) -> None:
         prepare_folder(self.path)
         _preload()
+        install_interrupt()
         self.listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self.listener.bind(self.path)
         inode = os.stat(self.path).st_ino
@@ -91,11 +92,8 @@ class Server:
             except queue.Empty:
                 if self.stopping:
                     return
-            except KeyboardInterrupt:
-                with self.lock:
-                    client, self.interrupt_pending = self.interrupt_pending, False
-                if not client:  # Ctrl-C in the server's own terminal
-                    return
+            except KeyboardInterrupt:  # Ctrl-C in the server's own terminal (a client's is ClientInterrupt, caught)
+                return
 
     def _serve(self, conn: socket.socket, request: dict) -> None:
         done = threading.Event()
@@ -105,8 +103,7 @@ class Server:
             out = client_stream(conn, b"o", request["stdout"], lock, line_buffering=request["stdout"].get("tty"))
             err = client_stream(conn, b"e", request["stderr"], lock, line_buffering=True)
             code = run_request(request, out, err)
-            with self.lock:
-                done.set()
+            done.set()
             try:
                 send_code = json.dumps(code).encode()
                 with lock:
@@ -131,10 +128,8 @@ class Server:
             frame = wire.receive(conn)
         except OSError:
             frame = None
-        with self.lock:
-            if not done.is_set() and (frame is None or frame[0] == b"i"):
-                self.interrupt_pending = True
-                _thread.interrupt_main()
+        if not done.is_set() and (frame is None or frame[0] == b"i"):
+            _thread.interrupt_main(INTERRUPT_SIGNAL)  # ignored unless the command is still running
 
     def _listen(self) -> None:
         while not self.stopping:
