@@ -66,9 +66,14 @@ def _interrupt_command(signum, frame) -> None:
         raise ClientInterrupt
 
 
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt  # SIGTERM stops the server as its Ctrl-C does: socket removed, workers stopped
+
+
 def install_interrupt() -> None:
     """In the server's main thread, before serving."""
     signal.signal(INTERRUPT_SIGNAL, _interrupt_command)
+    signal.signal(signal.SIGTERM, _terminate)
 
 
 class _ProcessExit(BaseException):
@@ -89,7 +94,7 @@ def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrappe
     """Run `dstereo ARGV` in the request's folder and environment with these streams; its exit code."""
     from dstereo.cli import main
 
-    saved_streams = sys.argv, sys.stdout, sys.stderr, sys.stdin
+    saved_streams = sys.argv, sys.stdout, sys.stderr, sys.stdin, sys.__stdout__, sys.__stderr__, sys.__stdin__
     saved_env, saved_cwd, saved_exit = dict(os.environ), os.getcwd(), os._exit
     try:
         os.chdir(request["cwd"])
@@ -98,6 +103,9 @@ def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrappe
         _forget_temp_folder()
         sys.argv = [request.get("argv0") or "dstereo", *request["argv"]]
         sys.stdout, sys.stderr, sys.stdin = stdout, stderr, io.StringIO()
+        # shutil.get_terminal_size and rich ask these for the terminal's size: the server's own terminal is not
+        # the client's (whose size, when it has one, came as COLUMNS/LINES)
+        sys.__stdout__, sys.__stderr__, sys.__stdin__ = sys.stdout, sys.stderr, sys.stdin
         os._exit = _exit_instead
         with warnings.catch_warnings():  # entering resets the once-per-process registries, leaving the filters
             return _exit_code(main)
@@ -108,7 +116,7 @@ def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrappe
             except (OSError, ValueError):
                 pass
         os._exit = saved_exit
-        sys.argv, sys.stdout, sys.stderr, sys.stdin = saved_streams
+        sys.argv, sys.stdout, sys.stderr, sys.stdin, sys.__stdout__, sys.__stderr__, sys.__stdin__ = saved_streams
         os.environ.clear()
         os.environ.update(saved_env)
         _forget_temp_folder()
