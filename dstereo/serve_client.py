@@ -29,7 +29,8 @@ INTERRUPT_GRACE_S = 5.0  # after Ctrl-C, how long the client waits for the comma
 # Environment read once at start-up (JAX, XLA, BLAS, matplotlib, Python, the JAX cache folder): a server
 # started with other values would compute differently, so they are part of the key, not sent per request.
 STARTUP_ENV_PREFIXES = ("JAX_", "XLA_", "TF_", "CUDA_", "OMP_", "OPENBLAS_", "MKL_", "MPL", "PYTHON", "LD_")
-STARTUP_ENV_NAMES = ("DSTEREO_JAX_CACHE", "DSTEREO_FIGURE_WORKERS", "XDG_CACHE_HOME")
+# DSTEREO_AOT is read per call, but a server keeps the programs the first command built with it.
+STARTUP_ENV_NAMES = ("DSTEREO_JAX_CACHE", "DSTEREO_FIGURE_WORKERS", "DSTEREO_AOT", "XDG_CACHE_HOME")
 _HEADER = struct.Struct("!cI")
 
 

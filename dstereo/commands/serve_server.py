@@ -100,7 +100,7 @@ class Server:
         try:
             threading.Thread(target=self._watch, args=(conn, done), daemon=True).start()
             lock = threading.Lock()
-            out = client_stream(conn, b"o", request["stdout"], lock, line_buffering=request["stdout"].get("tty"))
+            out = client_stream(conn, b"o", request["stdout"], lock, line_buffering=bool(request["stdout"].get("tty")))
             err = client_stream(conn, b"e", request["stderr"], lock, line_buffering=True)
             code = run_request(request, out, err)
             done.set()
@@ -135,7 +135,8 @@ class Server:
         while not self.stopping:
             try:
                 conn, _ = self.listener.accept()
-            except OSError:
+            except OSError:  # closed at stop, or out of file descriptors for a moment
+                time.sleep(0.05)
                 continue
             threading.Thread(target=self._greet, args=(conn,), daemon=True).start()
 
