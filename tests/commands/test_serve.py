@@ -169,6 +169,40 @@ def test_a_stale_socket_runs_in_the_client_with_a_note(tmp_path):
     assert err.startswith("dstereo: note: ") and "stale" in err and len(err.splitlines()) == 1
 
 
+def _fake_server(run_dir: Path, frames: list[tuple[bytes, bytes]]) -> threading.Thread:
+    """A socket that answers one client with `frames`, then closes: a server busy, or one that dies mid-command."""
+    run_dir.mkdir(mode=0o700)
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(run_dir / "serve.sock"))
+    listener.listen(1)
+
+    def answer():
+        conn, _ = listener.accept()
+        with conn, listener:
+            assert wire.receive(conn)[0] == b"q"
+            for kind, payload in frames:
+                wire.send(conn, kind, payload)
+
+    worker = threading.Thread(target=answer, daemon=True)
+    worker.start()
+    return worker
+
+
+def test_a_busy_server_leaves_the_command_to_the_client_silently(tmp_path):
+    worker = _fake_server(tmp_path / "run", [(b"b", b"")])
+    code, out, err = dstereo(_env(tmp_path / "run"), tmp_path, "init", "project")
+    worker.join(timeout=STARTUP_S)
+    assert code == 0 and err == "" and (tmp_path / "project" / "dstereo.toml").is_file()
+
+
+def test_a_server_dying_mid_command_ends_the_client_with_one_error_line(tmp_path):
+    worker = _fake_server(tmp_path / "run", [(b"a", b""), (b"o", b"half of it\n")])
+    code, out, err = dstereo(_env(tmp_path / "run"), tmp_path, "init", "project")
+    worker.join(timeout=STARTUP_S)
+    assert code == 1 and out == "half of it\n" and not (tmp_path / "project").exists()
+    assert err.startswith("dstereo: error: the server at ") and len(err.splitlines()) == 1
+
+
 def test_the_client_imports_nothing_heavy_when_served(server, tmp_path):
     env, path = server
     before = served(path)
