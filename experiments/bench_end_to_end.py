@@ -217,6 +217,8 @@ def main() -> None:
         med = lambda name: statistics.median([p.get(name, 0.0) for p in profiles])  # noqa: E731
         lines.append(f"| {key[0]} {key[1]} | {statistics.median(walls[key]):.2f} | "
                      + " | ".join(f"{med(name):.2f}" for name in BREAKDOWN) + " |")
+    if not rows:  # --plain-only: no subset table
+        lines = [ln for ln in lines if not ln.startswith("| C (") and ln != "|---|---|---|---|---|---|"]
     text = "\n".join(lines) + "\n"
     print(text)
     out = ROOT / "experiments" / "results" / ("bench_end_to_end_plain.md" if args.plain_only else "bench_end_to_end.md")

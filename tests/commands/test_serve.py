@@ -249,3 +249,46 @@ def test_the_code_key_follows_the_source_and_the_startup_settings(tmp_path):
     assert wire.code_key({**env, "XLA_FLAGS": "--xla_cpu_max_isa=SSE4_2"}, str(package)) != key
     (package / "errors.py").write_text((package / "errors.py").read_text() + "\n# changed\n")
     assert wire.code_key(env, str(package)) != key
+
+
+def _run_in_server(monkeypatch, tmp_path, command) -> tuple[int, str, str]:
+    """serve_request.run_request with `command` standing in for dstereo.cli.main; (code, stdout, stderr)."""
+    import dstereo.cli
+    from dstereo.commands.serve_request import client_stream, run_request
+
+    monkeypatch.setattr(dstereo.cli, "main", command)
+    ours, theirs = socket.socketpair()
+    lock, traits = threading.Lock(), {"tty": False, "encoding": "utf-8"}
+    request = {"cwd": str(tmp_path), "env": {"ONLY_THIS": "1"}, "argv0": "dstereo", "argv": ["init", "x"]}
+    with ours, theirs:
+        code = run_request(request, client_stream(theirs, b"o", traits, lock, False),
+                           client_stream(theirs, b"e", traits, lock, True))
+        theirs.shutdown(socket.SHUT_WR)
+        streams = {b"o": b"", b"e": b""}
+        while (frame := wire.receive(ours)) is not None:
+            streams[frame[0]] += frame[1]
+    return code, streams[b"o"].decode(), streams[b"e"].decode()
+
+
+def test_a_request_runs_in_the_clients_folder_environment_and_argv_and_puts_them_back(monkeypatch, tmp_path):
+    cwd, env, argv, exit_ = os.getcwd(), dict(os.environ), list(sys.argv), os._exit
+
+    def command():
+        print(os.getcwd(), sorted(os.environ), sys.argv)
+        print("to stderr", file=sys.stderr)
+        os._exit(3)  # a CLI that ends with os._exit: in the server it ends the command only
+
+    code, out, err = _run_in_server(monkeypatch, tmp_path, command)
+    assert (code, out, err) == (3, f"{tmp_path} ['ONLY_THIS'] ['dstereo', 'init', 'x']\n", "to stderr\n")
+    assert (os.getcwd(), dict(os.environ), sys.argv, os._exit) == (cwd, env, argv, exit_)
+
+
+def test_a_request_exits_as_the_interpreter_would(monkeypatch, tmp_path):
+    def crash():
+        raise RuntimeError("boom")
+
+    code, out, err = _run_in_server(monkeypatch, tmp_path, crash)
+    assert code == 1 and err.startswith("Traceback") and err.endswith("RuntimeError: boom\n")
+    assert _run_in_server(monkeypatch, tmp_path, lambda: sys.exit("a message"))[::2] == (1, "a message\n")
+    assert _run_in_server(monkeypatch, tmp_path, lambda: sys.exit(2))[0] == 2
+    assert _run_in_server(monkeypatch, tmp_path, lambda: None)[0] == 0
