@@ -94,6 +94,11 @@ class Server:
                     return
             except KeyboardInterrupt:  # Ctrl-C in the server's own terminal (a client's is ClientInterrupt, caught)
                 return
+            except Exception:  # noqa: BLE001 - a request the server could not even start (a malformed one): its
+                # client sees the connection end (one error line, exit 1); the server goes on
+                import traceback
+
+                traceback.print_exc()
 
     def _serve(self, conn: socket.socket, request: dict) -> None:
         done = threading.Event()

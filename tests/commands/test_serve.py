@@ -141,6 +141,16 @@ def test_a_crash_in_a_command_ends_that_command_not_the_server(server, tmp_path)
     assert (tmp_path / "project" / "dstereo.toml").is_file()
 
 
+def test_a_malformed_request_ends_its_connection_not_the_server(server):
+    env, path = server
+    before = served(path)
+    with wire.connect(path) as sock:  # the right key, but none of the request's streams, folder or environment
+        wire.send(sock, b"q", json.dumps({"op": "run", "key": wire.code_key(env), "argv": ["init", "x"]}).encode())
+        sock.settimeout(STARTUP_S)
+        assert wire.receive(sock)[0] == b"a" and wire.receive(sock) is None
+    assert served(path) == before + 1  # answered, counted, and still serving
+
+
 def test_other_code_or_settings_run_in_the_client_with_a_note(server, tmp_path):
     env, path = server
     before = served(path)
