@@ -91,21 +91,23 @@ def _without_timings(stdout: str) -> str:
     return "\n".join(line for line in stdout.splitlines() if not line.startswith("timings:"))
 
 
-def test_served_calibration_writes_the_files_of_a_run_in_its_own_process(server, images, tmp_path):
+@pytest.mark.parametrize("extra", [[], ["--per-set", "5"]], ids=["plain", "subsets"])
+def test_served_calibration_writes_the_files_of_a_run_in_its_own_process(server, images, tmp_path, extra):
     env, path = server
     runs = {}
-    for name, extra in (("here", {"DSTEREO_SERVE": "0"}), ("served", {}), ("served again", {})):
+    for name, run_env in (("here", {"DSTEREO_SERVE": "0"}), ("served", {}), ("served again", {})):
         cwd = tmp_path / name.replace(" ", "_")
         cwd.mkdir()
         before = served(path)
         # relative paths: the server must resolve them in the client's folder, its figure workers too
-        runs[name] = dstereo({**env, **extra}, cwd, "calibrate", "--images", os.path.relpath(images, cwd), *FLAGS,
-                             "--out", "results")
+        runs[name] = dstereo({**env, **run_env}, cwd, "calibrate", "--images", os.path.relpath(images, cwd), *FLAGS,
+                             *extra, "--out", "results")
         assert served(path) - before == (0 if name == "here" else 1), name
         assert runs[name][0] == 0, runs[name][2]
         runs[name] += (_files(cwd / "results"),)
     code, out, err, files = runs["here"]
     assert "camera.yml" in files and any(name.startswith("plots/") for name in files)
+    assert ("subsets.csv" in files) == bool(extra)  # the subset case did run its subsets (and their figures)
     for name in ("served", "served again"):
         s_code, s_out, s_err, s_files = runs[name]
         assert _without_timings(s_out) == _without_timings(out) and s_err == err, name
