@@ -187,8 +187,8 @@ def main() -> None:
             cv.append(timed([sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]))
             print(f"plain: dstereo {ds[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
         plain_row = (ds, cv)
-        served_row = served_plain(run, [sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")],
-                                  env, work, max(args.repeat, 3))
+        cv2_run = [sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]
+        served_row = served_plain(run, cv2_run, env, work, max(args.repeat, 3))
     load.append(f"after: {uptime()}")
     lines = ["# End-to-end benchmark (`make bench`, experiments/bench_end_to_end.py)", "",
              f"Machine: {os.cpu_count()} cores (shared with other jobs); load {load[0]}; {load[1]}.", "",
@@ -221,7 +221,8 @@ def main() -> None:
         lines = [ln for ln in lines if not ln.startswith("| C (") and ln != "|---|---|---|---|---|---|"]
     text = "\n".join(lines) + "\n"
     print(text)
-    out = ROOT / "experiments" / "results" / ("bench_end_to_end_plain.md" if args.plain_only else "bench_end_to_end.md")
+    name = "bench_end_to_end_plain.md" if args.plain_only else "bench_end_to_end.md"  # a partial run: its own file
+    out = ROOT / "experiments" / "results" / name
     out.write_text(text)
     print(f"wrote {out}")
 

@@ -35,10 +35,12 @@ def serve(
                 raise typer.Exit(1)
             return
         if status:
-            same = "the same as" if state["key"] == wire.code_key() else "NOT the same as (commands run in their own process)"
-            typer.echo(f"dstereo serve: running at {path}, pid {state['pid']}, up {time.time() - state['since']:.0f} s, "
-                       f"{state['served']} command(s) served, {'busy' if state['busy'] else 'idle'}; its code and "
-                       f"start-up settings are {same} this dstereo's")
+            same = "the same as" if state["key"] == wire.code_key() else \
+                "NOT the same as (commands run in their own process)"
+            typer.echo(f"dstereo serve: running at {path}, pid {state['pid']}, up "
+                       f"{time.time() - state['since']:.0f} s, {state['served']} command(s) served, "
+                       f"{'busy' if state['busy'] else 'idle'}; its code and start-up settings are {same} this "
+                       "dstereo's")
             return
         _wait_gone(path)
         typer.echo(f"dstereo serve: stopped the server at {path} (pid {state['pid']})")
