@@ -10,7 +10,10 @@ beforehand and cached, so neither side pays detection):
     (cv2.setNumThreads(1) in each worker), then writes its results (one CSV row per subset and a yml of the
     subset means), as the thesis's tool did per subset; no figures (in its favour);
   - plain: `dstereo calibrate` without subsets (warm cache, results folder included) vs a new Python process that
-    loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage.
+    loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage;
+  - plain, served: the same `dstereo calibrate` through the `dstereo` entry point with a `dstereo serve` running
+    (started before the timing, one untimed command first: the server's in-memory caches warm), each a new client
+    process; `--plain-only` runs the plain cases alone and writes bench_end_to_end_plain.md.
 Each case runs `--repeat` times (best and all times printed); `uptime` before and after says the load. The dstereo
 runs go through experiments/_profiled_cli.py (the same CLI, plus a breakdown: when JAX had imported, JAX's tracing,
 lowering and compile-or-fetch sums, executables loaded from disk, and the command's own stage timings).
@@ -112,6 +115,35 @@ def prepare(work: Path, n_images: int) -> tuple[Path, Path]:
     return folder, corners
 
 
+CLIENT = [sys.executable, "-c", "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"]
+
+
+def served_plain(run: list[str], cv2_run: list[str], env: dict, work: Path, repeat: int):
+    """(served times, cv2 times, first served time): the plain calibration through the entry point's client with
+    a warm `dstereo serve` (the command `run` less the profiling wrapper), alternating with the cv2 process so
+    both see the same load; the first served command (tracing the programs in the new server) is not counted."""
+    env = dict(env, DSTEREO_SERVE_DIR=str(work / "serve"))
+    env.pop("DSTEREO_SERVE", None)
+    server = subprocess.Popen([*CLIENT, "serve"], env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    try:
+        if "ready" not in server.stderr.readline():
+            raise SystemExit("dstereo serve did not start")
+        client = [*CLIENT, *run[len(DSTEREO):]]
+        first = timed(client, env)
+        served, cv = [], []
+        for _ in range(repeat):
+            served.append(timed(client, env))
+            cv.append(timed(cv2_run))
+            print(f"plain: served {served[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
+        status = subprocess.run([*CLIENT, "serve", "--status"], env=env, capture_output=True, text=True).stdout
+        if f"{repeat + 1} command(s) served" not in status:  # a fallback to in-process would time the wrong thing
+            raise SystemExit(f"not every timed command was served: {status}")
+    finally:
+        subprocess.run([*CLIENT, "serve", "--stop"], env=env, capture_output=True)
+        server.wait(timeout=60)
+    return served, cv, first
+
+
 def best(times: list[float]) -> str:
     return f"{min(times):.2f} s" + (f" ({', '.join(f'{t:.2f}' for t in times)})" if len(times) > 1 else "")
 
@@ -121,13 +153,14 @@ def main() -> None:
     ap.add_argument("--sizes", default="286,1140,4845")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--no-plain", action="store_true")
+    ap.add_argument("--plain-only", action="store_true")
     args = ap.parse_args()
-    sizes = [int(s) for s in args.sizes.split(",")]
+    sizes = [] if args.plain_only else [int(s) for s in args.sizes.split(",")]
     work = Path(tempfile.mkdtemp(prefix="dstereo-e2e-"))
     (work / "thesis.py").write_text(THESIS)
     (work / "plain_cv2.py").write_text(PLAIN_CV2)
     load = [f"before: {uptime()}"]
-    rows, plain_row = [], None
+    rows, plain_row, served_row = [], None, None
     env_base = dict(os.environ)
     for c in sizes:
         n, m = CASES[c]
@@ -154,6 +187,8 @@ def main() -> None:
             cv.append(timed([sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]))
             print(f"plain: dstereo {ds[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
         plain_row = (ds, cv)
+        cv2_run = [sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]
+        served_row = served_plain(run, cv2_run, env, work, max(args.repeat, 3))
     load.append(f"after: {uptime()}")
     lines = ["# End-to-end benchmark (`make bench`, experiments/bench_end_to_end.py)", "",
              f"Machine: {os.cpu_count()} cores (shared with other jobs); load {load[0]}; {load[1]}.", "",
@@ -167,6 +202,9 @@ def main() -> None:
         lines += ["", "| plain calibration, 20 views | dstereo calibrate (warm cache, results folder) | "
                   "python + cv2.calibrateCamera + yml | ratio |", "|---|---|---|---|",
                   f"| whole run, new process | {best(ds)} | {best(cv)} | {min(ds) / min(cv):.2f}x |"]
+        sv, sv_cv, first = served_row
+        lines += [f"| whole run, `dstereo serve` running (warm; cv2 timed alternately with it; first command after "
+                  f"the server's start {first:.2f} s) | {best(sv)} | {best(sv_cv)} | {min(sv) / min(sv_cv):.2f}x |"]
     lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process.", "",
               "Breakdown of the dstereo runs (medians, s): jax_imported_at_s when `import jax` had finished in the "
               "process; trace_s, lower_s, xla_compile_or_fetch_s JAX's own sums over the run's programs; aot_load_s "
@@ -179,9 +217,12 @@ def main() -> None:
         med = lambda name: statistics.median([p.get(name, 0.0) for p in profiles])  # noqa: E731
         lines.append(f"| {key[0]} {key[1]} | {statistics.median(walls[key]):.2f} | "
                      + " | ".join(f"{med(name):.2f}" for name in BREAKDOWN) + " |")
+    if not rows:  # --plain-only: no subset table
+        lines = [ln for ln in lines if not ln.startswith("| C (") and ln != "|---|---|---|---|---|---|"]
     text = "\n".join(lines) + "\n"
     print(text)
-    out = ROOT / "experiments" / "results" / "bench_end_to_end.md"
+    name = "bench_end_to_end_plain.md" if args.plain_only else "bench_end_to_end.md"  # a partial run: its own file
+    out = ROOT / "experiments" / "results" / name
     out.write_text(text)
     print(f"wrote {out}")
 

@@ -15,6 +15,7 @@ COMMANDS = [
     ("optics", "optics", "optics"),
     ("demo", "demo", "demo"),
     ("refine", "refine", "refine"),
+    ("serve", "serve", "serve"),
 ]
 
 

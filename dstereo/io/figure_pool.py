@@ -37,6 +37,14 @@ def _noop() -> None:
     return None
 
 
+def _in_folder(cwd: str, fn, *args) -> None:
+    """Run a job in the caller's working folder: its paths may be relative, and a worker outlives a command (the
+    resident `dstereo serve` runs each command in its client's folder; its workers started in the server's)."""
+    if os.getcwd() != cwd:
+        os.chdir(cwd)
+    fn(*args)
+
+
 def workers_wanted() -> int:
     """DSTEREO_FIGURE_WORKERS (0: draw in the calling process), else 2 (at most one per core). Measured on 2 shared
     cores, new process, warm compile cache: at load ~3 the plain run 2.9-3.0 s with two workers vs 3.4-3.5 s
@@ -95,7 +103,7 @@ class Figures:
         future = None
         if _POOL is not None:
             try:
-                future = _POOL.submit(fn, *args)
+                future = _POOL.submit(_in_folder, os.getcwd(), fn, *args)
             except Exception:  # noqa: BLE001 - the pool broke (a worker died): draw here
                 future = None
         if future is None:
