@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.uncertainty.view_effects import inliers_of, reported_covariance, solution_effects, sse_of
-from dstereo.uncertainty.view_scatter import solution_view_scatter
+from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
+from dstereo.uncertainty.view_scatter import inliers_of, solution_view_scatter, sse_of
 from dstereo.models import fisheye, splined
 from dstereo.models.camera import INTRINSIC_NAMES, project
 from dstereo.models.distortion import COEFF_NAMES, FISHEYE_SLOTS, distort, lens_model, undistort
@@ -280,7 +280,7 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, cov[np.ix_(lens, lens)],
                                           image_size, range_, grid, method=method)
     return replace(pmap, view_scatter=scatter,
-                   covariance="jacobian" if effects is None else "per-view random effects")
+                   covariance="per-view random effects" if effects is not None and effects.fitted else "jacobian")
 
 
 def knot_prior(names) -> np.ndarray | None:

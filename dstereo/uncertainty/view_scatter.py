@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dstereo.uncertainty.view_effects import inliers_of, profiled, sse_of
+POSE = 6
 
 ALARM_SIGMAS = 3.0  # kappa above 1 + this many standard errors: the premise of independent corners fails
 
@@ -65,6 +65,18 @@ class ViewScatter:
                 "method": "cluster-robust (per view) sandwich against the Jacobian covariance"}
 
 
+def profiled(normal: np.ndarray, g: int, views) -> tuple[np.ndarray, np.ndarray]:
+    """(S_v (V, G, G), s_v (V, G)): each view's shared information and score with its pose profiled out."""
+    s_views, scores = [], []
+    for v in views:
+        m = normal[v]
+        hgp, hpp = m[:g, g: g + POSE], m[g: g + POSE, g: g + POSE]
+        solve = np.linalg.solve(hpp, np.c_[hgp.T, m[g: g + POSE, -1]])
+        s_views.append(m[:g, :g] - hgp @ solve[:, :g])
+        scores.append(m[:g, -1] - hgp @ solve[:, g])
+    return np.array(s_views), np.array(scores)
+
+
 def view_scatter(normal: np.ndarray, n_shared: int, sigma2: float, weight: np.ndarray | None = None) -> ViewScatter:
     """`normal` (V, P+1, P+1): each view's [J r]'[J r] at the solution (P = n_shared + 6, as the solver keeps it);
     `sigma2` the corner noise variance of the solve; `weight` (V,) > 0 for the views the solve used."""
@@ -83,6 +95,17 @@ def view_scatter(normal: np.ndarray, n_shared: int, sigma2: float, weight: np.nd
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.sqrt(np.diag(sandwich) / (sigma2 * np.diag(s_inv)))
     return ViewScatter(kappa, ratio, n, float(np.sqrt(2.0 / max((n - 1) * g, 1))), sandwich, sigma2 * s_inv)
+
+
+def inliers_of(sol) -> np.ndarray:
+    """(V, n) the corners the solve fitted (rejected outliers keep their residuals in `sol.residuals`)."""
+    inl = getattr(sol, "inliers", None)
+    return np.ones(np.shape(sol.residuals)[:2], bool) if inl is None else np.asarray(inl, bool)
+
+
+def sse_of(sol) -> float:
+    """The solve's sum of squares over the corners it fitted: an outlier's residual is not corner noise."""
+    return float(np.sum(np.sum(np.asarray(sol.residuals, float) ** 2, axis=-1) * inliers_of(sol)))
 
 
 def solution_view_scatter(sol):

@@ -17,7 +17,8 @@ import experiments.view_effects_mc as mc  # noqa: E402
 from dstereo.calib.mono import calibrate_full  # noqa: E402
 from dstereo.uncertainty.covariance import joint_covariance, scaled_inverse  # noqa: E402
 from dstereo.uncertainty.projection import projection_uncertainty_map, solution_map  # noqa: E402
-from dstereo.uncertainty.view_effects import profiled, reported_std, solution_effects, view_effects  # noqa: E402
+from dstereo.uncertainty.view_effects import reported_std, solution_effects, view_effects  # noqa: E402
+from dstereo.uncertainty.view_scatter import profiled  # noqa: E402
 
 DRAWS = 60
 
@@ -29,21 +30,40 @@ def monte_carlo():
 
 @pytest.mark.parametrize("process", ["independent", "camera jitter"])
 def test_random_effects_match_the_monte_carlo(monte_carlo, process):
-    rows = {name: m2 for _, name, _, m2 in monte_carlo[process]}
-    # m2 = mean over draws of e' C^-1 e / G (1 if C is right). Its sampling error with 60 draws x 9 parameters
-    # (correlated) is ~0.1, and each draw's C is itself an estimate from 12 views (Jensen: E[e'C^-1e] > G when C is
-    # noisy); the experiment measured 0.93-1.24 at 12-16 views over 200 draws. The band is 3x that noise wide.
-    assert 0.65 <= rows["random effects"] <= 1.45, rows
-    if process == "camera jitter":  # the check has power: the Jacobian covariance alone is 2.5-2.9 there
-        assert rows["jacobian"] > 1.8, rows
+    rows = {name: (ratio, m2) for _, name, ratio, m2 in monte_carlo[process]}
+    ratio, m2 = rows["random effects"]
+    # ratio: sqrt(mean predicted variance / MC variance) per parameter, 1 if right on average. The MC variance of 60
+    # draws has a relative sampling error of sqrt(2/59) = 18 % (9 % in std), so 0.75-1.3 is ~3 of those errors;
+    # the experiment (200 draws) measured 0.89-1.13 at 12 views.
+    assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+    if process == "independent":
+        # m2 = mean over draws of e' C^-1 e / G (1 if C is right draw by draw; a noisy C gives a little more):
+        # measured 1.07 at 12 views; the effects are rarely fitted here (5 % test), so it is the Jacobian's
+        assert m2 <= 1.45, rows
+    else:
+        # the effects are fitted in the draws where they are significant (5 % test): per draw the prediction is
+        # then right, where not it is the Jacobian's. Measured m2 1.64 against the Jacobian's 2.85; the check has
+        # power both ways: the Jacobian alone must be clearly optimistic, the effects clearly better
+        assert rows["jacobian"][1] > 1.8 and m2 < 0.8 * rows["jacobian"][1], rows
 
 
-def _solve(seed=0, views=12):
+def _solve(seed=0, views=12, process="camera jitter"):
     rng = np.random.default_rng(seed)
     cam0 = mc._camera(np.r_[mc.TRUE[:4], mc.TRUE[4]])
     poses = mc.board_pose_set([cam0], [np.zeros(6)], mc.Board(mc.PATTERN, mc.SQUARE, mc.SQUARE), views, seed)
     obj = mc.object_points(mc.PATTERN, mc.SQUARE)
-    return calibrate_full(obj, mc.corners(rng, "camera jitter", poses, obj), mc.SIZE, mc.FREE)
+    return calibrate_full(obj, mc.corners(rng, process, poses, obj), mc.SIZE, mc.FREE)
+
+
+def test_independent_noise_is_not_fitted_and_flexing_boards_are():
+    """The significance test: under independent noise the effects' fit is not significant in most draws (false
+    positives at the 5 % level), a board flexing per view (0.4 mm) is found in every draw (measured p = 0.005,
+    the simulation's floor, in 10 of 10 seeds at 12 views)."""
+    independent = [solution_effects(_solve(s, process="independent")) for s in range(4)]
+    assert sum(x.fitted for x in independent) <= 1, [x.p_value for x in independent]
+    assert all(np.array_equal(x.cov, x.jacobian) for x in independent if not x.fitted)  # exactly, not nearly
+    flex = [solution_effects(_solve(s, process="board flex")) for s in range(3)]
+    assert all(x.fitted and x.p_value < 0.05 for x in flex), [x.p_value for x in flex]
 
 
 def test_without_excess_it_is_the_jacobian_covariance():
@@ -52,16 +72,16 @@ def test_without_excess_it_is_the_jacobian_covariance():
     normal[:, :, -1] = normal[:, -1, :] = 0.0  # scores zero: nothing the views disagree on
     g, dof = len(sol.values), sol.residuals.size - len(sol.values) - 6 * len(sol.poses)
     x = view_effects(normal, g, 0.04, dof)
-    assert x.tau == 0.0 and not np.any(x.omega)
+    assert not x.fitted and x.tau == 0.0 and not np.any(x.omega)
     s = profiled(normal, g, np.arange(len(normal)))[0].sum(axis=0)
     # the same scaled inverse of the same sum, times the same number: equal to rounding (1e-12 holds anywhere)
     np.testing.assert_allclose(x.cov, 0.04 * scaled_inverse(s), rtol=1e-12)
 
 
 def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
-    sol = _solve(1)
+    sol = _solve(1, process="board flex")  # p = 0.005 (the simulation's floor): the effects are fitted
     x = solution_effects(sol)
-    assert x is not None and (x.tau > 0 or np.any(x.omega > 0))
+    assert x is not None and x.fitted and (x.tau > 0 or np.any(x.omega > 0))
     joint = x.joint(sol.normal)
     g = len(sol.values)
     # (J'J)^-1's shared block against the Schur complement's inverse: two factorisations of a matrix whose scaled

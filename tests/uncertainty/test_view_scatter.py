@@ -15,8 +15,8 @@ from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
 
 from dstereo.calib.mono import calibrate_full  # noqa: E402
 from dstereo.uncertainty.projection import solution_map  # noqa: E402
-from dstereo.uncertainty.view_effects import reported_std, sse_of  # noqa: E402
-from dstereo.uncertainty.view_scatter import solution_view_scatter  # noqa: E402
+from dstereo.uncertainty.view_effects import reported_std  # noqa: E402
+from dstereo.uncertainty.view_scatter import solution_view_scatter, sse_of  # noqa: E402
 
 VIEWS = 16
 
