@@ -50,7 +50,7 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
     n_sub, m = index.shape
     n_frames, n_obs = len(obs), int(np.prod(np.shape(obs)[1:3]))
     obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
-    gathered = 2 * m < n_frames
+    gathered = gathers(m, n_frames)
     normal = start.normal
 
     if not gathered:
@@ -92,4 +92,9 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
 def chunk_size(problem_frames: int, m: int, n_obs: int) -> int:
     """The chunk `solve_frame_subsets` uses for subsets of m of `problem_frames` frames of n_obs corner
     observations each (callers size their blocks of subsets to a multiple of it)."""
-    return chunk_rows(m if 2 * m < problem_frames else problem_frames, n_obs)
+    return chunk_rows(m if gathers(m, problem_frames) else problem_frames, n_obs)
+
+
+def gathers(m: int, n_frames: int) -> bool:
+    """Whether subsets of m of n_frames frames are gathered (module docstring)."""
+    return 2 * m < n_frames
