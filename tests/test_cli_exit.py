@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # The command as `python -m dstereo.cli` runs it, plus an atexit handler: it prints only if the interpreter's
 # normal teardown runs.
 AS_COMMAND = ("import atexit, runpy, sys\natexit.register(lambda: print('TEARDOWN', flush=True))\n"
-              "sys.argv = ['dstereo', *sys.argv[1:]]\nrunpy.run_module('dstereo.cli', run_name='__main__', alter_sys=True)")
+              "sys.argv = ['dstereo', *sys.argv[1:]]\n"
+              "runpy.run_module('dstereo.cli', run_name='__main__', alter_sys=True)")
 
 
 def _run(code: str, *args: str) -> subprocess.CompletedProcess:
