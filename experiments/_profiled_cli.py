@@ -5,7 +5,6 @@ experiments/startup_breakdown.py; run as `python -m experiments._profiled_cli ca
 
 from __future__ import annotations
 
-import atexit
 import collections
 import json
 import sys
@@ -110,9 +109,14 @@ if __name__ == "__main__":
     import importlib.util
 
     sys.meta_path.insert(0, _AfterAot())
-    atexit.register(_report)
     _keep_calibrations()
-    from dstereo.cli import main
+    from dstereo.cli import finish, main
 
     sys.argv = ["dstereo", *sys.argv[1:]]
-    main()
+    code = 0
+    try:
+        main(end_process=False)
+    except SystemExit as exc:
+        code = exc.code
+    _report()
+    finish(code)  # the process ends as the `dstereo` script's does

@@ -18,7 +18,7 @@ Each case runs `--repeat` times (best and all times printed); `uptime` before an
 runs go through experiments/_profiled_cli.py (the same CLI, plus a breakdown: when JAX had imported, JAX's tracing,
 lowering and compile-or-fetch sums, executables loaded from disk, and the command's own stage timings).
 `python -m experiments.bench_end_to_end [--sizes 286,1140,4845] [--repeat 2]`; writes
-experiments/results/bench_end_to_end.md.
+experiments/results/bench_end_to_end.md and .json (every time, the load, the breakdowns).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ DATA = ROOT.parent / "shared" / "data" / "rig640"
 CASES = {286: (13, 10), 1140: (20, 17), 4845: (20, 16)}  # C: (images, m), every combination
 DSTEREO = [sys.executable, "-m", "experiments._profiled_cli"]  # = the `dstereo` script, with a breakdown
 BREAKDOWN = ("jax_imported_at_s", "trace_s", "lower_s", "xla_compile_or_fetch_s", "aot_load_s", "detect",
-             "full_solve", "outliers", "subsets", "final", "write")
+             "full_solve", "outliers", "subsets", "final", "write", "outside_s")
 
 THESIS = r'''
 import csv, itertools, os, sys, multiprocessing as mp
@@ -94,6 +94,7 @@ def timed(cmd: list[str], env: dict | None = None, profile: tuple | None = None)
     if profile is not None:
         line = next(ln for ln in done.stderr.splitlines() if ln.startswith("PROFILE "))
         row = json.loads(line[8:])["totals"]
+        row["outside_s"] = elapsed - row["total_s"]  # Python before the wrapper's clock, the exit after its report
         PROFILES.setdefault(profile, []).append(row)
     return elapsed
 
@@ -208,7 +209,8 @@ def main() -> None:
     lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process.", "",
               "Breakdown of the dstereo runs (medians, s): jax_imported_at_s when `import jax` had finished in the "
               "process; trace_s, lower_s, xla_compile_or_fetch_s JAX's own sums over the run's programs; aot_load_s "
-              "executables loaded from disk (dstereo/solver/aot.py); the rest the command's stage timings.", "",
+              "executables loaded from disk (dstereo/solver/aot.py); the rest the command's stage timings; outside_s "
+              "the wall clock outside the wrapper's (Python's start-up before it, the process's end after it).", "",
               "| run | wall | " + " | ".join(BREAKDOWN) + " |", "|---|---|" + "---|" * len(BREAKDOWN)]
     walls = {**{(c, "cold"): cold for c, _, _, cold, _, _ in rows}, **{(c, "warm"): warm for c, _, _, _, warm, _ in rows}}
     if plain_row is not None:
@@ -224,7 +226,14 @@ def main() -> None:
     name = "bench_end_to_end_plain.md" if args.plain_only else "bench_end_to_end.md"  # a partial run: its own file
     out = ROOT / "experiments" / "results" / name
     out.write_text(text)
-    print(f"wrote {out}")
+    record = {"cores": os.cpu_count(), "load_before": load[0], "load_after": load[1],
+              "cases": [{"subsets": c, "images": n, "per_set": m, "cold_s": cold, "warm_s": warm, "thesis_s": thesis,
+                         "warm_x_thesis": min(thesis) / min(warm), "cold_x_thesis": min(thesis) / min(cold)}
+                        for c, n, m, cold, warm, thesis in rows],
+              "plain": None if plain_row is None else {"dstereo_s": plain_row[0], "cv2_s": plain_row[1]},
+              "breakdown": {f"{k[0]} {k[1]}": v for k, v in PROFILES.items()}}
+    out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+    print(f"wrote {out} and {out.with_suffix('.json').name}")
 
 
 if __name__ == "__main__":

@@ -277,12 +277,13 @@ def compiled_solver(problem: Problem, options: LMOptions):
     """The one compiled program behind the full set and every subset of a problem: CHUNK problems of F frames,
     each with its own start, frame weights (0 = left out), residual weights (0 = unseen or an outlier) and
     initial damping. The full set and subsets of the same frames share its shape, so a calibration with subsets
-    compiles once (compile time dominates a cold run), whatever the outlier mask."""
+    compiles once (compile time dominates a cold run), whatever the outlier mask. `decrement_tol` is traced too
+    (0: off, the full set; > 0: the subsets' noise-unit stop), so both run one program."""
     res, lin, prior = frame_residual(problem), frame_linearize(problem), prior_matrix(problem)
 
-    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared):
-        return solve_structured_batch(res, g0, p0, obs, shared, options, lin, weight, lambda0, normal0, r_weight,
-                                      None if prior is None else jnp.asarray(prior))
+    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared, decrement_tol):
+        return solve_structured_batch(res, g0, p0, obs, shared, options._replace(decrement_tol=decrement_tol), lin,
+                                      weight, lambda0, normal0, r_weight, None if prior is None else jnp.asarray(prior))
 
     # kept on disk as an executable: a new process skips tracing it too (solver/aot.py)
     return aot.jit(batch, "calib.problem.compiled_solver", (problem, options), COMPILE_OPTIONS)
@@ -332,7 +333,8 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
         normal0 = (np.zeros((n, n_frames, 2 * k * n_pts)), np.zeros((n, n_frames, n_p1, n_p1)))
     if r_weight is None and not isinstance(obs, jax.Array):
         r_weight = residual_weights(np.isfinite(np.asarray(obs)[..., 0]))
-    key = options._replace(lambda0=0.0)  # lambda0 is traced, not compiled in
+    key = options._replace(lambda0=0.0, decrement_tol=None)  # both traced, not compiled in
     args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
-    out = compiled_solver(problem, key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared)
+    out = compiled_solver(problem, key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,
+                                        np.float64(options.decrement_tol or 0.0))
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)

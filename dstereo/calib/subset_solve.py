@@ -2,7 +2,10 @@
 
 A subset is the full set with the other frames weighted 0, so it reuses the full set's compiled solver, unless
 subsets are less than half the set: then carrying the unused frames would cost more than a second compile, and
-the subsets' frames are gathered instead. Every subset starts at the full set's solution (a few iterations from
+the subsets' frames are gathered instead. Measured at m = 16 of 20 (rig640, C = 4845, warm, load ~5): gathered
+subsets took ~12 % less (4 of 20 frames not linearised) but a second executable to load (warm) or compile (cold,
+~1-2 s): a saving of ~0.3 s warm against ~1 s more cold, so the rule stays (choosing by C would need the whole
+plan's size here, where blocks of it arrive). Every subset starts at the full set's solution (a few iterations from
 its own optimum; each still converges to its own least-squares solution) and, where given, reuses the full
 set's linearisation there instead of linearising its start again (one pass of about six saved). Chunks run on
 `problem.threads()` threads; XLA runs one chunk's loop mostly on one core. Used by one camera, a stereo rig and
@@ -19,6 +22,13 @@ import numpy as np
 
 from dstereo.calib.problem import Problem, chunk_rows, run, threads
 from dstereo.solver.lm import LMOptions, LMResult
+
+# Subsets stop once the Gauss-Newton model puts every parameter within sqrt(2 eps) = 1e-3 of its own standard
+# deviation of the subset's optimum (lm._decrement_stop). The thesis statistics (means, IQR filter, histograms)
+# work on the subsets' spread, which is of the order of that standard deviation, so 1e-3 of it is invisible
+# there; ftol = 1e-12 alone ran every subset one to two passes further (rig640 left, 20 views, m = 16: 5-7 passes
+# each). A caller's explicit `decrement_tol` (0: off, tight ftol convergence) wins.
+SUBSET_DECREMENT_TOL = 0.5e-6
 
 
 class SubsetStart(NamedTuple):
@@ -37,11 +47,13 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
     own problem. obs (F, K, n, 2) (NaN: unseen), r_weight (F, K 2n) the full set's residual weights (an outlier
     there is left out of every subset). Returns the stacked `LMResult` (C leading) without per-frame residuals
     and normal blocks (C = 5000 would keep ~400 MB)."""
+    if options.decrement_tol is None:
+        options = options._replace(decrement_tol=SUBSET_DECREMENT_TOL)
     index = np.asarray(index)
     n_sub, m = index.shape
     n_frames, n_obs = len(obs), int(np.prod(np.shape(obs)[1:3]))
     obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
-    gathered = 2 * m < n_frames
+    gathered = gathers(m, n_frames)
     normal = start.normal
 
     if not gathered:
@@ -83,4 +95,9 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
 def chunk_size(problem_frames: int, m: int, n_obs: int) -> int:
     """The chunk `solve_frame_subsets` uses for subsets of m of `problem_frames` frames of n_obs corner
     observations each (callers size their blocks of subsets to a multiple of it)."""
-    return chunk_rows(m if 2 * m < problem_frames else problem_frames, n_obs)
+    return chunk_rows(m if gathers(m, problem_frames) else problem_frames, n_obs)
+
+
+def gathers(m: int, n_frames: int) -> bool:
+    """Whether subsets of m of n_frames frames are gathered (module docstring)."""
+    return 2 * m < n_frames
