@@ -57,7 +57,10 @@ def _command_process() -> bool:
     main_module = sys.modules.get("__main__")
     spec = getattr(main_module, "__spec__", None)
     name = spec.name if spec is not None else os.path.basename(getattr(main_module, "__file__", "") or "")
-    return name in ("dstereo", "dstereo.cli") and "pytest" not in sys.modules
+    # a `dstereo serve` process runs many commands: it ends none of them with the process (nor stops its warm
+    # figure workers, which `finish` would)
+    serving = "dstereo.commands.serve_server" in sys.modules
+    return name in ("dstereo", "dstereo.cli") and "pytest" not in sys.modules and not serving
 
 
 def finish(code) -> None:

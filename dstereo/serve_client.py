@@ -63,7 +63,8 @@ def code_key(env=None, package: str | None = None) -> str:
     file's content, the interpreter and environment (venv), and the start-up environment variables."""
     from dstereo import __version__
 
-    env = os.environ if env is None else env
+    # the default `dstereo.cli` sets in a command's process (and so in a server's) counts as set on both sides
+    env = {"OPENBLAS_NUM_THREADS": "1", **(os.environ if env is None else env)}
     package = package or os.path.dirname(os.path.abspath(__file__))
     h = hashlib.sha256()
     for part in (__version__, package, sys.prefix, os.path.realpath(sys.executable), sys.version):

@@ -108,7 +108,7 @@ def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrappe
         sys.__stdout__, sys.__stderr__, sys.__stdin__ = sys.stdout, sys.stderr, sys.stdin
         os._exit = _exit_instead
         with warnings.catch_warnings():  # entering resets the once-per-process registries, leaving the filters
-            return _exit_code(main)
+            return _exit_code(main)  # in a server `cli.main` does not end the process (`cli._command_process`)
     finally:
         for stream in (stdout, stderr):
             try:
