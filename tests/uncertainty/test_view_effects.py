@@ -87,6 +87,7 @@ def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
     # (J'J)^-1's shared block against the Schur complement's inverse: two factorisations of a matrix whose scaled
     # condition number is ~1e6 here, so agreement to ~1e-9 relative; 1e-7 leaves room for any processor
     np.testing.assert_allclose(joint[:g, :g], x.cov, rtol=1e-7, atol=1e-12 * np.abs(x.cov).max())
+    # the same diagonal square-rooted on both sides: equal to rounding
     np.testing.assert_allclose(reported_std(sol), np.sqrt(np.diag(x.cov)), rtol=1e-12)
     pmap = solution_map(sol, mc.SIZE, 500.0, grid=(8, 6))
     direct = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, mc.SIZE, 500.0, (8, 6),
