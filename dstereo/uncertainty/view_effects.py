@@ -60,7 +60,7 @@ class ViewEffects:
     s_views: np.ndarray  # (V, G, G) their profiled information S_v
     scatter: ViewScatter | None = None  # the test that decides whether the effects are fitted
     fitted: bool = False  # False: the views agree with independent corner noise; cov is the Jacobian one
-    p_value: float = 1.0  # of the effects' fit under independent corner noise (`_null_p_value`)
+    p_value: float | None = 1.0  # of the effects' fit under independent noise (`_null_p_value`; None: kappa alarmed)
 
     @property
     def std_ratio(self) -> np.ndarray:
@@ -93,10 +93,11 @@ class ViewEffects:
         return {"method": "per-view random effects (view-shared parameters and smooth within-view errors)",
                 "fitted": self.fitted,
                 "p_value": self.p_value,
-                "why": (f"the views scatter more than independent corner noise says (p = {self.p_value:.3f}, "
-                        f"view scatter kappa {self.scatter.kappa:.2f})"
-                        if self.fitted else f"the views agree with independent corner noise (p = {self.p_value:.2f} "
-                        f">= {SIGNIFICANCE}): the Jacobian covariance"),
+                "why": (("the views scatter more than independent corner noise says: "
+                         + (f"view scatter kappa {self.scatter.kappa:.2f} alarms" if self.p_value is None
+                            else f"the fit's p = {self.p_value:.3f}")) if self.fitted
+                        else f"the views agree with independent corner noise (the fit's p >= {SIGNIFICANCE}, kappa "
+                             "within 3 standard errors of 1): the Jacobian covariance"),
                 "per_view_std": dict(zip(names, map(float, np.sqrt(self.omega)))),
                 "tau_over_sigma2": float(self.tau / self.sigma2) if self.sigma2 > 0 else None,
                 "sigma_px": float(np.sqrt(self.sigma2)), "sigma_px_solve": float(np.sqrt(self.sigma2_solve)),
@@ -149,11 +150,13 @@ def _null_p_value(a, observed, null, sigma2, s_views, s_inv, white) -> float:
     lam, vec = np.linalg.eigh(s_views)
     roots = vec * np.sqrt(np.maximum(lam, 0.0))[:, None, :]  # S_v = roots roots'
     stat = _explained(a, observed - sigma2 * null)
-    exceed = 0
-    for _ in range(NULL_DRAWS):
+    exceed, enough = 0, SIGNIFICANCE * (NULL_DRAWS + 1)
+    for i in range(NULL_DRAWS):
         t = np.einsum("vij,vj->vi", roots, rng.normal(0.0, np.sqrt(sigma2), roots.shape[:2]))
         s = t - np.einsum("vij,jk,k->vi", s_views, s_inv, t.sum(axis=0))
         exceed += _explained(a, white(np.einsum("vi,vj->vij", s, s)).ravel() - sigma2 * null) >= stat
+        if exceed > enough:  # not significant whatever the other draws give: the decision is made, p >= this
+            return (exceed + 1) / (i + 2)
     return (exceed + 1) / (NULL_DRAWS + 1)
 
 
@@ -189,8 +192,10 @@ def view_effects(normal: np.ndarray, n_shared: int, sigma2: float, dof: int,
     # Fitted only when the views are shown to scatter more than the corners' noise says: 1 + G non-negative
     # variances fitted to noise come out positive by chance (one 12-view draw of independent noise: up to 1.31x
     # the Jacobian's std, the pose-compensated map 1.38x its Monte Carlo).
-    p_value = _null_p_value(a, observed, null, sigma2, s_views, s_inv, white) if usable else 1.0
-    fit = usable and (p_value < SIGNIFICANCE or scatter.alarm)  # either test showing the excess is enough
+    # either test showing the excess is enough: with kappa's alarm the simulation is not needed (p: None)
+    p_value = (None if scatter.alarm else _null_p_value(a, observed, null, sigma2, s_views, s_inv, white)) \
+        if usable else 1.0
+    fit = usable and (scatter.alarm or p_value < SIGNIFICANCE)
     for _ in range(ROUNDS if fit else 0):
         x = nnls(a, observed - sigma2_c * null)
         tau, omega = float(x[0]), x[1:]
@@ -209,9 +214,18 @@ def solution_effects(sol) -> ViewEffects | None:
 
     if getattr(sol, "normal", None) is None or lens_model(tuple(getattr(sol, "free", ()))) == "splined":
         return None
+    # kept on the solve: its +-, summary, map and rig all ask (the significance simulation is ~0.05 s), keyed by
+    # the arrays it is computed from, so a solve whose blocks or residuals are replaced gets a new one
+    key = (id(sol.normal), id(sol.residuals), id(getattr(sol, "inliers", None)))
+    cached = getattr(sol, "__dict__", {}).get("_view_effects")
+    if cached is not None and cached[0] == key:
+        return cached[1]
     n_res = 2 * int(inliers_of(sol).sum())
     dof = n_res - len(sol.values) - POSE * len(sol.poses)
-    return view_effects(sol.normal, len(sol.values), sse_of(sol) / max(dof, 1), dof) if dof > 0 else None
+    out = view_effects(sol.normal, len(sol.values), sse_of(sol) / max(dof, 1), dof) if dof > 0 else None
+    if hasattr(sol, "__dict__"):
+        sol.__dict__["_view_effects"] = (key, out)
+    return out
 
 
 def reported_covariance(sol) -> np.ndarray:

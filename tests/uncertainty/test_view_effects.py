@@ -57,13 +57,13 @@ def _solve(seed=0, views=12, process="camera jitter"):
 
 def test_independent_noise_is_not_fitted_and_flexing_boards_are():
     """The significance test: under independent noise the effects' fit is not significant in most draws (false
-    positives at the 5 % level), a board flexing per view (0.4 mm) is found in every draw (measured p = 0.005,
-    the simulation's floor, in 10 of 10 seeds at 12 views)."""
+    positives at the 5 % level), a board flexing per view (0.4 mm) is found in every draw (kappa alarms or p < 0.05
+    in 10 of 10 seeds at 12 views)."""
     independent = [solution_effects(_solve(s, process="independent")) for s in range(4)]
     assert sum(x.fitted for x in independent) <= 1, [x.p_value for x in independent]
     assert all(np.array_equal(x.cov, x.jacobian) for x in independent if not x.fitted)  # exactly, not nearly
     flex = [solution_effects(_solve(s, process="board flex")) for s in range(3)]
-    assert all(x.fitted and x.p_value < 0.05 for x in flex), [x.p_value for x in flex]
+    assert all(x.fitted for x in flex), [x.p_value for x in flex]  # by the fit's p or kappa's alarm
 
 
 def test_without_excess_it_is_the_jacobian_covariance():
@@ -79,7 +79,7 @@ def test_without_excess_it_is_the_jacobian_covariance():
 
 
 def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
-    sol = _solve(1, process="board flex")  # p = 0.005 (the simulation's floor): the effects are fitted
+    sol = _solve(1, process="board flex")  # a flexing board: the effects are fitted (tested below)
     x = solution_effects(sol)
     assert x is not None and x.fitted and (x.tau > 0 or np.any(x.omega > 0))
     joint = x.joint(sol.normal)
