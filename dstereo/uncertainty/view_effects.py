@@ -228,9 +228,9 @@ def solution_effects(sol) -> ViewEffects | None:
         return None
     # kept on the solve: its +-, summary, map and rig all ask (the significance simulation is ~0.05 s), keyed by
     # the arrays it is computed from, so a solve whose blocks or residuals are replaced gets a new one
-    key = (id(sol.normal), id(sol.residuals), id(getattr(sol, "inliers", None)))
+    key = (sol.normal, sol.residuals, getattr(sol, "inliers", None))
     cached = getattr(sol, "__dict__", {}).get("_view_effects")
-    if cached is not None and cached[0] == key:
+    if cached is not None and all(a is b for a, b in zip(cached[0], key)):  # the same arrays, not equal ids
         return cached[1]
     n_res = 2 * int(inliers_of(sol).sum())
     dof = n_res - len(sol.values) - POSE * len(sol.poses)

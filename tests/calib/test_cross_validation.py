@@ -91,3 +91,25 @@ def test_fisheye_ray_point_round_trips_and_equal_cameras_differ_by_nothing():
     e, ok, *_ = cv._compiled((0, 1, 2, 3, 4, 5, 6, 7), "fisheye")(jnp.asarray(params), jnp.asarray(params),
                                                                    jnp.asarray(q), 500.0, jnp.ones(len(q)))
     assert np.all(np.asarray(ok)) and np.max(np.abs(np.asarray(e))) < 1e-9
+
+
+def test_parameters_differing_beyond_their_prediction_are_named_even_when_the_projection_passes(honest):
+    """d'C^-1 d / G scales as 1/c for a covariance c times too small (exactly); a trusted projection whose
+    parameters differ beyond PARAMETER_CHI2_MAX says that their +- cannot be read (cancelling parameters)."""
+    *_, xv = honest
+    assert xv.parameter_chi2 < cv.PARAMETER_CHI2_MAX and "cannot" not in xv.verdict()
+    scaled = [dataclasses.replace(s, parameter_chi2=s.parameter_chi2 * 10.0 / xv.parameter_chi2) for s in xv.splits]
+    odd = dataclasses.replace(xv, splits=scaled)
+    assert odd.trusted and "single parameters' +- cannot" in odd.verdict()
+
+
+def test_parameter_chi2_scales_with_the_covariance(honest):
+    full, obj, obs, _ = honest
+    weights = np.zeros((2, len(obs)))
+    weights[0, ::2], weights[1, 1::2] = 1.0, 1.0
+    a, b = cv.solve_halves(full, obj, obs, weights)
+    fine = cv.compare_halves(a, b, full.names, SIZE, 1000.0)
+    shrink = lambda s: dataclasses.replace(s, cov=s.cov / 9.0)  # noqa: E731
+    bad = cv.compare_halves(shrink(a), shrink(b), full.names, SIZE, 1000.0)
+    # the same scaled inverse of a matrix scaled by 1/9 (Jacobi scaling removes the factor): 9x to rounding
+    np.testing.assert_allclose(bad.parameter_chi2, 9.0 * fine.parameter_chi2, rtol=1e-9)
