@@ -64,21 +64,23 @@ def subset_agreement(std, n_residuals: int, n_params: int):
     parameter (same units as `std`, the subset's own standard deviations).
 
     The runner stops a subset on the noise-unit test (`subset_solve.SUBSET_DECREMENT_TOL` = eps,
-    `lm._decrement_stop`): every parameter within sqrt(2 eps) std of the Gauss-Newton model's optimum. The
-    model's optimum is the true one up to Gauss-Newton's contraction c per step (~0.1 on real corners: a step
-    leaves ~1/10 of the distance), so the distance to the true optimum is at most sqrt(2 eps) std / (1 - c);
-    2 sqrt(2 eps) std allows c up to 0.5. The independent solve adds its own `lm_agreement`.
+    `lm._decrement_stop`): every parameter of the last linearised point x within sqrt(2 eps) std of the
+    Gauss-Newton model's optimum x + d, and the subset ends there, at x + d. The model's optimum is the true one
+    x* up to Gauss-Newton's contraction c per step (0.07-0.09 median, 0.29 at most measured on real corners):
+    |x + d - x*| <= c |x - x*| and |x - x*| <= sqrt(2 eps) std / (1 - c), so x + d is within c / (1 - c)
+    sqrt(2 eps) std of x*: sqrt(2 eps) std (~1e-2) allows c up to 0.5. The independent solve adds its own
+    `lm_agreement`.
     """
     from dstereo.calib.subset_solve import SUBSET_DECREMENT_TOL
 
-    return 2.0 * math.sqrt(2.0 * SUBSET_DECREMENT_TOL) * np.asarray(std) + lm_agreement(std, n_residuals, n_params)
+    return math.sqrt(2.0 * SUBSET_DECREMENT_TOL) * np.asarray(std) + lm_agreement(std, n_residuals, n_params)
 
 
 def subset_rms_agreement(n_residuals: int, n_params: int) -> float:
-    """How far (relative) a subset's RMS may sit above its tight optimum's: at the noise-unit stop the model's
-    remaining gain F - F* (F = SSE / 2) is <= eps sigma^2 = eps SSE / (n - p); up to the contraction's (1/(1 - c))^2
-    <= 4 (c <= 0.5, `subset_agreement`) that is SSE - SSE* <= 8 eps SSE / (n - p), so RMS (the square root) is
-    within 4 eps / (n - p) relative."""
+    """How far (relative) a subset's RMS may sit above its tight optimum's: the RMS is the last linearised point's
+    (`subset_agreement`), where the model's remaining gain F - F* (F = SSE / 2) is <= eps sigma^2 = eps SSE / (n - p);
+    up to the contraction's (1/(1 - c))^2 <= 4 (c <= 0.5) that is SSE - SSE* <= 8 eps SSE / (n - p), so RMS (the
+    square root) is within 4 eps / (n - p) relative."""
     from dstereo.calib.subset_solve import SUBSET_DECREMENT_TOL
 
     return 4.0 * SUBSET_DECREMENT_TOL / (n_residuals - n_params)
