@@ -1,16 +1,28 @@
 """The `dstereo` entry point: hand the command to a running `dstereo serve` if there is one, else run it here.
 
-A new process pays ~1 s to import JAX and the commands before any work; a resident server (dstereo/commands/
+A new process pays ~0.5-1 s to import JAX and the commands before any work; a resident server (dstereo/commands/
 serve.py) has paid it once. This module decides with the standard library alone (no numpy, JAX or typer before
 the socket has been tried): it sends argv, cwd, the environment and the terminal's traits, streams back the
 command's stdout and stderr, and exits with its code. Whenever the server cannot run the command exactly as this
 process would, the command runs here as before: no server (silent), DSTEREO_SERVE=0 (silent), server busy with
-another command (silent), a stale socket or a server started from other dstereo code or start-up settings (one
-`dstereo: note:` line on stderr, so a user knows why the fast path is not taken).
+another command (silent), a stale socket or a server started by hand from other dstereo code or start-up settings
+(one `dstereo: note:` line on stderr, so a user knows why the fast path is not taken).
+
+Auto-start (as Gradle's daemon or dmypy do): a command that runs here because no server runs for this
+installation starts one, detached (dstereo/serve_autostart.py): it waits until the command that started it has
+ended (so the two never share the cores), loads, serves the commands that follow, and exits after
+DSTEREO_SERVE_IDLE seconds (default 900) without one. An auto-started server that meets a client of other code or
+start-up settings (an edit, an upgrade) answers `retired` and stops: the client runs the command here silently and
+starts a server of its own code. Never under pytest, in CI (`CI` set) or in library use (only this entry point
+starts one); DSTEREO_SERVE=0 neither uses nor starts a server, DSTEREO_SERVE=manual uses one started by hand only.
 
 Wire format: frames of one kind byte, a 4-byte big-endian length and the payload. Client -> server: `q` the
 request (JSON), `i` interrupt (Ctrl-C). Server -> client: `a` accepted, `b` busy (run it yourself), `m` key
-mismatch, `o`/`e` stdout/stderr bytes, `x` the exit code (JSON), `s` a status or stop reply (JSON).
+mismatch, `r` key mismatch and the (auto-started) server stops, `o`/`e` stdout/stderr bytes, `x` the exit code
+(JSON), `s` a status or stop reply (JSON).
+
+One server per user and installation: the socket's name carries a hash of the package's folder and the Python
+environment (`install_id`), so two checkouts or virtual environments of one user each get their own.
 """
 
 from __future__ import annotations
@@ -45,8 +57,22 @@ def runtime_dir(env=None) -> str:
     return os.path.join(cache, "dstereo", "serve")
 
 
+def install_id() -> str:
+    """12 hex digits naming this installation: the package's folder, the Python environment and interpreter."""
+    h = hashlib.sha256()
+    for part in (os.path.dirname(os.path.abspath(__file__)), sys.prefix, os.path.realpath(sys.executable)):
+        h.update(part.encode() + b"\0")
+    return h.hexdigest()[:12]
+
+
 def socket_path(env=None) -> str:
-    return os.path.join(runtime_dir(env), "serve.sock")
+    """The server's socket for this installation in `runtime_dir`; its lock and log sit beside it (`sibling`)."""
+    return os.path.join(runtime_dir(env), f"serve-{install_id()}.sock")
+
+
+def sibling(path: str, suffix: str) -> str:
+    """serve-<id>.lock / .log beside the socket serve-<id>.sock."""
+    return path[: -len(".sock")] + suffix
 
 
 def private(folder: str) -> bool:
@@ -150,26 +176,39 @@ def request(argv: list[str]) -> dict:
             "cwd": os.getcwd(), "env": env, "stdout": _terminal(sys.stdout), "stderr": _terminal(sys.stderr)}
 
 
+def servable(argv: list[str]) -> bool:
+    """A command a server may run: not `serve` or `demo` (NOT_SERVED), not a bare option (--help)."""
+    return bool(argv) and argv[0] not in NOT_SERVED and not argv[0].startswith("-")
+
+
 def try_served(argv: list[str]) -> int | None:
     """The command's exit code once a server has run it; None when it must run in this process."""
-    if os.environ.get("DSTEREO_SERVE") == "0" or not argv or argv[0] in NOT_SERVED or argv[0].startswith("-"):
-        return None
+    return _try_served(argv, auto_start=False)[0]
+
+
+def _try_served(argv: list[str], auto_start: bool) -> tuple[int | None, str]:
+    """(exit code or None, why not served: "served", "off", "absent", "stale", "busy", "mismatch", "retired",
+    "unanswered", "foreign"). With `auto_start` (this process will start a server when there is none), a stale
+    socket is replaced without a note."""
+    if os.environ.get("DSTEREO_SERVE") == "0" or not servable(argv):
+        return None, "off"
     path = socket_path()
     if not os.path.exists(path):
-        return None
+        return None, "absent"
     if not private(os.path.dirname(path)):
         _note(f"{os.path.dirname(path)} is not a private folder of this user; not using the server there")
-        return None
+        return None, "foreign"
     try:
         sock = connect(path)
     except OSError:
-        _note(f"no server answers at {path} (a stale socket: `dstereo serve` replaces it); running here")
-        return None
+        if not auto_start:
+            _note(f"no server answers at {path} (a stale socket: `dstereo serve` replaces it); running here")
+        return None, "stale"
     with sock:
         try:
             message = request(argv)
         except OSError:  # the cwd was deleted, say: let the in-process run report it as it would
-            return None
+            return None, "unanswered"
         try:
             send(sock, b"q", json.dumps(message).encode())
             sock.settimeout(ANSWER_TIMEOUT_S)
@@ -178,16 +217,18 @@ def try_served(argv: list[str]) -> int | None:
             answer = None
         if answer is None:
             _note(f"the server at {path} did not answer; running here")
-            return None
+            return None, "unanswered"
         if answer[0] == b"b":
-            return None
+            return None, "busy"
+        if answer[0] == b"r":  # an auto-started server of other code: it stops; a new one takes its place
+            return None, "retired"
         if answer[0] == b"m":
             _note(f"the server at {path} runs other dstereo code or start-up settings; running here (restart it: "
                   "dstereo serve --stop, then dstereo serve)")
-            return None
+            return None, "mismatch"
         if answer[0] != b"a":
-            return None
-        return _stream(sock, path)
+            return None, "unanswered"
+        return _stream(sock, path), "served"
 
 
 def _stream(sock: socket.socket, path: str) -> int:
@@ -228,9 +269,15 @@ def _interrupt(sock: socket.socket) -> int:
 
 
 def main() -> None:
-    code = try_served(sys.argv[1:])
+    from dstereo import serve_autostart
+
+    argv = sys.argv[1:]
+    auto = serve_autostart.wanted(argv)
+    code, why = _try_served(argv, auto)
     if code is not None:
         sys.exit(code)
+    if auto and why in ("absent", "stale", "retired"):
+        serve_autostart.start(socket_path(), replacing=why == "retired")
     from dstereo.cli import main as run_here
 
     run_here()

@@ -16,11 +16,17 @@ STOP_WAIT_S = 600.0  # --stop waits for the running command to end, at most this
 def serve(
     stop: bool = typer.Option(False, "--stop", help="Stop the running server (after its current command)."),
     status: bool = typer.Option(False, "--status", help="Say whether a server runs, and what it has done."),
+    idle_timeout: float = typer.Option(0.0, "--idle-timeout", min=0.0,
+                                       help="Stop after this many seconds without a command (0: never)."),
+    started_by: int = typer.Option(0, "--started-by", hidden=True, min=0),  # serve_autostart.py: the client's pid
 ) -> None:
     """Run a resident server in the foreground: JAX, the commands and the figure workers load once, then every
-    `dstereo` command (but serve and demo) started by this user with the same dstereo code and start-up settings
-    runs in it, one at a time, with the same output, files and exit code. DSTEREO_SERVE=0 runs a command in its
-    own process; the socket is in $DSTEREO_SERVE_DIR, else $XDG_RUNTIME_DIR/dstereo, else ~/.cache/dstereo/serve."""
+    `dstereo` command (but serve and demo) started by this user from this installation with the same dstereo code
+    and start-up settings runs in it, one at a time, with the same output, files and exit code. Without a server,
+    the first such command starts one in the background that stops after 15 min without a command
+    (DSTEREO_SERVE_IDLE seconds). DSTEREO_SERVE=0 runs a command in its own process and starts none;
+    DSTEREO_SERVE=manual starts none. The socket is in $DSTEREO_SERVE_DIR, else $XDG_RUNTIME_DIR/dstereo, else
+    ~/.cache/dstereo/serve."""
     from dstereo import serve_client as wire
     from dstereo.errors import DstereoError
 
@@ -47,7 +53,7 @@ def serve(
         return
     from dstereo.commands.serve_server import Server
 
-    Server(path).run()
+    Server(path, idle_timeout, started_by).run()
 
 
 def ask(path: str, op: str) -> dict | None:

@@ -103,6 +103,24 @@ def _detect_one(gray: np.ndarray, pattern: tuple[int, int]) -> tuple[np.ndarray 
     return refined.reshape(-1, 2).astype(np.float64), ""
 
 
+def _cached_entry(path: Path) -> tuple[np.ndarray | None, str, tuple[int, int] | None] | None:
+    """(corners or None, reason, image size or None if the entry predates sizes) of a cache entry, None if none."""
+    try:
+        with np.load(path) as z:
+            size = tuple(int(v) for v in z["size"]) if "size" in z.files else None
+            return (z["corners"] if z["found"] else None), str(z["reason"]), size
+    except FileNotFoundError:
+        return None
+
+
+def _write_entry(cache: Path, path: Path, pts: np.ndarray | None, reason: str, size: tuple[int, int]) -> None:
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+    np.savez(tmp, found=pts is not None, corners=pts if pts is not None else np.zeros((0, 2)), reason=reason,
+             size=np.array(size, np.int64))
+    os.replace(tmp, path)
+
+
 def detect_folder(
     folder: Path | str,
     pattern: tuple[int, int],
@@ -112,7 +130,10 @@ def detect_folder(
     use_cache: bool = True,
     progress=None,
 ) -> Detection:
-    """Detect the board in every image of `folder` (or the given `files`); cache by image content."""
+    """Detect the board in every image of `folder` (or the given `files`); cache by image content. A cache entry
+    holds the image's size too (the file was decoded when it was written: the bytes it is keyed by are an image),
+    so a cached image is not decoded again (20 webcam images: ~35 ms of a served run, measured); an entry written
+    before sizes were kept is completed on its first hit."""
     import cv2
 
     files = list_images(Path(folder), suffix) if files is None else files
@@ -123,25 +144,22 @@ def detect_folder(
     hits = 0
     for i, path in enumerate(files):
         data = path.read_bytes()
-        gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
-        if gray is None:
-            rejected[path.name] = "unreadable: not an image file OpenCV can decode"
-            continue
-        sizes.setdefault((gray.shape[1], gray.shape[0]), path.name)
         key = hashlib.sha256(data + f"{pattern}{_DETECTOR_VERSION}".encode()).hexdigest()[:32]
         cached = cache / f"{key}.npz"
-        pts = None
-        if use_cache and cached.exists():
-            with np.load(cached) as z:
-                pts, reason = (z["corners"] if z["found"] else None), str(z["reason"])
-            hits += 1
+        entry = _cached_entry(cached) if use_cache and data else None
+        if entry is not None and entry[2] is not None:
+            pts, reason, size = entry
         else:
-            pts, reason = _detect_one(gray, pattern)
+            gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+            if gray is None:
+                rejected[path.name] = "unreadable: not an image file OpenCV can decode"
+                continue
+            size = (gray.shape[1], gray.shape[0])
+            pts, reason = entry[:2] if entry is not None else _detect_one(gray, pattern)
             if use_cache:
-                cache.mkdir(parents=True, exist_ok=True)
-                tmp = cached.with_suffix(f".{os.getpid()}.tmp.npz")
-                np.savez(tmp, found=pts is not None, corners=pts if pts is not None else np.zeros((0, 2)), reason=reason)
-                os.replace(tmp, cached)
+                _write_entry(cache, cached, pts, reason, size)
+        hits += entry is not None
+        sizes.setdefault(size, path.name)
         if pts is None:
             rejected[path.name] = reason
         else:

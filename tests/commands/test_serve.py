@@ -174,7 +174,7 @@ def test_a_stale_socket_runs_in_the_client_with_a_note(tmp_path):
     run_dir = tmp_path / "run"
     run_dir.mkdir(mode=0o700)
     stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    stale.bind(str(run_dir / "serve.sock"))
+    stale.bind(wire.socket_path(_env(run_dir)))
     stale.close()  # the file stays, nobody listens: a server killed without cleaning up
     code, out, err = dstereo(_env(run_dir), tmp_path, "init", "project")
     assert code == 0 and (tmp_path / "project" / "dstereo.toml").is_file()
@@ -185,7 +185,7 @@ def _fake_server(run_dir: Path, frames: list[tuple[bytes, bytes]]) -> threading.
     """A socket that answers one client with `frames`, then closes: a server busy, or one that dies mid-command."""
     run_dir.mkdir(mode=0o700)
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(str(run_dir / "serve.sock"))
+    listener.bind(wire.socket_path(_env(run_dir)))
     listener.listen(1)
 
     def answer():
