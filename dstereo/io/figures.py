@@ -42,6 +42,13 @@ def fixed_margins(fig, left: float, right: float, bottom: float, top: float) -> 
     fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h)
 
 
+def text_height(fig, texts) -> float:
+    """Height in inches of the tallest of `texts` (matplotlib Text artists, rotated ones by their extent): the
+    room a margin must leave for them, laid out alone rather than the whole figure (`fixed_margins`)."""
+    renderer = fig.canvas.get_renderer()
+    return max((t.get_window_extent(renderer).height for t in texts if t.get_text()), default=0.0) / fig.dpi
+
+
 def save(fig, path: Path, dpi: int = 90) -> None:
     """savefig as PNG with zlib level 1 (faster than the default 6; a parameter figure measured 62 kB instead of
     61 kB), then close the figure."""

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.io.figures import fixed_margins, log_ticks, pyplot, save, tick_label  # noqa: F401 - public here too
+from dstereo.io.figures import fixed_margins, log_ticks, pyplot, save, text_height, tick_label  # noqa: F401
 
 
 def _horizontal() -> dict:
@@ -217,7 +217,9 @@ def per_image_rms(names: list[str], rms: np.ndarray, path: Path) -> None:
     ax.set_ylabel("RMS reprojection error (px)")
     ax.set_title("per-image reprojection error (full-set solve)")
     ax.legend()
-    fig.tight_layout()
+    # the rotated image names set the bottom margin (tight_layout would lay out every text for it: ~30 % of the
+    # figure's time, measured)
+    fixed_margins(fig, left=0.75, right=0.15, bottom=text_height(fig, ax.get_xticklabels()) + 0.2, top=0.4)
     save(fig, path)
 
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.io.figures import ROBUST_PERCENTILE, colour_limits, log_colour_bar, map_norm, pyplot  # noqa: F401
+from dstereo.io.figures import (ROBUST_PERCENTILE, colour_limits, fixed_margins, log_colour_bar, map_norm,  # noqa: F401
+                                pyplot, save, text_height)
 
 
 OVER_COLOUR = "tab:red"  # pixels above the colour scale
@@ -73,8 +74,9 @@ def projection_uncertainty_png(path: Path, pmap, image_size: tuple[int, int], ti
         notes.append("grey: masked (the model cannot be inverted there)")
     held = ("fixed in the boards' frame (pose-compensated)" if getattr(pmap, "method", "") == "pose-compensated"
             else "fixed in the camera frame (intrinsics only, no pose compensation)")
-    ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray, {held}"
-                 + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    title = ax.set_title(f"{title}\npoint at {pmap.range_:.4g} {unit} along each ray, {held}"
+                         + ("\n" + "; ".join(notes) if notes else ""), fontsize=9)
+    # margins for the labels, the colour bar and the title's lines instead of tight_layout (which lays out every
+    # text once more: ~30 % of the figure's time, measured); PNG at zlib level 1 (`save`)
+    fixed_margins(fig, left=0.75, right=1.0, bottom=0.55, top=text_height(fig, [title]) + 0.15)
+    save(fig, path)

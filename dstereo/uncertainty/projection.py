@@ -139,16 +139,21 @@ def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, r
     p, ok = _point(k, coeffs, q, range_, model)
     rot = jax.vmap(rodrigues)(poses[:, :3])
     p_board = jnp.einsum("vji,vj->vi", rot, p[None] - poses[:, 3:])  # R_i^T (p - t_i): fixed in each board
-    idx, g = jnp.array(index), len(index)
+    idx = jnp.array(index)
+    # q(theta) = project(intrinsics, mean_v(R(r_v) p_board_v + t_v)): the Jacobian by the chain rule, each view's
+    # (3, 6) block on its own (6 tangents each), not forward mode over all G + 6V parameters through every view
+    # (G + 6V tangents through V views: 85 ms of the results folder's map for 20 views, measured; this ~10x less).
+    back = lambda pv, pb: rodrigues(pv[:3]) @ pb + pv[3:]  # noqa: E731
+    d_back = jax.vmap(jax.jacfwd(back))(poses, p_board)  # (V, 3, 6)
+    p_mean = jnp.mean(jax.vmap(back)(poses, p_board), axis=0)
 
-    def q_of(theta):
-        full = params.at[idx].set(theta[:g])
-        pv = theta[g:].reshape(-1, 6)
-        back = jnp.einsum("vij,vj->vi", jax.vmap(rodrigues)(pv[:, :3]), p_board) + pv[:, 3:]
-        return _project(full[:4], full[4:], jnp.mean(back, axis=0), model)
+    def q_of(theta, point):
+        full = params.at[idx].set(theta)
+        return _project(full[:4], full[4:], point, model)
 
-    theta0 = jnp.concatenate([params[idx], jnp.ravel(poses)])
-    jac = jax.jacfwd(q_of)(theta0)
+    j_int, j_point = jax.jacfwd(q_of, argnums=(0, 1))(params[idx], p_mean)  # (2, G), (2, 3)
+    j_pose = jnp.einsum("ij,vjk->ivk", j_point, d_back).reshape(2, -1) / len(poses)
+    jac = jnp.concatenate([j_int, j_pose], axis=1)
     return jac @ cov @ jac.T, ok
 
 
