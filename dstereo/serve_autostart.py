@@ -14,8 +14,9 @@ import os
 import sys
 
 IDLE_S = 900.0  # an auto-started server exits after this long without a command (DSTEREO_SERVE_IDLE)
-# The server, as `dstereo serve` would be started (sys.argv[0] named as the script; the args follow).
-SERVER_CODE = "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main()"
+# The server, started as `python -m dstereo.cli serve ...`: a `dstereo` command's process in every way the code
+# asks (solver/aot.py builds missing executables there, as in `dstereo serve` started by hand).
+SERVER = ("-m", "dstereo.cli")
 
 
 def wanted(argv: list[str], env=None) -> bool:
@@ -72,7 +73,7 @@ def start(path: str, replacing: bool = False) -> bool:
 
         log = os.open(sibling(path, ".log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
         try:
-            subprocess.Popen([sys.executable, "-c", SERVER_CODE, "serve", "--idle-timeout", f"{idle_seconds():g}",
+            subprocess.Popen([sys.executable, *SERVER, "serve", "--idle-timeout", f"{idle_seconds():g}",
                               "--started-by", str(os.getpid())],
                              stdin=subprocess.DEVNULL, stdout=log, stderr=log, cwd="/", start_new_session=True,
                              close_fds=True)

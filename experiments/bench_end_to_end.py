@@ -11,9 +11,11 @@ beforehand and cached, so neither side pays detection):
     subset means), as the thesis's tool did per subset; no figures (in its favour);
   - plain: `dstereo calibrate` without subsets (warm cache, results folder included) vs a new Python process that
     loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage;
-  - plain, served: the same `dstereo calibrate` through the `dstereo` entry point with a `dstereo serve` running
-    (started before the timing, one untimed command first: the server's in-memory caches warm), each a new client
-    process; `--plain-only` runs the plain cases alone and writes bench_end_to_end_plain.md.
+  - served, as a user gets it from the second command on: the same commands through the `dstereo` entry point's
+    client with no server at first (the first command runs in its own process and starts one, serve_autostart.py),
+    then, once it answers, plain runs alternating with the cv2 process and (with C = 4845 among the sizes) the
+    C = 4845 run alternating with the thesis approach; each first served command is timed apart;
+    `--plain-only` runs the plain cases alone and writes bench_end_to_end_plain.md.
 Each case runs `--repeat` times (best and all times printed); `uptime` before and after says the load. The dstereo
 runs go through experiments/_profiled_cli.py (the same CLI, plus a breakdown: when JAX had imported, JAX's tracing,
 lowering and compile-or-fetch sums, executables loaded from disk, and the command's own stage timings).
@@ -119,30 +121,47 @@ def prepare(work: Path, n_images: int) -> tuple[Path, Path]:
 CLIENT = [sys.executable, "-c", "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"]
 
 
-def served_plain(run: list[str], cv2_run: list[str], env: dict, work: Path, repeat: int):
-    """(served times, cv2 times, first served time): the plain calibration through the entry point's client with
-    a warm `dstereo serve` (the command `run` less the profiling wrapper), alternating with the cv2 process so
-    both see the same load; the first served command (tracing the programs in the new server) is not counted."""
+def served_cases(plain: list[str], cv2_run: list[str], subsets: list[str] | None, thesis_run: list[str] | None,
+                 env: dict, work: Path, repeat: int) -> dict:
+    """The same commands through the `dstereo` entry point's client, as a user gets them: no server at first, so
+    the first command runs in its own process and starts one (serve_autostart.py); once it answers, the first
+    served command (the new server loads the run's executables) is timed apart, then `repeat` served plain runs
+    alternate with the cv2 process and, with `subsets`, `repeat` served subset runs with the thesis approach, so
+    each pair sees the same load. Checks from the server's count that every timed command was served."""
     env = dict(env, DSTEREO_SERVE_DIR=str(work / "serve"))
-    env.pop("DSTEREO_SERVE", None)
-    server = subprocess.Popen([*CLIENT, "serve"], env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    for name in ("DSTEREO_SERVE", "CI", "PYTEST_CURRENT_TEST"):  # auto-start allowed, as outside tests and CI
+        env.pop(name, None)
+    client = [*CLIENT, *plain[len(DSTEREO):]]
+    out: dict = {"plain": [], "cv2": [], "subsets": [], "thesis": []}
     try:
-        if "ready" not in server.stderr.readline():
-            raise SystemExit("dstereo serve did not start")
-        client = [*CLIENT, *run[len(DSTEREO):]]
-        first = timed(client, env)
-        served, cv = [], []
+        out["autostart_first"] = timed(client, env)  # no server: runs here and starts one
+        t0 = time.perf_counter()
+        while "running at" not in subprocess.run([*CLIENT, "serve", "--status"], env=env, capture_output=True,
+                                                 text=True).stdout:
+            if time.perf_counter() - t0 > 300:
+                raise SystemExit("the auto-started server did not come up")
+            time.sleep(0.1)
+        out["server_ready_after_s"] = time.perf_counter() - t0
+        out["first_served"] = timed(client, env)
         for _ in range(repeat):
-            served.append(timed(client, env))
-            cv.append(timed(cv2_run))
-            print(f"plain: served {served[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
+            out["plain"].append(timed(client, env))
+            out["cv2"].append(timed(cv2_run))
+            print(f"plain: served {out['plain'][-1]:.2f} s, cv2 process {out['cv2'][-1]:.2f} s", flush=True)
+        expected = repeat + 1
+        if subsets is not None:
+            sub_client = [*CLIENT, *subsets[len(DSTEREO):]]
+            out["first_served_subsets"] = timed(sub_client, env)  # the subsets' executables load (or compile)
+            for _ in range(repeat):
+                out["subsets"].append(timed(sub_client, env))
+                out["thesis"].append(timed(thesis_run))
+                print(f"subsets: served {out['subsets'][-1]:.2f} s, thesis {out['thesis'][-1]:.2f} s", flush=True)
+            expected += repeat + 1
         status = subprocess.run([*CLIENT, "serve", "--status"], env=env, capture_output=True, text=True).stdout
-        if f"{repeat + 1} command(s) served" not in status:  # a fallback to in-process would time the wrong thing
+        if f"{expected} command(s) served" not in status:  # a fallback to in-process would time the wrong thing
             raise SystemExit(f"not every timed command was served: {status}")
     finally:
         subprocess.run([*CLIENT, "serve", "--stop"], env=env, capture_output=True)
-        server.wait(timeout=60)
-    return served, cv, first
+    return out
 
 
 def best(times: list[float]) -> str:
@@ -189,7 +208,14 @@ def main() -> None:
             print(f"plain: dstereo {ds[-1]:.2f} s, cv2 process {cv[-1]:.2f} s", flush=True)
         plain_row = (ds, cv)
         cv2_run = [sys.executable, str(work / "plain_cv2.py"), str(corners), str(work / "cv2.yml")]
-        served_row = served_plain(run, cv2_run, env, work, max(args.repeat, 3))
+        big = max((c for c in sizes if CASES[c][0] == 20), default=None)  # the served subset case: 20 views
+        subsets = None if big is None else [*DSTEREO, "calibrate", "--images", str(folder), "--pattern", "9x6",
+                                            "--per-set", str(CASES[big][1]), "--max-subsets", str(big),
+                                            "--out", str(work / "served-out"), "--force", "-q"]
+        thesis_run = None if big is None else [sys.executable, str(work / "thesis.py"), str(corners),
+                                               str(CASES[big][1]), str(work / "th")]
+        served_row = served_cases(run, cv2_run, subsets, thesis_run, env, work, max(args.repeat, 3))
+        served_row["subsets_case"] = big
     load.append(f"after: {uptime()}")
     lines = ["# End-to-end benchmark (`make bench`, experiments/bench_end_to_end.py)", "",
              f"Machine: {os.cpu_count()} cores (shared with other jobs); load {load[0]}; {load[1]}.", "",
@@ -203,9 +229,21 @@ def main() -> None:
         lines += ["", "| plain calibration, 20 views | dstereo calibrate (warm cache, results folder) | "
                   "python + cv2.calibrateCamera + yml | ratio |", "|---|---|---|---|",
                   f"| whole run, new process | {best(ds)} | {best(cv)} | {min(ds) / min(cv):.2f}x |"]
-        sv, sv_cv, first = served_row
-        lines += [f"| whole run, `dstereo serve` running (warm; cv2 timed alternately with it; first command after "
-                  f"the server's start {first:.2f} s) | {best(sv)} | {best(sv_cv)} | {min(sv) / min(sv_cv):.2f}x |"]
+        sv = served_row
+        lines += [f"| whole run, first command with no server (runs in its own process, starts one) | "
+                  f"{sv['autostart_first']:.2f} s | | |",
+                  f"| whole run, served by the server it started (warm; cv2 timed alternately with it; server "
+                  f"answering {sv['server_ready_after_s']:.2f} s after that command; its first served command "
+                  f"{sv['first_served']:.2f} s) | {best(sv['plain'])} | {best(sv['cv2'])} | "
+                  f"{min(sv['plain']) / min(sv['cv2']):.2f}x |"]
+        if sv["subsets"]:
+            c = sv["subsets_case"]
+            lines += ["", f"| C = {c} ({CASES[c][0]}, {CASES[c][1]}), served | dstereo calibrate through the "
+                      f"server | thesis approach, {os.cpu_count()} processes (alternately) | x thesis |",
+                      "|---|---|---|---|",
+                      f"| warm server (its first C = {c} command {sv['first_served_subsets']:.2f} s, not counted) | "
+                      f"{best(sv['subsets'])} | {best(sv['thesis'])} | "
+                      f"{min(sv['thesis']) / min(sv['subsets']):.2f}x |"]
     lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process.", "",
               "Breakdown of the dstereo runs (medians, s): jax_imported_at_s when `import jax` had finished in the "
               "process; trace_s, lower_s, xla_compile_or_fetch_s JAX's own sums over the run's programs; aot_load_s "
@@ -231,6 +269,7 @@ def main() -> None:
                          "warm_x_thesis": min(thesis) / min(warm), "cold_x_thesis": min(thesis) / min(cold)}
                         for c, n, m, cold, warm, thesis in rows],
               "plain": None if plain_row is None else {"dstereo_s": plain_row[0], "cv2_s": plain_row[1]},
+              "served": served_row,
               "breakdown": {f"{k[0]} {k[1]}": v for k, v in PROFILES.items()}}
     out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {out} and {out.with_suffix('.json').name}")

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.models.pose import log_rotation
+from dstereo.models.pose import rotation_vector
 
 
 def _normaliser(pts: np.ndarray) -> np.ndarray:
@@ -67,7 +67,7 @@ def pose_from_homography(h: np.ndarray, kmat: np.ndarray) -> np.ndarray:
     r1, r2, t = lam * m[:, 0], lam * m[:, 1], lam * m[:, 2]
     u, _, vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
     rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    return np.concatenate([np.asarray(log_rotation(rot)), t])
+    return np.concatenate([rotation_vector(rot), t])
 
 
 def initial_guess(obj: np.ndarray, obs: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:

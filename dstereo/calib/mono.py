@@ -209,6 +209,7 @@ def solve_subsets(
     options: LMOptions = LMOptions(lambda0=1e-6),
     progress=None,
     n_threads: int | None = None,
+    plan_size: int | None = None,
 ) -> SubsetSolutions:
     """Refine every subset of `plan` in fixed-size vmapped chunks, starting from the full-set solution.
 
@@ -224,7 +225,8 @@ def solve_subsets(
     normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
     t0 = time.perf_counter()
     out = solve_frame_subsets(_problem(start.free, start.board_sag is not None), obs[:, None], r_weight, _shared(obj), index,
-                              SubsetStart(start.values, start.poses, normal), options, progress, n_threads)
+                              SubsetStart(start.values, start.poses, normal), options, progress, n_threads,
+                              plan_size)
     n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
     n_params = len(start.values) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)

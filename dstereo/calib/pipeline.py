@@ -348,11 +348,11 @@ def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
     m, n_views = plan.per_set, len(obs)
 
     def solve_block(block, report):
-        sol = solve_subsets(obj, obs, block, full, progress=report)
+        sol = solve_subsets(obj, obs, block, full, progress=report, plan_size=len(plan))
         return np.column_stack([sol.rms, sol.values]), sol.status, sol
 
     table, kept = solve_in_blocks(
-        plan, columns, solve_block, chunk_size(n_views, m, obs.shape[1]), scratch,
+        plan, columns, solve_block, chunk_size(n_views, m, obs.shape[1], len(plan)), scratch,
         progress=None if progress is None else (lambda i, n: progress("subsets", i, n)),
         note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None)
     if not kept:

@@ -105,12 +105,12 @@ def board_poses(camera: Camera, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
     """(V, 6) T_cam_board of each view for a known camera: homography of the undistorted, normalised corners
     (through the camera's own lens model: pinhole + distortion, or fisheye)."""
     if lens_model(tuple(camera.dist.free)) == "fisheye":
-        xy = np.asarray(_normalised_fisheye_points()(camera.k, camera.dist.coeffs[:4], jnp.asarray(obs, float)))
+        xy = np.asarray(_normalised_fisheye_points()(camera.k, camera.dist.coeffs[:4], np.asarray(obs, float)))
         if not np.isfinite(xy).all():
             raise DstereoError("board pose: corners at or beyond 90 degrees from the fisheye camera's axis; leave "
                                "those views out")
     else:
-        xy = np.asarray(_normalised_points()(camera.k, camera.dist.coeffs, jnp.asarray(obs, float)))
+        xy = np.asarray(_normalised_points()(camera.k, camera.dist.coeffs, np.asarray(obs, float)))
     return np.stack([pose_from_homography(homography(obj[:, :2], v), np.eye(3)) for v in xy])
 
 

@@ -1,11 +1,12 @@
 """The one subset runner: every subset of frames of a calibration problem, solved in batched chunks.
 
 A subset is the full set with the other frames weighted 0, so it reuses the full set's compiled solver, unless
-subsets are less than half the set: then carrying the unused frames would cost more than a second compile, and
-the subsets' frames are gathered instead. Measured at m = 16 of 20 (rig640, C = 4845, warm, load ~5): gathered
-subsets took ~12 % less (4 of 20 frames not linearised) but a second executable to load (warm) or compile (cold,
-~1-2 s): a saving of ~0.3 s warm against ~1 s more cold, so the rule stays (choosing by C would need the whole
-plan's size here, where blocks of it arrive). Every subset starts at the full set's solution (a few iterations from
+subsets are less than half the set, or the whole plan leaves out at least GATHER_DROPPED frame solves (C (n - m),
+given as `plan_size` by the caller, who sees the whole plan where blocks of it arrive here): then carrying the
+unused frames would cost more than a second executable, and the subsets' frames are gathered instead. Measured at
+m = 16 of 20 (rig640, C = 4845, 19380 frame solves left out, the noise-unit stop): gathered 2.82 s against masked
+3.37 s (load ~5, one core's worth), ~16 %, for a second executable to load from disk (~0.08 s) or, in a cold run,
+to compile (~1.5-2 s, once per shape and code version). Every subset starts at the full set's solution (a few iterations from
 its own optimum; each still converges to its own least-squares solution) and, where given, reuses the full
 set's linearisation there instead of linearising its start again (one pass of about six saved). Chunks run on
 `problem.threads()` threads; XLA runs one chunk's loop mostly on one core. Used by one camera, a stereo rig and
@@ -34,6 +35,10 @@ from dstereo.solver.lm import LMOptions, LMResult
 # 1e-12 alone ran every subset two to three passes further (5-7 passes each). A caller's explicit
 # `decrement_tol` (0: off, tight ftol convergence) wins.
 SUBSET_DECREMENT_TOL = 0.5e-4
+# Gathered subsets from this many frame solves left out (C (n - m)): at ~14-28 us each (measured, module docstring)
+# the saving passes a second executable's load from disk (~0.08 s) about 3000-6000 frame solves in; twice that
+# for margin. C = 4845 of m = 16 of 20 gathers (19380), C = 1140 of 17 of 20 does not (3420).
+GATHER_DROPPED = 10_000
 
 
 class SubsetStart(NamedTuple):
@@ -47,18 +52,19 @@ class SubsetStart(NamedTuple):
 
 def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray, shared, index: np.ndarray,
                         start: SubsetStart, options: LMOptions = LMOptions(lambda0=1e-6), progress=None,
-                        n_threads: int | None = None) -> LMResult:
+                        n_threads: int | None = None, plan_size: int | None = None) -> LMResult:
     """Solve each row of `index` (C, m) (frame indices; a repeated index counts a frame twice: bootstrap) as its
     own problem. obs (F, K, n, 2) (NaN: unseen), r_weight (F, K 2n) the full set's residual weights (an outlier
     there is left out of every subset). Returns the stacked `LMResult` (C leading) without per-frame residuals
-    and normal blocks (C = 5000 would keep ~400 MB)."""
+    and normal blocks (C = 5000 would keep ~400 MB). `plan_size`: subsets in the whole plan these rows are a block of
+    (chooses gathered frames, `gathers`; default: these rows alone)."""
     if options.decrement_tol is None:
         options = options._replace(decrement_tol=SUBSET_DECREMENT_TOL)
     index = np.asarray(index)
     n_sub, m = index.shape
     n_frames, n_obs = len(obs), int(np.prod(np.shape(obs)[1:3]))
     obs, poses = np.asarray(obs, float), np.asarray(start.poses, float)
-    gathered = gathers(m, n_frames)
+    gathered = gathers(m, n_frames, n_sub if plan_size is None else plan_size)
     normal = start.normal
 
     if not gathered:
@@ -97,12 +103,13 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
 
 
-def chunk_size(problem_frames: int, m: int, n_obs: int) -> int:
+def chunk_size(problem_frames: int, m: int, n_obs: int, plan_size: int | None = None) -> int:
     """The chunk `solve_frame_subsets` uses for subsets of m of `problem_frames` frames of n_obs corner
-    observations each (callers size their blocks of subsets to a multiple of it)."""
-    return chunk_rows(m if gathers(m, problem_frames) else problem_frames, n_obs)
+    observations each, in a plan of `plan_size` subsets (callers size their blocks of subsets to a multiple of it)."""
+    return chunk_rows(m if gathers(m, problem_frames, plan_size) else problem_frames, n_obs)
 
 
-def gathers(m: int, n_frames: int) -> bool:
-    """Whether subsets of m of n_frames frames are gathered (module docstring)."""
-    return 2 * m < n_frames
+def gathers(m: int, n_frames: int, plan_size: int | None = None) -> bool:
+    """Whether subsets of m of n_frames frames, `plan_size` of them in the whole plan, are gathered (module
+    docstring): less than half the frames, or at least GATHER_DROPPED frame solves left out in all."""
+    return 2 * m < n_frames or (plan_size is not None and plan_size * (n_frames - m) >= GATHER_DROPPED)

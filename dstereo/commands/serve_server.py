@@ -277,15 +277,11 @@ def _preload() -> None:
 
 
 def _warm_up() -> None:
-    """What every calibration runs first whatever its shapes: LAPACK's kernels readied for loaded executables, and
-    the per-view rotation programs (traced and fetched once: ~0.4 s of a first served command, measured)."""
-    import numpy as np
-
+    """What every calibration runs first whatever its shapes: LAPACK's kernels readied for loaded executables
+    (imports scipy.linalg: ~0.1-0.2 s of a first served command, measured)."""
     from dstereo.jax_workarounds import prepare_loaded_executables
-    from dstereo.models.pose import rotation_matrix, rotation_vector
 
     prepare_loaded_executables()
-    rotation_vector(rotation_matrix(np.array([0.1, -0.2, 0.3])))
 
 
 def _renew_broken_figure_pool() -> None:

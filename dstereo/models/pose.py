@@ -9,24 +9,25 @@ import numpy as np
 from jaxtyping import Array, Float
 
 
-def rodrigues(rvec: Float[Array, "3"]) -> Float[Array, "3 3"]:
+def rodrigues(rvec: Float[Array, "3"], xp=jnp) -> Float[Array, "3 3"]:
     """Rotation matrix of an axis-angle vector, with finite value and gradient at zero rotation.
 
     Near zero the series of sin(t)/t and (1-cos t)/t^2 replaces the closed form; the double `where` keeps
-    the unused branch from producing NaN gradients.
+    the unused branch from producing NaN gradients. `xp=np` evaluates the same formulas in numpy (host-side
+    helpers below: no program to trace and fetch in a new process).
     """
-    t2 = jnp.dot(rvec, rvec)
+    t2 = xp.dot(rvec, rvec)
     small = t2 < 1e-12
-    t2_safe = jnp.where(small, 1.0, t2)
-    t = jnp.sqrt(t2_safe)
-    a = jnp.where(small, 1.0 - t2 / 6.0, jnp.sin(t) / t)
-    b = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / t2_safe)
-    kx = jnp.array([
+    t2_safe = xp.where(small, 1.0, t2)
+    t = xp.sqrt(t2_safe)
+    a = xp.where(small, 1.0 - t2 / 6.0, xp.sin(t) / t)
+    b = xp.where(small, 0.5 - t2 / 24.0, (1.0 - xp.cos(t)) / t2_safe)
+    kx = xp.array([
         [0.0, -rvec[2], rvec[1]],
         [rvec[2], 0.0, -rvec[0]],
         [-rvec[1], rvec[0], 0.0],
     ])
-    return jnp.eye(3) + a * kx + b * (kx @ kx)
+    return xp.eye(3) + a * kx + b * (kx @ kx)
 
 
 def rodrigues_jacobian(rvec: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3 3 3"]]:
@@ -60,59 +61,63 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _EPS[_i, _j, _k], _EPS[_i, _k, _j] = 1.0, -1.0
 
 
-@jax.jit
-def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
+def _log_rotation(rmat, xp):
     """Axis-angle vector of a rotation matrix (angle in [0, pi]), the one inverse of `rodrigues`.
 
     Below ~120 degrees (trace >= every diagonal entry) theta = atan2(|w|, (tr - 1) / 2) on the skew part w,
     accurate to rounding at small angles (arccos of the trace is not); above it the skew part vanishes at pi,
     so the axis comes from the unit quaternion divided by its largest vector component (Shepperd), accurate
     up to and at 180 degrees. Unused branches see safe inputs, so gradients stay finite (also at identity).
+    `xp`: jax.numpy (`log_rotation`) or numpy (`rotation_vector`), the same formulas.
     """
-    tr = jnp.trace(rmat)
-    diag = jnp.diagonal(rmat)
-    near_pi = jnp.max(diag) > tr
-    axis = jnp.argmax(diag)
-    small_angle = _log_small_angle(rmat)
-    candidates = jnp.stack([_log_from_axis(rmat, tr, a, near_pi & (axis == a)) for a in range(3)])
-    return jnp.where(near_pi, candidates[axis], small_angle)
+    tr = xp.trace(rmat)
+    diag = xp.diagonal(rmat)
+    near_pi = xp.max(diag) > tr
+    axis = xp.argmax(diag)
+    small_angle = _log_small_angle(rmat, xp)
+    candidates = xp.stack([_log_from_axis(rmat, tr, a, near_pi & (axis == a), xp) for a in range(3)])
+    return xp.where(near_pi, candidates[axis], small_angle)
 
 
-def _log_small_angle(rmat):
-    w = 0.5 * jnp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
+@jax.jit
+def log_rotation(rmat: Float[Array, "3 3"]) -> Float[Array, "3"]:
+    """Axis-angle vector of a rotation matrix (angle in [0, pi]), the one inverse of `rodrigues` (`_log_rotation`)."""
+    return _log_rotation(rmat, jnp)
+
+
+def _log_small_angle(rmat, xp):
+    w = 0.5 * xp.array([rmat[2, 1] - rmat[1, 2], rmat[0, 2] - rmat[2, 0], rmat[1, 0] - rmat[0, 1]])
     s2 = w @ w
     small = s2 < 1e-24  # series of theta / sin(theta); the double `where` keeps gradients finite at identity
-    s = jnp.sqrt(jnp.where(small, 1.0, s2))
-    theta = jnp.arctan2(s, 0.5 * (jnp.trace(rmat) - 1.0))
-    return w * jnp.where(small, 1.0 + s2 / 6.0, theta / s)
+    s = xp.sqrt(xp.where(small, 1.0, s2))
+    theta = xp.arctan2(s, 0.5 * (xp.trace(rmat) - 1.0))
+    return w * xp.where(small, 1.0 + s2 / 6.0, theta / s)
 
 
-def _log_from_axis(rmat, tr, a: int, selected):
+def _log_from_axis(rmat, tr, a: int, selected, xp):
     """Shepperd's quaternion (w, v) from its component v[a] (the largest), then 2 atan2(|v|, w) v / |v|."""
     b, c = (a + 1) % 3, (a + 2) % 3
-    m = jnp.where(selected, 1.0 + 2.0 * rmat[a, a] - tr, 1.0)  # > 1 when selected: 4 v[a]^2 >= 1
-    va = 0.5 * jnp.sqrt(m)
-    v = jnp.zeros(3).at[a].set(va)
-    v = v.at[b].set((rmat[b, a] + rmat[a, b]) / (4.0 * va)).at[c].set((rmat[c, a] + rmat[a, c]) / (4.0 * va))
+    m = xp.where(selected, 1.0 + 2.0 * rmat[a, a] - tr, 1.0)  # > 1 when selected: 4 v[a]^2 >= 1
+    va = 0.5 * xp.sqrt(m)
+    parts = {a: va, b: (rmat[b, a] + rmat[a, b]) / (4.0 * va), c: (rmat[c, a] + rmat[a, c]) / (4.0 * va)}
+    v = xp.stack([parts[0], parts[1], parts[2]])
     w = (rmat[c, b] - rmat[b, c]) / (4.0 * va)
-    sign = jnp.where(w < 0, -1.0, 1.0)  # the quaternion with w >= 0: angle in [0, pi]
+    sign = xp.where(w < 0, -1.0, 1.0)  # the quaternion with w >= 0: angle in [0, pi]
     w, v = sign * w, sign * v
-    s = jnp.sqrt(v @ v)  # >= 1/2 here
-    return v * (2.0 * jnp.arctan2(s, w) / s)
-
-
-_rodrigues_compiled = jax.jit(rodrigues)
+    s = xp.sqrt(v @ v)  # >= 1/2 here
+    return v * (2.0 * xp.arctan2(s, w) / s)
 
 
 def rotation_matrix(rvec) -> np.ndarray:
-    """Host side: `rodrigues` as a writable numpy (3, 3), compiled once (eager JAX would dispatch ~20 tiny ops
-    per call; compiled, a call costs about what scipy's Rotation does, ~10 us measured)."""
-    return np.array(_rodrigues_compiled(jnp.asarray(rvec, float).reshape(3)), float)
+    """Host side: `rodrigues` as a writable numpy (3, 3), the same formulas in numpy (~10 us a call; a compiled
+    JAX call costs about that too, but its first call in a process traces and fetches a program: ~0.1 s of a new
+    process's calibration, measured, as does `rotation_vector`'s)."""
+    return np.array(rodrigues(np.asarray(rvec, float).reshape(3), np), float)
 
 
 def rotation_vector(rmat) -> np.ndarray:
-    """Host side: `log_rotation` as a writable numpy (3,)."""
-    return np.array(log_rotation(jnp.asarray(rmat, float).reshape(3, 3)), float)
+    """Host side: `log_rotation` as a writable numpy (3,), the same formulas in numpy."""
+    return np.array(_log_rotation(np.asarray(rmat, float).reshape(3, 3), np), float)
 
 
 _log_many = jax.jit(jax.vmap(log_rotation))

@@ -248,9 +248,12 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
                                f"{len(index)} intrinsics + {len(poses)} poses (joint covariance expected)")
     else:
         poses = np.zeros((1, 6))
-    params = jnp.concatenate([jnp.asarray(k, float), jnp.asarray(coeffs, float)])
+    # numpy in: an eager jnp.concatenate or jnp.asarray compiles (or fetches) a small program per shape in a new
+    # process (jax 0.10's `stage`), ~10-30 ms each
+    params = np.concatenate([np.asarray(k, float), np.asarray(coeffs, float)])
     u, v, q = _grid(image_size, grid)
-    cov_q, ok = _map_fn(index, method, model)(params, jnp.asarray(poses), jnp.asarray(cov), jnp.asarray(q), float(range_))
+    cov_q, ok = _map_fn(index, method, model)(params, np.asarray(poses, float), cov, np.asarray(q, float),
+                                              float(range_))
     cov_q, ok = np.array(cov_q), np.asarray(ok) & np.all(np.isfinite(np.asarray(cov_q)), axis=(1, 2))
     cov_q[~ok] = np.nan
     std = np.full(len(q), np.nan)
