@@ -19,16 +19,14 @@ IDLE_S = 900.0  # an auto-started server exits after this long without a command
 SERVER = ("-m", "dstereo.cli")
 
 
-def wanted(argv: list[str], env=None) -> bool:
-    """Whether this command, run here for want of a server, starts one: a command a server may run, not
-    DSTEREO_SERVE=0 or manual, not under pytest (PYTEST_CURRENT_TEST, which its subprocesses inherit) or in CI
-    (`CI` set), not with a relative PYTHONPATH entry, and where Unix sockets exist."""
-    from dstereo.serve_client import servable
-
+def wanted(servable: bool, env=None) -> bool:
+    """Whether this command, run here for want of a server, starts one: a command a server may run (`servable`,
+    serve_client.servable), not DSTEREO_SERVE=0 or manual, not under pytest (PYTEST_CURRENT_TEST, which its
+    subprocesses inherit) or in CI (`CI` set), not with a relative PYTHONPATH entry, and where Unix sockets exist."""
     env = os.environ if env is None else env
     # a relative PYTHONPATH entry would name another folder from the server's working folder (/)
     relative = any(p and not os.path.isabs(p) for p in env.get("PYTHONPATH", "").split(os.pathsep))
-    return (servable(argv) and env.get("DSTEREO_SERVE", "") not in ("0", "manual")
+    return (servable and env.get("DSTEREO_SERVE", "") not in ("0", "manual")
             and "PYTEST_CURRENT_TEST" not in env and not env.get("CI") and not relative and os.name == "posix"
             and hasattr(os, "setsid"))
 
@@ -62,7 +60,7 @@ def start(path: str, replacing: bool = False) -> bool:
     """Start a detached server for the socket `path` (see the module); False where none was started: the folder
     cannot be made private, a server holds the lock (unless `replacing` a retiring one, which releases it), or the
     process could not be started. Never raises."""
-    from dstereo.serve_client import private, sibling
+    from dstereo.serve_paths import private, sibling
 
     folder = os.path.dirname(path)
     try:

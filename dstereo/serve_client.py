@@ -34,6 +34,8 @@ import socket
 import struct
 import sys
 
+from dstereo.serve_paths import install_id, private, runtime_dir, sibling, socket_path  # noqa: F401
+
 NOT_SERVED = ("serve", "demo")  # the server itself; demo writes a large folder and is run once, not often
 CONNECT_TIMEOUT_S = 2.0
 ANSWER_TIMEOUT_S = 10.0  # the server's listener answers at once; silence this long means it is wedged
@@ -44,44 +46,6 @@ STARTUP_ENV_PREFIXES = ("JAX_", "XLA_", "TF_", "CUDA_", "OMP_", "OPENBLAS_", "MK
 # DSTEREO_AOT is read per call, but a server keeps the programs the first command built with it.
 STARTUP_ENV_NAMES = ("DSTEREO_JAX_CACHE", "DSTEREO_FIGURE_WORKERS", "DSTEREO_AOT", "XDG_CACHE_HOME")
 _HEADER = struct.Struct("!cI")
-
-
-def runtime_dir(env=None) -> str:
-    """DSTEREO_SERVE_DIR, else $XDG_RUNTIME_DIR/dstereo, else ~/.cache/dstereo/serve (made mode 0700 by the server)."""
-    env = os.environ if env is None else env
-    if env.get("DSTEREO_SERVE_DIR"):
-        return env["DSTEREO_SERVE_DIR"]
-    if env.get("XDG_RUNTIME_DIR"):
-        return os.path.join(env["XDG_RUNTIME_DIR"], "dstereo")
-    cache = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(cache, "dstereo", "serve")
-
-
-def install_id() -> str:
-    """12 hex digits naming this installation: the package's folder, the Python environment and interpreter."""
-    h = hashlib.sha256()
-    for part in (os.path.dirname(os.path.abspath(__file__)), sys.prefix, os.path.realpath(sys.executable)):
-        h.update(part.encode() + b"\0")
-    return h.hexdigest()[:12]
-
-
-def socket_path(env=None) -> str:
-    """The server's socket for this installation in `runtime_dir`; its lock and log sit beside it (`sibling`)."""
-    return os.path.join(runtime_dir(env), f"serve-{install_id()}.sock")
-
-
-def sibling(path: str, suffix: str) -> str:
-    """serve-<id>.lock / .log beside the socket serve-<id>.sock."""
-    return path[: -len(".sock")] + suffix
-
-
-def private(folder: str) -> bool:
-    """The folder is ours and closed to others: the socket carries our environment and runs as us."""
-    try:
-        st = os.stat(folder)
-    except OSError:
-        return False
-    return st.st_uid == os.getuid() and not st.st_mode & 0o077
 
 
 def code_key(env=None, package: str | None = None) -> str:
@@ -272,7 +236,7 @@ def main() -> None:
     from dstereo import serve_autostart
 
     argv = sys.argv[1:]
-    auto = serve_autostart.wanted(argv)
+    auto = serve_autostart.wanted(servable(argv))
     code, why = _try_served(argv, auto)
     if code is not None:
         sys.exit(code)

@@ -159,9 +159,23 @@ def served_cases(plain: list[str], cv2_run: list[str], subsets: list[str] | None
         status = subprocess.run([*CLIENT, "serve", "--status"], env=env, capture_output=True, text=True).stdout
         if f"{expected} command(s) served" not in status:  # a fallback to in-process would time the wrong thing
             raise SystemExit(f"not every timed command was served: {status}")
+        out["server_rss_mb"] = server_memory(int(status.split(" pid ")[1].split(",")[0]))
     finally:
         subprocess.run([*CLIENT, "serve", "--stop"], env=env, capture_output=True)
     return out
+
+
+def server_memory(pid: int) -> dict:
+    """Resident memory (MB) of the idle server and of its child processes (the figure workers), from /proc."""
+    def rss(p: int) -> float:
+        for line in Path(f"/proc/{p}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return 0.0
+
+    children = [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
+                for c in (t / "children").read_text().split()]
+    return {"server": rss(pid), "workers": [rss(c) for c in children]}
 
 
 def best(times: list[float]) -> str:
@@ -236,6 +250,9 @@ def main() -> None:
                   f"answering {sv['server_ready_after_s']:.2f} s after that command; its first served command "
                   f"{sv['first_served']:.2f} s) | {best(sv['plain'])} | {best(sv['cv2'])} | "
                   f"{min(sv['plain']) / min(sv['cv2']):.2f}x |"]
+        mem = sv["server_rss_mb"]
+        lines += ["", f"The idle server after these runs: {mem['server']:.0f} MB resident, its figure workers "
+                  + ", ".join(f"{w:.0f}" for w in mem["workers"]) + " MB (VmRSS)."]
         if sv["subsets"]:
             c = sv["subsets_case"]
             lines += ["", f"| C = {c} ({CASES[c][0]}, {CASES[c][1]}), served | dstereo calibrate through the "

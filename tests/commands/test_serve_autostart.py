@@ -59,15 +59,15 @@ def _stop(env: dict, path: str) -> None:
 
 def test_wanted_only_from_a_served_command_outside_tests_and_ci():
     env = {"HOME": "/h"}
-    assert serve_autostart.wanted(["calibrate", "--images", "x"], env)
-    assert not serve_autostart.wanted(["serve"], env) and not serve_autostart.wanted(["demo"], env)
-    assert not serve_autostart.wanted(["--help"], env) and not serve_autostart.wanted([], env)
+    wanted = lambda argv, e=env: serve_autostart.wanted(wire.servable(argv), e)  # noqa: E731 - as main asks it
+    assert wanted(["calibrate", "--images", "x"])
+    assert not wanted(["serve"]) and not wanted(["demo"]) and not wanted(["--help"]) and not wanted([])
     for name, value in (("DSTEREO_SERVE", "0"), ("DSTEREO_SERVE", "manual"), ("PYTEST_CURRENT_TEST", "t"),
                         ("CI", "true"), ("PYTHONPATH", "relative/src")):
-        assert not serve_autostart.wanted(["init", "x"], {**env, name: value}), name
-    assert serve_autostart.wanted(["init", "x"], {**env, "DSTEREO_SERVE": "1", "PYTHONPATH": "/abs/src"})
+        assert not wanted(["init", "x"], {**env, name: value}), name
+    assert wanted(["init", "x"], {**env, "DSTEREO_SERVE": "1", "PYTHONPATH": "/abs/src"})
     # the tests' own environment: pytest's variable keeps every test's clients from starting servers
-    assert not serve_autostart.wanted(["init", "x"])
+    assert not serve_autostart.wanted(wire.servable(["init", "x"]))
 
 
 def test_no_server_is_started_under_pytest_or_when_off(tmp_path):
