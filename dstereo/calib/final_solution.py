@@ -253,7 +253,8 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     views = survival[0] > 0
     inliers = None if full.inliers is None else full.inliers[views]  # the full set's outlier mask carries over
     solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free),
-                                                       inliers=inliers, board_warp=full.board_sag is not None)
+                                                       inliers=inliers, board_warp=full.board_sag is not None,
+                                                       alone=True)  # after the subsets: no program to share
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
     coeffs = np.array(solution.coeffs, float)

@@ -52,14 +52,15 @@ def _residual_weights(inliers: np.ndarray) -> np.ndarray:
     return residual_weights(np.asarray(inliers)[..., None, :])
 
 
-def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None, board_warp=None):
+def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None, board_warp=None,
+         rows=None):
     """`problem.run` for one camera: obs (B, V, n, 2) as K = 1 frames."""
     # a device array comes from `solve_subsets`, already put there as K = 1 frames (B, V, 1, n, 2)
     obs = obs if isinstance(obs, jax.Array) else np.asarray(obs, float)[:, :, None]
     # the shared vector's length tells whether it carries the board's sag (4 + free, or 2 more)
     warp = np.shape(g0)[-1] == 4 + len(free) + WARP_SIZE if board_warp is None else board_warp
     return run(_problem(free, warp), options, g0, p0, obs, weight, lambda0, shared, normal0,
-               np.ones(np.shape(weight) + (2 * np.shape(obs)[3],)) if r_weight is None else r_weight)
+               np.ones(np.shape(weight) + (2 * np.shape(obs)[3],)) if r_weight is None else r_weight, rows)
 
 
 @dataclass
@@ -126,12 +127,16 @@ def calibrate_full(
     inliers: np.ndarray | None = None,
     start: tuple[np.ndarray, np.ndarray] | None = None,
     board_warp: bool = False,
+    alone: bool = False,
 ) -> CameraSolution:
     """Calibrate from all views: closed-form start, then the structured LM to convergence.
 
     `inliers` (V, n) bool: corners to fit (the others, outliers, weigh 0; default all). `start`: (shared vector,
     (V, 6) poses) of the same views to start from (an earlier mask's solve) instead of the closed form.
-    `board_warp`: solve the board's sag too (`problem.sag_basis`; two more shared parameters, last)."""
+    `board_warp`: solve the board's sag too (`problem.sag_basis`; two more shared parameters, last).
+    `alone`: no masked subsets of these views follow (none, or gathered ones), so the solve runs in a program of
+    its own for one problem instead of padded to the subsets' chunk (16 copies computed); default False shares
+    the subsets' program (one compile)."""
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
     _check_views(obj, obs)
     t0 = time.perf_counter()
@@ -150,7 +155,7 @@ def calibrate_full(
     shared = _shared(obj)
     # A view without inlier corners (rejected whole) takes no part: weight 0, its pose carried unchanged
     out = _run(free, options, g0[None], p0[None], obs[None], mask.any(axis=1)[None].astype(float), np.array([lam]),
-               shared, r_weight=_residual_weights(mask)[None])
+               shared, r_weight=_residual_weights(mask)[None], rows=1 if alone else None)
     out = jax.tree_util.tree_map(lambda a: a[0], out)
     sol = _solution_from(out, obj, obs, tuple(free), image_size, mask)
     sol.timings["solve_s"] = time.perf_counter() - t0

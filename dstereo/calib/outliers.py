@@ -88,11 +88,13 @@ class OutlierReport:
         }
 
 
-def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: float | None = None):
+def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: float | None = None,
+                    alone: bool = False):
     """(solution, kept view indices, OutlierReport) after iterative k-sigma rejection of corners and views.
 
     `first` is the solve of all corners of all views (`mono.calibrate_full`); the returned solution is the
-    solve on the kept views with their inlier corners (its `inliers` mask carries into the subsets)."""
+    solve on the kept views with their inlier corners (its `inliers` mask carries into the subsets). `alone`:
+    as `mono.calibrate_full`'s (no masked subsets follow)."""
     from dstereo.calib.mono import calibrate_full
 
     obs = np.asarray(obs, float)
@@ -110,7 +112,7 @@ def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: floa
         cycle = new.tobytes() in seen  # masks alternating: stop at this one
         seen.add(new.tobytes())
         rounds, mask = rounds + 1, new
-        sol = calibrate_full(obj, obs, image_size, free=free, inliers=mask, start=(sol.values, sol.poses))
+        sol = calibrate_full(obj, obs, image_size, free=free, inliers=mask, start=(sol.values, sol.poses), alone=alone)
         if cycle:
             break
     share = 1.0 - mask.mean(axis=1)
@@ -120,7 +122,7 @@ def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: floa
                            "lens model does not fit these views (try another `model`) or the pattern is wrong")
     if len(keep) < len(obs):  # the rest without the rejected views (their shape: one more compile)
         sol = calibrate_full(obj, obs[keep], image_size, free=free, inliers=mask[keep],
-                             start=(sol.values, sol.poses[keep]))
+                             start=(sol.values, sol.poses[keep]), alone=alone)
     sigma = noise_sigma(sol.residuals, mask[keep], len(sol.values) + 6 * len(keep))
     dropped = sorted(set(range(len(obs))) - set(keep.tolist()))
     norm = np.linalg.norm(sol.residuals, axis=2)

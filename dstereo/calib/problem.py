@@ -302,7 +302,8 @@ def shared_data(obj: np.ndarray, ks: np.ndarray, coeffs: np.ndarray):
     return (np.asarray(obj, float), np.asarray(ks, float).reshape(-1, 4), np.asarray(coeffs, float).reshape(-1, 8))
 
 
-def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None):
+def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None,
+        rows: int | None = None):
     """Call the compiled solver on one chunk given as per-problem arrays (leading axis <= chunk_rows): g0 (B, G),
     p0 (B, F, 6), obs (B, F, K, n, 2) (NaN: unseen), weight (B, F), lambda0 (B,).
 
@@ -310,13 +311,15 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     and `.normal`); the solver then skips linearising the start. Without it, the same compiled program linearises
     the start itself (a traced flag, not a second compile). An argument that is already a device array is taken
     as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
-    chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen."""
+    chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen. `rows`: problems per
+    compiled call (default `chunk_rows`, the program subsets of these frames share; fewer problems are padded to
+    it and computed all the same: a single solve that shares no program with subsets passes 1)."""
     n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
-    rows = chunk_rows(n_frames, k * n_pts, problem)
+    rows = chunk_rows(n_frames, k * n_pts, problem) if rows is None else int(rows)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
         parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,
-                     None if normal0 is None else tuple(cut(a, i) for a in normal0), cut(r_weight, i))
+                     None if normal0 is None else tuple(cut(a, i) for a in normal0), cut(r_weight, i), rows)
                  for i in range(0, n, rows)]
         return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts)
 

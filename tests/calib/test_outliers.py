@@ -211,3 +211,26 @@ def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
     assert plain.rms > 5 * b.rms  # unmasked, the same outliers dominate the fit
     inl = np.linalg.norm(b.residuals, axis=3)[mask]
     assert b.rms == pytest.approx(np.sqrt(np.mean(inl ** 2)), rel=1e-9)
+
+
+@pytest.mark.numerics
+def test_a_solve_alone_equals_one_padded_to_the_subsets_chunk():
+    """`calibrate_full(alone=True)` runs one problem in a program of its own instead of padded to the subsets'
+    chunk (a plain calibration, or gathered subsets): two programs, so equal to the solver's convergence
+    (`lm_agreement`), both converged; the outlier pass too."""
+    from conftest import lm_agreement
+
+    obj, obs, _ = _views(7, n_views=12)
+    obs[2, 5] += 6.0  # one corner for the outlier pass to reject
+    size = (1280, 960)
+    padded, alone = (mono.calibrate_full(obj, obs, size, FIVE, alone=a) for a in (False, True))
+    assert padded.status == alone.status == 1
+    n_res, n_par = obs.size, len(padded.values) + 6 * len(obs)
+    assert np.all(np.abs(alone.values - padded.values) <= lm_agreement(padded.std, n_res, n_par))
+    names = [f"v{i}" for i in range(len(obs))]
+    (sol_p, keep_p, rep_p), (sol_a, keep_a, rep_a) = (
+        reject_outliers(obj, obs, size, FIVE, names, first, alone=a) for first, a in ((padded, False), (alone, True)))
+    rejected = lambda report: [(image, corner) for image, corner, _, _ in report.corners]  # noqa: E731
+    assert keep_p.tolist() == keep_a.tolist() and rejected(rep_p) == rejected(rep_a)
+    assert ("v2", 5) in rejected(rep_a)
+    assert np.all(np.abs(sol_a.values - sol_p.values) <= lm_agreement(sol_p.std, n_res, n_par))
