@@ -166,16 +166,19 @@ def served_cases(plain: list[str], cv2_run: list[str], subsets: list[str] | None
 
 
 def server_memory(pid: int) -> dict:
-    """Resident memory (MB) of the idle server and of its child processes (the figure workers), from /proc."""
+    """Resident memory (MB) of the idle server and of its descendants (multiprocessing's resource tracker, the
+    figure workers), from /proc."""
     def rss(p: int) -> float:
         for line in Path(f"/proc/{p}/status").read_text().splitlines():
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
         return 0.0
 
-    children = [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
-                for c in (t / "children").read_text().split()]
-    return {"server": rss(pid), "workers": [rss(c) for c in children]}
+    def children(p: int) -> list[int]:
+        kids = [int(c) for t in Path(f"/proc/{p}/task").iterdir() for c in (t / "children").read_text().split()]
+        return kids + [g for k in kids for g in children(k)]
+
+    return {"server": rss(pid), "workers": [rss(c) for c in children(pid)]}
 
 
 def best(times: list[float]) -> str:
@@ -251,7 +254,8 @@ def main() -> None:
                   f"{sv['first_served']:.2f} s) | {best(sv['plain'])} | {best(sv['cv2'])} | "
                   f"{min(sv['plain']) / min(sv['cv2']):.2f}x |"]
         mem = sv["server_rss_mb"]
-        lines += ["", f"The idle server after these runs: {mem['server']:.0f} MB resident, its figure workers "
+        lines += ["", f"The idle server after these runs: {mem['server']:.0f} MB resident, its descendant processes "
+                  "(resource tracker, figure workers) "
                   + ", ".join(f"{w:.0f}" for w in mem["workers"]) + " MB (VmRSS)."]
         if sv["subsets"]:
             c = sv["subsets_case"]
