@@ -61,7 +61,9 @@ def main() -> None:
     load = [subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()]
     samples, worker_peak, stop = [], {}, threading.Event()
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # in its own process (never handed to a running `dstereo serve`, nor starting one): its memory is measured
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "DSTEREO_SERVE": "0"})
 
     def watch():
         while not stop.is_set():
