@@ -19,7 +19,7 @@ from test_robust_steps import reference_removed_at
 SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
 THESIS_FLAGS = ["--pattern", "9x6", "--square", "10", "--model", "k1,k2,k3,p1,p2", "--per-set", "10",
                 "--step", "re=0.5", "--step", "p1=1.5,p2=1.5", "--step", "k1=1.5,k2=1.5,k3=1.5",
-                "--step", "fx=1.0,fy=1.0,cx=1.0,cy=1.0"]
+                "--step", "fx=1.0,fy=1.0,cx=1.0,cy=1.0", "--no-board-sag"]  # a flat board: compared with OpenCV
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
@@ -44,7 +44,7 @@ def thesis_run(tmp_path_factory, left_images):
     project = tmp_path_factory.mktemp("thesis")
     _link_images(project / "images", left_images)
     shutil.copy(ini, project)
-    code, out, err = run_cli("calibrate", project)
+    code, out, err = run_cli("calibrate", project, "--no-board-sag")  # a flat board, as OpenCV's (compared below)
     assert code == 0, err
     return project / "results", out, err
 
@@ -187,6 +187,9 @@ def test_toml_and_flags_alone_give_identical_results(thesis_run, tmp_path, left_
     code, out, err = run_cli("init", project)
     assert code == 0 and (project / "dstereo.toml").is_file() and (project / "images").is_dir(), err
     _link_images(project / "images", left_images)
+    toml = project / "dstereo.toml"
+    assert "[calibration]\n" in toml.read_text()
+    toml.write_text(toml.read_text().replace("[calibration]\n", "[calibration]\nboard_sag = false\n", 1))
     code, out, err = run_cli("calibrate", project, "--quiet")
     assert code == 0, err
     assert out == ""  # --quiet
