@@ -15,6 +15,11 @@ uncertain (its noise estimate, and its linearisation at a point ~1 sigma from th
 pixel, the median over draws of predicted / MC (what a calibration claims, typically), the 5-95 % range of that
 ratio over draws, and the share of draws whose claim is within 0.8-1.25x.
 
+Why the claim sits ~10 % above the spread: the sensor noise is drawn anew in each draw, the detector's own fixed
+error (the same in every draw: the radiance is rendered once) is not, yet the solve's noise estimate counts both.
+experiments/results/figures/uncertainty_mc.md measured them on this renderer: 0.0432 px total per coordinate, of
+which noise 0.0404 px and fixed 0.0159 px, so sigma is 1.07x what the Monte Carlo varies.
+
 Run: .venv/bin/python -m experiments.projection_mc_rendered [--draws N] [--views V ...]   (a few minutes)."""
 
 from __future__ import annotations
