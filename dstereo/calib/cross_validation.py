@@ -142,19 +142,38 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
             params[free_idx] = res.g[i][keep]
             # each half carries its own views' effects, as every calibration's uncertainty the tool reports
             dof = n_res - g - 6 * m
-            effects = view_effects(np.asarray(res.normal[i]), g, sse / max(dof, 1), dof, w[i]) if dof > 0 else None
+            normal = np.asarray(res.normal[i])
+            # a half that did not converge, or left a view's pose undetermined (measured: fisheye640's rational
+            # model without outlier rejection), gets no covariance; cross_validate refuses it
+            converged = bool(res.status[i] > 0) and _poses_determined(normal[w[i] > 0], g)
+            if not converged:
+                out.append(HalfSolution(params, np.asarray(res.g[i]), np.full((len(keep),) * 2, np.nan),
+                                        np.full((len(keep) + 6 * m,) * 2, np.nan), np.asarray(res.p[i])[w[i] > 0],
+                                        False, float("nan")))
+                continue
+            effects = view_effects(normal, g, sse / max(dof, 1), dof, w[i]) if dof > 0 else None
             cov = (covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * m) if effects is None else effects.cov)
-            joint = (joint_covariance(np.asarray(res.normal[i]), g, sse, n_res, w[i]) if effects is None
-                     else effects.joint(np.asarray(res.normal[i]), w[i]))
+            joint = (joint_covariance(normal, g, sse, n_res, w[i]) if effects is None
+                     else effects.joint(normal, w[i]))
             # marginalising the sag = dropping its rows and columns (shared first, then the poses)
             kept = np.r_[keep, np.arange(g, len(joint))]
             out.append(HalfSolution(
                 params=params, values=np.asarray(res.g[i]), cov=cov[np.ix_(keep, keep)], joint=joint[np.ix_(kept, kept)],
-                poses=np.asarray(res.p[i])[w[i] > 0], converged=bool(res.status[i] > 0),
+                poses=np.asarray(res.p[i])[w[i] > 0], converged=True,
                 rms=float(np.sqrt(sse / (m * n_pts))),
                 std_ratio=1.0 if effects is None else float(np.median(effects.std_ratio)),
                 **({} if effects is None else _model_of(effects, len(lens)))))
     return out
+
+
+def _poses_determined(normal: np.ndarray, g: int) -> bool:
+    """Every view's 6 x 6 pose block finite and invertible (Jacobi-scaled condition below 1e12; the real views
+    read 1e3-1e4, a board the model cannot place exactly singular)."""
+    if not np.isfinite(normal).all():
+        return False
+    blocks = normal[:, g: g + 6, g: g + 6]
+    d = np.sqrt(np.maximum(np.diagonal(blocks, axis1=1, axis2=2), 1e-300))
+    return bool(np.all(np.linalg.cond(blocks / (d[:, :, None] * d[:, None, :])) < 1e12))
 
 
 def _model_of(effects, n_lens: int) -> dict:

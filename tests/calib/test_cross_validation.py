@@ -167,3 +167,19 @@ def test_the_band_moves_with_the_claimed_uncertainty(honest):
     assert band.ratio_median == pytest.approx(xv.band.ratio_median, rel=1e-9)  # same draws, scale-free
     bad = dataclasses.replace(xv, splits=splits, band=band)
     assert not bad.trusted and not bad.consistent and "optimistic" in bad.verdict()
+
+
+def test_a_half_that_leaves_a_pose_undetermined_is_refused_not_a_traceback(honest):
+    """Without outlier rejection, fisheye640's rational model left a half with a singular pose block (measured):
+    that half counts as not converged (cross_validate then refuses in one DstereoError), instead of LinAlgError."""
+    full, obj, obs, _ = honest
+    normal = np.asarray(full.normal)
+    g = len(full.values)
+    assert cv._poses_determined(normal, g)
+    broken = normal.copy()
+    broken[3, g: g + 6, g: g + 6] = 0.0  # a view whose board the model cannot place
+    broken[3, g + 5, g + 5] = 1.0
+    assert not cv._poses_determined(broken, g)
+    nan = normal.copy()
+    nan[0, 0, 0] = np.nan
+    assert not cv._poses_determined(nan, g)
