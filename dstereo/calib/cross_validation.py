@@ -445,6 +445,13 @@ class CrossValidation:
                 return (head + ": the projection's uncertainty can be trusted, the single parameters' +- cannot "
                         f"(the halves' parameters differ {self.parameter_chi2:.3g}x more than predicted in d'C^-1 d: "
                         "cancelling parameters, e.g. a rational model's k1..k6; read the projection, not the values)")
+            if self.consistent is False:  # passes the band, yet beyond where a right prediction falls here
+                b = self.band
+                beyond = self.ratio > b.ratio[1] if not b.ratio[0] <= self.ratio <= b.ratio[1] else \
+                    self.mahalanobis_median > b.mahalanobis[1]  # the statistic that left its band, and to which side
+                lean = "optimistic" if beyond else "pessimistic"
+                return (head + ": the uncertainty can be trusted within the acceptance band, though it leans "
+                        f"{lean}: beyond where a right prediction falls on these views")
             return head + ": the uncertainty can be trusted"
         side = "optimistic (errors larger than predicted)" if self.ratio > 1 else "pessimistic"
         return (head + f": the uncertainty can NOT be trusted, it is {side}; likely causes: outlier corners, a "
