@@ -46,9 +46,10 @@ def calibrate(
     no_outlier_rejection: bool = typer.Option(
         False, "--no-outlier-rejection", help="Keep every detected corner and view (default: iterative k-sigma "
         "rejection of outlier corners and views, each one reported)."),
-    board_sag: bool = typer.Option(
-        False, "--board-sag", help="Solve the board's sag (two parameters, x and y, in the board unit, as mrcal) with "
-        "the rest; reported with its sigma. One camera and --cameras; not for --left/--right yet."),
+    board_sag: Optional[bool] = typer.Option(
+        None, "--board-sag/--no-board-sag", help="Solve the board's sag (two parameters, x and y, in the board "
+        "unit, as mrcal) with the rest, reported with its sigma (default on: one camera and --cameras; a "
+        "--left/--right rig assumes a flat board and says so). --no-board-sag: a flat board, as OpenCV."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -123,7 +124,7 @@ def calibrate(
             raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
                                "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
                                "chosen --model")
-        if cfg.board_sag:
+        if board_sag:  # asked for on the command line: it cannot be honoured (the default just runs flat)
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder

@@ -13,8 +13,8 @@ def flag_layer(values: dict) -> dict:
     raw = given(values)
     layer = {k: v for k, v in raw.items()
              if k not in ("pattern", "model", "model_right", "steps", "outlier_rejection", "images", "board_sag")}
-    if raw.get("board_sag"):
-        layer["board_sag"] = True
+    if "board_sag" in raw:  # --board-sag / --no-board-sag (None: not given)
+        layer["board_sag"] = bool(raw["board_sag"])
     if "pattern" in raw:
         from dstereo.io.corners import parse_pattern
 

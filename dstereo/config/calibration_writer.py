@@ -52,8 +52,8 @@ def to_toml(cfg, comments: bool = True) -> str:
         out.append("# min_subsets = 50  # a step stops before it leaves fewer subsets")
     if not cfg.outlier_rejection:
         out.append("outlier_rejection = false" + c("keep every corner (default true: k-sigma rejection)"))
-    if cfg.board_sag:
-        out.append("board_sag = true" + c("solve the board's sag (x, y) with the rest"))
+    if not cfg.board_sag:
+        out.append("board_sag = false" + c("a flat board (default true: the board's sag x, y is solved)"))
     if cfg.final != "survivors":
         out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the "
                                                          "survivors' solve"))

@@ -96,7 +96,7 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("min_subsets", "calibration.min_subsets", "--min-subsets", type=int),
     _opt("final", "calibration.final", "--final"),
     _opt("outlier_rejection", "calibration.outlier_rejection", "--no-outlier-rejection", type=bool),
-    _opt("board_sag", "calibration.board_sag", "--board-sag", type=bool),
+    _opt("board_sag", "calibration.board_sag", "--board-sag/--no-board-sag", type=bool),
     _opt("steps", "steps", "--step", type=list),
     _opt("stereo_steps", "stereo.steps", "--step", type=list),
     # run settings: flags of the command, not fields of Config

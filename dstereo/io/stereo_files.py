@@ -278,6 +278,7 @@ def stereo_summary(job) -> dict:
         full_std |= sigma.std
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
+        "board_sag": job.board_sag,
         "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
                                      "square": det.board.square, "unit": job.config.unit},
         "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
@@ -486,7 +487,8 @@ def report_markdown(job, summary: dict) -> str:
              f"- baseline |T| = {s.baseline:.6g} +- {summary['full_set']['baseline']['std']:.3g} {unit} "
              f"({summary['full_set']['std_kind'].split(':')[0]})",
              f"- calibration covariance in stereo.yml (for `dstereo reconstruct`'s point uncertainties): "
-             f"{summary.get('calibration_covariance', {}).get('structure', 'none')}", ""]
+             f"{summary.get('calibration_covariance', {}).get('structure', 'none')}",
+             f"- board sag: {summary['board_sag']}", ""]
     mean = job.subset_mean or {}
     lines += [f"| parameter | final | full set | +- std ({summary['full_set']['std_kind'].split(':')[0]}) | "
               "subset mean | subset spread |", "|---|---|---|---|---|---|"]

@@ -363,7 +363,7 @@ CALIBRATE_CASES = {
     "final": ('[calibration]\nfinal = "mean"\n', ["--final", "mean"], "final", "mean"),
     "outlier_rejection": ("[calibration]\noutlier_rejection = false\n", ["--no-outlier-rejection"],
                           "outlier_rejection", False),
-    "board_sag": ("[calibration]\nboard_sag = true\n", ["--board-sag"], "board_sag", True),
+    "board_sag": ("[calibration]\nboard_sag = false\n", ["--no-board-sag"], "board_sag", False),
     "steps": ('[[steps]]\nparameters = ["re"]\nmax_error = [0.5]\n', ["--step", "re=0.5"], "steps",
               (Step(("re",), (0.5,)),)),
     "stereo_steps": ('[[stereo.steps]]\nparameters = ["Tnorm"]\nmax_error = [0.75]\n', ["--step", "Tnorm=0.75"],
