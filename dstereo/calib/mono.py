@@ -221,6 +221,13 @@ def solve_subsets(
     Starting at the full-set optimum puts every subset a few iterations from its own optimum; each subset
     still converges to its own least-squares solution (tests check this against cv2.calibrateCamera).
     How (masked or gathered frames, chunks, threads, the start's linearisation reused): `subset_solve`.
+
+    A board sag solved by the full set is HELD there in the subsets: the board is one physical object in every
+    view, so its shape is best known from all of them, and a subset re-estimating it from m views would add only
+    its estimation noise to the camera's parameters (the thesis's subsets held it too, at zero). The subsets then
+    solve the flat problem on the sagged board: the same corners, the full set's linearisation without the two sag
+    rows (exact: the same point), and each pass ~30 % cheaper (4845 subsets 2.28 -> 1.75 s measured with the sag
+    solved and on a flat board). Their sag columns hold the full set's value with std 0.
     """
     index = np.asarray(plan.index)
     m = index.shape[1]
@@ -228,16 +235,30 @@ def solve_subsets(
     # The full set's outlier mask: a corner rejected there is left out of every subset too
     r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers)
     normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
+    values, sag = np.asarray(start.values, float), start.board_sag
+    if sag is not None:
+        from dstereo.calib.problem import sag_basis
+
+        obj = np.array(obj, float)
+        obj[:, 2] += np.asarray(sag_basis(obj)) @ np.asarray(sag, float)
+        g = len(values)
+        keep = np.r_[np.arange(g - WARP_SIZE), np.arange(g, start.normal.shape[-1])] if normal is not None else None
+        normal = None if normal is None else (normal[0], normal[1][:, keep][:, :, keep])
+        values = values[:-WARP_SIZE]
     t0 = time.perf_counter()
-    out = solve_frame_subsets(_problem(start.free, start.board_sag is not None), obs[:, None], r_weight, _shared(obj), index,
-                              SubsetStart(start.values, start.poses, normal), options, progress, n_threads,
-                              plan_size)
+    out = solve_frame_subsets(_problem(start.free), obs[:, None], r_weight, _shared(obj), index,
+                              SubsetStart(values, start.poses, normal), options, progress, n_threads, plan_size)
     n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
-    n_params = len(start.values) + 6 * m
+    n_params = len(values) + 6 * m
     sigma2 = out.sse / (out.n_residuals - n_params)
     cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)
+    std = np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0))
+    g_out = np.asarray(out.g)
+    if sag is not None:
+        g_out = np.c_[g_out, np.repeat(np.asarray(sag, float)[None], len(g_out), 0)]
+        std = np.c_[std, np.zeros((len(std), WARP_SIZE))]
     return SubsetSolutions(
-        plan=plan, names=start.names, values=out.g, std=np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0)),
+        plan=plan, names=start.names, values=g_out, std=std,
         rms=np.sqrt(out.sse / n_points), iterations=out.iterations, status=out.status,
         timings={"solve_s": time.perf_counter() - t0},
     )

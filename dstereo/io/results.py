@@ -359,6 +359,14 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
     return entry
 
 
+def _drawn_columns(filtering) -> list[str]:
+    """The subset columns that get a figure: not the board's sag, which the subsets hold at the full set's value
+    (a figure of one value says nothing)."""
+    from dstereo.calib.problem import WARP_NAMES
+
+    return [n for n in filtering.columns if n not in WARP_NAMES]
+
+
 def _solved_board(cal, obj: np.ndarray):
     """({"board_sag": ...} for camera.json or {}, the board the written camera was solved with or None, the
     camera.yml comment): a camera solved with the board's sag fits its corners on THAT board; refitted on the
@@ -424,12 +432,15 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None)
                                               getattr(cal, "projection_method", "pose-compensated"), figures)
     if cal.filtering is not None:
         f = cal.filtering
-        for name in f.columns:
+        for name in _drawn_columns(f):
             ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
             data = plots.parameter_figure_data(name, f.values(name, 0), f.values(name, len(f.steps)),
                                                UNITS.get(name, ""), ref)
             figures.draw(plots.draw_parameter_figure, data, plot_dir / f"{name}.png")
         summary["subsets"]["stats_files"] = write_stats_files(folder / "stats", f)
+        if full.board_sag is not None:
+            summary["subsets"]["held"] = {"board_sag": "held at the full set's value in every subset (the board is "
+                                                        "one object in all views; calib/mono.solve_subsets)"}
         write_subsets_csv(folder / "subsets.csv", cal.plan, f, f.table.status)
     summary["undistorted"] = write_undistorted(folder / "undistorted", cal, K, cal.final_coefficients)
     summary["projection_uncertainty"] = projection
@@ -610,7 +621,7 @@ def report_markdown(cal, summary: dict) -> str:
     lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
               "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:
-        lines += [f"![{n}](plots/{n}.png)" for n in cal.filtering.columns] + [""]
+        lines += [f"![{n}](plots/{n}.png)" for n in _drawn_columns(cal.filtering)] + [""]
     lines += ["Undistorted images (straight lines should look straight): "
               + ", ".join(f"[{Path(p).name}]({p})" for p in summary["undistorted"]), ""]
     others = [w for w in cal.warnings if w not in cov.warnings and w != cal.model_advice]

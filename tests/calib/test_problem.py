@@ -279,8 +279,33 @@ def test_a_flat_board_gives_a_sag_within_its_sigma_of_zero():
     obj, obs = _sagged_views((0.0, 0.0), seed=12)
     sol = calibrate_full(obj, obs, CAMERAS[0].image_size, FIVE, board_warp=True)
     assert np.all(np.abs(sol.board_sag) < 3.5 * sol.std[-2:])
-    subs = solve_subsets(obj, obs, plan_subsets(len(obs), 12, cap=8, seed=0), sol)  # subsets keep the sag
+    subs = solve_subsets(obj, obs, plan_subsets(len(obs), 12, cap=8, seed=0), sol)
     assert subs.converged.all() and subs.values.shape[1] == len(sol.values)
+
+
+def test_subsets_hold_the_full_sets_sag_and_equal_flat_solves_on_the_sagged_board():
+    """A sag solved by the full set is held in the subsets (`mono.solve_subsets`): their sag columns are the full
+    set's value (std 0), and each subset equals an independent flat-board solve of its views on the board sagged by
+    that value, within the subset stop's reach (`subset_agreement`)."""
+    from dstereo.calib.mono import calibrate_full, solve_subsets
+    from dstereo.calib.problem import sag_basis
+    from dstereo.calib.subsets import plan_subsets
+
+    obj, obs = _sagged_views((0.3, -0.1), seed=5)
+    size = CAMERAS[0].image_size
+    sol = calibrate_full(obj, obs, size, FIVE, board_warp=True)
+    plan = plan_subsets(len(obs), len(obs) - 3, cap=4, seed=1)
+    subs = solve_subsets(obj, obs, plan, sol)
+    np.testing.assert_array_equal(subs.values[:, -2:], np.repeat(sol.board_sag[None], len(plan.index), 0))
+    assert np.all(subs.std[:, -2:] == 0.0) and subs.converged.all()
+    board = obj.copy()
+    board[:, 2] += np.asarray(sag_basis(jnp.asarray(obj))) @ sol.board_sag
+    g = len(sol.values) - 2
+    n_res = 2 * obs.shape[1] * plan.index.shape[1]
+    for row, idx in enumerate(np.asarray(plan.index)):
+        own = calibrate_full(board, obs[idx], size, FIVE)
+        bound = subset_agreement(own.std, n_res, g + 6 * len(idx))
+        assert np.all(np.abs(subs.values[row, :g] - own.values) <= bound), (row, subs.values[row, :g] - own.values)
 
 
 def test_three_cameras_and_a_sagging_board_from_exact_corners(rig_frames):
