@@ -16,7 +16,7 @@ Layout of `write_camera_results(out, cal)`:
                          the boards' frame; --projection-method intrinsics-only for the camera frame); npz keys u, v,
                          std, cov, range, mask (False: model not invertible there, NaN), method
     cross_validation.npz, plots/cross_validation.png   with --cross-validate N: half-split differences vs predicted
-    undistorted/*.png    original | undistorted side by side (thesis Figure 5.8)
+    undistorted/*.jpg    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
 partial folder, and an existing folder is replaced only with `force`.
 """
@@ -490,8 +490,10 @@ def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> 
         else:
             fixed = cv2.undistort(image, K, coeffs8)
         gap = np.full((image.shape[0], 8, 3), 255, np.uint8)
-        target = f"{Path(name).stem}_undistorted.png"
-        cv2.imwrite(str(folder / target), np.hstack([image, gap, fixed]))
+        target = f"{Path(name).stem}_undistorted.jpg"
+        # JPEG at quality 95: a picture to judge straight lines by, encoded in ~3 ms where PNG took 20-37 ms an
+        # image (measured at 1288 x 512), a third of a served plain calibration's own time for three of them
+        cv2.imwrite(str(folder / target), np.hstack([image, gap, fixed]), [cv2.IMWRITE_JPEG_QUALITY, 95])
         written.append(f"undistorted/{target}")
     return written
 
