@@ -453,9 +453,12 @@ class CrossValidation:
                 return (head + ": the uncertainty can be trusted within the acceptance band, though it leans "
                         f"{lean}: beyond where a right prediction falls on these views")
             return head + ": the uncertainty can be trusted"
-        side = "optimistic (errors larger than predicted)" if self.ratio > 1 else "pessimistic"
-        return (head + f": the uncertainty can NOT be trusted, it is {side}; likely causes: outlier corners, a "
-                "non-flat board, a distortion model that does not fit the lens, or too few views per half")
+        if self.ratio > 1 or self.mahalanobis_median > MAHALANOBIS_MAX:
+            return (head + ": the uncertainty can NOT be trusted, it is optimistic (errors larger than predicted); "
+                    "likely causes: outlier corners, a non-flat board, a distortion model that does not fit the lens, "
+                    "or too few views per half")
+        return (head + ": the uncertainty can NOT be trusted, it is pessimistic (the halves agree better than the +- "
+                "says: it errs on the safe side; the views' effects, fitted from few views, may be overestimated)")
 
     def summary(self) -> dict:
         return {"splits": len(self.splits), "range": self.range_, "ratio_geometric_mean": self.ratio,
