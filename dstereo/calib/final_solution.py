@@ -260,16 +260,14 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
     coeffs = np.array(solution.coeffs, float)
     from dstereo.models.distortion import coeff_slots
 
-    from dstereo.calib.problem import WARP_NAMES, sag_basis
+    from dstereo.calib.problem import WARP_NAMES, sagged_board
 
     free = tuple(full.free)
     for n in names[4:]:
         if n not in WARP_NAMES:  # the board's sag is the board's, not the camera's
             coeffs[coeff_slots(free).index(n)] = subset_mean[n]
     # both cameras refitted on the board the solution found (its sag, when solved): the mean is judged as a camera
-    board = np.array(obj, float)
-    if solution.board_sag is not None:
-        board[:, 2] += np.asarray(sag_basis(board)) @ np.asarray(solution.board_sag)
+    board = sagged_board(obj, solution.board_sag)
     rms_mean, _ = refit_rms(k, coeffs, board, obs[views], solution.poses, free, inliers)
     rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, board, obs[views], solution.poses, free, inliers)
     # The solution's own refit equals its RMS to the solver's tolerance; the refitted figure is compared so that

@@ -237,10 +237,9 @@ def solve_subsets(
     normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
     values, sag = np.asarray(start.values, float), start.board_sag
     if sag is not None:
-        from dstereo.calib.problem import sag_basis
+        from dstereo.calib.problem import sagged_board
 
-        obj = np.array(obj, float)
-        obj[:, 2] += np.asarray(sag_basis(obj)) @ np.asarray(sag, float)
+        obj = sagged_board(obj, sag)
         g = len(values)
         keep = np.r_[np.arange(g - WARP_SIZE), np.arange(g, start.normal.shape[-1])] if normal is not None else None
         normal = None if normal is None else (normal[0], normal[1][:, keep][:, :, keep])

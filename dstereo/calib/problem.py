@@ -131,6 +131,15 @@ def board_points(problem: Problem, g, obj):
     return obj.at[:, 2].add(sag_basis(obj) @ g[problem.warp_slice])
 
 
+def sagged_board(obj, sag) -> np.ndarray:
+    """(n, 3) numpy: the board's corners sagged by (sag_x, sag_y) (`sag_basis`); the flat board for None. The
+    board a camera solved with the sag was fitted on (refits, held-sag subsets, corners.npz)."""
+    board = np.array(obj, float)
+    if sag is not None:
+        board[:, 2] += np.asarray(sag_basis(board)) @ np.asarray(sag, float)
+    return board
+
+
 def _seen(obs_c):
     """(n,) corners this camera saw, and its observations with the unseen ones at 0."""
     seen = jnp.isfinite(obs_c[:, 0])

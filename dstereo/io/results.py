@@ -373,13 +373,12 @@ def _solved_board(cal, obj: np.ndarray):
     flat nominal board it reads 0.1-5 % worse than a flat solve (measured on the real sets), which says nothing
     about the camera."""
     from dstereo.calib.final_solution import written_camera_solution
-    from dstereo.calib.problem import sag_basis
+    from dstereo.calib.problem import sagged_board
 
     sag = getattr(written_camera_solution(cal), "board_sag", None)
     if sag is None:
         return {}, None, None
-    board = np.array(obj, float)
-    board[:, 2] += np.asarray(sag_basis(board)) @ np.asarray(sag, float)
+    board = sagged_board(obj, sag)
     unit = cal.config.unit
     text = (f"solved with the board's sag x {sag[0]:.6g}, y {sag[1]:.6g} {unit} (mrcal's calobject_warp): refit poses on "
             "corners.npz object_points_solved, not the flat object_points")
