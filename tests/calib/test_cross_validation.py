@@ -183,3 +183,19 @@ def test_a_half_that_leaves_a_pose_undetermined_is_refused_not_a_traceback(hones
     nan = normal.copy()
     nan[0, 0, 0] = np.nan
     assert not cv._poses_determined(nan, g)
+
+
+def test_the_verdict_reads_the_band_a_right_prediction_falls_in(honest):
+    """Four cases of the same splits with a made-up band (the verdict's logic alone): inside both bands, trusted;
+    inside the acceptance band but above this one, 'leans optimistic'; below the acceptance band but inside this
+    one, 'cannot tell'; below both, pessimistic with its own cause (not the causes of optimism)."""
+    *_, xv = honest
+    band = lambda lo, hi: cv.BandIfRight((lo, hi), (0.0, 10.0), 1.0, 1.18, 0.9, 10)  # noqa: E731
+    r = xv.ratio
+    assert cv.RATIO_BAND[0] <= r <= cv.RATIO_BAND[1] and xv.mahalanobis_median <= cv.MAHALANOBIS_MAX
+    assert "can be trusted" in dataclasses.replace(xv, band=band(r / 2, r * 2)).verdict()
+    assert "leans optimistic" in dataclasses.replace(xv, band=band(r / 3, r / 1.5)).verdict()
+    low = [dataclasses.replace(s, ratio=s.ratio * 0.5 / r) for s in xv.splits]  # geometric mean 0.5
+    assert "cannot tell" in dataclasses.replace(xv, splits=low, band=band(0.3, 1.5)).verdict()
+    text = dataclasses.replace(xv, splits=low, band=band(0.8, 1.5)).verdict()
+    assert "NOT be trusted, it is pessimistic" in text and "outlier corners" not in text
