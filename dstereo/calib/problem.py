@@ -212,27 +212,35 @@ def frame_linearize(problem: Problem):
             if problem.board_warp:
                 dp_dw = dref_dw if c == 0 else sum(rot_c[:, j, None, None] * dref_dw[j] for j in range(3))
             q, dk, dc, dq_dp = lens_functions(spec.free)[1](k, coeffs, p)  # (2,n) (2,4,n) (2,8|4|knots,n) (2,3,n)
-            chain = lambda d_i: sum(dq_dp[:, i, None, :] * d_i[i][None] for i in range(3))  # noqa: E731
-            rows = jnp.zeros((2, n_g + POSE_SIZE, n))
-            if c > 0:
-                at = POSE_SIZE * (c - 1)
-                rows = rows.at[:, at:at + 3].set(chain(dp_de_rot))
-                rows = rows.at[:, at + 3:at + 6].set(dq_dp)
-            if slices[c] is not None:
-                if lens_model(spec.free) == "splined":  # its coefficients are its free knots, in order
-                    rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, dc], axis=1))
+            # d q / d(one coordinate of a 3-vector x) given d p / d x as (3, n): (2, n)
+            chain = lambda d_i: sum(dq_dp[:, i, :] * d_i[i] for i in range(3))  # noqa: E731
+            zero = jnp.zeros((2, n))
+            rows = []  # one (2, n) row per parameter, in the shared vector's order, then the pose's, then r
+            for c2 in range(1, problem.k):
+                if c2 == c:
+                    rows += [chain(dp_de_rot[:, j]) for j in range(3)] + [dq_dp[:, j] for j in range(3)]
                 else:
-                    cols = [coeff_slots(spec.free).index(name) for name in spec.free]
-                    rows = rows.at[:, slices[c]].set(jnp.concatenate([dk, *(dc[:, i:i + 1] for i in cols)], axis=1))
+                    rows += [zero] * POSE_SIZE
+            for c2, spec2 in enumerate(problem.cameras):
+                if slices[c2] is None:
+                    continue
+                if c2 != c:
+                    rows += [zero] * spec2.size
+                elif lens_model(spec.free) == "splined":  # its coefficients are its free knots, in order
+                    rows += [dk[:, j] for j in range(4)] + [dc[:, j] for j in range(dc.shape[1])]
+                else:
+                    slots = coeff_slots(spec.free)
+                    rows += [dk[:, j] for j in range(4)] + [dc[:, slots.index(name)] for name in spec.free]
             if dp_dw is not None:
-                rows = rows.at[:, problem.warp_slice].set(chain(dp_dw))
-            rows = rows.at[:, n_g:n_g + 3].set(chain(dp_drot))
-            rows = rows.at[:, n_g + 3:].set(dq_dp if dp_dt is None else
-                                           sum(dq_dp[:, i, None, :] * dp_dt[i][None, :, None] for i in range(3)))
+                rows += [chain(dp_dw[:, j]) for j in range(WARP_SIZE)]
+            rows += [chain(dp_drot[:, j]) for j in range(3)]
+            rows += [dq_dp[:, j] for j in range(3)] if dp_dt is None else \
+                [sum(dq_dp[:, i] * dp_dt[i, j] for i in range(3)) for j in range(3)]
             seen, o = _seen(obs_v[c])
-            full = jnp.concatenate([rows, (q - o.T)[:, None]], axis=1)
-            full = jnp.where(seen[None, None, :], full, 0.0)
-            # (2, G + 7, n) -> one row per parameter, the residuals last, in the residual's order (n, 2)
+            rows.append(q - o.T)
+            # One stack of elementwise rows: XLA writes it in one loop (slice-by-slice updates of a zero
+            # array were five passes over the frame's memory, measured), then (P + 1, n, 2) in residual order.
+            full = jnp.where(seen[None, None, :], jnp.stack(rows, axis=1), 0.0)
             blocks.append(jnp.transpose(full, (1, 2, 0)).reshape(n_g + POSE_SIZE + 1, 2 * n))
         a = jnp.concatenate(blocks, axis=1)
         return a[-1], a[:-1]
@@ -290,9 +298,10 @@ def compiled_solver(problem: Problem, options: LMOptions):
     (0: off, the full set; > 0: the subsets' noise-unit stop), so both run one program."""
     res, lin, prior = frame_residual(problem), frame_linearize(problem), prior_matrix(problem)
 
-    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared, decrement_tol):
+    def batch(g0, p0, obs, weight, lambda0, normal0, r_weight, shared, decrement_tol, max_passes):
         return solve_structured_batch(res, g0, p0, obs, shared, options._replace(decrement_tol=decrement_tol), lin,
-                                      weight, lambda0, normal0, r_weight, None if prior is None else jnp.asarray(prior))
+                                      weight, lambda0, normal0, r_weight, None if prior is None else jnp.asarray(prior),
+                                      max_passes)
 
     # kept on disk as an executable: a new process skips tracing it too (solver/aot.py)
     return aot.jit(batch, "calib.problem.compiled_solver", (problem, options), COMPILE_OPTIONS)
@@ -312,7 +321,7 @@ def shared_data(obj: np.ndarray, ks: np.ndarray, coeffs: np.ndarray):
 
 
 def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None,
-        rows: int | None = None):
+        rows: int | None = None, max_passes: int | None = None):
     """Call the compiled solver on one chunk given as per-problem arrays (leading axis <= chunk_rows): g0 (B, G),
     p0 (B, F, 6), obs (B, F, K, n, 2) (NaN: unseen), weight (B, F), lambda0 (B,).
 
@@ -322,13 +331,14 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
     chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen. `rows`: problems per
     compiled call (default `chunk_rows`, the program subsets of these frames share; fewer problems are padded to
-    it and computed all the same: a single solve that shares no program with subsets passes 1)."""
+    it and computed all the same: a single solve that shares no program with subsets passes 1). `max_passes`: see
+    `lm.solve_structured_batch` (problems still running come back with status 0; default: no limit)."""
     n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
     rows = chunk_rows(n_frames, k * n_pts, problem) if rows is None else int(rows)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
         parts = [run(problem, options, *(cut(a, i) for a in (g0, p0, obs, weight, lambda0)), shared,
-                     None if normal0 is None else tuple(cut(a, i) for a in normal0), cut(r_weight, i), rows)
+                     None if normal0 is None else tuple(cut(a, i) for a in normal0), cut(r_weight, i), rows, max_passes)
                  for i in range(0, n, rows)]
         return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts)
 
@@ -347,6 +357,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
         r_weight = residual_weights(np.isfinite(np.asarray(obs)[..., 0]))
     key = options._replace(lambda0=0.0, decrement_tol=None)  # both traced, not compiled in
     args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
+    limit = np.int32(np.iinfo(np.int32).max if max_passes is None else max_passes)
     out = compiled_solver(problem, key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,
-                                        np.float64(options.decrement_tol or 0.0))
+                                        np.float64(options.decrement_tol or 0.0), limit)
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)

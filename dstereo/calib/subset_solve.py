@@ -39,6 +39,11 @@ SUBSET_DECREMENT_TOL = 0.5e-4
 # the saving passes a second executable's load from disk (~0.08 s) about 3000-6000 frame solves in; twice that
 # for margin. C = 4845 of m = 16 of 20 gathers (19380), C = 1140 of 17 of 20 does not (3420).
 GATHER_DROPPED = 10_000
+# Passes every chunk of subsets makes together; subsets still running then continue in chunks of their own. A
+# chunk's loop runs until its slowest subset stops, so one subset that needs a third pass made its whole chunk of
+# ~20 pay for it. Measured at rig640 left (4845 subsets of 16 of 20): 1 % of them need a third pass, 81 % stop at
+# the second, 18 % at the first (`lm._decrement_stop`).
+FIRST_PASSES = 2
 
 
 class SubsetStart(NamedTuple):
@@ -83,24 +88,60 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
             g0 = np.broadcast_to(start.values, (c, len(start.values)))
             start_ne = None if normal is None else tuple(a[rows] for a in normal)
             return (g0, poses[rows], obs[rows], np.ones((c, m)), np.full(c, options.lambda0)), start_ne, r_weight[rows]
-        weight = np.zeros((c, n_frames))
-        np.add.at(weight, (np.arange(c)[:, None], rows), 1.0)  # counts: bootstrap resamples repeat frames
-        return (*common, weight, lam_all), normal_all, r_weight_all
+        return (*common, frame_weights(rows), lam_all), normal_all, r_weight_all
 
-    def solve(rows):
+    def frame_weights(rows):
+        weight = np.zeros((len(rows), n_frames))
+        np.add.at(weight, (np.arange(len(rows))[:, None], rows), 1.0)  # counts: bootstrap resamples repeat frames
+        return weight
+
+    def first_round(rows):
+        """The chunk's subsets for FIRST_PASSES passes; which are still running, with their point and
+        linearisation (`LMResult`, those rows only)."""
         args, start_ne, r_w = chunk_args(rows)
-        return run(problem, options, *args, shared, start_ne, r_w)._replace(normal=None, residuals=None)
+        out = run(problem, options, *args, shared, start_ne, r_w, max_passes=FIRST_PASSES)
+        running = np.flatnonzero(out.status == 0)
+        held = jax.tree_util.tree_map(lambda a: a[running], out)
+        return out._replace(normal=None, residuals=None), running, held
+
+    def second_round(rows, held: LMResult):
+        """Continue subsets (index rows) from where the first round left them."""
+        c = len(rows)
+        if gathered:
+            frames, weight, r_w = obs[rows], np.ones((c, m)), r_weight[rows]
+        else:
+            frames, weight = np.broadcast_to(obs, (c, *obs.shape)), frame_weights(rows)
+            r_w = np.broadcast_to(r_weight, (c, *np.shape(r_weight)))
+        out = run(problem, options, held.g, held.p, frames, weight, np.full(c, options.lambda0), shared,
+                  (held.residuals, held.normal), r_w)
+        return out._replace(normal=None, residuals=None, iterations=out.iterations + held.iterations)
 
     rows = chunk_rows(m if gathered else n_frames, n_obs, problem)
-    chunks = [index[c: c + rows] for c in range(0, n_sub, rows)]
-    outs, done = [], 0
-    with ThreadPoolExecutor(min(threads(n_threads), len(chunks))) as pool:
-        for out in pool.map(solve, chunks):
+    starts = range(0, n_sub, rows)
+    outs, late, held, done = [], [], [], 0
+    with ThreadPoolExecutor(min(threads(n_threads), len(starts))) as pool:
+        for at, (out, running, kept) in zip(starts, pool.map(first_round, (index[c: c + rows] for c in starts))):
             outs.append(out)
-            done += len(out.status)
+            late.append(at + running)
+            held.append(kept)
+            done += len(out.status) - len(running)
             if progress is not None:
                 progress(done, n_sub)
-    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
+        result = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *outs)
+        late = np.concatenate(late)
+        if len(late):
+            # The subsets the first round left running, in chunks of their own (module docstring).
+            held = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *held)
+            blocks = [slice(c, c + rows) for c in range(0, len(late), rows)]
+            for b, out in zip(blocks, pool.map(lambda b: second_round(index[late[b]], jax.tree_util.tree_map(
+                    lambda a: a[b], held)), blocks)):
+                for name, value in out._asdict().items():
+                    if value is not None:
+                        getattr(result, name)[late[b]] = value
+                done += len(late[b])
+                if progress is not None:
+                    progress(done, n_sub)
+    return result
 
 
 def chunk_size(problem_frames: int, m: int, n_obs: int, plan_size: int | None = None) -> int:

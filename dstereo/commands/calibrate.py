@@ -82,6 +82,11 @@ def calibrate(
     from dstereo.errors import DstereoError
 
     started = time.perf_counter()
+    from dstereo.io import figure_pool
+
+    # Now, before JAX is imported (next line): the workers' own imports (matplotlib, its fonts) then run on the core
+    # that JAX's single-threaded import leaves idle (measured: started after it, they took that core from the solve)
+    figure_pool.start()
     from dstereo.uncertainty.projection import METHODS
 
     if projection_method not in METHODS:
@@ -100,9 +105,6 @@ def calibrate(
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
-    from dstereo.io import figure_pool
-
-    figure_pool.start()  # the figure workers import matplotlib while JAX starts and the solve runs
     _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
                                       cross_validate)
     if cameras is not None:

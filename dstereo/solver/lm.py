@@ -147,9 +147,10 @@ def _scaled_solve(a, b):
     """
     d = 1.0 / jnp.sqrt(jnp.maximum(jnp.diagonal(a, axis1=-2, axis2=-1), 1e-300))
     a_s = a * d[..., :, None] * d[..., None, :]
-    b_s = b * (d if b.ndim == d.ndim else d[..., None])
+    vector = b.ndim == d.ndim
+    b_s = (b * d)[..., None] if vector else b * d[..., None]
     x_s = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s), True), b_s)
-    return x_s * (d if b.ndim == d.ndim else d[..., None])
+    return x_s[..., 0] * d if vector else x_s * d[..., None]
 
 
 def _damped_step(ne: _Blocks, lam):
@@ -185,6 +186,7 @@ class _State(NamedTuple):
     nu: Array
     it: Array  # passes; pass 0 linearises the start (unless given), so steps = it - 1
     status: Array
+    dec: Array  # the Gauss-Newton decrement at the current point (`_decrement_stop`); inf: not computed
 
 
 def _start(g0, p0, r_shape, normal0, lambda0) -> _State:
@@ -193,7 +195,8 @@ def _start(g0, p0, r_shape, normal0, lambda0) -> _State:
     if normal0 is None:
         normal0 = (jnp.zeros(r_shape), jnp.zeros((p0.shape[0], n_p, n_p)), jnp.asarray(False))
     r, m, given = normal0
-    return _State(g0, p0, _Normal(r, m), lambda0, jnp.asarray(2.0), jnp.asarray(given).astype(int), jnp.asarray(0))
+    return _State(g0, p0, _Normal(r, m), lambda0, jnp.asarray(2.0), jnp.asarray(given).astype(int), jnp.asarray(0),
+                  jnp.asarray(jnp.inf))
 
 
 def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _State, prior=None) -> _State:
@@ -239,8 +242,11 @@ def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _Sta
     # huge, cancelling coefficients make residuals noisy at ~1e-7 px; without this test they end "stuck".
     noise_conv = (~first & finite & ~accept & (pred <= 1e-9 * 0.5 * sse) & (pred < -actual) & (s.lam < 1.0))
     x_conv = ~first & accept & (step_norm <= options.xtol * (x_norm + options.xtol))
-    d_conv, dg_gn, dp_gn = _decrement_stop(options.decrement_tol, ne_t, g_t, active, r_weight, prior,
-                                           accept & ~first & (rho > 0.25))
+    # The decrement at the current point, or (not computed) the gain this step predicted from it: with damping that
+    # is below the decrement, which overstates the contraction (`_decrement_stop`: the safe side).
+    before = jnp.where(jnp.isfinite(s.dec), s.dec, pred)
+    d_conv, dg_gn, dp_gn, dec_t = _decrement_stop(options.decrement_tol, ne_t, g_t, active, r_weight, prior,
+                                                  accept & ~first & (rho > 0.25), before)
     keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
     # At the noise-unit stop the point ends at the Gauss-Newton model's optimum, one undamped step on (already
     # solved by the test, and by construction within sqrt(2 tol) std of the point: harmless), not linearised there:
@@ -257,10 +263,10 @@ def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _Sta
         0,
     )
     return _State(keep(g_t, s.g), keep(p_t, s.p), keep(ne_t, s.ne), lam, nu, s.it + ~done,
-                  jnp.where(done, s.status, status))
+                  jnp.where(done, s.status, status), keep(dec_t, s.dec))
 
 
-def _decrement_stop(tol, ne: _Normal, g, active, r_weight, prior, trusted):
+def _decrement_stop(tol, ne: _Normal, g, active, r_weight, prior, trusted, before=None):
     """(stop, dg, dp): whether the point (g, with its linearisation `ne`) is within sqrt(2 tol) standard
     deviations of the optimum in every parameter, by the Gauss-Newton model there, and the model's undamped step
     (dg, dp) to its optimum; (False, 0, 0) where tol is None or 0 (static); stop False where tol <= 0 (traced).
@@ -277,15 +283,25 @@ def _decrement_stop(tol, ne: _Normal, g, active, r_weight, prior, trusted):
     x*, and |x - x*| <= sqrt(2 tol) std / (1 - c) (triangle inequality), so the point returned is within
     c / (1 - c) sqrt(2 tol) std of x*: at most sqrt(2 tol) std for c <= 0.5, ~0.1 of it at real corners' c ~ 0.1."""
     if tol is None or (isinstance(tol, (int, float)) and tol <= 0):
-        return jnp.asarray(False), jnp.zeros_like(g), jnp.zeros(ne.m.shape[:1] + (ne.m.shape[1] - g.shape[0] - 1,))
+        return (jnp.asarray(False), jnp.zeros_like(g), jnp.zeros(ne.m.shape[:1] + (ne.m.shape[1] - g.shape[0] - 1,)),
+                jnp.asarray(jnp.inf))
     n_g = g.shape[0]
     blocks = _with_prior(_blocks(ne, active, n_g), g, prior)
     dg, dp, dec = _damped_step(blocks, 0.0)  # no damping: pred = 0.5 (dg'bg + dp'bp) = 0.5 b'H^-1 b
     n_res = jnp.sum(active * jnp.sum(r_weight > 0, axis=1))
     dof = n_res - n_g - (ne.m.shape[1] - n_g - 1) * jnp.sum(active > 0)  # residuals - shared - poses
     sigma2 = jnp.sum(active * ne.m[:, -1, -1]) / jnp.maximum(dof, 1.0)
-    stop = trusted & (tol > 0) & (dof > 0) & jnp.isfinite(dec) & (dec <= tol * sigma2)
-    return stop, dg, dp
+    ok = trusted & (tol > 0) & (dof > 0) & jnp.isfinite(dec)
+    stop = dec <= tol * sigma2
+    if before is not None:
+        valid = jnp.isfinite(before) & (before > 0)
+        c = jnp.where(valid, CONTRACTION_SAFETY * jnp.sqrt(dec / jnp.where(valid, before, 1.0)), jnp.inf)
+        gain = c / (1.0 - c)
+        stop = stop | ((c <= 0.5) & (dec * gain * gain <= tol * sigma2))
+    return ok & stop, dg, dp, dec
+
+
+CONTRACTION_SAFETY = 3.0
 
 
 def _result(s: _State, active, r_weight, prior=None) -> LMResult:
@@ -352,11 +368,15 @@ def solve_structured_batch(
     normal0: tuple | None = None,
     r_weight: Float[Array, "N V R"] | None = None,
     prior: Float[Array, "G1 G1"] | None = None,
+    max_passes: Int[Array, ""] | None = None,
 ) -> LMResult:
     """`solve_structured` for N problems at once (every argument but `shared` has a leading axis N).
 
     `prior` (G + 1, G + 1), shared by the batch: a quadratic prior [g 1] P [g 1]' added to the cost (prior rows on
     the shared vector, e.g. a splined lens's curvature), in the steps and the Schur complement, not in `sse`.
+    `max_passes` (traced; default: no limit but `max_iter`): the loop ends once every problem still running has
+    made this many passes; those come back with status 0 (running) and their point and linearisation, from which
+    the caller continues them (`normal0`), so that one slow problem does not hold a whole batch for its passes.
 
     The loop is written around the batch (one while loop whose pass is vmapped; finished problems idle)
     rather than as `jax.vmap` of the one-problem loop: the result is the same, but JAX traces the pass once
@@ -369,5 +389,7 @@ def solve_structured_batch(
     r_weight = jnp.ones((n, *r_shape)) if r_weight is None else jnp.asarray(r_weight, float)
     start = jax.vmap(lambda g, p, l, ne: _start(g, p, r_shape, ne, l))(g0, p0, lam0, normal0)
     step = jax.vmap(lambda s, d, a, w: _pass(linearize, d, shared, options, a, w, s, prior))
-    end = jax.lax.while_loop(lambda s: jnp.any(s.status == 0), lambda s: step(s, data, active, r_weight), start)
+    limit = jnp.iinfo(jnp.int32).max if max_passes is None else max_passes
+    running = lambda s: jnp.any((s.status == 0) & (s.it - start.it < limit))  # noqa: E731
+    end = jax.lax.while_loop(running, lambda s: step(s, data, active, r_weight), start)
     return jax.vmap(lambda s, a, w: _result(s, a, w, prior))(end, active, r_weight)
