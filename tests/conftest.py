@@ -64,12 +64,10 @@ def subset_agreement(std, n_residuals: int, n_params: int):
     parameter (same units as `std`, the subset's own standard deviations).
 
     The runner stops a subset on the noise-unit test (`subset_solve.SUBSET_DECREMENT_TOL` = eps,
-    `lm._decrement_stop`): every parameter of the last linearised point x within sqrt(2 eps) std of the
-    Gauss-Newton model's optimum x + d, and the subset ends there, at x + d. The model's optimum is the true one
-    x* up to Gauss-Newton's contraction c per step (0.07-0.09 median, 0.29 at most measured on real corners):
-    |x + d - x*| <= c |x - x*| and |x - x*| <= sqrt(2 eps) std / (1 - c), so x + d is within c / (1 - c)
-    sqrt(2 eps) std of x*: sqrt(2 eps) std (~1e-2) allows c up to 0.5. The independent solve adds its own
-    `lm_agreement`.
+    `lm._decrement_stop`): the point it returns, one Gauss-Newton step past its last linearised point, within
+    sqrt(2 eps) std (~1e-2) of the optimum x*: for any contraction c <= 0.5 by its first rule, and by its second
+    where the contraction is at most CONTRACTION_SAFETY times the one it estimated (measured on real corners:
+    within 7.5e-3 std). The independent solve adds its own `lm_agreement`.
     """
     from dstereo.calib.subset_solve import SUBSET_DECREMENT_TOL
 
@@ -77,13 +75,15 @@ def subset_agreement(std, n_residuals: int, n_params: int):
 
 
 def subset_rms_agreement(n_residuals: int, n_params: int) -> float:
-    """How far (relative) a subset's RMS may sit above its tight optimum's: the RMS is the last linearised point's
-    (`subset_agreement`), where the model's remaining gain F - F* (F = SSE / 2) is <= eps sigma^2 = eps SSE / (n - p);
-    up to the contraction's (1/(1 - c))^2 <= 4 (c <= 0.5) that is SSE - SSE* <= 8 eps SSE / (n - p), so RMS (the
-    square root) is within 4 eps / (n - p) relative."""
+    """How far (relative) a subset's RMS may sit above its tight optimum's: the RMS is the last linearised point's,
+    where the model's remaining gain F - F* (F = SSE / 2) is <= s eps sigma^2 = s eps SSE / (n - p) (s =
+    `lm.LINEARISED_SLACK`, the second stop rule's bound; 1 for the first); up to the contraction's
+    (1/(1 - c))^2 <= 4 (c <= 0.5) that is SSE - SSE* <= 8 s eps SSE / (n - p), so RMS (the square root) is within
+    4 s eps / (n - p) relative."""
     from dstereo.calib.subset_solve import SUBSET_DECREMENT_TOL
+    from dstereo.solver.lm import LINEARISED_SLACK
 
-    return 4.0 * SUBSET_DECREMENT_TOL / (n_residuals - n_params)
+    return 4.0 * LINEARISED_SLACK * SUBSET_DECREMENT_TOL / (n_residuals - n_params)
 
 
 def run_cli(*args) -> tuple[int, str, str]:

@@ -120,7 +120,7 @@ def test_subset_values_match_opencv(thesis_run):
         sd = dict(zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), std.ravel()))
         n_res, n_par = 2 * sum(int(keep[i].sum()) for i in idx), len(PARAMS) + 6 * len(idx)
         # OpenCV's SSE within its 1e-15 of the optimum's, the subset's within the noise-unit stop's reach
-        # (subset_rms_agreement, ~2e-7 relative); the CSV's 17 digits are exact enough.
+        # (subset_rms_agreement, ~5e-6 relative); the CSV's 17 digits are exact enough.
         assert float(row["rms"]) == pytest.approx(rms, rel=subset_rms_agreement(n_res, n_par) + 1e-12)
         for name in PARAMS:
             # Within the two stopping rules' reach, in units of the subset's own std (subset_agreement, ~1e-2 std):

@@ -123,6 +123,28 @@ def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
                                             + LMOptions().ftol)
 
 
+@pytest.mark.parametrize("m", [5, 10])  # 5 of 13: gathered frames; 10 of 13: the full set's frames, masked
+def test_subsets_still_running_continue_in_chunks_of_their_own(m, monkeypatch):
+    """The subset runner's first round makes FIRST_PASSES passes per chunk; subsets still running continue from
+    their point and linearisation in chunks of their own (`subset_solve`). With the first round cut to one pass
+    most subsets take that second round: each must end at its own optimum as an uncut run does (both within
+    subset_agreement of it: within twice that of each other), converged, with its passes counted in both rounds."""
+    from dstereo.calib import subset_solve
+
+    obj, obs, size = _load("opencv_stereo", "left")
+    full = mono.calibrate_full(obj, obs, size, FIVE)
+    plan = plan_subsets(len(obs), m, cap=60, seed=4)
+    uncut = mono.solve_subsets(obj, obs, plan, full)
+    monkeypatch.setattr(subset_solve, "FIRST_PASSES", 1)
+    cut = mono.solve_subsets(obj, obs, plan, full)
+    assert (uncut.status == 5).all() and (cut.status == 5).all()
+    assert (cut.iterations > 1).sum() >= len(plan) // 2  # most went on to the second round
+    assert (cut.iterations >= uncut.iterations - 1).all()  # restarted undamped: at most a pass fewer in all
+    n_res, n_par = 2 * obs.shape[1] * m, len(full.values) + 6 * m
+    assert (np.abs(cut.values - uncut.values) <= 2 * subset_agreement(uncut.std, n_res, n_par)).all()
+    np.testing.assert_allclose(cut.rms, uncut.rms, rtol=2 * subset_rms_agreement(n_res, n_par) + 1e-12)
+
+
 @pytest.mark.numerics
 def test_subsets_reusing_the_full_sets_linearisation_equal_fresh_starts():
     """Subsets start from the full set's per-view normal equations (one pass fewer); starting them from

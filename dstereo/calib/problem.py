@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 from typing import NamedTuple
 
 import jax
@@ -289,8 +290,19 @@ def threads(requested: int | None = None) -> int:
     return max(1, min(n, MAX_CONCURRENT_CALLS))
 
 
-@functools.lru_cache(maxsize=None)
+_solver_lock = threading.Lock()
+
+
 def compiled_solver(problem: Problem, options: LMOptions):
+    """`_compiled_solver` under a lock: the subset runner's threads make their first calls together, and two of
+    them through the cache at once built two functions that each loaded the executable from disk (measured: two
+    0.07-0.2 s loads at once)."""
+    with _solver_lock:
+        return _compiled_solver(problem, options)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled_solver(problem: Problem, options: LMOptions):
     """The one compiled program behind the full set and every subset of a problem: CHUNK problems of F frames,
     each with its own start, frame weights (0 = left out), residual weights (0 = unseen or an outlier) and
     initial damping. The full set and subsets of the same frames share its shape, so a calibration with subsets

@@ -30,11 +30,10 @@ from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolut
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.io.corners import list_images
+from dstereo.io.pairing import LEFT_FOLDERS, RIGHT_FOLDERS
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs
 from dstereo.uncertainty.rig import FIXED_STRUCTURE, JOINT_STRUCTURE
 
-LEFT_FOLDERS = ("images_left", "calibrate_left")
-RIGHT_FOLDERS = ("images_right", "calibrate_right")
 STEREO_FOLDERS = ("images_stereo_left", "images_stereo_right")
 
 
@@ -51,11 +50,6 @@ class StereoSources:
     @property
     def shared(self) -> bool:
         return self.mono_left == self.stereo_left and self.mono_right == self.stereo_right
-
-
-def has_stereo_layout(images: Path) -> bool:
-    """Whether `images` holds the thesis's stereo folders (images_left / calibrate_left)."""
-    return any((Path(images) / name).is_dir() for name in LEFT_FOLDERS + RIGHT_FOLDERS)
 
 
 def _files(source: Path, image_format: str | None, flag: str) -> tuple[Path, ...]:

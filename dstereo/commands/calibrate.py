@@ -174,7 +174,7 @@ def _results_folder(out, project, force: bool, cfg, inputs=()):
 
 
 def _stereo_layout(images: Path) -> bool:
-    from dstereo.calib.stereo_pipeline import has_stereo_layout
+    from dstereo.io.pairing import has_stereo_layout
 
     return has_stereo_layout(images)
 

@@ -21,6 +21,15 @@ from dstereo.errors import DstereoError
 CAMERA_TOKEN = re.compile(r"(?i)(left|right|(?<![a-z])[lr](?![a-z])|(?<![a-z])(?:im|img|cam)([01])(?!\d))")
 # A stereo calibration needs a few pairs; below this (or when most images have no partner) it is refused.
 MIN_PAIRS = 3
+# The thesis's stereo project layout (4.2.2.2): each camera's images in a folder of its own
+LEFT_FOLDERS = ("images_left", "calibrate_left")
+RIGHT_FOLDERS = ("images_right", "calibrate_right")
+
+
+def has_stereo_layout(images: Path) -> bool:
+    """Whether `images` holds the thesis's stereo folders (images_left / calibrate_left). Here, not with the stereo
+    pipeline: every `dstereo calibrate` asks this first, and that module's imports cost ~50 ms (measured)."""
+    return any((Path(images) / name).is_dir() for name in LEFT_FOLDERS + RIGHT_FOLDERS)
 
 
 def natural_key(text: str) -> list:

@@ -275,18 +275,7 @@ def _prune(folder: Path) -> None:
             pass
 
 
-_made: dict = {}  # (name, static, compiler options) -> its AotFunction
-_made_lock = threading.Lock()
-
-
 def jit(fn: Callable, name: str, static: Hashable, compiler_options: dict | None = None) -> AotFunction:
     """`jax.jit(fn)` with executables kept on disk. `static` must hold every value `fn`'s closure was built from
-    (its repr is part of the key); `name` names the program (one name per function that builds `fn`). The same
-    (name, static, options) gives the same function: two threads whose first calls race through a builder's
-    `lru_cache` (which does not lock) load its executable once, not twice (measured: two 0.07-0.2 s loads at once
-    when a pool's threads started their subsets together)."""
-    key = (name, static, tuple(sorted((compiler_options or {}).items())))
-    with _made_lock:
-        if key not in _made:
-            _made[key] = AotFunction(fn, name, static, compiler_options)
-        return _made[key]
+    (its repr is part of the key); `name` names the program (one name per function that builds `fn`)."""
+    return AotFunction(fn, name, static, compiler_options)
