@@ -14,6 +14,7 @@ import pytest
 
 from conftest import require_data, run_cli, subset_agreement, subset_rms_agreement
 from dstereo.calib.pipeline import corner_coverage, suggest_model
+from dstereo.errors import DstereoError
 from test_robust_steps import reference_removed_at
 
 SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
@@ -304,6 +305,22 @@ def test_bad_input_is_one_line_and_leaves_no_folder(case, message, tmp_path, lef
     assert message in lines[0]
     assert not out.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+
+
+def test_a_failure_after_the_early_figures_leaves_nothing(tmp_path, left_images, monkeypatch):
+    """The parameter figures are drawn as soon as the steps end (io.results.EarlyFigures), into a staging folder
+    next to the results: a command that fails after that (here in the survivors' solve) removes it too."""
+    from dstereo.calib import pipeline
+
+    def fail(*args, **kwargs):
+        raise DstereoError("survivors: refused for this test")
+
+    monkeypatch.setattr(pipeline, "_final_solution", fail)
+    out = tmp_path / "out"
+    code, _, err = run_cli("calibrate", "--images", left_images[0].parent, "--glob", "left*.jpg", "--pattern", "9x6",
+                           "--per-set", "12", "--out", out, "-q")
+    assert code == 1 and "refused for this test" in err
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
 
 
 def test_init_refuses_to_overwrite(tmp_path):

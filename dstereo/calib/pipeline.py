@@ -161,13 +161,16 @@ def calibrate_camera(
     progress: Progress | None = None,
     use_cache: bool = True,
     scratch: Path | None = None,
+    after_steps: Callable | None = None,
 ) -> CameraCalibration:
     """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
     `config.steps`). Raises DstereoError for unreadable files, m > N, a step that leaves no subset, or a run
     that cannot fit this machine (figures in the message).
 
     `scratch`: folder for the per-subset table of a huge run (default the system temp folder; the CLI passes
-    the results folder's parent). `progress` may carry a `note(text)` method: the run's estimate goes there."""
+    the results folder's parent). `progress` may carry a `note(text)` method: the run's estimate goes there.
+    `after_steps(filtering, full)`: called once the subsets' steps are done, before the survivors' solve (the
+    command starts drawing their figures then, `io.results.EarlyFigures`)."""
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
@@ -288,6 +291,8 @@ def calibrate_camera(
             raise
         timings["steps_s"] = time.perf_counter() - t0
         warnings += [s.message for s in filtering.steps if s.stopped_by_minimum]
+        if after_steps is not None:
+            after_steps(filtering, full)
         stats = filtering.stats(len(filtering.steps))
         subset_mean = {n: stats[n]["mean"] for n in full.names}
         spread = {n: stats[n]["std"] for n in full.names}

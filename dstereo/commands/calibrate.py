@@ -305,11 +305,24 @@ def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> No
 def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool, started: float,
          projection_range: float | None = None, projection_method: str = "pose-compensated",
          cross_validate: int = 0) -> None:
+    from dstereo.io.results import EarlyFigures
+
+    early = EarlyFigures(out)  # the parameter figures, drawn while the survivors' solve and the writing run
+    try:
+        _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,
+                       cross_validate, early)
+    finally:
+        early.discard()
+
+
+def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,
+                   cross_validate, early) -> None:
     from dstereo.calib.pipeline import calibrate_camera
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:
-        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
+        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
+                               after_steps=early.parameters)
         cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
         cal.projection_method = projection_method
         if cross_validate:
@@ -323,7 +336,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
-        write_camera_results(out, cal, force, projection_range=projection_range)
+        write_camera_results(out, cal, force, projection_range=projection_range, early=early)
         if progress is not None:
             progress("writing results", 1, 1)
     cal.timings["write_s"] = time.perf_counter() - t0
