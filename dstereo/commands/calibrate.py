@@ -84,9 +84,9 @@ def calibrate(
     started = time.perf_counter()
     from dstereo.io import figure_pool
 
-    # Now, before JAX is imported (next line): the workers' own imports (matplotlib, its fonts) then run on the core
-    # that JAX's single-threaded import leaves idle (measured: started after it, they took that core from the solve)
-    figure_pool.start()
+    # One figure worker now, before JAX is imported (next line): its imports (matplotlib, its fonts) then run on the
+    # core that JAX's single-threaded import leaves idle; the others once that is done (`figure_pool.start`)
+    figure_pool.start(now=1)
     from dstereo.uncertainty.projection import METHODS
 
     if projection_method not in METHODS:
@@ -105,6 +105,7 @@ def calibrate(
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
+    figure_pool.start_rest()  # JAX is imported: the other workers warm up on the core the full-set solve leaves
     _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
                                       cross_validate)
     if cameras is not None:

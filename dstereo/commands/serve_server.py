@@ -289,7 +289,4 @@ def _renew_broken_figure_pool() -> None:
     workers for the next command rather than draw in the server from then on."""
     from dstereo.io import figure_pool
 
-    pool = figure_pool._POOL
-    if pool is not None and getattr(pool, "_broken", False):
-        figure_pool.stop()
-        figure_pool.start()
+    figure_pool.renew_broken()

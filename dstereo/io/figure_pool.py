@@ -14,10 +14,13 @@ from __future__ import annotations
 import atexit
 import os
 import sys
+import threading
 import types
 from concurrent.futures import Future
 
-_POOL = None  # the started ProcessPoolExecutor, or None
+_POOLS: list = []  # one single-worker ProcessPoolExecutor per started worker
+_PENDING: list = []  # jobs handed to each and not finished
+_LOCK = threading.Lock()
 
 
 def _warm() -> None:
@@ -62,39 +65,98 @@ def workers_wanted() -> int:
         return 0
 
 
-def start() -> None:
-    """Start the workers now (idempotent); any failure leaves drawing in the calling process."""
-    global _POOL
-    if _POOL is not None or workers_wanted() == 0:
-        return
+def start(now: int | None = None) -> None:
+    """Start `now` of the workers (default: all, `workers_wanted`) now; `start_rest` starts the others. Idempotent;
+    any failure leaves drawing in the calling process (or in the workers already started).
+
+    A command starts one with itself and the others once JAX is imported (`start_rest`, before its solve): all
+    started at once, they took a core from JAX's start-up while they imported matplotlib, and the single-threaded
+    full-set solve then left a core idle (measured, new process on 2 cores: a plain calibration 1.50-1.55 ->
+    1.33-1.37 s, rig640 C = 4845 3.42-3.68 -> 3.18-3.39 s). One single-worker pool per worker: a worker of its own
+    can start at any time (a pool of two starts its second only when a job finds the first busy)."""
+    wanted = workers_wanted() if now is None else min(now, workers_wanted())
+    with _LOCK:
+        while len(_POOLS) < wanted:
+            pool = _new_worker()
+            if pool is None:
+                return
+            _POOLS.append(pool)
+            _PENDING.append(0)
+            if len(_POOLS) == 1:
+                atexit.register(stop)
+
+
+def start_rest() -> None:
+    """Start the workers `start(now=...)` left for later (none when figures are drawn in the calling process)."""
+    if _POOLS:
+        start()
+
+
+def _new_worker():
+    """A started single-worker pool, or None where processes cannot start here."""
     try:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        pool = ProcessPoolExecutor(workers_wanted(), mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_warm)
-        # spawn launches a process per job submitted while none is idle (up to the pool's size), in this thread;
-        # each would import the parent's main module (the CLI: typer, pydantic, ~0.3-0.5 s): an empty stand-in
-        # for that moment, so it imports nothing. One job per worker, so that all start now, under the stand-in
-        # (one job started one worker; the second started at the first figure, importing the CLI).
+        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_warm)
+        # spawn starts the worker at the first job, in this thread, and it would import the parent's main module
+        # (the CLI: typer, pydantic, ~0.3-0.5 s): an empty stand-in for that moment, so it imports nothing.
         main = sys.modules["__main__"]
         sys.modules["__main__"] = types.ModuleType("__main__")
         try:
-            for _ in range(workers_wanted()):
-                pool.submit(_noop)
+            pool.submit(_noop)
         finally:
             sys.modules["__main__"] = main
+        return pool
     except Exception:  # noqa: BLE001 - no process support here: draw in the calling process
-        return
-    _POOL = pool
-    atexit.register(stop)
+        return None
+
+
+def started() -> int:
+    """Workers started (0: figures are drawn in the calling process)."""
+    return len(_POOLS)
+
+
+def renew_broken() -> None:
+    """A worker killed during a command leaves its pool broken (its figures were drawn in the caller instead):
+    start new workers for the next command (the resident server) rather than draw in the caller from then on."""
+    if any(getattr(pool, "_broken", False) for pool in _POOLS):
+        count = len(_POOLS)
+        stop()
+        start(count)
 
 
 def stop() -> None:
-    global _POOL
-    pool, _POOL = _POOL, None
-    if pool is not None:
+    with _LOCK:
+        pools = list(_POOLS)
+        _POOLS.clear()
+        _PENDING.clear()
+    for pool in pools:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _submit(fn, *args):
+    """Hand a job to the worker with the fewest unfinished jobs; None when no worker takes it."""
+    with _LOCK:
+        if not _POOLS:
+            return None
+        i = min(range(len(_POOLS)), key=_PENDING.__getitem__)
+        pool = _POOLS[i]
+        _PENDING[i] += 1
+    try:
+        future = pool.submit(fn, *args)
+    except Exception:  # noqa: BLE001 - the pool broke (a worker died)
+        _done(pool)
+        return None
+    future.add_done_callback(lambda _f, p=pool: _done(p))
+    return future
+
+
+def _done(pool) -> None:
+    with _LOCK:
+        for i, p in enumerate(_POOLS):
+            if p is pool:
+                _PENDING[i] -= 1
 
 
 class Figures:
@@ -105,13 +167,8 @@ class Figures:
         self.jobs: list[tuple[Future | None, object, tuple]] = []
 
     def draw(self, fn, *args) -> None:
-        future = None
-        if _POOL is not None:
-            try:
-                future = _POOL.submit(_in_folder, os.getcwd(), fn, *args)
-            except Exception:  # noqa: BLE001 - the pool broke (a worker died): draw here
-                future = None
-        if future is None:
+        future = _submit(_in_folder, os.getcwd(), fn, *args)
+        if future is None:  # no worker, or its pool broke (a worker died): draw here
             fn(*args)
         self.jobs.append((future, fn, args))
 

@@ -14,7 +14,7 @@ def pool():
     old = os.environ.get("DSTEREO_FIGURE_WORKERS")
     os.environ["DSTEREO_FIGURE_WORKERS"] = "1"
     figure_pool.start()
-    assert figure_pool._POOL is not None, "the worker did not start"
+    assert figure_pool.started() == 1, "the worker did not start"
     yield
     figure_pool.stop()
     if old is None:
@@ -49,8 +49,9 @@ if __name__ != "__main__":  # a spawned worker importing this main module (as __
     Path(os.environ["MARKER"]).write_text(__name__)
 else:
     from dstereo.io import figure_pool
-    figure_pool.start()
-    print(len(figure_pool._POOL._processes))  # every worker started at once, under the stand-in main module
+    figure_pool.start(now=1)
+    figure_pool.start_rest()
+    print(figure_pool.started())  # every worker started, each under the stand-in main module
     figure_pool.stop()
 '''
 
@@ -66,3 +67,28 @@ def test_every_worker_starts_without_importing_the_main_module(tmp_path):
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ["2"] and not marker.exists()
+
+
+def test_jobs_go_to_the_least_busy_worker():
+    """One single-worker pool per worker (`figure_pool.start`): jobs handed out together reach both workers."""
+    import os
+    import time
+
+    old = os.environ.get("DSTEREO_FIGURE_WORKERS")
+    os.environ["DSTEREO_FIGURE_WORKERS"] = "2"
+    try:
+        figure_pool.start(now=1)
+        assert figure_pool.started() == 1
+        figure_pool.start_rest()
+        assert figure_pool.started() == 2
+        futures = [figure_pool._submit(time.sleep, 0.2) for _ in range(4)]
+        pids = [figure_pool._submit(os.getpid) for _ in range(2)]
+        for f in futures:
+            f.result()
+        assert len({f.result() for f in pids}) == 2  # each worker had two sleeps queued: one getpid each
+    finally:
+        figure_pool.stop()
+        if old is None:
+            del os.environ["DSTEREO_FIGURE_WORKERS"]
+        else:
+            os.environ["DSTEREO_FIGURE_WORKERS"] = old
