@@ -32,8 +32,11 @@ from dstereo.solver.lm import LMOptions, LMResult
 # earlier 1e-3 stop without the step left 1e-3 too). The thesis statistics work on the subsets' scatter, 0.4-1.3
 # std there: the spread moved <= 0.2 %, the means <= 0.1 % of the spread. Against eps = 5e-7 it saves one pass of
 # four in every chunk of subsets (a chunk runs until its slowest subset stops): 4845 subsets 2.25 -> 1.75 s. ftol =
-# 1e-12 alone ran every subset two to three passes further (5-7 passes each). A caller's explicit
-# `decrement_tol` (0: off, tight ftol convergence) wins.
+# 1e-12 alone ran every subset two to three passes further (5-7 passes each). A second rule stops where the
+# contraction estimated from two decrements already puts the returned point within the same bound
+# (lm._decrement_stop): with it, rig640's 4845 subsets of 16 stop after 1 (5 %), 2 (85 %) or 3 (9 %) passes where
+# this rule alone needed 2 or 3 (43 / 57 %), their largest error against tight solves 5e-3 std (7.5e-3 at m = 10),
+# within the same 1e-2. A caller's explicit `decrement_tol` (0: off, tight ftol convergence) wins.
 SUBSET_DECREMENT_TOL = 0.5e-4
 # Gathered subsets from this many frame solves left out (C (n - m)): at ~14-28 us each (measured, module docstring)
 # the saving passes a second executable's load from disk (~0.08 s) about 3000-6000 frame solves in; twice that
@@ -41,8 +44,9 @@ SUBSET_DECREMENT_TOL = 0.5e-4
 GATHER_DROPPED = 10_000
 # Passes every chunk of subsets makes together; subsets still running then continue in chunks of their own. A
 # chunk's loop runs until its slowest subset stops, so one subset that needs a third pass made its whole chunk of
-# ~20 pay for it. Measured at rig640 left (4845 subsets of 16 of 20): 1 % of them need a third pass, 81 % stop at
-# the second, 18 % at the first (`lm._decrement_stop`).
+# ~20 pay for it. Measured at rig640 left (4845 subsets of 16 of 20): 9 % of them need a third pass (most chunks
+# held one), 85 % stop at the second, 5 % at the first (`lm._decrement_stop`); 4845 subsets 1.70 -> 1.46 s (measured
+# with CONTRACTION_SAFETY 2).
 FIRST_PASSES = 2
 
 

@@ -370,8 +370,8 @@ def draw_parameter_figures(figures, plot_dir: Path, filtering, full) -> tuple[st
     names = tuple(_drawn_columns(filtering))
     for name in names:
         ref = float(full.rms) if name == "re" else float(full.values[list(full.names).index(name)])
-        data = plots.parameter_figure_data(name, filtering.values(name, 0), filtering.values(name, len(filtering.steps)),
-                                           UNITS.get(name, ""), ref)
+        initial, final = filtering.values(name, 0), filtering.values(name, len(filtering.steps))
+        data = plots.parameter_figure_data(name, initial, final, UNITS.get(name, ""), ref)
         figures.draw(plots.draw_parameter_figure, data, plot_dir / f"{name}.png")
     return names
 

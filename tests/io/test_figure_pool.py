@@ -13,6 +13,7 @@ def pool():
 
     old = os.environ.get("DSTEREO_FIGURE_WORKERS")
     os.environ["DSTEREO_FIGURE_WORKERS"] = "1"
+    figure_pool.stop()  # workers an in-process command of an earlier test started
     figure_pool.start()
     assert figure_pool.started() == 1, "the worker did not start"
     yield
@@ -77,6 +78,7 @@ def test_jobs_go_to_the_least_busy_worker():
     old = os.environ.get("DSTEREO_FIGURE_WORKERS")
     os.environ["DSTEREO_FIGURE_WORKERS"] = "2"
     try:
+        figure_pool.stop()  # the module's single worker, or an earlier test's
         figure_pool.start(now=1)
         assert figure_pool.started() == 1
         figure_pool.start_rest()
