@@ -105,20 +105,21 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
         args, start_ne, r_w = chunk_args(rows)
         out = run(problem, options, *args, shared, start_ne, r_w, max_passes=FIRST_PASSES)
         running = np.flatnonzero(out.status == 0)
-        held = jax.tree_util.tree_map(lambda a: a[running], out)
-        return out._replace(normal=None, residuals=None), running, held
+        return out._replace(normal=None, residuals=None), running, (out.g[running], out.p[running],
+                                                                    out.iterations[running])
 
-    def second_round(rows, held: LMResult):
-        """Continue subsets (index rows) from where the first round left them."""
+    def second_round(rows, held):
+        """Continue subsets (index rows) from where the first round left them (held: their g, p, iterations)."""
         c = len(rows)
         if gathered:
             frames, weight, r_w = obs[rows], np.ones((c, m)), r_weight[rows]
         else:
             frames, weight = np.broadcast_to(obs, (c, *obs.shape)), frame_weights(rows)
             r_w = np.broadcast_to(r_weight, (c, *np.shape(r_weight)))
-        out = run(problem, options, held.g, held.p, frames, weight, np.full(c, options.lambda0), shared,
-                  (held.residuals, held.normal), r_w)
-        return out._replace(normal=None, residuals=None, iterations=out.iterations + held.iterations)
+        g, p, iterations = held
+        out = run(problem, options, g, p, frames, weight, np.full(c, options.lambda0), shared, None, r_w)
+        # a fresh start: its pass 0 linearises their point again (not counted: iterations are steps)
+        return out._replace(normal=None, residuals=None, iterations=out.iterations + iterations)
 
     rows = chunk_rows(m if gathered else n_frames, n_obs, problem)
     starts = range(0, n_sub, rows)
