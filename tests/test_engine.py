@@ -126,7 +126,7 @@ def test_gathered_subsets_and_view_weights_agree_with_separate_solves():
 @pytest.mark.parametrize("m", [5, 10])  # 5 of 13: gathered frames; 10 of 13: the full set's frames, masked
 def test_subsets_still_running_continue_in_chunks_of_their_own(m, monkeypatch):
     """The subset runner's first round makes FIRST_PASSES passes per chunk; subsets still running continue from
-    their point and linearisation in chunks of their own (`subset_solve`). With the first round cut to one pass
+    their point in chunks of their own (`subset_solve`). With the first round cut to one pass
     most subsets take that second round: each must end at its own optimum as an uncut run does (both within
     subset_agreement of it: within twice that of each other), converged, with its passes counted in both rounds."""
     from dstereo.calib import subset_solve
