@@ -370,22 +370,35 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
                        progress=None, inliers=None) -> MultiviewSubsetSolutions:
     """Solve every subset of frames (rows of `index`) with the one subset runner, from the full-set `start`
     (same mode and cameras). A subset in which a camera sees no frame leaves that camera's parameters
-    undetermined: its solve is reported, not hidden (status, and NaN or huge std)."""
+    undetermined: its solve is reported, not hidden (status, and NaN or huge std).
+
+    A board sag the full set solved is held there, as one camera's subsets hold it (`mono.solve_subsets`: the board
+    is one object in every frame; m frames re-estimating it add only their noise): the subsets solve the flat
+    problem on the sagged board, and their sag columns hold the full set's value with std 0."""
+    from dstereo.calib.problem import sagged_board
+
     t0 = time.perf_counter()
     obj, obs, visible, index = np.asarray(obj, float), np.asarray(obs, float), np.asarray(visible, bool), np.asarray(index)
     obs = obs.copy()
     for f, c in start.flipped:
         obs[f, c] = obs[f, c][::-1]
-    problem = Problem.of([tuple(c.dist.free) for c in start.cameras], refined=start.mode == "joint",
-                         board_warp=start.names[-1] == WARP_NAMES[-1])
+    values = np.asarray(start.values, float)
+    sag = values[-WARP_SIZE:] if start.names[-1] == WARP_NAMES[-1] else None
+    if sag is not None:
+        obj, values = sagged_board(obj, sag), values[:-WARP_SIZE]
+    problem = Problem.of([tuple(c.dist.free) for c in start.cameras], refined=start.mode == "joint")
     # in fixed mode the held cameras are the solution's; in joint mode they only fill non-free coefficients
     data, r_w = _data(obs, visible, inliers)
     out = solve_frame_subsets(problem, data, r_w, _shared(obj, start.cameras), index,
-                              SubsetStart(start.values, start.poses), options, progress)
+                              SubsetStart(values, start.poses), options, progress)
     m = index.shape[1]
     sigma2 = out.sse / (out.n_residuals - (out.g.shape[1] + POSE_SIZE * m))
     cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)
+    g, std = np.asarray(out.g), np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0))
+    if sag is not None:
+        g = np.c_[g, np.repeat(sag[None], len(g), 0)]
+        std = np.c_[std, np.zeros((len(std), WARP_SIZE))]
     return MultiviewSubsetSolutions(
-        index=index, names=start.names, values=out.g, std=np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0)),
+        index=index, names=start.names, values=g, std=std,
         rms=np.sqrt(out.sse / (out.n_residuals / 2)), iterations=out.iterations, status=out.status,
         timings={"solve_s": time.perf_counter() - t0})

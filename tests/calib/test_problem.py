@@ -199,6 +199,31 @@ def test_frame_subsets_equal_their_own_full_solves(rig_frames, m):
         assert np.all(np.abs(values - own.values) <= subset_agreement(own.std, n_res, len(own.values) + 6 * m))
 
 
+def test_frame_subsets_hold_the_full_sets_board_sag(rig_frames):
+    """With the board's sag solved by the full set, each frame subset holds it (as one camera's subsets do): equal
+    to the same frames calibrated on the sagged board without the sag (within subset_agreement), its sag columns
+    the full set's value with std 0."""
+    from dstereo.calib.problem import WARP_SIZE, sagged_board
+
+    obj, obs, vis, _ = rig_frames
+    noisy = obs + np.random.default_rng(4).normal(0, 0.2, obs.shape)
+    sizes = [c.image_size for c in CAMERAS]
+    full = calibrate_views(obj, noisy, vis, sizes, mode="fixed", cameras=CAMERAS, board_warp=True)
+    sag = full.values[-WARP_SIZE:]
+    index = np.stack([np.sort(np.random.default_rng(6).choice(len(obs), 8, replace=False)) for _ in range(2)])
+    subs = solve_view_subsets(obj, noisy, vis, index, full)
+    assert subs.converged.all() and subs.names == full.names
+    np.testing.assert_array_equal(subs.values[:, -WARP_SIZE:], np.repeat(sag[None], len(index), 0))
+    assert np.all(subs.std[:, -WARP_SIZE:] == 0)
+    for row, values in zip(index, subs.values):
+        if vis[row].sum(axis=0).min() < 1:
+            continue
+        own = calibrate_views(sagged_board(obj, sag), noisy[row], vis[row], sizes, mode="fixed", cameras=CAMERAS)
+        n_res = 2 * int(vis[row].sum()) * obj.shape[0]
+        gap = np.abs(values[:-WARP_SIZE] - own.values)
+        assert np.all(gap <= subset_agreement(own.std, n_res, len(own.values) + 6 * 8)), gap / own.std
+
+
 def _corners(cam, pose, obj):
     """Exact corners through the camera's own lens model (synth's true_corners is pinhole + distortion only)."""
     project = lens_functions(tuple(cam.dist.free))[0]
