@@ -63,6 +63,7 @@ class LMResult(NamedTuple):
     # left out, an outlier's (residual weight 0) own value
     normal: Float[Array, "V P1 P1"]  # per view [J r]'[J r] at the solution, residual weights in, view weights not
     # (P1 = G + B + 1)
+    damping: Float[Array, ""]  # the LM damping reached: where a caller continues a solve (`max_passes`)
 
 
 # view_residual(g, p_v, data_v, shared) -> (R,) residuals of one view
@@ -324,7 +325,7 @@ def _result(s: _State, active, r_weight, prior=None) -> LMResult:
     n_res = jnp.round(jnp.sum(active * jnp.sum(r_weight > 0, axis=1))).astype(int)
     b = _blocks(s.ne, active, s.g.shape[0])  # sse: the residuals' alone; the Schur complement: with the prior
     return LMResult(s.g, s.p, b.sse, s.it - 1, s.status, schur_complement(_with_prior(b, s.g, prior)), n_res,
-                    s.ne.r * jnp.sqrt(active)[:, None], s.ne.m)
+                    s.ne.r * jnp.sqrt(active)[:, None], s.ne.m, s.lam)
 
 
 def _prepare(view_residual, g0, p0, data, shared, linearize, normal0):
