@@ -100,8 +100,8 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
         return weight
 
     def first_round(rows):
-        """The chunk's subsets for FIRST_PASSES passes; which are still running, with their point and
-        linearisation (`LMResult`, those rows only)."""
+        """The chunk's subsets for FIRST_PASSES passes; which are still running, and their point, passes and LM
+        damping (those rows only)."""
         args, start_ne, r_w = chunk_args(rows)
         out = run(problem, options, *args, shared, start_ne, r_w, max_passes=FIRST_PASSES)
         running = np.flatnonzero(out.status == 0)
@@ -138,10 +138,13 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
         late = np.concatenate(late)
         if len(late):
             # The subsets the first round left running, in chunks of their own (module docstring).
-            held = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *held)
+            held = tuple(np.concatenate(a) for a in zip(*held))
             blocks = [slice(c, c + rows) for c in range(0, len(late), rows)]
-            for b, out in zip(blocks, pool.map(lambda b: second_round(index[late[b]], jax.tree_util.tree_map(
-                    lambda a: a[b], held)), blocks)):
+
+            def continue_block(b):
+                return second_round(index[late[b]], tuple(a[b] for a in held))
+
+            for b, out in zip(blocks, pool.map(continue_block, blocks)):
                 for name, value in out._asdict().items():
                     if value is not None:
                         getattr(result, name)[late[b]] = value
