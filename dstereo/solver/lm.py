@@ -25,6 +25,7 @@ from jaxtyping import Array, Float, Int
 
 # XLA options for the compiled solvers (re-exported): measured on one jaxlib, kept with the other workarounds.
 from dstereo.jax_workarounds import COMPILE_OPTIONS
+from dstereo.solver import cholesky
 
 STATUS_TEXT = {
     1: "converged: relative cost change below ftol",
@@ -143,14 +144,15 @@ def _scaled_solve(a, b):
 
     Calibration parameters differ by 10^6 in scale (fx vs k6); scaling first keeps the factorisation's
     rounding error proportional to the true, scale-free condition number. Cholesky, not LU: the systems are
-    damped normal equations, and XLA compiles LU's pivoting into several times more code (measured).
+    damped normal equations, and XLA compiles LU's pivoting into several times more code (measured). Written in
+    XLA's own operations (`solver.cholesky`: LAPACK's batched kernels deadlock two programs run side by side).
     A matrix that is not positive definite gives non-finite x, which the caller rejects as a step.
     """
     d = 1.0 / jnp.sqrt(jnp.maximum(jnp.diagonal(a, axis1=-2, axis2=-1), 1e-300))
     a_s = a * d[..., :, None] * d[..., None, :]
     vector = b.ndim == d.ndim
     b_s = (b * d)[..., None] if vector else b * d[..., None]
-    x_s = jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a_s), True), b_s)
+    x_s = cholesky.cho_solve(cholesky.cholesky(a_s), b_s)
     return x_s[..., 0] * d if vector else x_s * d[..., None]
 
 
