@@ -153,6 +153,33 @@ def test_an_empty_cloud_writes_a_valid_empty_mesh(tmp_path):
     assert len(getattr(mesh, "vertices", [])) == 0 and len(getattr(cloud, "vertices", [])) == 0
 
 
+def test_a_pair_whose_every_point_is_removed_writes_its_folder_whole_with_a_warning(tmp_path):
+    """The results folder of a pair without a point (here every matched pixel lies outside the ROI): written whole,
+    points.ply and mesh.ply valid and empty, and a warning saying so, not a traceback."""
+    import trimesh
+
+    from dstereo.io.reconstruction_files import write_pair
+    from dstereo.stereo.points_from_disparity import points_and_summary
+    from dstereo.stereo.reconstruction_config import ReconstructionConfig
+
+    h, w = 40, 64
+    disparity = np.full((h, w), np.nan, np.float32)
+    disparity[:, :20] = 10.0  # matched on the left only
+    Q = np.array([[1.0, 0, 0, -32], [0, 1, 0, -20], [0, 0, 0, 500], [0, 0, 0.01, 0]])
+    config = ReconstructionConfig(roi=(40, 0, 24, 40), uncertainty=False)
+    image = np.random.default_rng(0).integers(0, 255, (h, w, 3), dtype=np.uint8)
+    matrices = {k: np.eye(3) for k in ("R1", "R2")} | {"P1": np.eye(3, 4), "P2": np.eye(3, 4), "Q": Q,
+                                                       "roi1": np.zeros(4), "roi2": np.zeros(4)}
+    summary = {"units": "mm", "refine": {"enabled": False}, "sgbm": {"min_disparity": 0, "num_disparities": 16}}
+    result = points_and_summary("pair", image, image, disparity, Q, np.eye(3), config, matrices, summary, {}, [])
+    assert result.summary["valid_points"] == 0
+    assert any("no pixel has a point" in x and "written empty" in x for x in result.warnings), result.warnings
+    write_pair(tmp_path, result, config)
+    for name in ("points.ply", "mesh.ply"):
+        assert len(getattr(trimesh.load(tmp_path / name, process=False), "vertices", [])) == 0
+    assert (tmp_path / "summary.json").is_file()
+
+
 # --- 3. a calibration that does not state its image size ---------------------------------------------------------
 
 def test_a_calibration_without_its_image_size_says_it_could_not_be_checked(tmp_path):
