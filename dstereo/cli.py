@@ -97,9 +97,10 @@ def _dispatch() -> None:
             import resource
 
             limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+            opening = f" while opening {exc.filename}" if exc.filename else ""
             typer.echo(f"dstereo: error: {exc.strerror or exc}: this process (or the system) has run out of open "
-                       f"files (limit {limit}, `ulimit -n`){' while opening ' + str(exc.filename) if exc.filename else ''}"
-                       "; the file is not at fault: give fewer --workers, stop stray dstereo/Dask processes "
+                       f"files (limit {limit}, `ulimit -n`){opening}; the file is not at fault: give fewer "
+                       "--workers, stop stray dstereo/Dask processes "
                        "(`dstereo serve --stop`), or raise the limit", err=True)
             sys.exit(1)
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""

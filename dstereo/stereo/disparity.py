@@ -81,8 +81,8 @@ class SGBMParams:
             raise DstereoError(f"`sgbm` num_disparities={self.num_disparities}: must be a positive multiple of 16 "
                                "(16, 32, 48, ...)")
         if self.block_size < 1 or self.block_size % 2 == 0:
-            raise DstereoError(f"`sgbm` block_size={self.block_size}: must be odd, 1..{MAX_BLOCK_GREY} "
-                               "(3..11 is usual)")
+            raise DstereoError(f"`sgbm` block_size={self.block_size}: must be odd and >= 1 (3..11 is "
+                               f"usual; at most {MAX_BLOCK_GREY}, less on small or colour images)")
         if self.mode not in MODES:
             raise DstereoError(f"`sgbm` mode={self.mode!r}: use one of {list(MODES)}")
         for name in ("p1", "p2"):

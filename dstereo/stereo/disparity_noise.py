@@ -422,7 +422,8 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
                         f"px about local surface fits ({check['tiles']} smooth tiles), no measure of the noise (the "
                         "disparity map is flat within its tiles); the per-point sigmas are the model's, not scaled, "
                         "unverified; check disparity.png and the SGBM settings")
-        check = check | {"ratio_refused": ratio if np.isfinite(ratio) else None, "ratio": None, "note": "scatter of 0 px: not used to scale"}
+        check = check | {"ratio_refused": ratio if np.isfinite(ratio) else None, "ratio": None,
+                         "note": "scatter of 0 px: not used to scale"}
     elif ratio is not None:
         # the model gives each pixel's sigma relative to the others; the level is what the data show
         scaled = ratio

@@ -50,10 +50,10 @@ def grey(image: np.ndarray) -> np.ndarray:
     return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
-
 # A principal point further than this share of the image from its centre (in x or y) says the calibration is
-# for images of another size: a lens puts it within a few % (rig640, OpenCV's sample: under 4 %; Middlebury's
-# quarter-size crops: under 8 %); images at half or twice the calibrated size put it at 50 % or 25 % off.
+# for images of another size: a lens puts it within a few % (rig640, OpenCV's sample: 1 %; Middlebury's
+# quarter-size crops, cx0 and cx1 apart by doffs: up to 10 %); images at half or twice the calibrated size put it
+# at 50 % or 25 % off.
 PRINCIPAL_POINT_OFF_CENTRE = 0.2
 
 
