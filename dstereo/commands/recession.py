@@ -37,7 +37,7 @@ def recession(
     workers: Optional[int] = typer.Option(
         None, "--workers", help="Frames in parallel on a local Dask cluster of this many processes (default: the "
         "machine's cores when the frames, timed on the first, would take over ~30 s serially; else one after "
-        "another here; 1: always one after another in this process)."),
+        "another here; 1: always one after another in this process; at most 4 x the cores)."),
     scheduler: Optional[str] = typer.Option(
         None, "--scheduler", help="Address of a running Dask scheduler (tcp://host:8786): its workers run the "
         "frames (they need dstereo installed and the images at the same paths)."),
