@@ -6,6 +6,7 @@ Each subcommand lives in `dstereo/commands/<name>.py` (heavy imports inside the 
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 
@@ -92,6 +93,16 @@ def _dispatch() -> None:
     except OSError as exc:  # a file system refusal while reading or writing (disk full, permissions): name the file
         if os.environ.get("DSTEREO_DEBUG"):
             raise
+        if exc.errno in (errno.EMFILE, errno.ENFILE):  # the process ran out of descriptors: no file is at fault
+            import resource
+
+            limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+            opening = f" while opening {exc.filename}" if exc.filename else ""
+            typer.echo(f"dstereo: error: {exc.strerror or exc}: this process (or the system) has run out of open "
+                       f"files (limit {limit}, `ulimit -n`){opening}; the file is not at fault: give fewer "
+                       "--workers, stop stray dstereo/Dask processes "
+                       "(`dstereo serve --stop`), or raise the limit", err=True)
+            sys.exit(1)
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
         typer.echo(f"dstereo: error:{where}: {exc.strerror or exc}; check the path, free space and permissions",
                    err=True)

@@ -37,7 +37,7 @@ def recession(
     workers: Optional[int] = typer.Option(
         None, "--workers", help="Frames in parallel on a local Dask cluster of this many processes (default: the "
         "machine's cores when the frames, timed on the first, would take over ~30 s serially; else one after "
-        "another here; 1: always one after another in this process)."),
+        "another here; 1: always one after another in this process; at most 4 x the cores)."),
     scheduler: Optional[str] = typer.Option(
         None, "--scheduler", help="Address of a running Dask scheduler (tcp://host:8786): its workers run the "
         "frames (they need dstereo installed and the images at the same paths)."),
@@ -62,6 +62,7 @@ def recession(
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
     from dstereo.recession import RecessionConfig, check_sizes, discover, run_recession
+    from dstereo.stereo.pair_result import calibration_size_check, check_rig
     from dstereo.io.recession_files import write_results
 
     from dstereo.io.output_location import check_not_inputs
@@ -76,8 +77,10 @@ def recession(
     recon = settings.build(settings.flag_layer({"preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max,
                                                 "roi": roi}))
     settings.check(recon)
+    runner = FrameRunner(workers, scheduler, retries)  # refuses a worker count or address it cannot use, first
 
     calibration = read_stereo_calibration(calib)
+    check_rig(calibration)
     if calibration.rectified:
         raise DstereoError(f"calibration {calib}: a rectified (Middlebury) calibration has no camera frame for a "
                            "sample axis; give the stereo.yml of the rig")
@@ -86,8 +89,11 @@ def recession(
 
     for frame in frames:  # same file or byte copy (decoding every frame twice more would cost a long sequence)
         check_distinct_images(frame.left, frame.right, decode=False)
-    check_sizes(frames, calibration.image_size, str(calib))
-    runner = FrameRunner(workers, scheduler, retries)
+    size = check_sizes(frames, calibration.image_size, str(calib))
+    settings.check(recon, size)  # the SGBM settings against the frames' size
+    size_warning = calibration_size_check(calibration, size)
+    if size_warning:
+        typer.echo(f"dstereo: warning: {size_warning}", err=True)
     inputs = [p for f in frames for p in (f.left, f.right)]
     settings = (asdict(cfg), repr(recon), [(f.key, f.time_s) for f in frames], __version__)
     store = PartialStore(out, fingerprint([calib], inputs, settings)).open(resume, force)

@@ -55,6 +55,9 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     from dstereo.io.pairing import check_distinct_images, check_order_agrees_with_names
 
     check_not_inputs(out, [*left, *right, calib, config])
+    from dstereo.frames import FrameRunner
+
+    FrameRunner(workers, scheduler, retries)  # refuses a worker count or address it cannot use, before any work
 
     check_order_agrees_with_names(left, right)
     for a, b in zip(left, right):
@@ -77,7 +80,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         "crop_factor": crop_factor, "focal_px": focal_px, "baseline_mm": baseline_mm, "uncertainty": no_uncertainty,
         "full_covariance": full_covariance, "disparity_sigma": disparity_sigma}))
     cfg = settings.build(*layers)
-    settings.check(cfg, _width(left[0]))
+    settings.check(cfg, _size(left[0]))
 
     if len(left) == 1:
         results = run_reconstruction(list(zip(left, right)), out, calib, cfg, force)
@@ -138,9 +141,8 @@ def _several_pairs(pairs, out, calib, config_file, cfg, force, workers, schedule
         raise
 
 
-def _width(path: Path) -> int | None:
-    """The image's width from its header (None when unreadable: reading it later reports that)."""
+def _size(path: Path) -> tuple[int, int] | None:
+    """The image's (width, height) from its header (None when unreadable: reading it later reports that)."""
     from dstereo.recession.sequence import image_size
 
-    size = image_size(path)
-    return None if size is None else size[0]
+    return image_size(path)

@@ -163,7 +163,8 @@ RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:Reconstruction
     _opt("config", (), "--config", "TOML/JSON file with [reconstruct] and [sgbm].", in_config=False),
     _opt("workers", (), "--workers", "Several pairs: in parallel on a local Dask cluster of this many processes "
          "(default: the machine's cores when the pairs, timed on the first, would take over ~30 s serially; else "
-         "one after another here; 1: always one after another in this process).", int, in_config=False),
+         "one after another here; 1: always one after another in this process; at most 4 x the cores).", int,
+         in_config=False),
     _opt("scheduler", (), "--scheduler", "Several pairs: address of a running Dask scheduler (tcp://host:8786); its "
          "workers need dstereo, the images at the same paths and OUT's parent folder shared.", in_config=False),
     _opt("resume", (), "--resume", "Several pairs: continue from the pairs kept in OUT.partial.", bool,

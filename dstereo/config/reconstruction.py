@@ -145,8 +145,10 @@ def project_file(project: str | Path) -> Path | None:
 _POSITIVE = ("outlier_std", "max_jump", "focal_mm", "pixel_size_mm", "crop_factor", "focal_px", "baseline_mm")
 
 
-def check(cfg, image_width: int | None = None) -> None:
-    """Refuse values no reconstruction can use (one line naming the parameter), before any work."""
+def check(cfg, image_size: tuple[int, int] | None = None) -> None:
+    """Refuse values no reconstruction can use (one line naming the parameter), before any work. With the
+    images' (width, height), the SGBM settings the user named are checked against them too
+    (`SGBMParams.check_image`)."""
     for name in _POSITIVE:
         value = getattr(cfg, name)
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -159,8 +161,15 @@ def check(cfg, image_width: int | None = None) -> None:
     lr = cfg.sgbm.lr_check
     if lr is not None and not (math.isfinite(lr) and lr >= 0):
         raise DstereoError(f"`sgbm.lr_check` {lr}: the left-right tolerance is a distance in px, >= 0")
+    if image_size is None:
+        return
+    from dstereo.stereo.matching import user_sgbm_names
+
+    image_width = image_size[0]
+    # colour matching gives SGBM three channels (judged by the setting: a grey image is then checked as colour)
+    cfg.sgbm.check_image(image_size, 3 if cfg.color_matching else 1, user_sgbm_names(cfg))
     lo, n = cfg.sgbm.min_disparity, cfg.sgbm.num_disparities
-    if image_width is not None and (lo <= -image_width or lo + n > 2 * image_width):
+    if lo <= -image_width or lo + n > 2 * image_width:
         raise DstereoError(f"`sgbm` min_disparity={lo} with num_disparities={n} searches disparities "
                            f"{lo}..{lo + n - 1} px, far outside the {image_width} px wide image; set the range "
                            "from the scene's depth with `depth_range`")

@@ -13,6 +13,7 @@ failed with the reason, never dropped.
 from __future__ import annotations
 
 import os
+import re
 import statistics
 import time
 from dataclasses import dataclass
@@ -34,6 +35,50 @@ NOTE_EVERY_S = 30.0  # a line with the per-frame time and the rate at most this 
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
                      "DSTEREO_WORKER_THREADS": "1"}
 XLA_SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+# A local cluster of far more worker processes than cores runs no faster and can exhaust the machine: 100000 asked
+# for made no progress in 300 s while the nannies kept starting (4 GB, 19,999 open files). Refused above
+# WORKERS_PER_CORE x os.cpu_count(), and above what the open-file limit allows: each local worker holds
+# FILES_PER_WORKER descriptors in this process (measured: 24 open for 1 worker, 51 for 4, i.e. ~15 + 9 each).
+WORKERS_PER_CORE = 4
+FILES_PER_WORKER = 10
+FILES_RESERVED = 64  # this process's own: images, the results folder, JAX's and OpenCV's
+
+# Dask's address forms: [scheme://]host[:port], host a name, an IPv4 address or a bracketed IPv6 address.
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+_ADDRESS = re.compile(r"^(?:(?P<scheme>[a-z]+)://)?(?P<host>[A-Za-z0-9][A-Za-z0-9._-]*|\[[0-9A-Fa-f:.]+\])"
+                      r"(?::(?P<port>\d{1,5}))?/?$")
+
+
+def check_workers(workers: int) -> None:
+    """Refuse a local cluster larger than the machine can hold (WORKERS_PER_CORE, the open-file limit)."""
+    import resource
+
+    from dstereo.errors import DstereoError
+
+    cores = os.cpu_count() or 1
+    if workers > WORKERS_PER_CORE * cores:
+        raise DstereoError(f"`workers` {workers}: at most {WORKERS_PER_CORE * cores} ({WORKERS_PER_CORE} x the "
+                           f"{cores} cores here; more processes than that run no faster); for more, start a Dask "
+                           "cluster and give its address with `scheduler`")
+    soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    if soft != resource.RLIM_INFINITY and workers * FILES_PER_WORKER + FILES_RESERVED > soft:
+        most = max((soft - FILES_RESERVED) // FILES_PER_WORKER, 1)
+        raise DstereoError(f"`workers` {workers}: the open-file limit ({soft}, `ulimit -n`) allows at most {most} "
+                           f"local workers (~{FILES_PER_WORKER} files each); give fewer or raise the limit")
+
+
+def check_scheduler(address: str) -> None:
+    """Refuse an address Dask cannot parse, before any work (Dask's own error is a traceback)."""
+    from dstereo.errors import DstereoError
+
+    m = _ADDRESS.match(address.strip())
+    port = m and m.group("port")
+    if m is None or (m.group("scheme") or "tcp") not in SCHEDULER_SCHEMES or (port and not 0 < int(port) < 65536):
+        raise DstereoError(f"`scheduler` {address!r}: not a Dask scheduler address; write tcp://HOST:PORT (e.g. "
+                           f"tcp://10.0.0.5:8786, schemes {', '.join(SCHEDULER_SCHEMES)}), as `dask scheduler` "
+                           "prints it")
 
 
 # Dask's statistical profiler samples every worker thread's stack every 10 ms: measured on a 640x480 frame, the
@@ -119,6 +164,10 @@ class FrameRunner:
             raise DstereoError(f"`workers` {workers}: need 1 or more (1 runs the frames one after another here)")
         if retries < 0:
             raise DstereoError(f"retries {retries}: need 0 or more")
+        if scheduler is not None:
+            check_scheduler(scheduler)
+        elif workers is not None:
+            check_workers(workers)
         self.auto = workers is None and scheduler is None
         self.workers = workers or os.cpu_count() or 1
         self.scheduler, self.retries = scheduler, retries

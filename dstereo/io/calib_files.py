@@ -264,6 +264,12 @@ def read_middlebury_calib(path: str | Path) -> StereoCalibration:
         raise DstereoError(f"{path}: missing {missing} (a Middlebury calib.txt has cam0, cam1, doffs, baseline)")
     K1 = _check_matrix(values["cam0"], f"{path}: cam0")
     K2 = _check_matrix(values["cam1"], f"{path}: cam1")
+    baseline = values["baseline"]
+    # Z = baseline f / (d + doffs): a negative baseline puts every point behind the cameras (exit 0 and depths
+    # 1.2-2.9x wrong, once), zero puts them all at infinity (an empty cloud)
+    if isinstance(baseline, np.ndarray) or not (np.isfinite(baseline) and baseline > 0):
+        raise DstereoError(f"{path}: baseline = {baseline}: the distance between the camera centres must be a "
+                           "positive number (mm); fix the file's 'baseline=' line")
     doffs = float(values.get("doffs", K2[0, 2] - K1[0, 2]))
     if abs(doffs - (K2[0, 2] - K1[0, 2])) > DOFFS_TOLERANCE_PX:
         raise DstereoError(f"{path}: doffs {doffs} differs from cx1 - cx0 = {K2[0, 2] - K1[0, 2]:.6g} by more than "

@@ -85,7 +85,20 @@ def grid_mesh(points: np.ndarray, colors: np.ndarray | None = None, max_jump: fl
 
 def write_mesh_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None,
                    max_jump: float = 0.05) -> tuple[int, int]:
-    """Grid mesh as binary PLY via trimesh; returns (vertices, faces)."""
+    """Grid mesh as binary PLY via trimesh; returns (vertices, faces). A cloud without a finite point is written
+    as a valid PLY with no vertex and no face (trimesh's exporter fails on it); the caller warns."""
+    if not np.all(np.isfinite(np.asarray(points, dtype=np.float64)), axis=-1).any():
+        _write_empty_mesh(path, colors is not None)
+        return 0, 0
     mesh = grid_mesh(points, colors, max_jump)
     Path(path).write_bytes(mesh.export(file_type="ply"))
     return len(mesh.vertices), len(mesh.faces)
+
+
+def _write_empty_mesh(path: str | Path, colors: bool) -> None:
+    """mesh.ply with 0 vertices and 0 faces, the properties the non-empty file has (readers take it as empty)."""
+    header = ["ply", "format binary_little_endian 1.0", "element vertex 0", "property float x", "property float y",
+              "property float z"]
+    header += [f"property uchar {c}" for c in ("red", "green", "blue", "alpha")] if colors else []
+    header += ["element face 0", "property list uchar int vertex_indices", "end_header"]
+    Path(path).write_bytes(("\n".join(header) + "\n").encode())

@@ -415,7 +415,16 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
     check = plane_check(disparity, sigma, kind, scale)
     warnings, scaled = [], 1.0
     ratio = check.get("ratio")
-    if ratio is not None:
+    if ratio is not None and not (np.isfinite(ratio) and ratio > 0):
+        # a scatter of 0 px is no measurement of the noise (a map flat within its tiles: SGBM's blocks far too
+        # large, or one disparity everywhere): scaling by it would make every sigma 0
+        warnings.append(f"{name}: the disparity noise check found a scatter of {check.get('observed_px', ratio):.3g} "
+                        f"px about local surface fits ({check['tiles']} smooth tiles), no measure of the noise (the "
+                        "disparity map is flat within its tiles); the per-point sigmas are the model's, not scaled, "
+                        "unverified; check disparity.png and the SGBM settings")
+        check = check | {"ratio_refused": ratio if np.isfinite(ratio) else None, "ratio": None,
+                         "note": "scatter of 0 px: not used to scale"}
+    elif ratio is not None:
         # the model gives each pixel's sigma relative to the others; the level is what the data show
         scaled = ratio
         sigma = sigma * ratio

@@ -24,7 +24,7 @@ from dstereo.io.images import read_image
 from dstereo.io.results import check_output
 from dstereo.stereo.disparity import SGBMParams
 from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
-from dstereo.stereo.pair_result import PairResult, check_pair, grey
+from dstereo.stereo.pair_result import PairResult, calibration_size_check, check_pair, check_rig, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
 from dstereo.stereo.reconstruction_config import ReconstructionConfig
 from dstereo.stereo.uncalibrated import reconstruct_uncalibrated, uncalibrated_q
@@ -57,6 +57,7 @@ def rectifying_maps(calib: StereoCalibration, size: tuple[int, int],
     from dstereo.stereo.rectify import rectified_from_projections
     from dstereo.stereo.rectify_fisheye import rectification_maps, rectify_any
 
+    check_rig(calib)  # a rig with |T| ~ 0 would be blamed below for a vertical baseline
     if calib.rectified:
         rect = rectified_from_projections(*calib.projections(), size)
         outside = np.zeros((size[1], size[0]), bool)
@@ -90,6 +91,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
 
     check_pair(left, right, calib)
     size = (left.shape[1], left.shape[0])
+    unchecked = calibration_size_check(calib, size)  # a file without imageSize: refused if evidently other images
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     if maps is None:
@@ -125,6 +127,8 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     result = points_and_summary(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
                      timings, warnings)
     result.exact_rect = exact
+    if unchecked:
+        result.warnings.append(unchecked)
     if config.uncertainty and not calib.rectified and has_fisheye(calib):
         result.warnings.append(f"{name}: point uncertainties are not computed for a rig with a fisheye camera yet "
                                "(they propagate through the pinhole rectification); the points are written without")
@@ -189,6 +193,8 @@ def run_reconstruction(
     if not pairs:
         raise DstereoError("no image pair given; pass --left and --right")
     calib = read_stereo_calibration(calib_path) if calib_path is not None else None
+    if calib is not None:
+        check_rig(calib)
     results = []
     for left_path, right_path in pairs:
         left, right = read_image(left_path), read_image(right_path)

@@ -40,7 +40,11 @@ def points_and_summary(name, left_rect, right_rect, disparity, Q, R1, config: Re
     depth = np.where(valid, points[..., 2], np.nan)
     timings["triangulate_s"] = time.perf_counter() - t0
     fraction = float(valid.mean())
-    if fraction < LOW_DENSITY:
+    if fraction == 0:  # the results folder is still written whole: points.ply and mesh.ply valid and empty
+        warnings.append(f"{name}: no pixel has a point (every disparity is invalid or removed); points.ply and "
+                        "mesh.ply are written empty; check disparity.png, the depth range (--z-min/--z-max) and "
+                        "the outlier settings")
+    elif fraction < LOW_DENSITY:
         warnings.append(
             f"{name}: only {100 * fraction:.1f}% of pixels have a point; add texture to the scene, set the depth "
             "range (--z-min/--z-max), or lower --sgbm uniqueness_ratio"
