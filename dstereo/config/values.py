@@ -45,12 +45,12 @@ def model(spec, where: str) -> tuple[str, ...]:
     if not any(str(n).strip() for n in names):
         # an empty name used to mean "no coefficient free": a calibration with no distortion, silently; that lens
         # is asked for by name (none), so an empty value is a slip (an unset shell variable, a stray quote)
-        raise DstereoError(f"{where}: {spec!r} names no lens model; use one of {', '.join(PRESETS)}, auto, "
+        raise DstereoError(f"{where}: {spec!r} names no lens model; use one of {', '.join(PRESETS)}, "
                            "splined:NXxNY, or coefficients such as k1,k2,p1,p2 (none: no distortion)")
     try:
         return parse_model(spec)
     except DstereoError as exc:
-        raise DstereoError(f"{where}: {str(exc).removeprefix('model: ')}; or auto (chosen from the data)") from None
+        raise DstereoError(f"{where}: {str(exc).removeprefix('model: ')}") from None
 
 
 def right_model(spec, where: str) -> tuple[str, ...]:
@@ -65,4 +65,7 @@ def model_layer(spec, where: str) -> dict:
     """The parameters a lens-model spec sets: `model_auto`, and `model` unless the data chooses it ("auto")."""
     if is_auto_model(spec):
         return {"model_auto": True}
-    return {"model": model(spec, where), "model_auto": False}
+    try:
+        return {"model": model(spec, where), "model_auto": False}
+    except DstereoError as exc:  # one camera's model may also be chosen from the data
+        raise DstereoError(f"{exc}; or auto (the model that best predicts held-out views)") from None

@@ -199,7 +199,7 @@ def distortion_names(free: Sequence[str], n: int) -> list[str]:
 
 
 def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict,
-                       model: str = "pinhole", splined=None, comment: str | None = None) -> None:
+                       model: str = "pinhole", splined=None, comment: str | None = None, *, unit: str = "mm") -> None:
     """camera.yml (cv2.FileStorage) and camera.json with the same numbers. A fisheye camera adds
     `distortion_model: fisheye` (D is then cv2.fisheye's 4-vector); without the field the camera is OpenCV's
     pinhole + distortion model, as before. A splined camera: `splined` = (knots, free, valid spans), written as
@@ -212,6 +212,7 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
             fs.writeComment(comment)
         fs.write("image_width", int(image_size[0]))
         fs.write("image_height", int(image_size[1]))
+        fs.write("unit", unit)  # the board's length unit: K and D are in px, the board poses and sag in this
         if model != "pinhole":
             fs.write("distortion_model", model)
         fs.write("camera_matrix", np.asarray(K, np.float64))
@@ -225,7 +226,7 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
         fs.release()
     flag = {} if model == "pinhole" else {"distortion_model": model}
     write_json(folder / "camera.json", {"image_width": int(image_size[0]), "image_height": int(image_size[1]),
-                                        **flag, "camera_matrix": np.asarray(K).tolist(),
+                                        "unit": unit, **flag, "camera_matrix": np.asarray(K).tolist(),
                                         "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
 
 
@@ -467,7 +468,8 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
         section = (cal.final_coefficients, full.free,
                    splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free))))
     sag, solved_board, comment = _solved_board(cal, det.object_points)
-    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment, extra={
+    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment,
+                       unit=cal.config.unit, extra={
         "distortion_names": names, "source": summary["final_source"],
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
