@@ -105,6 +105,7 @@ def calibrate(
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
+    use_cache = not no_cache and _corner_cache_usable()
     figure_pool.start_rest()  # JAX is imported: the other workers warm up on the core the full-set solve leaves
     _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
                                       cross_validate)
@@ -116,7 +117,7 @@ def calibrate(
                                "N cameras yet; calibrate a camera alone for those")
         if cfg.model_right is not None:
             raise DstereoError("--model-right: only for a stereo rig (--left/--right); --cameras takes one --model")
-        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, not no_cache, started, projection_range)
+        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range)
         return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
@@ -131,7 +132,7 @@ def calibrate(
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
-        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
+        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, use_cache, started,
                     projection_range)
         return
     if cfg.model_right is not None:
@@ -153,7 +154,17 @@ def calibrate(
 
     check_one_camera(list_camera_images(images, cfg), str(images))
     out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
-    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range, projection_method, cross_validate)
+    _run(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method, cross_validate)
+
+
+def _corner_cache_usable() -> bool:
+    """Whether the corner cache can be written; if not, one warning line now and the run goes on without it."""
+    from dstereo.io.corners import corner_cache_problem
+
+    problem = corner_cache_problem()
+    if problem is not None:
+        typer.echo(f"dstereo: warning: {problem}", err=True)
+    return problem is None
 
 
 def _results_folder(out, project, force: bool, cfg, inputs=()):
