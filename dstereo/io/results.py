@@ -38,6 +38,7 @@ from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, FilterResult
 from dstereo.config.calibration import ABSOLUTE_PARAMETERS, as_dict, to_toml
 from dstereo.errors import DstereoError
 from dstereo.io.json_files import json_default, write_json  # noqa: F401 - the writers' names, importable here
+from dstereo.io.atomic_files import follow_umask
 
 UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
 N_UNDISTORTED = 3
@@ -63,6 +64,7 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
+        follow_umask(tmp, folder=True)  # the results folder is this one renamed
         yield tmp
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
