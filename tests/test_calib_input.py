@@ -57,7 +57,7 @@ def test_a_calibration_in_cm_reconstructs_in_mm(tmp_path):
         assert json.loads((tmp_path / "cal" / name / "camera.json").read_text())["unit"] == "cm"
     calib = read_stereo_calibration(stereo)
     np.testing.assert_allclose(calib.T, 10 * T_cm, rtol=1e-12)
-    assert calib.extras["file_unit"] == "cm" and "converted to mm" in calib.extras["unit_note"]
+    assert calib.unit_note == "stereo.yml is in cm: converted to mm (x 10)"
     assert calib.extras["board_depth_min"] > 10 * 5  # the boards stood >= ~20 cm away: in mm now
     # the same calibration written in mm by hand: reconstruct must give the same depths from both files
     mm_file = write_stereo_yml(tmp_path / "mm.yml", calib.K1, calib.D1, calib.K2, calib.D2, calib.R, 10 * T_cm,
@@ -80,12 +80,18 @@ def test_a_calibration_in_cm_reconstructs_in_mm(tmp_path):
 def test_a_file_without_a_unit_is_read_as_mm_and_says_so(tmp_path):
     """OpenCV's own files (and dstereo's before the unit was written) are read as before, the unit stated as
     assumed; a file in board squares has no scale for a reconstruction in mm and is refused in one line."""
+    import cv2
+
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.stereo_files import write_stereo_yml
 
     calib = read_stereo_calibration(require_data("opencv_stereo") / "extrinsics.yml")
-    assert calib.extras["unit"] == "mm" and "names no unit" in calib.extras["unit_note"]
+    assert calib.unit_note == "extrinsics.yml names no unit: its lengths are taken as mm"
+    fs = cv2.FileStorage(str(require_data("opencv_stereo") / "extrinsics.yml"), cv2.FILE_STORAGE_READ)
+    T = fs.getNode("T").mat().ravel()
+    fs.release()
+    np.testing.assert_allclose(calib.T, T)  # as before: no conversion
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     squares = write_stereo_yml(tmp_path / "squares.yml", K, np.zeros(5), K, np.zeros(5), np.eye(3),
                                np.array([-3.0, 0, 0]), np.eye(3), np.eye(3), (640, 480), unit="squares")
@@ -204,7 +210,7 @@ def test_messages_name_the_file_key_or_the_flag_a_value_came_from(tmp_path):
     assert f"{config} [pattern] square = -1.0" in line and "--square" not in line, line
     line = _error_line(*run_cli("calibrate", "--config", config, "--square", "10", "--images", images,
                                 "--out", tmp_path / "o")[::2])
-    assert f"{config} [calibration] final = 'median'" in line and "--final" not in line, line
+    assert f"{config} [calibration] final = 'median'; use one of" in line and "--final" not in line, line
     line = _error_line(*run_cli("calibrate", "--config", config, "--square", "0", "--images", images,
                                 "--out", tmp_path / "o")[::2])
     assert "--square 0.0" in line and str(config) not in line, line

@@ -78,8 +78,11 @@ class Config:
     origins: dict = field(default_factory=dict, compare=False)
 
     def with_overrides(self, **changes) -> "Config":
-        """A copy with the given fields replaced; `None` values leave a field as it is."""
-        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+        """A copy with the given fields replaced; `None` values leave a field as it is. A value set here came from
+        the code, not from the file or flag that gave the one it replaces: its origin goes."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        origins = {k: v for k, v in self.origins.items() if k not in changes}
+        return replace(self, **changes, origins=origins)
 
 
 # --- files, layers and the merge ----------------------------------------------------------------------------
@@ -177,7 +180,7 @@ def validate(cfg: Config) -> Config:
     consistent. Each message names where the value came from (`given_as`): the flag, or the file and its key."""
     where = cfg.source or "configuration"
     if cfg.mode not in _MODES:
-        raise DstereoError(f"{given_as(cfg, 'mode')}: use one of {', '.join(_MODES)}")
+        raise DstereoError(f"{given_as(cfg, 'mode')}; use one of {', '.join(_MODES)}")
     if cfg.pattern is None:
         raise DstereoError(f"{where}: no board pattern; give --pattern COLSxROWS inner corners (e.g. 9x6) or set "
                            "[pattern] columns and rows in the configuration file")
@@ -189,7 +192,7 @@ def validate(cfg: Config) -> Config:
     if cfg.max_subsets < 1:
         raise DstereoError(f"{given_as(cfg, 'max_subsets')}: must be at least 1")
     if cfg.final not in _FINAL_CHOICES:
-        raise DstereoError(f"{given_as(cfg, 'final')}: use one of {', '.join(_FINAL_CHOICES)}")
+        raise DstereoError(f"{given_as(cfg, 'final')}; use one of {', '.join(_FINAL_CHOICES)}")
     if cfg.min_subsets is not None and cfg.min_subsets < 1:
         raise DstereoError(f"{given_as(cfg, 'min_subsets')}: must be at least 1")
     if cfg.steps and cfg.per_set is None:

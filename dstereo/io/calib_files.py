@@ -167,9 +167,9 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     models = _lens_models(data, path)
-    mm, unit_extras = _unit_scale(data, path)
+    mm, unit_note = _unit_scale(data, path)
     return StereoCalibration(
-        extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm) | unit_extras,
+        extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm), unit_note=unit_note,
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
         D1=_lens_coeffs(_pick(data, "D1"), models[0], f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
@@ -182,19 +182,18 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     )
 
 
-def _unit_scale(data: dict, path: Path) -> tuple[float, dict]:
-    """(mm per unit of the file's lengths, extras naming the unit): a StereoCalibration is in mm, so a file in cm
+def _unit_scale(data: dict, path: Path) -> tuple[float, str]:
+    """(mm per unit of the file's lengths, the note saying so): a StereoCalibration is in mm, so a file in cm
     (dstereo calibrate --unit cm) has its T and board depths converted here, once for every reader (reconstruct,
     refine, recession). A file without `unit` (OpenCV's own, dstereo's before the unit was written) is read in mm
-    as before, and `unit_note` says it was assumed; a file in board squares has no scale and is refused."""
+    as before, and the note says it was assumed; a file in board squares has no scale and is refused."""
     from dstereo.config.units import check_unit, mm_per
 
     if data.get("unit") is None:
-        return 1.0, {"unit": "mm", "unit_note": f"{path.name} names no unit: its lengths are taken as mm"}
+        return 1.0, f"{path.name} names no unit: its lengths are taken as mm"
     unit = check_unit(data["unit"], f"{path}: unit {data['unit']!r}")
     mm = mm_per(unit, str(path))
-    note = f"{path.name} is in {unit}: converted to mm (x {mm:g})" if unit != "mm" else f"{path.name} is in mm"
-    return mm, {"unit": "mm", "file_unit": unit, "unit_note": note}
+    return mm, f"{path.name} is in {unit}: converted to mm (x {mm:g})" if unit != "mm" else f"{path.name} is in mm"
 
 
 def _in_mm(extras: dict, mm: float) -> dict:
@@ -302,10 +301,10 @@ def read_middlebury_calib(path: str | Path) -> StereoCalibration:
     K2[0, 2] = K1[0, 2] + doffs  # the files round cx; depth is defined through doffs
     size = (int(values["width"]), int(values["height"])) if "width" in values and "height" in values else None
     extras = {k: v for k, v in values.items() if not isinstance(v, np.ndarray)}
-    extras |= {"unit": "mm", "unit_note": f"{path.name}: Middlebury's baseline is in mm"}
     return StereoCalibration(
         K1=K1, D1=np.zeros(8), K2=K2, D2=np.zeros(8), R=np.eye(3), T=np.array([-float(values["baseline"]), 0.0, 0.0]),
         image_size=size, rectified=True, source=str(path), extras=extras,
+        unit_note=f"{path.name}: Middlebury's baseline is in mm",
     )
 
 
