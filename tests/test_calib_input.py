@@ -129,6 +129,21 @@ def test_a_right_folder_of_left_copies_is_refused_after_the_rig_solve(tmp_path):
     assert not out.exists() and not list(tmp_path.glob(".out*"))
 
 
+def test_two_cameras_of_one_rig_with_the_same_images_are_refused(tmp_path):
+    """--cameras: a camera folder holding another's images gets the same refusal, nothing written."""
+    data = require_data("opencv_stereo")
+    for camera in ("a", "b"):
+        (tmp_path / "rig" / camera).mkdir(parents=True)
+        for path in sorted(data.glob("left*.jpg"))[:8]:
+            shutil.copy(path, tmp_path / "rig" / camera / path.name.replace("left", ""))
+    out = tmp_path / "out"
+    code, _, err = run_cli("calibrate", "--cameras", tmp_path / "rig", "--pattern", "9x6", "--square", "25",
+                           "--out", out, "--quiet")
+    line = _error_line(code, err)
+    assert "cameras a and b" in line and "the same place: are they the same images?" in line, line
+    assert not out.exists()
+
+
 def test_a_real_rig_passes_the_baseline_check():
     """The check's limits against a measured rig: OpenCV's sample, |T| 83 mm with 25 mm squares."""
     from types import SimpleNamespace

@@ -239,6 +239,7 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
     with progress_bars(quiet) as progress:
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         job.pairs(pair)  # a wrong --pair is refused before anything is written
+        _check_camera_baselines(job)
         job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
                          for w in _view_warnings(cal)]
         write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
@@ -283,6 +284,27 @@ def _check_rig_fits(job) -> None:
             f"fit their views with {left:.3g} / {right:.3g} px: the left and right images do not show the board at "
             "the same moments (partners are matched by name; check the names, the cameras' synchronisation and that "
             "both folders come from this rig); nothing written")
+
+
+def _check_camera_baselines(job) -> None:
+    """--cameras: two cameras at one place (one camera's images copied into another's folder) are refused, with
+    the limit of a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
+    import numpy as np
+
+    from dstereo.calib.stereo_pipeline import SAME_PLACE_BOARD_FRACTION
+    from dstereo.errors import DstereoError
+
+    board = job.cameras[0].detection.board
+    size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))
+    n = len(job.labels)
+    for a in range(n):
+        for b in range(a + 1, n):
+            baseline = float(np.linalg.norm(np.asarray(job.solution.relative(a, b)[1], float)))
+            if baseline < SAME_PLACE_BOARD_FRACTION * size:
+                raise DstereoError(
+                    f"cameras {job.labels[a]} and {job.labels[b]}: baseline {baseline:.3g} {job.config.unit} (the "
+                    f"board is {size:.3g} {job.config.unit} across): their images show the board from the same "
+                    "place: are they the same images? Give each camera's own images; nothing written")
 
 
 def _stereo_view_warnings(job) -> list[str]:

@@ -127,8 +127,9 @@ def _image_size_or_none(data: dict) -> tuple[int, int] | None:
     return None
 
 
-def read_opencv_stereo(path: str | Path) -> StereoCalibration:
-    """OpenCV stereo calibration file (or an intrinsics/extrinsics pair, given either of them)."""
+def read_opencv_stereo(path: str | Path, unscaled: bool = False) -> StereoCalibration:
+    """OpenCV stereo calibration file (or an intrinsics/extrinsics pair, given either of them), lengths in mm
+    (`_unit_scale`). `unscaled`: a file in board squares is read as it is (for `refine`, which sets the scale)."""
     path = Path(path)
     if not path.is_file():
         raise DstereoError(f"calibration file {path} does not exist")
@@ -167,7 +168,7 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     models = _lens_models(data, path)
-    mm, unit_note = _unit_scale(data, path)
+    mm, unit_note = _unit_scale(data, path, unscaled)
     return StereoCalibration(
         extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm), unit_note=unit_note,
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
@@ -182,16 +183,18 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     )
 
 
-def _unit_scale(data: dict, path: Path) -> tuple[float, str]:
+def _unit_scale(data: dict, path: Path, unscaled: bool = False) -> tuple[float, str]:
     """(mm per unit of the file's lengths, the note saying so): a StereoCalibration is in mm, so a file in cm
     (dstereo calibrate --unit cm) has its T and board depths converted here, once for every reader (reconstruct,
     refine, recession). A file without `unit` (OpenCV's own, dstereo's before the unit was written) is read in mm
     as before, and the note says it was assumed; a file in board squares has no scale and is refused."""
-    from dstereo.config.units import check_unit, mm_per
+    from dstereo.config.units import SQUARES, check_unit, mm_per
 
     if data.get("unit") is None:
         return 1.0, f"{path.name} names no unit: its lengths are taken as mm"
     unit = check_unit(data["unit"], f"{path}: unit {data['unit']!r}")
+    if unit == SQUARES and unscaled:
+        return 1.0, f"{path.name} is in board squares: no scale until a reference sets it"
     mm = mm_per(unit, str(path))
     return mm, f"{path.name} is in {unit}: converted to mm (x {mm:g})" if unit != "mm" else f"{path.name} is in mm"
 
@@ -308,15 +311,16 @@ def read_middlebury_calib(path: str | Path) -> StereoCalibration:
     )
 
 
-def read_stereo_calibration(path: str | Path) -> StereoCalibration:
-    """Any supported stereo calibration file (see the module docstring), by content."""
+def read_stereo_calibration(path: str | Path, unscaled: bool = False) -> StereoCalibration:
+    """Any supported stereo calibration file (see the module docstring), by content; lengths in mm (`unscaled`:
+    see `read_opencv_stereo`)."""
     path = Path(path)
     if not path.is_file():
         raise DstereoError(f"calibration file {path} does not exist; give `calib` a stereo.yml, OpenCV YAML or calib.txt")
     head = path.read_text(errors="replace")[:4000]
     if re.search(r"^\s*cam0\s*=", head, flags=re.MULTILINE):
         return read_middlebury_calib(path)
-    return read_opencv_stereo(path)
+    return read_opencv_stereo(path, unscaled)
 
 
 def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.ndarray) -> None:

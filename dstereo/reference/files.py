@@ -62,7 +62,7 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
     from dstereo.stereo.pipeline import check_pair, read_image
 
     check_output(out, force)
-    calib = read_stereo_calibration(calib_path)
+    calib = read_stereo_calibration(calib_path, unscaled=True)  # a rig in board squares: the reference scales it
     if calib.rectified:
         raise DstereoError(f"calibration {calib_path}: an already rectified (Middlebury) pair has no rig to refine")
     left, right = read_image(left_path), read_image(right_path)
