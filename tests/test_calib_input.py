@@ -231,6 +231,20 @@ def test_messages_name_the_file_key_or_the_flag_a_value_came_from(tmp_path):
     assert "--square 0.0" in line and str(config) not in line, line
 
 
+def test_reconstruct_messages_name_the_file_key_or_the_flag(tmp_path):
+    """reconstruct's checks (dstereo/config/reconstruction.py) the same way: a file's value by its file and key."""
+    data = require_data("opencv_stereo")
+    config = tmp_path / "r.toml"
+    config.write_text("[reconstruct]\noutlier_std = -2.0\n")
+    args = ("reconstruct", "--left", data / "left01.jpg", "--right", data / "right01.jpg", "--config", config,
+            "--calib", data / "extrinsics.yml", "--out", tmp_path / "o")
+    line = _error_line(*run_cli(*args)[::2])
+    assert f"{config} [reconstruct] outlier_std = -2.0: must be a positive number" in line, line
+    assert "--outlier-std" not in line
+    line = _error_line(*run_cli(*args, "--outlier-std", "0")[::2])
+    assert "--outlier-std 0.0: must be a positive number" in line and str(config) not in line, line
+
+
 # --- 7. a folder given as an image --------------------------------------------------------------------------------
 
 def test_a_folder_given_to_left_is_named_a_folder(tmp_path):
