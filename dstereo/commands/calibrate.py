@@ -105,7 +105,7 @@ def calibrate(
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
-    use_cache = not no_cache and _corner_cache_usable()
+    use_cache = not no_cache  # checked once the inputs and the results folder are (`_corner_cache_usable`)
     figure_pool.start_rest()  # JAX is imported: the other workers warm up on the core the full-set solve leaves
     _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
                                       cross_validate)
@@ -116,7 +116,8 @@ def calibrate(
             raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
                                "N cameras yet; calibrate a camera alone for those")
         if cfg.model_right is not None:
-            raise DstereoError("--model-right: only for a stereo rig (--left/--right); --cameras takes one --model")
+            raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig "
+                               "(--left/--right); --cameras takes one --model")
         _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range)
         return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
@@ -125,7 +126,8 @@ def calibrate(
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
         if cfg.model_auto:
-            raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
+            raise DstereoError(f"{_as_given(cfg, 'model_auto', '--model', 'auto')}: choosing the model for a stereo rig is "
+                               "not supported yet; run "
                                "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
                                "chosen --model")
         if board_sag:  # asked for on the command line: it cannot be honoured (the default just runs flat)
@@ -136,7 +138,8 @@ def calibrate(
                     projection_range)
         return
     if cfg.model_right is not None:
-        raise DstereoError("--model-right: only for a stereo rig; give --left DIR --right DIR (or "
+        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig; give --left DIR "
+                           "--right DIR (or "
                            "images/images_left + images/images_right)")
     if stereo_steps:
         raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
@@ -158,7 +161,8 @@ def calibrate(
 
 
 def _corner_cache_usable() -> bool:
-    """Whether the corner cache can be written; if not, one warning line now and the run goes on without it."""
+    """Whether the corner cache can be written; if not, one warning line now and the run goes on without it. Called
+    after every refusal of the input (a refused run prints its one error line only), before the detection."""
     from dstereo.io.corners import corner_cache_problem
 
     problem = corner_cache_problem()
@@ -204,6 +208,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     sources = stereo_sources(images, cfg, left, right)
     out = _results_folder(out, project, force, cfg, inputs=[*sources.mono_left, *sources.mono_right,
                                                              *sources.stereo_left, *sources.stereo_right])
+    use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         _check_rig_fits(job)
@@ -236,6 +241,7 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
 
     folders = camera_folders(root, cfg)
     out = _results_folder(out, project, force, cfg, inputs=[root, *folders])
+    use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         job.pairs(pair)  # a wrong --pair is refused before anything is written
@@ -316,6 +322,15 @@ def _stereo_view_warnings(job) -> list[str]:
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
+def _as_given(cfg, name: str, flag: str, value: str | None = None) -> str:
+    """A configuration value as the user gave it: "--model auto" from the flag, "FILE [calibration] model = auto"
+    from a file (`Config.origins`), so a message does not put a file's value on a flag."""
+    origin = cfg.origins.get(name, flag)
+    if value is None:
+        return origin
+    return f"{origin} {value}" if origin.startswith("-") else f"{origin} = {value}"
+
+
 def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> None:
     """The splined lens (models/splined.py) is for one camera's full-set calibration (issue 16 item 2)."""
     from dstereo.errors import DstereoError
@@ -323,16 +338,18 @@ def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> No
 
     right = getattr(cfg, "model_right", None)
     if rig and right is not None and lens_model(tuple(right)) == "splined":
-        raise DstereoError("--model-right splined: stereo rigs with splined cameras are not supported; calibrate "
-                           "that camera alone with --images DIR --model splined")
+        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right', 'splined')}: stereo rigs with splined "
+                           "cameras are not supported; calibrate that camera alone with --images DIR --model splined")
     if lens_model(tuple(cfg.model)) != "splined":
         return
     if rig:
-        raise DstereoError("--model splined: stereo rigs and --cameras with splined cameras are not supported; "
+        raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: stereo rigs and --cameras with splined "
+                           "cameras are not supported; "
                            "calibrate each camera alone with --images DIR --model splined, the rig with a "
                            "parametric model")
     if cross_validate or cfg.per_set is not None:
-        raise DstereoError("--model splined: subsets (`per_set`) and --cross-validate are not available for the "
+        raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: subsets (`per_set`) and --cross-validate "
+                           "are not available for the "
                            "splined lens (its knots are ~160 parameters); run it on the full set alone")
 
 
@@ -341,6 +358,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
          cross_validate: int = 0) -> None:
     from dstereo.io.results import EarlyFigures
 
+    use_cache = use_cache and _corner_cache_usable()
     early = EarlyFigures(out)  # the parameter figures, drawn while the survivors' solve and the writing run
     try:
         _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,

@@ -108,9 +108,8 @@ def build_config(*layers: dict) -> Config:
         where = layer.get("source")
         for name in layer:
             if name not in ("source", "warnings") and layer[name] is not None:
-                origins[name] = _origin(name, where)
-    if "model_auto" in origins:  # set by `model`: the same origin
-        origins["model_auto"] = origins.get("model", origins["model_auto"])
+                # `model_auto` is set by `model` (auto, or a named model that turns it off): the same origin
+                origins[name] = _origin("model" if name == "model_auto" else name, where)
     return Config(**merged, origins=origins)
 
 
