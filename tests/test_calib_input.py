@@ -194,6 +194,37 @@ def test_a_user_without_a_home_has_no_corner_cache(monkeypatch):
     assert problem is not None and "no home folder" in problem and "--no-cache" in problem
 
 
+class _FakeJax:
+    """Records what `_enable_compilation_cache` would set in jax.config."""
+
+    def __init__(self):
+        self.updates = {}
+        self.config = self
+
+    def update(self, name, value):
+        self.updates[name] = value
+
+
+def test_the_jax_cache_is_skipped_without_a_home_or_a_writable_folder(tmp_path, monkeypatch):
+    """The JAX compilation cache (and the executables' folder inside it, solver/aot.py) falls back to none: a user
+    without a home got a folder named '~' in the working folder; an existing folder that takes no files was used."""
+    import dstereo
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("DSTEREO_JAX_CACHE", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(os.path, "expanduser", lambda path: path)  # what it returns when no home is known
+    jax = _FakeJax()
+    dstereo._enable_compilation_cache(jax)
+    assert jax.updates == {} and not (tmp_path / "~").exists()
+    monkeypatch.undo()
+    monkeypatch.setenv("DSTEREO_JAX_CACHE", str(tmp_path / "jax"))
+    monkeypatch.setattr(os, "access", lambda path, mode: False)  # a read-only folder (root ignores the mode bits)
+    jax = _FakeJax()
+    dstereo._enable_compilation_cache(jax)
+    assert jax.updates == {}
+
+
 # --- 5. results follow the umask ----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("mask", [0o022, 0o027])
