@@ -20,7 +20,9 @@ def calibrate(
     image_format: Optional[str] = typer.Option(None, "--format", help="Image file extension, e.g. jpg."),
     pattern: Optional[str] = typer.Option(None, "--pattern", help="Inner corners COLSxROWS, e.g. 9x6."),
     square: Optional[float] = typer.Option(None, "--square", help="Square size of the board."),
-    unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
+    unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size, a length: um, mm, cm, dm, m, in, ft "
+                                        "(mm when --square is given; without it the board's squares). Written into "
+                                        "every calibration file; reconstruct converts it to mm."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
         "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
