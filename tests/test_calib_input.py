@@ -70,6 +70,8 @@ def test_a_calibration_in_cm_reconstructs_in_mm(tmp_path):
         assert code == 0, err
         summary = json.loads((tmp_path / f"rec_{label}" / "summary.json").read_text())
         assert summary["units"] == "mm"
+        assert summary["calibration_unit"] == f"{path.name} is in {label}" + (": converted to mm (x 10)"
+                                                                           if label == "cm" else "")
         depths[label] = np.load(tmp_path / f"rec_{label}" / "depth.npy")
     valid = np.isfinite(depths["mm"]) & np.isfinite(depths["cm"])
     assert valid.mean() > 0.1
@@ -92,6 +94,9 @@ def test_a_file_without_a_unit_is_read_as_mm_and_says_so(tmp_path):
     T = fs.getNode("T").mat().ravel()
     fs.release()
     np.testing.assert_allclose(calib.T, T)  # as before: no conversion
+    from dstereo.io.calib_files import calibration_unit_note  # what reconstruct's and recession's summaries state
+
+    assert calibration_unit_note(require_data("opencv_stereo") / "extrinsics.yml") == calib.unit_note
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     squares = write_stereo_yml(tmp_path / "squares.yml", K, np.zeros(5), K, np.zeros(5), np.eye(3),
                                np.array([-3.0, 0, 0]), np.eye(3), np.eye(3), (640, 480), unit="squares")

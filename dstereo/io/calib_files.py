@@ -323,6 +323,15 @@ def read_stereo_calibration(path: str | Path, unscaled: bool = False) -> StereoC
     return read_opencv_stereo(path, unscaled)
 
 
+def calibration_unit_note(path: str | Path) -> str | None:
+    """`StereoCalibration.unit_note` of the calibration file at `path` (its unit: converted to mm, or mm assumed),
+    for a results summary that holds only the file's name; None when it cannot be read there now."""
+    try:
+        return read_stereo_calibration(path).unit_note if Path(path).is_file() else None
+    except (DstereoError, OSError):
+        return None
+
+
 def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.ndarray) -> None:
     """Write M1 D1 M2 D2 R T (+ imageSize, + any extra matrices such as R1 P1 Q) as OpenCV YAML; a rig with a
     fisheye camera adds distortion_model1/2, and a fisheye camera's D is cv2.fisheye's 4 coefficients."""

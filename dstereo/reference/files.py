@@ -70,7 +70,8 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
     result = observe_and_refine(calib, left, right, reference, (str(left_path), str(right_path)), focal, fixed,
                                 marks, config)
     report = result.report()
-    report["inputs"] = {"calibration": str(calib_path), "left": str(left_path), "right": str(right_path)}
+    report["inputs"] = {"calibration": str(calib_path), "left": str(left_path), "right": str(right_path),
+                        "calibration_unit": calib.unit_note}  # converted to mm, or mm assumed
     with atomic_folder(out, force) as tmp:
         write_calibration(tmp / "stereo.yml", result.calibration, (left.shape[1], left.shape[0]))
         write_json(tmp / "refine.json", report)
