@@ -25,7 +25,10 @@ def umask() -> int:
 def follow_umask(path, folder: bool = False) -> None:
     """Give `path` the mode an ordinary open()/mkdir() would have: mkstemp and mkdtemp make 0600 files and 0700
     folders (private temporaries), which the rename would otherwise hand on to the results, whatever the umask."""
-    os.chmod(path, (0o777 if folder else 0o666) & ~umask())
+    try:
+        os.chmod(path, (0o777 if folder else 0o666) & ~umask())
+    except OSError:  # a file system without modes (vfat, some network mounts): the private mode is the safe one
+        pass
 
 
 def replace_atomically(path, write) -> Path:

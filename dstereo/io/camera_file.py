@@ -119,9 +119,11 @@ def read_camera_file(path: str | Path) -> CameraFile:
     w, h = data.get("image_width"), data.get("image_height")
     size = (int(w), int(h)) if w is not None and h is not None else None
     k = _check_matrix(data["camera_matrix"], f"{path}: camera_matrix")
-    from dstereo.config.units import check_unit
+    from dstereo.config.units import UNITS
 
-    unit = None if data.get("unit") is None else check_unit(data["unit"], f"{path}: unit {data['unit']!r}")
+    # recorded, not converted (no length here): a `unit` of another meaning in someone's file is left out
+    unit = str(data.get("unit", "")).strip().lower() or None
+    unit = unit if unit in UNITS else None
     if model == "splined":
         knots, free, valid = _read_splined_section(path)
         return CameraFile(k, knots, model, size, str(path), valid, free, unit)
