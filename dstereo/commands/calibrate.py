@@ -20,9 +20,9 @@ def calibrate(
     image_format: Optional[str] = typer.Option(None, "--format", help="Image file extension, e.g. jpg."),
     pattern: Optional[str] = typer.Option(None, "--pattern", help="Inner corners COLSxROWS, e.g. 9x6."),
     square: Optional[float] = typer.Option(None, "--square", help="Square size of the board."),
-    unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size, a length: um, mm, cm, dm, m, in, ft "
-                                        "(mm when --square is given; without it the board's squares). Written into "
-                                        "every calibration file; reconstruct converts it to mm."),
+    unit: Optional[str] = typer.Option(
+        None, "--unit", help="Unit of the square size, a length: um, mm, cm, dm, m, in, ft (mm when --square is "
+        "given; without it the board's squares). Written into every calibration file; reconstruct converts it to mm."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
         "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
@@ -128,10 +128,9 @@ def calibrate(
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
         if cfg.model_auto:
-            raise DstereoError(f"{_as_given(cfg, 'model_auto', '--model', 'auto')}: choosing the model for a stereo rig is "
-                               "not supported yet; run "
-                               "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
-                               "chosen --model")
+            raise DstereoError(f"{_as_given(cfg, 'model_auto', '--model', 'auto')}: choosing the model for a "
+                               "stereo rig is not supported yet; run dstereo calibrate --images DIR --model auto on "
+                               "each camera, then give the rig the chosen --model")
         if board_sag:  # asked for on the command line: it cannot be honoured (the default just runs flat)
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")

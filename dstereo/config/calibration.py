@@ -26,8 +26,8 @@ from dstereo.errors import DstereoError
 
 __all__ = ["ABSOLUTE_PARAMETERS", "CONFIG_NAMES", "FOREIGN_TABLES", "MONO_PARAMETERS", "STEREO_PARAMETERS", "Config",
            "Step", "as_dict", "build_config", "canonical_parameter", "config_from_thesis_ini", "config_from_toml",
-           "file_layer", "find_project_config", "given_as", "is_auto_model", "load_config", "make_step", "parse_step_flag",
-           "parse_step_flags", "template", "to_toml", "validate"]
+           "file_layer", "find_project_config", "given_as", "is_auto_model", "load_config", "make_step",
+           "parse_step_flag", "parse_step_flags", "template", "to_toml", "validate"]
 
 # Project-folder configuration files, tried in this order.
 CONFIG_NAMES = ("dstereo.toml", "calibrate.toml", "init-individual.ini", "init.ini")

@@ -85,7 +85,7 @@ def write_calibration(path: Path, calib: StereoCalibration, image_size: tuple[in
     rig = calib.rig
     E, F = np.array(rig.essential(), float), np.array(rig.fundamental(calib.k1, calib.k2), float)
     write_stereo_yml(path, calib.K1, calib.D1, calib.K2, calib.D2, calib.R, np.asarray(calib.T).reshape(3), E, F,
-                     calib.image_size or image_size, unit="mm")  # a StereoCalibration is in mm (read_stereo_calibration)
+                     calib.image_size or image_size, unit="mm")  # a StereoCalibration is in mm (its readers convert)
 
 
 def _std(value, fmt: str, unit: str) -> str:
