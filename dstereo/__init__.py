@@ -26,11 +26,17 @@ def _enable_compilation_cache(jax) -> None:
     setting = os.environ.get("DSTEREO_JAX_CACHE", "")
     if setting == "0":
         return
-    folder = setting or os.path.join(os.environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache")), "dstereo", "jax")
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")
+    if not setting and base.startswith("~"):
+        return  # a user without a home: expanduser leaves "~", which would be a folder named ~ in the working folder
+    folder = setting or os.path.join(base, "dstereo", "jax")
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError:
         return  # read-only home: run without the cache
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return  # a folder that exists but takes no files: JAX would warn at every compile; run without the cache
+    # (the executables' folder, solver/aot.py, lives in this one: no cache folder, no executables either)
     jax.config.update("jax_compilation_cache_dir", folder)
     # Every program, however quick to compile: a warm run compiled ~10 small ones (eager ops, rotations) afresh
     # each time under the 0.5 s threshold JAX suggests, 10-540 ms each, where a fetch takes a few ms.

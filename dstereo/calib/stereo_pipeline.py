@@ -279,6 +279,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
                             inliers=inliers)
     if progress is not None:
         progress("stereo solve", 1, 1)
+    check_baseline(full, det.board, config.unit)  # before the subsets: a rig with no baseline is not worth them
     timings["stereo_s"] = time.perf_counter() - t0
     if not full.converged:
         warnings.append(f"stereo full-set solve did not converge ({full.status_text}); its values are unreliable")
@@ -333,6 +334,30 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     attach_rig_uncertainty(job)
     timings["rig_covariance_s"] = time.perf_counter() - t0
     return job
+
+
+# A rig's baseline that is within this many of its own sigmas of zero is not measured at all. Identical left and
+# right images (a right folder holding copies of the left's) fit with |T| = 2.2e-9 mm and a sigma as small (the
+# residuals are zero), so the second limit, a fraction of the board's size, is what catches them: two cameras sit
+# at least a lens apart, and a board is seen by both from a distance of a few board sizes at most (a 1e-3 board
+# baseline: 0.24 mm against the 83 mm of the opencv_stereo rig, whose board is 236 mm across with 25 mm squares).
+SAME_PLACE_SIGMAS = 3.0
+SAME_PLACE_BOARD_FRACTION = 1e-3
+
+
+def check_baseline(full, board, unit: str) -> None:
+    """Refuse a rig whose baseline is not significantly different from zero (see SAME_PLACE_SIGMAS): its left and
+    right images show the board from one place, and reconstruct would triangulate nothing with it."""
+    baseline = float(np.linalg.norm(np.asarray(full.T, float)))
+    cov = np.asarray(full.cov, float)[3:6, 3:6]
+    sigma = float(np.sqrt(max(np.trace(cov), 0.0))) if np.all(np.isfinite(cov)) else 0.0
+    size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))  # the inner corners' diagonal
+    if baseline < max(SAME_PLACE_SIGMAS * sigma, SAME_PLACE_BOARD_FRACTION * size):
+        raise DstereoError(
+            f"stereo: the rig's baseline |T| = {baseline:.3g} {unit} (sigma {sigma:.2g} {unit}; the board is "
+            f"{size:.3g} {unit} across) is not different from zero: the left and right images show the board from "
+            "the same place: are they the same images? Give each camera's own images (--left, --right); nothing "
+            "written")
 
 
 def _drop_pairs_rejected_by_both(det, cams, warnings: list[str]) -> None:

@@ -20,7 +20,9 @@ def calibrate(
     image_format: Optional[str] = typer.Option(None, "--format", help="Image file extension, e.g. jpg."),
     pattern: Optional[str] = typer.Option(None, "--pattern", help="Inner corners COLSxROWS, e.g. 9x6."),
     square: Optional[float] = typer.Option(None, "--square", help="Square size of the board."),
-    unit: Optional[str] = typer.Option(None, "--unit", help="Unit of the square size (mm when --square is given)."),
+    unit: Optional[str] = typer.Option(
+        None, "--unit", help="Unit of the square size, a length: um, mm, cm, dm, m, in, ft (mm when --square is "
+        "given; without it the board's squares). Written into every calibration file; reconstruct converts it to mm."),
     model: Optional[str] = typer.Option(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
         "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
@@ -105,6 +107,7 @@ def calibrate(
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)
+    use_cache = not no_cache  # checked once the inputs and the results folder are (`_corner_cache_usable`)
     figure_pool.start_rest()  # JAX is imported: the other workers warm up on the core the full-set solve leaves
     _refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
                                       cross_validate)
@@ -115,8 +118,9 @@ def calibrate(
             raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
                                "N cameras yet; calibrate a camera alone for those")
         if cfg.model_right is not None:
-            raise DstereoError("--model-right: only for a stereo rig (--left/--right); --cameras takes one --model")
-        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, not no_cache, started, projection_range)
+            raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig "
+                               "(--left/--right); --cameras takes one --model")
+        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range)
         return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
@@ -124,18 +128,19 @@ def calibrate(
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
         if cfg.model_auto:
-            raise DstereoError("--model auto: choosing the model for a stereo rig is not supported yet; run "
-                               "dstereo calibrate --images DIR --model auto on each camera, then give the rig the "
-                               "chosen --model")
+            raise DstereoError(f"{_as_given(cfg, 'model_auto', '--model', 'auto')}: choosing the model for a "
+                               "stereo rig is not supported yet; run dstereo calibrate --images DIR --model auto on "
+                               "each camera, then give the rig the chosen --model")
         if board_sag:  # asked for on the command line: it cannot be honoured (the default just runs flat)
             raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
                                "a subfolder and run --cameras DIR, whose rig solve has it")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
-        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, not no_cache, started,
+        _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, use_cache, started,
                     projection_range)
         return
     if cfg.model_right is not None:
-        raise DstereoError("--model-right: only for a stereo rig; give --left DIR --right DIR (or "
+        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig; give --left DIR "
+                           "--right DIR (or "
                            "images/images_left + images/images_right)")
     if stereo_steps:
         raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
@@ -153,7 +158,18 @@ def calibrate(
 
     check_one_camera(list_camera_images(images, cfg), str(images))
     out = _results_folder(out, project, force, cfg, inputs=[images, config_path])
-    _run(images, cfg, out, force, quiet, not no_cache, started, projection_range, projection_method, cross_validate)
+    _run(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method, cross_validate)
+
+
+def _corner_cache_usable() -> bool:
+    """Whether the corner cache can be written; if not, one warning line now and the run goes on without it. Called
+    after every refusal of the input (a refused run prints its one error line only), before the detection."""
+    from dstereo.io.corners import corner_cache_problem
+
+    problem = corner_cache_problem()
+    if problem is not None:
+        typer.echo(f"dstereo: warning: {problem}", err=True)
+    return problem is None
 
 
 def _results_folder(out, project, force: bool, cfg, inputs=()):
@@ -193,6 +209,7 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     sources = stereo_sources(images, cfg, left, right)
     out = _results_folder(out, project, force, cfg, inputs=[*sources.mono_left, *sources.mono_right,
                                                              *sources.stereo_left, *sources.stereo_right])
+    use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         _check_rig_fits(job)
@@ -225,9 +242,11 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
 
     folders = camera_folders(root, cfg)
     out = _results_folder(out, project, force, cfg, inputs=[root, *folders])
+    use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
         job.pairs(pair)  # a wrong --pair is refused before anything is written
+        _check_camera_baselines(job)
         job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
                          for w in _view_warnings(cal)]
         write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
@@ -274,6 +293,27 @@ def _check_rig_fits(job) -> None:
             "both folders come from this rig); nothing written")
 
 
+def _check_camera_baselines(job) -> None:
+    """--cameras: two cameras at one place (one camera's images copied into another's folder) are refused, with
+    the limit of a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
+    import numpy as np
+
+    from dstereo.calib.stereo_pipeline import SAME_PLACE_BOARD_FRACTION
+    from dstereo.errors import DstereoError
+
+    board = job.cameras[0].detection.board
+    size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))
+    n = len(job.labels)
+    for a in range(n):
+        for b in range(a + 1, n):
+            baseline = float(np.linalg.norm(np.asarray(job.solution.relative(a, b)[1], float)))
+            if baseline < SAME_PLACE_BOARD_FRACTION * size:
+                raise DstereoError(
+                    f"cameras {job.labels[a]} and {job.labels[b]}: baseline {baseline:.3g} {job.config.unit} (the "
+                    f"board is {size:.3g} {job.config.unit} across): their images show the board from the same "
+                    "place: are they the same images? Give each camera's own images; nothing written")
+
+
 def _stereo_view_warnings(job) -> list[str]:
     from dstereo.calib import view_checks
 
@@ -283,6 +323,15 @@ def _stereo_view_warnings(job) -> list[str]:
     return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
 
 
+def _as_given(cfg, name: str, flag: str, value: str | None = None) -> str:
+    """A configuration value as the user gave it: "--model auto" from the flag, "FILE [calibration] model = auto"
+    from a file (`Config.origins`), so a message does not put a file's value on a flag."""
+    origin = cfg.origins.get(name, flag)
+    if value is None:
+        return origin
+    return f"{origin} {value}" if origin.startswith("-") else f"{origin} = {value}"
+
+
 def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> None:
     """The splined lens (models/splined.py) is for one camera's full-set calibration (issue 16 item 2)."""
     from dstereo.errors import DstereoError
@@ -290,16 +339,18 @@ def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> No
 
     right = getattr(cfg, "model_right", None)
     if rig and right is not None and lens_model(tuple(right)) == "splined":
-        raise DstereoError("--model-right splined: stereo rigs with splined cameras are not supported; calibrate "
-                           "that camera alone with --images DIR --model splined")
+        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right', 'splined')}: stereo rigs with splined "
+                           "cameras are not supported; calibrate that camera alone with --images DIR --model splined")
     if lens_model(tuple(cfg.model)) != "splined":
         return
     if rig:
-        raise DstereoError("--model splined: stereo rigs and --cameras with splined cameras are not supported; "
+        raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: stereo rigs and --cameras with splined "
+                           "cameras are not supported; "
                            "calibrate each camera alone with --images DIR --model splined, the rig with a "
                            "parametric model")
     if cross_validate or cfg.per_set is not None:
-        raise DstereoError("--model splined: subsets (`per_set`) and --cross-validate are not available for the "
+        raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: subsets (`per_set`) and --cross-validate "
+                           "are not available for the "
                            "splined lens (its knots are ~160 parameters); run it on the full set alone")
 
 
@@ -308,6 +359,7 @@ def _run(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache: bool
          cross_validate: int = 0) -> None:
     from dstereo.io.results import EarlyFigures
 
+    use_cache = use_cache and _corner_cache_usable()
     early = EarlyFigures(out)  # the parameter figures, drawn while the survivors' solve and the writing run
     try:
         _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,

@@ -20,13 +20,14 @@ from dstereo.config.options import CALIBRATE
 from dstereo.config.steps import (ABSOLUTE_PARAMETERS, MONO_PARAMETERS, STEREO_PARAMETERS, Step, canonical_parameter,
                                   make_step, parse_step_flag, parse_step_flags)
 from dstereo.config.thesis_ini import ini_layer
+from dstereo.config.units import check_unit
 from dstereo.config.values import is_auto_model
 from dstereo.errors import DstereoError
 
 __all__ = ["ABSOLUTE_PARAMETERS", "CONFIG_NAMES", "FOREIGN_TABLES", "MONO_PARAMETERS", "STEREO_PARAMETERS", "Config",
            "Step", "as_dict", "build_config", "canonical_parameter", "config_from_thesis_ini", "config_from_toml",
-           "file_layer", "find_project_config", "is_auto_model", "load_config", "make_step", "parse_step_flag",
-           "parse_step_flags", "template", "to_toml", "validate"]
+           "file_layer", "find_project_config", "given_as", "is_auto_model", "load_config", "make_step",
+           "parse_step_flag", "parse_step_flags", "template", "to_toml", "validate"]
 
 # Project-folder configuration files, tried in this order.
 CONFIG_NAMES = ("dstereo.toml", "calibrate.toml", "init-individual.ini", "init.ini")
@@ -72,10 +73,16 @@ class Config:
     board_sag: bool = True
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
+    # parameter -> where its value came from ("--square", "dstereo.toml [pattern] square"); absent: the default.
+    # Messages name the origin, so a value from a file is not blamed on a flag nor a flag's on the file.
+    origins: dict = field(default_factory=dict, compare=False)
 
     def with_overrides(self, **changes) -> "Config":
-        """A copy with the given fields replaced; `None` values leave a field as it is."""
-        return replace(self, **{k: v for k, v in changes.items() if v is not None})
+        """A copy with the given fields replaced; `None` values leave a field as it is. A value set here came from
+        the code, not from the file or flag that gave the one it replaces: its origin goes."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        origins = {k: v for k, v in self.origins.items() if k not in changes}
+        return replace(self, **changes, origins=origins)
 
 
 # --- files, layers and the merge ----------------------------------------------------------------------------
@@ -96,7 +103,43 @@ def build_config(*layers: dict) -> Config:
     merged = merge(CALIBRATE, *layers)  # `model_auto` (set with `model`), `source` and `warnings` pass through
     if not any("unit" in layer for layer in layers) and any("square" in layer for layer in layers):
         merged["unit"] = "mm"
-    return Config(**merged)
+    origins: dict[str, str] = {}
+    for layer in layers:
+        where = layer.get("source")
+        for name in layer:
+            if name not in ("source", "warnings") and layer[name] is not None:
+                # `model_auto` is set by `model` (auto, or a named model that turns it off): the same origin
+                origins[name] = _origin("model" if name == "model_auto" else name, where)
+    return Config(**merged, origins=origins)
+
+
+def _origin(name: str, source: str | None) -> str:
+    """Where parameter `name` of a layer came from: the file and its key, or the flag (a layer without a source)."""
+    row = CALIBRATE[name] if name in CALIBRATE.names() else None
+    if not source:
+        return (row.flag if row is not None and row.flag else f"`{name}`")
+    if Path(source).suffix.lower() == ".toml":
+        key = row.file[0] if row is not None and row.file else name
+        table, _, tail = key.rpartition(".")
+        key = {"pattern.columns": "[pattern] columns/rows", "steps": "[[steps]]",
+               "stereo.steps": "[[stereo.steps]]"}.get(key, f"[{table}] {tail}" if table else tail)
+        return f"{source} {key}"
+    from dstereo.config.thesis_ini import ini_key
+
+    return f"{source} ({ini_key(name)})"
+
+
+def given_as(cfg: Config, name: str) -> str:
+    """Parameter `name` with its value as the user gave it: "--square -1", "dstereo.toml [pattern] square = -1";
+    a default (or a Config built in code) names the parameter in backticks (the CLI turns it into the flag)."""
+    value = getattr(cfg, name)
+    text = ",".join(map(str, value)) if isinstance(value, tuple) else value
+    origin = cfg.origins.get(name)
+    if origin is None:
+        return f"`{name}` {text!r}" if isinstance(text, str) else f"`{name}` {text}"
+    if origin.startswith("-"):
+        return f"{origin} {text}"
+    return f"{origin} = {text!r}" if isinstance(text, str) else f"{origin} = {text}"
 
 
 def load_config(path: str | Path) -> Config:
@@ -132,36 +175,41 @@ def find_project_config(project: str | Path) -> Path | None:
 
 
 def validate(cfg: Config) -> Config:
-    """Cross-field checks once files and flags are merged; returns `cfg` unchanged when it is consistent."""
+    """Cross-field checks once files and flags are merged; returns `cfg` with its unit in canonical form when it is
+    consistent. Each message names where the value came from (`given_as`): the flag, or the file and its key."""
     where = cfg.source or "configuration"
     if cfg.mode not in _MODES:
-        raise DstereoError(f"{where}: mode {cfg.mode!r}; use one of {', '.join(_MODES)}")
+        raise DstereoError(f"{given_as(cfg, 'mode')}; use one of {', '.join(_MODES)}")
     if cfg.pattern is None:
-        raise DstereoError(f"{where}: no board pattern; set `pattern` COLSxROWS inner corners (e.g. 9x6)")
+        raise DstereoError(f"{where}: no board pattern; give --pattern COLSxROWS inner corners (e.g. 9x6) or set "
+                           "[pattern] columns and rows in the configuration file")
     if not (cfg.square > 0 and math.isfinite(cfg.square)):
-        raise DstereoError(f"{where}: `square` (board square size) {cfg.square} must be a positive number")
+        raise DstereoError(f"{given_as(cfg, 'square')}: the board square size must be a positive number")
+    unit = check_unit(cfg.unit, given_as(cfg, "unit"))
     if cfg.per_set is not None and cfg.per_set < 3:
-        raise DstereoError(f"{where}: images per set `per_set` m = {cfg.per_set}; a calibration needs m >= 3")
+        raise DstereoError(f"{given_as(cfg, 'per_set')}: images per set m; a calibration needs m >= 3")
     if cfg.max_subsets < 1:
-        raise DstereoError(f"{where}: `max_subsets` {cfg.max_subsets} must be at least 1")
+        raise DstereoError(f"{given_as(cfg, 'max_subsets')}: must be at least 1")
     if cfg.final not in _FINAL_CHOICES:
-        raise DstereoError(f"{where}: `final` {cfg.final!r}; use one of {', '.join(_FINAL_CHOICES)}")
+        raise DstereoError(f"{given_as(cfg, 'final')}; use one of {', '.join(_FINAL_CHOICES)}")
     if cfg.min_subsets is not None and cfg.min_subsets < 1:
-        raise DstereoError(f"{where}: `min_subsets` {cfg.min_subsets} must be at least 1")
+        raise DstereoError(f"{given_as(cfg, 'min_subsets')}: must be at least 1")
     if cfg.steps and cfg.per_set is None:
         raise DstereoError(
-            f"{where}: optimisation steps need subsets; set images per set (`per_set` m, e.g. 10)")
+            f"{cfg.origins.get('steps', where)}: optimisation steps need subsets; set images per set (--per-set M, "
+            "or per_set in the configuration file, e.g. 10)")
     if cfg.model_auto:
-        _check_auto_steps(cfg, where)
+        _check_auto_steps(cfg, cfg.origins.get("steps", where))
     solved = ("re", "fx", "fy", "cx", "cy") + tuple(cfg.model)
     for k, step in enumerate(cfg.steps, 1):
         outside = [p for p in step.parameters if p not in solved]
         if outside:
             raise DstereoError(
-                f"{where}: step {k} filters {', '.join(outside)} but the distortion model "
-                f"({','.join(cfg.model) or 'none'}) does not solve it; add it to the model or drop it from the step"
+                f"{cfg.origins.get('steps', where)}: step {k} filters {', '.join(outside)} but the distortion model "
+                f"({','.join(cfg.model) or 'none'}, {cfg.origins.get('model', 'the default')}) does not solve it; "
+                "add it to the model or drop it from the step"
             )
-    return cfg
+    return cfg if unit == cfg.unit else replace(cfg, unit=unit)
 
 
 def _check_auto_steps(cfg: Config, where: str) -> None:
@@ -190,6 +238,8 @@ def as_dict(cfg: Config) -> dict:
     out = {}
     for f in fields(cfg):
         value = getattr(cfg, f.name)
+        if f.name == "origins":  # where each value came from: for messages, not part of the results
+            continue
         if f.name in ("steps", "stereo_steps"):
             value = [{"parameters": list(s.parameters), "max_error": list(s.max_error), "min_subsets": s.min_subsets}
                      for s in value]

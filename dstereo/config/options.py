@@ -80,7 +80,9 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("mode", "mode"),
     _opt("pattern", ("pattern.columns", "pattern.rows"), "--pattern", "Inner corners COLSxROWS, e.g. 9x6."),
     _opt("square", "pattern.square", "--square", "Square size of the board.", float),
-    _opt("unit", "pattern.unit", "--unit", "Unit of the square size (mm when --square is given)."),
+    _opt("unit", "pattern.unit", "--unit", "Unit of the square size, a length: um, mm, cm, dm, m, in, ft (mm when "
+         "--square is given; without it the board's squares). Written into every calibration file; reconstruct "
+         "converts it to mm."),
     _opt("images", "images.folder", "--images", "Image folder (default PROJECT/images)."),
     _opt("image_format", "images.format", "--format", "Image file extension, e.g. jpg."),
     _opt("image_format_left", "images.format_left"),

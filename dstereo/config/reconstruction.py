@@ -56,8 +56,28 @@ def mapping_layer(data: dict, where: str) -> dict:
 
 
 def file_layer(path: str | Path) -> dict:
-    """The parameters a TOML or JSON file gives (see `mapping_layer`)."""
-    return mapping_layer(read_mapping(path), str(path))
+    """The parameters a TOML or JSON file gives (see `mapping_layer`), and the file as the layer's `source` (the
+    messages of `check` name it and the key instead of the flag)."""
+    return {**mapping_layer(read_mapping(path), str(path)), "source": str(path)}
+
+
+def _origin(name: str, source: str | None) -> str | None:
+    """Where parameter `name` of a layer came from: the file and its key; None for a flag (the messages name
+    parameters in backticks, which the command line turns into its flags, reconstruct's or recession's)."""
+    if not source:
+        return None
+    if name == "preset":
+        return f"{source} [reconstruct] preset (or [sgbm] preset)"
+    if name.startswith(_SGBM):
+        return f"{source} [sgbm] {name[len(_SGBM):]}"
+    return f"{source} [reconstruct] {'z_min/z_max' if name == 'depth_range' else name}"
+
+
+def given_as(cfg, name: str, value) -> str:
+    """`name` with `value` as the user gave it: "FILE [reconstruct] outlier_std = 0" for a file's value, else
+    "`outlier_std` 0" (the flag, on the command line)."""
+    origin = getattr(cfg, "_origins", {}).get(name)
+    return f"{origin} = {value}" if origin else f"`{name}` {value}"
 
 
 def _roi(text: str) -> tuple[int, int, int, int]:
@@ -111,16 +131,28 @@ def build(*layers: dict, sgbm_base=None):
     from dstereo.stereo.disparity import PRESETS
     from dstereo.stereo.reconstruction_config import ReconstructionConfig
 
-    merged = merge_layers(RECONSTRUCT, *layers)
+    origins: dict[str, str | None] = {}
+    plain = []
+    for layer in layers:
+        source = layer.get("source")
+        plain.append({k: v for k, v in layer.items() if k != "source"})
+        origins |= {k: _origin(k, source) for k, v in plain[-1].items() if v is not None}
+    merged = merge_layers(RECONSTRUCT, *plain)
     if isinstance(merged.get("disparity_sigma"), str) and merged["disparity_sigma"].strip().lower() == "auto":
         merged["disparity_sigma"] = None  # estimated from the images
     preset = merged.pop("preset", None)
     if preset is not None and preset not in PRESETS:
-        raise DstereoError(f"`preset` {preset!r}: unknown SGBM preset; use one of {sorted(PRESETS)}")
+        where = f"{origins['preset']} = {preset!r}" if origins.get("preset") else f"`preset` {preset!r}"
+        raise DstereoError(f"{where}: unknown SGBM preset; use one of {sorted(PRESETS)}")
     base = PRESETS[preset] if preset is not None else (sgbm_base or ReconstructionConfig().sgbm)
     overrides = {k[len(_SGBM):]: merged.pop(k) for k in list(merged) if k.startswith(_SGBM)}
     user = (("preset",) if preset is not None else ()) + tuple(overrides)
-    return replace(ReconstructionConfig(), sgbm=base.with_overrides(overrides), sgbm_user=user, **merged)
+    cfg = replace(ReconstructionConfig(), sgbm=base.with_overrides(overrides), sgbm_user=user, **merged)
+    try:  # where each value came from, for `check`'s messages: beside the fields (not one: results never show it)
+        object.__setattr__(cfg, "_origins", origins)
+    except (AttributeError, TypeError):  # a type with __slots__: the messages name the parameters, as before
+        pass
+    return cfg
 
 
 def load_config(path: str | Path):
@@ -152,15 +184,16 @@ def check(cfg, image_size: tuple[int, int] | None = None) -> None:
     for name in _POSITIVE:
         value = getattr(cfg, name)
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise DstereoError(f"`{name}` {value}: must be a positive number")
+            raise DstereoError(f"{given_as(cfg, name, value)}: must be a positive number")
     if cfg.outlier_neighbours < 0:
-        raise DstereoError(f"`outlier_neighbours` {cfg.outlier_neighbours}: give a number of neighbours >= 0 (0 "
-                           "turns it off)")
+        raise DstereoError(f"{given_as(cfg, 'outlier_neighbours', cfg.outlier_neighbours)}: give a number of "
+                           "neighbours >= 0 (0 turns it off)")
     if not (cfg.alpha == -1 or 0 <= cfg.alpha <= 1):
-        raise DstereoError(f"`alpha` {cfg.alpha}: rectification's free scaling is -1 (OpenCV's default) or 0..1")
+        raise DstereoError(f"{given_as(cfg, 'alpha', cfg.alpha)}: rectification's free scaling is -1 (OpenCV's "
+                           "default) or 0..1")
     lr = cfg.sgbm.lr_check
     if lr is not None and not (math.isfinite(lr) and lr >= 0):
-        raise DstereoError(f"`sgbm.lr_check` {lr}: the left-right tolerance is a distance in px, >= 0")
+        raise DstereoError(f"{given_as(cfg, 'sgbm.lr_check', lr)}: the left-right tolerance is a distance in px, >= 0")
     if image_size is None:
         return
     from dstereo.stereo.matching import user_sgbm_names

@@ -195,6 +195,14 @@ _SCALARS = (
 )
 
 
+def ini_key(name: str) -> str:
+    """The thesis file's key of parameter `name` (for messages that name where a value came from)."""
+    keys = {"pattern": "mesh width/mesh height", "mode": "individual/stereo calibration",
+            "model": "distortion coefficients parameters", "model_auto": "distortion coefficients parameters",
+            "steps": "[ Optimization ]", "stereo_steps": "[ Stereo Optimization ]", "min_subsets": "[ Optimization ]"}
+    return keys.get(name) or next((key for key, param, _ in _SCALARS if param == name), name)
+
+
 def _mode(individual, stereo, where: str) -> dict:
     if individual not in (None, 0, 1) or stereo not in (None, 0, 1):
         raise DstereoError(f"{where}: 'Individual calibration' and 'Stereo calibration' take 1 or 0")

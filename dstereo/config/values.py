@@ -39,12 +39,18 @@ def is_auto_model(spec) -> bool:
 
 
 def model(spec, where: str) -> tuple[str, ...]:
-    from dstereo.models.distortion import parse_model
+    from dstereo.models.distortion import PRESETS, parse_model
 
+    names = spec.replace(" ", ",").split(",") if isinstance(spec, str) else list(spec)
+    if not any(str(n).strip() for n in names):
+        # an empty name used to mean "no coefficient free": a calibration with no distortion, silently; that lens
+        # is asked for by name (none), so an empty value is a slip (an unset shell variable, a stray quote)
+        raise DstereoError(f"{where}: {spec!r} names no lens model; use one of {', '.join(PRESETS)}, "
+                           "splined:NXxNY, or coefficients such as k1,k2,p1,p2 (none: no distortion)")
     try:
         return parse_model(spec)
     except DstereoError as exc:
-        raise DstereoError(f"{where}: {exc}") from None
+        raise DstereoError(f"{where}: {str(exc).removeprefix('model: ')}") from None
 
 
 def right_model(spec, where: str) -> tuple[str, ...]:
@@ -59,4 +65,7 @@ def model_layer(spec, where: str) -> dict:
     """The parameters a lens-model spec sets: `model_auto`, and `model` unless the data chooses it ("auto")."""
     if is_auto_model(spec):
         return {"model_auto": True}
-    return {"model": model(spec, where), "model_auto": False}
+    try:
+        return {"model": model(spec, where), "model_auto": False}
+    except DstereoError as exc:  # one camera's model may also be chosen from the data
+        raise DstereoError(f"{exc}; or auto (the model that best predicts held-out views)") from None

@@ -125,7 +125,8 @@ def calibrate_joint(job, folder: Path, report):
     with atomic_folder(folder, False) as tmp:
         write_stereo_yml(tmp / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
                          s.R, s.T, s.E, s.F, s.left.image_size, s.right.image_size, rms=s.rms, cov=cov,
-                         cov_names=tuple(s.names), cov_structure=JOINT_STRUCTURE + "; demo.joint_covariance")
+                         cov_names=tuple(s.names), cov_structure=JOINT_STRUCTURE + "; demo.joint_covariance",
+                         unit="mm")  # the demo's board is in mm (demo_config)
         write_json(tmp / "stereo.json", {
             "mode": s.mode, "status": s.status_text, "names": s.names, "values": s.values,
             "std": np.sqrt(np.diag(cov)), "covariance": cov, "R": s.R, "T": s.T, "E": s.E, "F": s.F,

@@ -49,6 +49,9 @@ def reconstruct_pair(job, calib, config, folder: str) -> PairDone:
     target = Path(folder) / name
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}.tmp-", dir=folder))
     try:
+        from dstereo.io.atomic_files import follow_umask
+
+        follow_umask(tmp, folder=True)  # the pair's results folder is this one renamed
         write_pair(tmp, r, config)
         (tmp / "pair_done.json").write_text(json.dumps({"name": name, "warnings": r.warnings, "summary": r.summary},
                                                         default=json_default))

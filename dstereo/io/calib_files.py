@@ -127,8 +127,9 @@ def _image_size_or_none(data: dict) -> tuple[int, int] | None:
     return None
 
 
-def read_opencv_stereo(path: str | Path) -> StereoCalibration:
-    """OpenCV stereo calibration file (or an intrinsics/extrinsics pair, given either of them)."""
+def read_opencv_stereo(path: str | Path, unscaled: bool = False) -> StereoCalibration:
+    """OpenCV stereo calibration file (or an intrinsics/extrinsics pair, given either of them), lengths in mm
+    (`_unit_scale`). `unscaled`: a file in board squares is read as it is (for `refine`, which sets the scale)."""
     path = Path(path)
     if not path.is_file():
         raise DstereoError(f"calibration file {path} does not exist")
@@ -167,18 +168,49 @@ def read_opencv_stereo(path: str | Path) -> StereoCalibration:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise DstereoError(f"{path}: R is not a rotation matrix (R R^T != I); check the file")
     models = _lens_models(data, path)
+    mm, unit_note = _unit_scale(data, path, unscaled)
     return StereoCalibration(
-        extras=_covariance_extras(data, path) | _board_depth_extras(data),
+        extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm), unit_note=unit_note,
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
         D1=_lens_coeffs(_pick(data, "D1"), models[0], f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
         D2=_lens_coeffs(_pick(data, "D2"), models[1], f"{path}: D2"),
         models=models,
         R=R,
-        T=T.reshape(3),
+        T=T.reshape(3) * mm,
         image_size=_image_size(data),
         source=str(path),
     )
+
+
+def _unit_scale(data: dict, path: Path, unscaled: bool = False) -> tuple[float, str]:
+    """(mm per unit of the file's lengths, the note saying so): a StereoCalibration is in mm, so a file in cm
+    (dstereo calibrate --unit cm) has its T and board depths converted here, once for every reader (reconstruct,
+    refine, recession). A file without `unit` (OpenCV's own, dstereo's before the unit was written) is read in mm
+    as before, and the note says it was assumed; a file in board squares has no scale and is refused."""
+    from dstereo.config.units import SQUARES, check_unit, mm_per
+
+    if data.get("unit") is None:
+        return 1.0, f"{path.name} names no unit: its lengths are taken as mm"
+    unit = check_unit(data["unit"], f"{path}: unit {data['unit']!r}")
+    if unit == SQUARES and unscaled:
+        return 1.0, f"{path.name} is in board squares: no scale until a reference sets it"
+    mm = mm_per(unit, str(path))
+    return mm, f"{path.name} is in {unit}: converted to mm (x {mm:g})" if unit != "mm" else f"{path.name} is in mm"
+
+
+def _in_mm(extras: dict, mm: float) -> dict:
+    """The file's lengths among `extras` in mm: board depths, and the covariance's rows and columns of T (Tx Ty Tz)."""
+    if mm == 1.0:
+        return extras
+    out = dict(extras)
+    for key in ("board_depth_min", "board_depth_max"):
+        if key in out:
+            out[key] = out[key] * mm
+    if "cov" in out:
+        scale = np.array([mm if n in ("Tx", "Ty", "Tz") else 1.0 for n in out["cov_names"]])
+        out["cov"] = out["cov"] * np.outer(scale, scale)
+    return out
 
 
 def _lens_models(data: dict, path: Path) -> tuple[str, str]:
@@ -281,18 +313,29 @@ def read_middlebury_calib(path: str | Path) -> StereoCalibration:
     return StereoCalibration(
         K1=K1, D1=np.zeros(8), K2=K2, D2=np.zeros(8), R=np.eye(3), T=np.array([-float(values["baseline"]), 0.0, 0.0]),
         image_size=size, rectified=True, source=str(path), extras=extras,
+        unit_note=f"{path.name}: Middlebury's baseline is in mm",
     )
 
 
-def read_stereo_calibration(path: str | Path) -> StereoCalibration:
-    """Any supported stereo calibration file (see the module docstring), by content."""
+def read_stereo_calibration(path: str | Path, unscaled: bool = False) -> StereoCalibration:
+    """Any supported stereo calibration file (see the module docstring), by content; lengths in mm (`unscaled`:
+    see `read_opencv_stereo`)."""
     path = Path(path)
     if not path.is_file():
         raise DstereoError(f"calibration file {path} does not exist; give `calib` a stereo.yml, OpenCV YAML or calib.txt")
     head = path.read_text(errors="replace")[:4000]
     if re.search(r"^\s*cam0\s*=", head, flags=re.MULTILINE):
         return read_middlebury_calib(path)
-    return read_opencv_stereo(path)
+    return read_opencv_stereo(path, unscaled)
+
+
+def calibration_unit_note(path: str | Path) -> str | None:
+    """`StereoCalibration.unit_note` of the calibration file at `path` (its unit: converted to mm, or mm assumed),
+    for a results summary that holds only the file's name; None when it cannot be read there now."""
+    try:
+        return read_stereo_calibration(path).unit_note if Path(path).is_file() else None
+    except (DstereoError, OSError):
+        return None
 
 
 def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.ndarray) -> None:
@@ -307,6 +350,7 @@ def write_opencv_stereo(path: str | Path, calib: StereoCalibration, **extra: np.
         for key, value in (("M1", calib.K1), ("D1", D1), ("M2", calib.K2), ("D2", D2),
                            ("R", calib.R), ("T", calib.T.reshape(3, 1)), *extra.items()):
             fs.write(key, np.asarray(value, dtype=float))
+        fs.write("unit", "mm")  # a StereoCalibration is in mm (its readers convert to it)
         if "fisheye" in calib.models:
             fs.write("distortion_model1", calib.models[0])
             fs.write("distortion_model2", calib.models[1])

@@ -42,6 +42,9 @@ class CameraFile:
     source: str = ""
     valid: np.ndarray | None = None  # a splined camera's valid spans (NY - 3, NX - 3) bool
     free: tuple[str, ...] = ()  # a splined camera's knot names (its model), else empty
+    # the board's length unit of the calibration (K and D are in px: nothing here to convert); None: the file
+    # names none (OpenCV's own files, dstereo's before the unit was written)
+    unit: str | None = None
 
     @property
     def D(self) -> np.ndarray:
@@ -116,9 +119,14 @@ def read_camera_file(path: str | Path) -> CameraFile:
     w, h = data.get("image_width"), data.get("image_height")
     size = (int(w), int(h)) if w is not None and h is not None else None
     k = _check_matrix(data["camera_matrix"], f"{path}: camera_matrix")
+    from dstereo.config.units import UNITS
+
+    # recorded, not converted (no length here): a `unit` of another meaning in someone's file is left out
+    unit = str(data.get("unit", "")).strip().lower() or None
+    unit = unit if unit in UNITS else None
     if model == "splined":
         knots, free, valid = _read_splined_section(path)
-        return CameraFile(k, knots, model, size, str(path), valid, free)
+        return CameraFile(k, knots, model, size, str(path), valid, free, unit)
     d = data.get("distortion_coefficients")
     d = np.zeros(0) if d is None else np.asarray(d, float).ravel()
     if model == "fisheye":
@@ -128,4 +136,4 @@ def read_camera_file(path: str | Path) -> CameraFile:
         coeffs = np.concatenate([d, np.zeros(4)])
     else:
         coeffs = _coeffs8(d, f"{path}: distortion_coefficients")
-    return CameraFile(k, coeffs, model, size, str(path))
+    return CameraFile(k, coeffs, model, size, str(path), unit=unit)

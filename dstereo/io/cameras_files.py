@@ -36,6 +36,7 @@ def write_cameras_yml(path: Path, job) -> None:
         fs.write("camera_count", len(job.labels))
         fs.write("camera_names", ",".join(job.labels))
         fs.write("rms", float(sol.rms))
+        fs.write("unit", job.config.unit)  # of every T_i
         for i, (cam, R, T) in enumerate(zip(sol.cameras, sol.R, sol.T)):
             fs.write(f"K_{i}", np.asarray(cam.matrix(), float))
             fs.write(f"D_{i}", _distortion(cam).reshape(1, -1))
@@ -89,7 +90,8 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
     F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
-                     ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)))
+                     ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
+                     unit=job.config.unit)
     if tuple(ca.image_size) != tuple(cb.image_size):
         return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
                       "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")

@@ -81,9 +81,39 @@ def list_images(folder: Path, suffix: str | None = None) -> list[Path]:
     return files
 
 
-def _cache_dir() -> Path:
-    root = os.environ.get("DSTEREO_CACHE") or os.path.join(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"), "dstereo")
+def _cache_dir() -> Path | None:
+    """DSTEREO_CACHE/corners, else XDG_CACHE_HOME/dstereo/corners, else ~/.cache/dstereo/corners; None for a user
+    without a home folder (an empty variable counts as unset: "" would put the cache in the working folder)."""
+    root = os.environ.get("DSTEREO_CACHE")
+    if not root:
+        base = os.environ.get("XDG_CACHE_HOME")
+        if not base:
+            try:
+                base = str(Path.home() / ".cache")
+            except RuntimeError:  # no HOME and no password entry
+                return None
+        root = os.path.join(base, "dstereo")
     return Path(root) / "corners"
+
+
+def corner_cache_problem() -> str | None:
+    """Why the corner cache cannot be used here (one line for a warning), or None when it can: its folder is made
+    and a file written in it, so a cache that cannot be written is found before any detection, not in the middle
+    of it as a file error that does not say it is the cache."""
+    import tempfile
+
+    folder = _cache_dir()
+    advice = ("running without it (as --no-cache); set DSTEREO_CACHE to a writable folder, or pass --no-cache to "
+              "skip the cache and this warning")
+    if folder is None:
+        return f"no home folder for the corner cache (~/.cache/dstereo/corners); {advice}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+            pass
+    except OSError as exc:
+        return f"the corner cache {folder} cannot be written ({exc.strerror or exc}); {advice}"
+    return None
 
 
 def _detect_one(gray: np.ndarray, pattern: tuple[int, int]) -> tuple[np.ndarray | None, str]:
@@ -109,7 +139,7 @@ def _cached_entry(path: Path) -> tuple[np.ndarray | None, str, tuple[int, int] |
         with np.load(path) as z:
             size = tuple(int(v) for v in z["size"]) if "size" in z.files else None
             return (z["corners"] if z["found"] else None), str(z["reason"]), size
-    except FileNotFoundError:
+    except (OSError, ValueError, KeyError, EOFError):  # missing, unreadable or damaged: detect the image again
         return None
 
 
@@ -138,6 +168,7 @@ def detect_folder(
 
     files = list_images(Path(folder), suffix) if files is None else files
     cache = _cache_dir()
+    use_cache = use_cache and cache is not None
     corners: dict[str, np.ndarray] = {}
     rejected: dict[str, str] = {}
     sizes: dict[tuple[int, int], str] = {}
@@ -157,7 +188,10 @@ def detect_folder(
             size = (gray.shape[1], gray.shape[0])
             pts, reason = entry[:2] if entry is not None else _detect_one(gray, pattern)
             if use_cache:
-                _write_entry(cache, cached, pts, reason, size)
+                try:
+                    _write_entry(cache, cached, pts, reason, size)
+                except OSError:  # the cache is only a shortcut: a folder that stopped taking files (full, removed)
+                    use_cache = False  # does not stop the detection; the commands check it first (corner_cache_problem)
         hits += entry is not None
         sizes.setdefault(size, path.name)
         if pts is None:

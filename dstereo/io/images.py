@@ -14,6 +14,8 @@ def read_image(path: str | Path) -> np.ndarray:
     import cv2
 
     path = Path(path)
+    if path.is_dir():
+        raise DstereoError(f"image {path} is a folder, not an image file; give one image file of it")
     if not path.is_file():
         raise DstereoError(f"image {path} does not exist")
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)

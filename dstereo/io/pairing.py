@@ -127,11 +127,28 @@ def check_enough_pairs(pairing: NamePairing, where_left: str, where_right: str, 
         + (f" (a stereo calibration needs at least {minimum} pairs)" if n < minimum else ""))
 
 
+def _example_image(folder: Path, side: str) -> Path:
+    """An image of `folder` to quote in a message: the first one named for `side` (left01.jpg), else the first."""
+    from dstereo.io.corners import IMAGE_SUFFIXES
+
+    try:
+        images = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    except OSError:
+        images = []
+    named = [p for p in images if camera_side(p) == side]
+    return (named or images or [folder / f"{side}01.png"])[0]
+
+
 def check_distinct_images(left: str | Path, right: str | Path, decode: bool = True) -> None:
     """Refuse a 'pair' that is one image twice: the same file, a byte-identical copy, or (with `decode`) the same
     decoded pixels. (An image matched with itself gives zero disparity everywhere: a plausible-looking but
     meaningless cloud.)"""
     left, right = Path(left), Path(right)
+    for side, other, path in (("left", "right", left), ("right", "left", right)):
+        if path.is_dir():  # checked first, before any work: read later it was "an image that does not exist"
+            raise DstereoError(f"`{side}` {path} is a folder, not an image: `{side}` takes one image file, e.g. "
+                               f"`{side}` {_example_image(path, side)}, with its partner as `{other}`; for several "
+                               "pairs repeat `left` and `right` in pair order")
     if not (left.is_file() and right.is_file()):
         return  # a missing file is reported where the images are read
     what = None

@@ -51,7 +51,11 @@ def write_results(out, result, calibration: str, sequence: str, force: bool = Fa
     """Fill the results folder (module docstring); returns the summary written to summary.json."""
     from dstereo.io import recession_figures as plots
 
-    summary = {"sequence": str(sequence), "calibration": str(calibration), **result.summary(), **(extra or {})}
+    from dstereo.io.calib_files import calibration_unit_note
+
+    summary = {"sequence": str(sequence), "calibration": str(calibration),
+               "calibration_unit": calibration_unit_note(calibration),  # converted to mm, or mm assumed
+               **result.summary(), **(extra or {})}
     with atomic_folder(out, force) as tmp:
         write_csv(tmp / "recession.csv", result)
         write_npz(tmp / "recession_maps.npz", result)

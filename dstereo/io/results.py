@@ -38,6 +38,7 @@ from dstereo.calib.robust_steps import SURVIVES, UNUSABLE, FilterResult
 from dstereo.config.calibration import ABSOLUTE_PARAMETERS, as_dict, to_toml
 from dstereo.errors import DstereoError
 from dstereo.io.json_files import json_default, write_json  # noqa: F401 - the writers' names, importable here
+from dstereo.io.atomic_files import follow_umask
 
 UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
 N_UNDISTORTED = 3
@@ -63,6 +64,7 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
+        follow_umask(tmp, folder=True)  # the results folder is this one renamed
         yield tmp
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
@@ -199,7 +201,7 @@ def distortion_names(free: Sequence[str], n: int) -> list[str]:
 
 
 def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: tuple[int, int], extra: dict,
-                       model: str = "pinhole", splined=None, comment: str | None = None) -> None:
+                       model: str = "pinhole", splined=None, comment: str | None = None, *, unit: str = "mm") -> None:
     """camera.yml (cv2.FileStorage) and camera.json with the same numbers. A fisheye camera adds
     `distortion_model: fisheye` (D is then cv2.fisheye's 4-vector); without the field the camera is OpenCV's
     pinhole + distortion model, as before. A splined camera: `splined` = (knots, free, valid spans), written as
@@ -212,6 +214,7 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
             fs.writeComment(comment)
         fs.write("image_width", int(image_size[0]))
         fs.write("image_height", int(image_size[1]))
+        fs.write("unit", unit)  # the board's length unit: K and D are in px, the board poses and sag in this
         if model != "pinhole":
             fs.write("distortion_model", model)
         fs.write("camera_matrix", np.asarray(K, np.float64))
@@ -225,7 +228,7 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
         fs.release()
     flag = {} if model == "pinhole" else {"distortion_model": model}
     write_json(folder / "camera.json", {"image_width": int(image_size[0]), "image_height": int(image_size[1]),
-                                        **flag, "camera_matrix": np.asarray(K).tolist(),
+                                        "unit": unit, **flag, "camera_matrix": np.asarray(K).tolist(),
                                         "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
 
 
@@ -467,7 +470,8 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
         section = (cal.final_coefficients, full.free,
                    splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free))))
     sag, solved_board, comment = _solved_board(cal, det.object_points)
-    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment, extra={
+    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment,
+                       unit=cal.config.unit, extra={
         "distortion_names": names, "source": summary["final_source"],
         "full_set": {"camera_matrix": full.camera_matrix.tolist(),
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),

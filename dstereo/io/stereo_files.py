@@ -145,8 +145,11 @@ from dstereo.io.atomic_files import replace_atomically as _replace_atomically  #
 def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, int],
                      image_size_right: tuple[int, int] | None = None, rms: float | None = None, *,
                      cov: np.ndarray | None = None, cov_names: tuple[str, ...] | None = None,
-                     cov_structure: str | None = None, models: tuple[str, str] = ("pinhole", "pinhole")) -> Path:
-    """OpenCV YAML with M1 D1 M2 D2 R T E F imageSize (+ imageSize2, rms). D as 1x8 rows in OpenCV's order.
+                     cov_structure: str | None = None, models: tuple[str, str] = ("pinhole", "pinhole"),
+                     unit: str = "mm") -> Path:
+    """OpenCV YAML with M1 D1 M2 D2 R T E F imageSize (+ imageSize2, rms) and `unit`, the length unit of T (and of
+    the board depths appended after): readers convert from it (`calib_files.read_opencv_stereo`). The default, mm,
+    is a `StereoCalibration`'s unit; a calibration's writer passes its board unit. D as 1x8 rows in OpenCV's order.
 
     With `cov`: the calibration covariance as `cov` (G x G matrix), `cov_names` (one string, comma separated:
     left.fx .. left.<free coefficients>, right.*, RVx RVy RVz Tx Ty Tz; RV is the axis-angle vector of R) and
@@ -154,8 +157,10 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
     """
     import cv2
 
+    from dstereo.config.units import check_unit
     from dstereo.io.calib_files import LENS_MODELS
 
+    unit = check_unit(unit, f"{path}: unit {unit!r}")
     if any(m not in LENS_MODELS for m in models):
         raise DstereoError(f"{path}: lens models {models}; each is one of {list(LENS_MODELS)}")
     D1, D2 = (np.asarray(d, float).ravel()[:4] if m == "fisheye" else d for d, m in zip((D1, D2), models))
@@ -172,6 +177,7 @@ def write_stereo_yml(path, K1, D1, K2, D2, R, T, E, F, image_size: tuple[int, in
             for key, value, shape in (("M1", K1, (3, 3)), ("D1", D1, (1, -1)), ("M2", K2, (3, 3)), ("D2", D2, (1, -1)),
                                       ("R", R, (3, 3)), ("T", T, (3, 1)), ("E", E, (3, 3)), ("F", F, (3, 3))):
                 fs.write(key, np.asarray(value, dtype=float).reshape(shape))
+            fs.write("unit", unit)
             if "fisheye" in models:  # without the fields a reader takes both cameras as OpenCV's pinhole model
                 fs.write("distortion_model1", models[0])
                 fs.write("distortion_model2", models[1])
@@ -330,7 +336,7 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
                      job.R, job.T, job.E, job.F, s.left.image_size, s.right.image_size, s.rms, cov=cov,
                      cov_names=cov_names, cov_structure=cov_structure,
-                     models=tuple(lens_model(tuple(c.dist.free)) for c in (s.left, s.right)))
+                     models=tuple(lens_model(tuple(c.dist.free)) for c in (s.left, s.right)), unit=job.config.unit)
     summary = stereo_summary(job)
     from dstereo.io.cameramodel import write_rig_cameramodels  # mrcal's format, the left camera as reference
 

@@ -34,6 +34,9 @@ class StereoCalibration:
     source: str = ""
     extras: dict = field(default_factory=dict)
     models: tuple[str, str] = ("pinhole", "pinhole")
+    # How the file's lengths became mm (its readers convert, io/calib_files.py): "stereo.yml is in cm: converted to
+    # mm (x 10)", "... names no unit: its lengths are taken as mm" (OpenCV's own files); "" when built in code
+    unit_note: str = ""
 
     @staticmethod
     def k_vector(K: np.ndarray) -> np.ndarray:

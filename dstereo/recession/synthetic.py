@@ -27,7 +27,7 @@ def true_calibration_files(folder: Path, rig) -> Path:
     k1, k2 = np.asarray(rig.left.matrix()), np.asarray(rig.right.matrix())
     f = np.linalg.inv(k2).T @ e @ np.linalg.inv(k1)
     return write_stereo_yml(folder / "stereo.yml", k1, rig.left.coeffs(), k2, rig.right.coeffs(), r, t, e, f / f[2, 2],
-                            tuple(rig.left.image_size))
+                            tuple(rig.left.image_size), unit="mm")  # the synthetic scenes are in mm
 
 
 def sample_truth(rig, sample, T_world_sample) -> dict:

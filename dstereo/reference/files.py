@@ -62,7 +62,7 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
     from dstereo.stereo.pipeline import check_pair, read_image
 
     check_output(out, force)
-    calib = read_stereo_calibration(calib_path)
+    calib = read_stereo_calibration(calib_path, unscaled=True)  # a rig in board squares: the reference scales it
     if calib.rectified:
         raise DstereoError(f"calibration {calib_path}: an already rectified (Middlebury) pair has no rig to refine")
     left, right = read_image(left_path), read_image(right_path)
@@ -70,7 +70,8 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
     result = observe_and_refine(calib, left, right, reference, (str(left_path), str(right_path)), focal, fixed,
                                 marks, config)
     report = result.report()
-    report["inputs"] = {"calibration": str(calib_path), "left": str(left_path), "right": str(right_path)}
+    report["inputs"] = {"calibration": str(calib_path), "left": str(left_path), "right": str(right_path),
+                        "calibration_unit": calib.unit_note}  # converted to mm, or mm assumed
     with atomic_folder(out, force) as tmp:
         write_calibration(tmp / "stereo.yml", result.calibration, (left.shape[1], left.shape[0]))
         write_json(tmp / "refine.json", report)
@@ -84,7 +85,7 @@ def write_calibration(path: Path, calib: StereoCalibration, image_size: tuple[in
     rig = calib.rig
     E, F = np.array(rig.essential(), float), np.array(rig.fundamental(calib.k1, calib.k2), float)
     write_stereo_yml(path, calib.K1, calib.D1, calib.K2, calib.D2, calib.R, np.asarray(calib.T).reshape(3), E, F,
-                     calib.image_size or image_size)
+                     calib.image_size or image_size, unit="mm")  # a StereoCalibration is in mm (its readers convert)
 
 
 def _std(value, fmt: str, unit: str) -> str:
