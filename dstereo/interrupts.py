@@ -163,8 +163,9 @@ def mark_said() -> None:
     _said = True
 
 
-def abandon() -> None:
-    """The watchdog: the main thread did not end the command in time. Everything here avoids locks the main thread
+def abandon(line: str | None = None, code: int | None = None) -> None:
+    """The watchdog: the main thread did not end the command in time (a signal's, or dstereo/watchdog.py's `line`
+    and `code` for a compiled call that stopped making progress). Everything here avoids locks the main thread
     may hold (no print: sys.stderr's buffer lock; os.write to fd 2)."""
     global _said
     for path in list(_staging):
@@ -179,10 +180,10 @@ def abandon() -> None:
     if not _said:
         _said = True
         try:
-            os.write(2, f"dstereo: error: {Interrupted(signum)}\n".encode())
+            os.write(2, f"dstereo: error: {line or Interrupted(signum)}\n".encode())
         except OSError:
             pass
-    os._exit(128 + signum)
+    os._exit(128 + signum if code is None else code)
 
 
 def children(pid: int | None = None) -> list[int]:

@@ -16,6 +16,24 @@ jax.config.update("jax_enable_x64", True)
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """After each test module: drop JAX's in-memory compiled programs and dstereo's caches of compiled functions.
+    One process runs ~950 tests; kept, their executables grew the suite past 5 GB of RSS (the budget is 3 GB),
+    and a fresh compile's serialization for the persistent cache aborted the process late in the run. The next
+    module that needs a program fetches it from the on-disk cache (milliseconds), as a new command does."""
+    yield
+    import gc
+
+    jax.clear_caches()
+    for name, module in list(sys.modules.items()):
+        if name.startswith("dstereo"):
+            for value in list(vars(module).values()):
+                if callable(getattr(value, "cache_clear", None)):
+                    value.cache_clear()
+    gc.collect()
+
+
 def require_data(sub: str) -> Path:
     """Path to ../shared/data/<sub>; skip (with the reason) only where the shared data is absent, and
     fail instead under CI (CI=true), where a skipped real-data test would leave the suite green untested."""

@@ -59,8 +59,8 @@ def env_for(**extra) -> dict:
 class Run:
     """A `dstereo` subprocess whose stdout and stderr are read by threads: `closed` once both reached end of file."""
 
-    def __init__(self, args, cwd: Path, env: dict):
-        self.proc = subprocess.Popen([sys.executable, "-c", ENTRY, *map(str, args)], cwd=cwd, env=env,
+    def __init__(self, args, cwd: Path, env: dict, entry: str = ENTRY):
+        self.proc = subprocess.Popen([sys.executable, "-c", entry, *map(str, args)], cwd=cwd, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         self.err: list[bytes] = []
         self.out: list[bytes] = []

@@ -25,7 +25,7 @@ import threading
 import time
 
 from dstereo import serve_client as wire
-from dstereo import interrupts
+from dstereo import interrupts, watchdog
 from dstereo.commands.serve_request import client_stream, install_interrupt, interrupt_command, run_request
 from dstereo.errors import DstereoError
 
@@ -172,7 +172,11 @@ class Server:
             threading.Thread(target=self._watch, args=(conn, done, lock), daemon=True).start()
             out = client_stream(conn, b"o", request["stdout"], lock, line_buffering=bool(request["stdout"].get("tty")))
             err = client_stream(conn, b"e", request["stderr"], lock, line_buffering=True)
-            code = run_request(request, out, err)
+            watchdog.reporter = lambda line: _tell_client(conn, lock, line, 1)  # a stalled call ends the server
+            try:
+                code = run_request(request, out, err)
+            finally:
+                watchdog.reporter = None
             done.set()
             if code is not None and code > 128:  # stopped by the client's signal: end what the command started
                 _end_command_children(before)
@@ -341,14 +345,19 @@ def _abandon_stuck(conn: socket.socket, lock: threading.Lock, signum: int) -> No
     command's staging folders, end every child, and end the server (interrupts.abandon: no stale socket)."""
     line = f"dstereo: error: {interrupts.Interrupted(signum)} (the command was stuck in a compiled call; the " \
            "background server stopped with it)\n"
+    _tell_client(conn, lock, line, 128 + signum)
+    interrupts.mark_said()
+    interrupts.abandon()
+
+
+def _tell_client(conn: socket.socket, lock: threading.Lock, line: str, code: int) -> None:
+    """A command's last line and exit code, sent by a watchdog as the server ends (not the command's thread)."""
     if lock.acquire(timeout=0.2):  # the command's own output may hold it; the client says the line otherwise
         try:
             wire.send(conn, b"e", line.encode())
-            wire.send(conn, b"x", json.dumps(128 + signum).encode())
+            wire.send(conn, b"x", json.dumps(code).encode())
         except OSError:
             pass
-    interrupts.mark_said()
-    interrupts.abandon()
 
 
 def _unlink_if(path: str, inode: int) -> None:
