@@ -43,15 +43,39 @@ def main(end_process: bool | None = None) -> None:
     """Run the command line; ends with SystemExit (its exit code), or, where this process runs only the command
     (`end_process`, default: started as the `dstereo` script or `python -m dstereo.cli`, never under pytest),
     ends the process itself once the command's work is done (`finish`)."""
+    from dstereo import interrupts
+
     end_process = _command_process() if end_process is None else end_process
+    if end_process:
+        interrupts.install()  # idempotent: the entry point (serve_client.main) installed them already
     try:
         _dispatch()
     except SystemExit as exc:
         if not end_process:
             raise
         finish(exc.code)
+    except interrupts.Interrupted as exc:  # SIGINT, SIGTERM, SIGHUP (dstereo/interrupts.py), or a served client's
+        if not end_process:  # library use, pytest, the server: the caller decides; the command's line is said
+            typer.echo(f"dstereo: error: {exc}", err=True)
+            interrupts.mark_said()  # the entry point (serve_client.main) ends the process without saying it again
+            raise
+        interrupted(exc)
     if end_process:
         finish(0)
+
+
+def interrupted(exc) -> None:
+    """End the process of a command that a signal stopped: its one line, every child process killed (figure
+    workers, multiprocessing's resource tracker, a local Dask cluster's workers: none may keep the caller's pipes
+    open), exit 128 + the signal's number. Its staging folders were removed while it unwound."""
+    from dstereo import interrupts
+
+    interrupts.say(exc)
+    # SIGKILL, not the pools' shutdown: joining a worker takes time, and a pool's manager thread, seeing its
+    # worker gone, makes multiprocessing relaunch its resource tracker (with a warning on the caller's stderr)
+    interrupts.kill_children()
+    sys.stdout.flush()
+    os._exit(exc.code)
 
 
 def _command_process() -> bool:

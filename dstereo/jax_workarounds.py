@@ -8,10 +8,16 @@ Settings (used by the code through the names below):
 - `COMPILE_OPTIONS`: the CPU backend's newer fusion emitters make the solver loop about 15 % faster per pass
   but take twice as long to compile it (1.9 s against 1.0 s for a mono calibration); a calibration compiles
   once and runs for seconds, so compile time wins. Set per jit, so the user's other JAX programs are untouched.
-- `CALL_POINTS`, `MAX_CHUNK`, `MAX_CONCURRENT_CALLS`: two compiled calls running at once hung (0 % CPU, never
-  returned) from about 32 problems x 20 views x 54 corners per call, and once from a single 64 x 17 x 54 call;
-  16-24 x 20 x 54 ran in every trial. Calls stay below that with margin, at most two at once (no gain past two
-  on the 2-core machines measured; `DSTEREO_THREADS=1` runs one call at a time).
+- `CALL_POINTS`, `MAX_CHUNK`, `MAX_CONCURRENT_CALLS`: the size of one compiled call of subsets and how many run at
+  once (no gain past two on the 2-core machines measured; `DSTEREO_THREADS=1` runs one call at a time). They
+  were first set to dodge a hang of two concurrent calls (0 % CPU, never returned) that a size limit only made
+  rarer (issue 28: it came back at 10 problems x 34 views x 48 corners). Its cause, found with gdb: jaxlib's
+  batched LAPACK kernels (`lapack_dtrsm_ffi`, `ParallelBatchMap`) block an XLA pool thread until pieces queued
+  on the same pool are done; two of them fill a 2-core machine's pool and wait on each other. The solver now
+  factors with XLA's own operations (`solver/cholesky.py`; `tests/solver/test_cholesky.py` fails if a custom
+  call comes back into it), so these numbers are chunk sizes only, kept where the chunk timings were measured.
+  Every compiled solver call also runs under `dstereo/watchdog.py`: a call that stops making progress ends the
+  command with one line, never a silent wait.
 
 Executables loaded from disk (`solver/aot.py`, `jax.experimental.serialize_executable`):
 - `prepare_loaded_executables`: a loaded executable that calls LAPACK (Cholesky, LU) segfaulted in a new process

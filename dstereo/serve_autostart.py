@@ -80,3 +80,21 @@ def start(path: str, replacing: bool = False) -> bool:
     except (OSError, ValueError):
         return False
     return True
+
+
+def tell_once(path: str) -> None:
+    """The first server started for this installation says so, once: a background process holding ~0.6-0.75 GB
+    for IDLE_S must not come unannounced. A marker file beside the socket remembers that it was said."""
+    from dstereo.serve_paths import sibling
+
+    marker = sibling(path, ".told")
+    try:
+        fd = os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError:  # said before (or the folder refuses: then say nothing rather than say it every time)
+        return
+    os.close(fd)
+    minutes = idle_seconds() / 60
+    sys.stderr.write(f"dstereo: note: started a background server that keeps dstereo loaded so the next commands "
+                     f"start faster; it stops after {minutes:g} min without a command; stop it now: dstereo "
+                     "serve --stop; never start one: DSTEREO_SERVE=0 (this note is shown once)\n")
+    sys.stderr.flush()

@@ -39,7 +39,9 @@ from dstereo.serve_paths import install_id, private, runtime_dir, sibling, socke
 NOT_SERVED = ("serve", "demo")  # the server itself; demo writes a large folder and is run once, not often
 CONNECT_TIMEOUT_S = 2.0
 ANSWER_TIMEOUT_S = 10.0  # the server's listener answers at once; silence this long means it is wedged
-INTERRUPT_GRACE_S = 5.0  # after Ctrl-C, how long the client waits for the command to stop and report
+# After a signal, how long the client waits for the served command to stop and report: within the 2 s a command
+# has to end (the server's own watchdog gives up on a stuck command sooner, serve_server.STUCK_S).
+INTERRUPT_GRACE_S = 1.1
 # Environment read once at start-up (JAX, XLA, BLAS, matplotlib, Python, the JAX cache folder): a server
 # started with other values would compute differently, so they are part of the key, not sent per request.
 STARTUP_ENV_PREFIXES = ("JAX_", "XLA_", "TF_", "CUDA_", "OMP_", "OPENBLAS_", "MKL_", "MPL", "PYTHON", "LD_")
@@ -48,17 +50,26 @@ STARTUP_ENV_NAMES = ("DSTEREO_JAX_CACHE", "DSTEREO_FIGURE_WORKERS", "DSTEREO_AOT
 _HEADER = struct.Struct("!cI")
 
 
-def code_key(env=None, package: str | None = None) -> str:
-    """What a server must share with this process to give the same results: dstereo's version and every source
-    file's content, the interpreter and environment (venv), and the start-up environment variables."""
+def code_key(env=None, package: str | None = None, versions: dict | None = None) -> str:
+    """What a server must share with this process to give the same results (`key_parts`), hashed."""
+    return code_key_of(key_parts(env, package, versions))
+
+
+def code_key_of(parts: dict) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+def key_parts(env=None, package: str | None = None, versions: dict | None = None) -> dict[str, str]:
+    """The code key's parts, by name (so `dstereo serve --status` and a mismatch note can say which differs):
+    dstereo's version and source files' content, the interpreter and environment (venv), the start-up
+    environment variables (`env:NAME`) and the installed version of every locked dependency (`dist:NAME`,
+    `dependency_versions`; `versions` stands in for it in tests)."""
     from dstereo import __version__
 
     # the default `dstereo.cli` sets in a command's process (and so in a server's) counts as set on both sides
     env = {"OPENBLAS_NUM_THREADS": "1", **(os.environ if env is None else env)}
     package = package or os.path.dirname(os.path.abspath(__file__))
     h = hashlib.sha256()
-    for part in (__version__, package, sys.prefix, os.path.realpath(sys.executable), sys.version):
-        h.update(part.encode() + b"\0")
     for folder, dirs, files in os.walk(package):
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
         for name in sorted(f for f in files if f.endswith(".py")):
@@ -66,10 +77,72 @@ def code_key(env=None, package: str | None = None) -> str:
             h.update(os.path.relpath(path, package).encode() + b"\0")
             with open(path, "rb") as fh:
                 h.update(hashlib.sha256(fh.read()).digest())
+    parts = {"dstereo": __version__, "source": h.hexdigest()[:16], "package": package, "prefix": sys.prefix,
+             "python": f"{os.path.realpath(sys.executable)} {sys.version}"}
     for name in sorted(env):
         if name.startswith(STARTUP_ENV_PREFIXES) or name in STARTUP_ENV_NAMES:
-            h.update(f"{name}={env[name]}".encode() + b"\0")
-    return h.hexdigest()
+            parts[f"env:{name}"] = env[name]
+    versions = dependency_versions(package) if versions is None else versions
+    parts.update({f"dist:{name}": version for name, version in versions.items()})
+    return parts
+
+
+def differences(ours: dict, theirs: dict, limit: int = 3) -> str:
+    """`numpy 2.1.0 here, 2.0.2 in the server; XLA_FLAGS ...`: the key parts that differ, named for a person."""
+    said = []
+    for name in sorted(set(ours) | set(theirs)):
+        if ours.get(name) != theirs.get(name):
+            label = name.split(":", 1)[-1]
+            here, there = ours.get(name, "unset"), theirs.get(name, "unset")
+            if name in ("source", "package", "prefix", "python"):
+                said.append({"source": "dstereo's source files", "package": "the package folder",
+                             "prefix": "the Python environment", "python": "the interpreter"}[name])
+            else:
+                said.append(f"{label} {here} here, {there} in the server")
+    more = f" and {len(said) - limit} more" if len(said) > limit else ""
+    return "; ".join(said[:limit]) + more
+
+
+def dependency_versions(package: str) -> dict[str, str]:
+    """The installed version of every dependency in requirements.lock beside the package (an editable checkout),
+    else of every installed distribution: a server started before an upgrade of OpenCV, JAX or SciPy in the same
+    environment would go on serving the old libraries. Read from the `NAME-VERSION.dist-info` folder names on
+    sys.path (~1 ms; importlib.metadata's lookups took ~100 ms for the 58 locked names, measured, and the client
+    runs this for every command); a locked name found there under no such folder is asked of importlib.metadata."""
+    installed: dict[str, str] = {}
+    for entry in sys.path:
+        try:
+            names = os.listdir(entry or ".")
+        except OSError:
+            continue
+        for name in names:
+            if name.endswith(".dist-info") and "-" in name:
+                dist, version = name[: -len(".dist-info")].rsplit("-", 1)
+                installed.setdefault(_canonical(dist), version)
+    lock = os.path.join(os.path.dirname(package), "requirements.lock")
+    try:
+        with open(lock, encoding="utf-8") as fh:
+            locked = [line.split("==", 1)[0].strip() for line in fh if line[:1].isalnum() and "==" in line]
+    except OSError:
+        return installed
+    versions = {}
+    for name in locked:
+        key = _canonical(name)
+        if key not in installed:
+            try:
+                from importlib import metadata
+
+                installed[key] = metadata.version(name)
+            except Exception:  # noqa: BLE001 - not installed: that is a difference too
+                installed[key] = "absent"
+        versions[key] = installed[key]
+    return versions
+
+
+def _canonical(name: str) -> str:
+    import re
+
+    return re.sub(r"[-_.]+", "_", name).lower()
 
 
 def send(sock: socket.socket, kind: bytes, payload: bytes = b"") -> None:
@@ -141,8 +214,10 @@ def request(argv: list[str]) -> dict:
 
 
 def servable(argv: list[str]) -> bool:
-    """A command a server may run: not `serve` or `demo` (NOT_SERVED), not a bare option (--help)."""
-    return bool(argv) and argv[0] not in NOT_SERVED and not argv[0].startswith("-")
+    """A command a server may run: not `serve` or `demo` (NOT_SERVED), not a bare option, not a help request
+    (`dstereo reconstruct --help` must start nothing: it runs here in a moment)."""
+    asks_help = any(a in ("--help", "-h") for a in argv[: argv.index("--") if "--" in argv else len(argv)])
+    return bool(argv) and argv[0] not in NOT_SERVED and not argv[0].startswith("-") and not asks_help
 
 
 def try_served(argv: list[str]) -> int | None:
@@ -185,33 +260,56 @@ def _try_served(argv: list[str], auto_start: bool) -> tuple[int | None, str]:
         if answer[0] == b"b":
             return None, "busy"
         if answer[0] == b"r":  # an auto-started server of other code: it stops; a new one takes its place
+            _note(f"the background server ran other dstereo code, settings or libraries ({_differ(answer[1])}); "
+                  "running here, and a new server starts for the next command")
             return None, "retired"
         if answer[0] == b"m":
-            _note(f"the server at {path} runs other dstereo code or start-up settings; running here (restart it: "
-                  "dstereo serve --stop, then dstereo serve)")
+            _note(f"the server at {path} runs other dstereo code, start-up settings or libraries "
+                  f"({_differ(answer[1])}); running here (restart it: dstereo serve --stop, then dstereo serve)")
             return None, "mismatch"
         if answer[0] != b"a":
             return None, "unanswered"
         return _stream(sock, path), "served"
 
 
+def _differ(payload: bytes) -> str:
+    """What differs between this process's key and the server's (its parts, sent with its answer)."""
+    try:
+        theirs = json.loads(payload)
+    except ValueError:
+        theirs = None
+    if not isinstance(theirs, dict):  # an older server sends no parts
+        return "an older server"
+    return differences(key_parts(), theirs) or "the key"
+
+
 def _stream(sock: socket.socket, path: str) -> int:
-    """Copy the command's output here until its exit code comes; Ctrl-C asks the server to interrupt it."""
+    """Copy the command's output here until its exit code comes. A signal here (Ctrl-C, SIGTERM, SIGHUP) is sent
+    on to the server, which stops the command (its line `dstereo: error: interrupted (...)` and exit code come
+    back as output); without an answer in INTERRUPT_GRACE_S this process says the line and exits itself."""
+    from dstereo import interrupts
+
     out, err = sys.stdout.buffer, sys.stderr.buffer
     sock.settimeout(None)
+    stopped: interrupts.Interrupted | None = None
     while True:
         try:
             frame = receive(sock)
-        except KeyboardInterrupt:
-            return _interrupt(sock)
-        except OSError:
+        except interrupts.Interrupted as exc:
+            stopped = exc
+            _forward(sock, exc.signum)
+            continue
+        except OSError:  # the grace spent (a timeout), or the server gone
             frame = None
         if frame is None:
-            sys.stderr.write(f"dstereo: error: the server at {path} stopped before the command finished; run it "
-                             "again (DSTEREO_SERVE=0 runs it in this process)\n")
-            return 1
+            if stopped is not None:
+                interrupts.say(stopped)
+                return stopped.code
+            return _server_died(path)
         kind, payload = frame
         if kind in (b"o", b"e"):
+            if stopped is not None and kind == b"e" and payload.startswith(b"dstereo: error: interrupted"):
+                interrupts.mark_said()  # the server said it: this process must not say it again
             stream = out if kind == b"o" else err
             stream.write(payload)
             stream.flush()
@@ -219,20 +317,46 @@ def _stream(sock: socket.socket, path: str) -> int:
             return int(json.loads(payload))
 
 
-def _interrupt(sock: socket.socket) -> int:
-    """Ctrl-C: the server interrupts the command (between two Python steps of it, so a long compiled call ends
-    first); wait a little for it to finish, unread (a frame may have been cut), and exit as Python does, 130."""
+def _forward(sock: socket.socket, signum: int) -> None:
     try:
-        send(sock, b"i")
+        send(sock, b"i", str(signum).encode())
         sock.settimeout(INTERRUPT_GRACE_S)
-        while sock.recv(1 << 16):
-            pass
-    except (OSError, KeyboardInterrupt):  # a second Ctrl-C, the grace spent, or the server gone: leave now
+    except OSError:
         pass
-    return 130
+
+
+def _server_died(path: str) -> int:
+    """The server ended mid-command (a crash in native code, say SIGFPE in OpenCV, or a kill): one line, and its
+    socket removed if nobody answers there any more, so the next command runs in its own process and starts a new
+    server rather than meet the dead one's socket."""
+    try:
+        connect(path, timeout=0.5).close()
+    except OSError:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    log = sibling(path, ".log")
+    sys.stderr.write("dstereo: error: the background server ended during this command (it crashed or was "
+                     f"killed; its log: {log}); nothing was written; the next command starts a new server "
+                     "(DSTEREO_SERVE=0 runs commands in their own process)\n")
+    sys.stderr.flush()
+    return 1
 
 
 def main() -> None:
+    from dstereo import interrupts
+
+    interrupts.install()  # first: a signal at any moment from here on ends the command cleanly
+    try:
+        _main()
+    except interrupts.Interrupted as exc:  # before dstereo.cli took over (its own handler ends the process there)
+        interrupts.say(exc)
+        interrupts.kill_children()
+        os._exit(exc.code)
+
+
+def _main() -> None:
     from dstereo import serve_autostart
 
     argv = sys.argv[1:]
@@ -240,8 +364,9 @@ def main() -> None:
     code, why = _try_served(argv, auto)
     if code is not None:
         sys.exit(code)
-    if auto and why in ("absent", "stale", "retired"):
-        serve_autostart.start(socket_path(), replacing=why == "retired")
+    if auto and why in ("absent", "stale", "retired") and \
+            serve_autostart.start(socket_path(), replacing=why == "retired"):
+        serve_autostart.tell_once(socket_path())
     from dstereo.cli import main as run_here
 
     run_here()

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dstereo import watchdog
 from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
 from dstereo.models import camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
@@ -370,6 +371,11 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     key = options._replace(lambda0=0.0, decrement_tol=None)  # both traced, not compiled in
     args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
     limit = np.int32(np.iinfo(np.int32).max if max_passes is None else max_passes)
-    out = compiled_solver(problem, key)(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,
-                                        np.float64(options.decrement_tol or 0.0), limit)
-    return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
+    solver = compiled_solver(problem, key)
+    # the compiled call and its results' transfer (where a hung call waits) under the watchdog, keyed by program
+    # and shapes: the allowance comes from the longest such call before it (dstereo/watchdog.py)
+    what = f"a chunk of {rows} problem(s) of {problem.k} camera(s), {n_frames} view(s) x {n_pts} corner(s)"
+    with watchdog.watched((problem, key, rows, n_frames, k * n_pts, max_passes is None), what):
+        out = solver(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,
+                     np.float64(options.decrement_tol or 0.0), limit)
+        return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)

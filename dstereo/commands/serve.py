@@ -11,6 +11,7 @@ import time
 import typer
 
 STOP_WAIT_S = 600.0  # --stop waits for the running command to end, at most this long
+STARTING_WAIT_S = 300.0  # --stop waits this long for a starting server to listen (a loaded 2-core machine)
 
 
 def serve(
@@ -35,18 +36,15 @@ def serve(
     path = wire.socket_path()
     if stop or status:
         state = ask(path, "stop" if stop else "status")
+        if state is None and stop:
+            state = _stop_starting(path)
         if state is None:
             typer.echo(f"dstereo serve: no server at {path}")
             if status:
                 raise typer.Exit(1)
             return
         if status:
-            same = "the same as" if state["key"] == wire.code_key() else \
-                "NOT the same as (commands run in their own process)"
-            typer.echo(f"dstereo serve: running at {path}, pid {state['pid']}, up "
-                       f"{time.time() - state['since']:.0f} s, {state['served']} command(s) served, "
-                       f"{'busy' if state['busy'] else 'idle'}; its code and start-up settings are {same} this "
-                       "dstereo's")
+            typer.echo(describe(path, state))
             return
         _wait_gone(path)
         typer.echo(f"dstereo serve: stopped the server at {path} (pid {state['pid']})")
@@ -54,6 +52,59 @@ def serve(
     from dstereo.commands.serve_server import Server
 
     Server(path, idle_timeout, started_by).run()
+
+
+def _stop_starting(path: str) -> dict | None:
+    """`--stop` while a server is starting (it holds the installation's lock but does not listen yet: JAX and the
+    figure workers are loading): wait until it answers, then stop it, rather than report "no server" and leave it
+    running for its idle time. None where no server holds the lock, or none answered within STARTING_WAIT_S."""
+    from dstereo import serve_autostart
+    from dstereo import serve_client as wire
+
+    deadline = time.monotonic() + STARTING_WAIT_S
+    said = False
+    while serve_autostart.lock_taken(wire.sibling(path, ".lock")) and time.monotonic() < deadline:
+        state = ask(path, "stop")
+        if state is not None:
+            return state
+        if not said:
+            typer.echo("dstereo serve: a server is starting; waiting to stop it", err=True)
+            said = True
+        time.sleep(0.2)
+    return None
+
+
+def describe(path: str, state: dict) -> str:
+    """`serve --status`: where, its memory, age and commands, and whether (else why not) it serves this dstereo."""
+    from dstereo import serve_client as wire
+
+    age = time.time() - state["since"]
+    mib = (state.get("rss", 0) + state.get("children_rss", 0)) / 2**20
+    lines = [f"dstereo serve: running at {path}, pid {state['pid']}, up {_duration(age)}, "
+             f"{'busy' if state['busy'] else 'idle'}, memory {mib:.0f} MiB (RSS with its figure workers)"]
+    if state.get("idle_timeout"):
+        lines.append(f"  stops after {_duration(state['idle_timeout'])} without a command")
+    history = state.get("history") or []
+    lines.append(f"  {state['served']} command(s) served" + (":" if history else ""))
+    for item in history:
+        lines.append(f"    {time.strftime('%H:%M:%S', time.localtime(item['at']))}  {item['command']}  exit "
+                     f"{item['code']}  {item['seconds']:.2f} s")
+    if state["key"] == wire.code_key():
+        lines.append("  its code, start-up settings and libraries are the same as this dstereo's")
+    else:
+        why = wire.differences(wire.key_parts(), state["parts"]) if "parts" in state else "an older server"
+        lines.append(f"  its code, start-up settings or libraries are NOT the same as this dstereo's ({why}): "
+                     "commands run in their own process")
+    return "\n".join(lines)
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(seconds)
+    if seconds < 120:
+        return f"{seconds} s"
+    if seconds < 7200:
+        return f"{seconds // 60} min"
+    return f"{seconds // 3600} h {seconds % 3600 // 60} min"
 
 
 def ask(path: str, op: str) -> dict | None:

@@ -17,6 +17,7 @@ import threading
 import traceback
 import warnings
 
+from dstereo.interrupts import Interrupted
 from dstereo.serve_client import send
 
 
@@ -50,30 +51,34 @@ def client_stream(conn, kind: bytes, traits: dict, lock: threading.Lock, line_bu
                             errors=traits.get("errors") or "strict", line_buffering=line_buffering)
 
 
-# The client's Ctrl-C reaches the command as this signal, simulated in the main thread by the server's watcher
-# (SIGINT stays the server's own: a server started in the background has it ignored, and Ctrl-C in its terminal
-# stops the server). It interrupts the command only while the command runs, never the restoring around it.
+# The client's signal reaches the command as this signal, sent to the main thread by the server's watcher
+# (a real signal, not a simulated one: it also ends a blocked wait there). SIGINT, SIGTERM and SIGHUP stay the
+# server's own (dstereo/interrupts.py: they stop the server). It interrupts the command only while the command
+# runs, never the restoring around it.
 INTERRUPT_SIGNAL = signal.SIGUSR1
 _command_running = False
+_client_signal = signal.SIGINT  # the signal the client got (sent with its interrupt), named in the command's line
 
 
-class ClientInterrupt(KeyboardInterrupt):
-    """The client's Ctrl-C (or its disconnection) inside the command."""
+class ClientInterrupt(Interrupted):
+    """The client's signal (or its disconnection) inside the command: the command ends, the server goes on."""
+
+
+def interrupt_command(main_thread: int, signum: int) -> None:
+    """From the server's watcher: stop the running command as if `signum` had reached its own process."""
+    global _client_signal
+    _client_signal = signum
+    signal.pthread_kill(main_thread, INTERRUPT_SIGNAL)
 
 
 def _interrupt_command(signum, frame) -> None:
     if _command_running:
-        raise ClientInterrupt
-
-
-def _terminate(signum, frame) -> None:
-    raise KeyboardInterrupt  # SIGTERM stops the server as its Ctrl-C does: socket removed, workers stopped
+        raise ClientInterrupt(_client_signal)
 
 
 def install_interrupt() -> None:
     """In the server's main thread, before serving."""
     signal.signal(INTERRUPT_SIGNAL, _interrupt_command)
-    signal.signal(signal.SIGTERM, _terminate)
 
 
 class _ProcessExit(BaseException):
@@ -147,8 +152,10 @@ def _exit_code(main) -> int:
         return 1
     except _ProcessExit as exc:
         return exc.code
-    except ClientInterrupt:  # exit 130 as Python does; the server's own Ctrl-C (KeyboardInterrupt) stops the server
-        return 130
+    except ClientInterrupt as exc:  # its line was said (dstereo.cli); 128 + the signal, as a process would exit
+        return exc.code
+    except (Interrupted, KeyboardInterrupt):  # the server's own signal: it stops the server, not just this command
+        raise
     except BaseException:  # noqa: BLE001 - a crash ends this command only, with the traceback Python would show
         traceback.print_exc()
         return 1

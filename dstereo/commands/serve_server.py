@@ -15,21 +15,27 @@ that started it keeps both cores; it stops after `idle_timeout` seconds without 
 
 from __future__ import annotations
 
-import _thread
 import json
 import os
 import queue
+import signal
 import socket
 import sys
 import threading
 import time
 
 from dstereo import serve_client as wire
-from dstereo.commands.serve_request import INTERRUPT_SIGNAL, client_stream, install_interrupt, run_request
+from dstereo import interrupts, watchdog
+from dstereo.commands.serve_request import client_stream, install_interrupt, interrupt_command, run_request
 from dstereo.errors import DstereoError
 
 GREETING_TIMEOUT_S = 5.0  # a connection that sends no request in this time is dropped
 CLIENT_WAIT_S = 30.0  # an auto-started server loads once its client has ended, or after this long at most
+# A command told to stop that has not returned after this long is stuck in native code (a JAX call that never
+# completes): the server gives up on it, tells the client, and ends itself (the next command starts a new one),
+# inside the client's INTERRUPT_GRACE_S and the 2 s a command has to end.
+STUCK_S = 0.9
+HISTORY = 20  # `serve --status` lists this many of the latest commands
 LOCK_WAIT_S = 60.0  # an auto-started server waits this long for a retiring server's lock, then gives up
 # What a calibration imports (test_startup lists the same modules): loaded at start-up, not at the first command;
 # the second line: what a first served calibration still imported (typer's value coercion imports pydantic;
@@ -91,7 +97,9 @@ class Server:
         """`idle_timeout` > 0: stop after that many seconds without a command. `started_by` > 0: auto-started by
         that client process (serve_autostart.py): wait for its end before loading, and stop rather than answer
         `mismatch` when a client of other code or start-up settings comes."""
-        self.path, self.key = path, wire.code_key()
+        self.path = path
+        self.parts = wire.key_parts()
+        self.key = wire.code_key_of(self.parts)
         self.idle_timeout, self.started_by, self.auto = float(idle_timeout), int(started_by), started_by > 0
         self.requests: queue.Queue = queue.Queue()
         self.lock = threading.Lock()
@@ -99,6 +107,8 @@ class Server:
         self.served, self.since = 0, time.time()
         self.last = time.monotonic()  # when the last command ended (or the server started)
         self.listener: socket.socket | None = None
+        self.history: list[dict] = []  # the latest commands: argv[0], exit code, seconds, when
+        self.workers = 0  # figure workers started at load; renewed after a command that killed them
 
     def run(self) -> None:
         os.makedirs(os.path.dirname(self.path), mode=0o700, exist_ok=True)
@@ -112,11 +122,15 @@ class Server:
                                "dstereo serve --stop")
         prepare_folder(self.path)
         _preload()
+        from dstereo.io import figure_pool
+
+        self.workers = figure_pool.started()
         self.last = time.monotonic()
         install_interrupt()
         self.listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self.listener.bind(self.path)
         inode = os.stat(self.path).st_ino
+        interrupts.on_abandon(lambda: _unlink_if(self.path, inode))  # a watchdog's end leaves no stale socket
         self.listener.listen(16)
         threading.Thread(target=self._listen, name="dstereo-serve-listener", daemon=True).start()
         print(f"dstereo serve: ready at {self.path} (pid {os.getpid()}); dstereo commands run here until "
@@ -126,11 +140,7 @@ class Server:
         finally:
             self.stopping = True
             self.listener.close()
-            try:
-                if os.stat(self.path).st_ino == inode:  # still ours, not a newer server's
-                    os.unlink(self.path)
-            except OSError:
-                pass
+            _unlink_if(self.path, inode)
             from dstereo.io import figure_pool
 
             figure_pool.stop()
@@ -145,7 +155,8 @@ class Server:
             except queue.Empty:
                 if self.stopping or self._idle_expired():
                     return
-            except KeyboardInterrupt:  # Ctrl-C in the server's own terminal (a client's is ClientInterrupt, caught)
+            except (KeyboardInterrupt, interrupts.Interrupted):  # the server's own SIGINT/SIGTERM/SIGHUP (a
+                # client's is ClientInterrupt, caught in run_request)
                 return
             except Exception:  # noqa: BLE001 - a request the server could not even start (a malformed one): its
                 # client sees the connection end (one error line, exit 1); the server goes on
@@ -154,14 +165,21 @@ class Server:
                 traceback.print_exc()
 
     def _serve(self, conn: socket.socket, request: dict) -> None:
-        done = threading.Event()
+        done, code, t0 = threading.Event(), None, time.monotonic()
+        before = interrupts.children()  # the server's own (its resource tracker); the command's are the others
         try:
-            threading.Thread(target=self._watch, args=(conn, done), daemon=True).start()
             lock = threading.Lock()
+            threading.Thread(target=self._watch, args=(conn, done, lock), daemon=True).start()
             out = client_stream(conn, b"o", request["stdout"], lock, line_buffering=bool(request["stdout"].get("tty")))
             err = client_stream(conn, b"e", request["stderr"], lock, line_buffering=True)
-            code = run_request(request, out, err)
+            watchdog.reporter = lambda line: _tell_client(conn, lock, line, 1)  # a stalled call ends the server
+            try:
+                code = run_request(request, out, err)
+            finally:
+                watchdog.reporter = None
             done.set()
+            if code is not None and code > 128:  # stopped by the client's signal: end what the command started
+                _end_command_children(before)
             try:
                 send_code = json.dumps(code).encode()
                 with lock:
@@ -170,15 +188,19 @@ class Server:
                 pass
         finally:
             done.set()
+            with self.lock:  # counted before the client hears the end: a status asked right after shows it
+                self.served += 1
+                self.history = [*self.history, {"command": (request.get("argv") or ["?"])[0], "code": code,
+                                                "seconds": round(time.monotonic() - t0, 2), "at": time.time()}][
+                    -HISTORY:]
             try:
                 conn.shutdown(socket.SHUT_RDWR)  # wakes the watcher's read (a close alone does not)
             except OSError:
                 pass
             conn.close()
-            _renew_broken_figure_pool()
+            _renew_figure_pool(self.workers)
             with self.lock:
                 self.busy = False
-                self.served += 1
                 self.last = time.monotonic()
 
     def _idle_expired(self) -> bool:
@@ -188,14 +210,22 @@ class Server:
                 self.stopping = True
             return self.stopping
 
-    def _watch(self, conn: socket.socket, done: threading.Event) -> None:
-        """The client's Ctrl-C (an `i` frame) or its disconnection interrupts the running command."""
+    def _watch(self, conn: socket.socket, done: threading.Event, lock: threading.Lock) -> None:
+        """The client's signal (an `i` frame with its number) or its disconnection (SIGHUP, as a closed terminal
+        would send) interrupts the running command; one that does not stop in STUCK_S ends the server."""
         try:
             frame = wire.receive(conn)
         except OSError:
             frame = None
-        if not done.is_set() and (frame is None or frame[0] == b"i"):
-            _thread.interrupt_main(INTERRUPT_SIGNAL)  # ignored unless the command is still running
+        if done.is_set() or (frame is not None and frame[0] != b"i"):
+            return
+        try:
+            signum = int(frame[1]) if frame is not None and frame[1] else int(signal.SIGHUP)
+        except ValueError:
+            signum = int(signal.SIGINT)
+        interrupt_command(threading.main_thread().ident, signum)  # ignored unless the command is still running
+        if not done.wait(STUCK_S):
+            _abandon_stuck(conn, lock, signum)
 
     def _listen(self) -> None:
         while not self.stopping:
@@ -222,7 +252,8 @@ class Server:
                     with self.lock:
                         self.stopping = True
                     self.requests.put(None)
-                wire.send(conn, b"r" if self.auto else b"m")
+                # its key's parts: the client names what differs (a dependency's version, a variable)
+                wire.send(conn, b"r" if self.auto else b"m", json.dumps(self.parts).encode())
                 conn.close()
                 return
             with self.lock:
@@ -248,7 +279,9 @@ class Server:
     def _answer(self, conn: socket.socket, request: dict) -> None:
         with self.lock:
             state = {"pid": os.getpid(), "since": self.since, "served": self.served, "busy": self.busy,
-                     "key": self.key, "path": self.path}
+                     "key": self.key, "path": self.path, "parts": self.parts, "history": self.history,
+                     "rss": _rss(os.getpid()), "children_rss": sum(_rss(p) for p in interrupts.children()),
+                     "idle_timeout": self.idle_timeout, "auto": self.auto}
             if request["op"] == "stop":
                 self.stopping = True
         if request["op"] == "stop":
@@ -284,9 +317,64 @@ def _warm_up() -> None:
     prepare_loaded_executables()
 
 
-def _renew_broken_figure_pool() -> None:
-    """A worker killed during a command leaves the pool broken (its figures were drawn here instead); start new
-    workers for the next command rather than draw in the server from then on."""
+def _renew_figure_pool(workers: int) -> None:
+    """A worker killed during a command leaves the pool broken (its figures were drawn here instead), and an
+    interrupted command kills them all (`_end_command_children`): start new workers for the next command rather
+    than draw in the server from then on."""
     from dstereo.io import figure_pool
 
     figure_pool.renew_broken()
+    if figure_pool.started() < workers:
+        figure_pool.start(workers)
+
+
+def _end_command_children(before: list[int]) -> None:
+    """After a command that a client's signal stopped: no process it started lives on (a local Dask cluster's
+    workers, a figure still drawing into a folder the command removed). The figure workers go too; new ones come
+    for the next command (`_renew_figure_pool`). multiprocessing's resource tracker, the server's since its
+    first worker, stays: killed, it is relaunched with a warning and tracebacks for the semaphores it lost."""
+    from dstereo.io import figure_pool
+
+    workers = figure_pool.pids()
+    figure_pool.kill()
+    interrupts.kill_children(keep=set(before) - set(workers))
+
+
+def _abandon_stuck(conn: socket.socket, lock: threading.Lock, signum: int) -> None:
+    """The command did not stop (native code that never returns): tell the client its line and code, remove the
+    command's staging folders, end every child, and end the server (interrupts.abandon: no stale socket)."""
+    line = f"dstereo: error: {interrupts.Interrupted(signum)} (the command was stuck in a compiled call; the " \
+           "background server stopped with it)\n"
+    _tell_client(conn, lock, line, 128 + signum)
+    interrupts.mark_said()
+    interrupts.abandon()
+
+
+def _tell_client(conn: socket.socket, lock: threading.Lock, line: str, code: int) -> None:
+    """A command's last line and exit code, sent by a watchdog as the server ends (not the command's thread)."""
+    if lock.acquire(timeout=0.2):  # the command's own output may hold it; the client says the line otherwise
+        try:
+            wire.send(conn, b"e", line.encode())
+            wire.send(conn, b"x", json.dumps(code).encode())
+        except OSError:
+            pass
+
+
+def _unlink_if(path: str, inode: int) -> None:
+    try:
+        if os.stat(path).st_ino == inode:  # still ours, not a newer server's
+            os.unlink(path)
+    except OSError:
+        pass
+
+
+def _rss(pid: int) -> int:
+    """Resident memory of `pid` in bytes (Linux /proc; 0 elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0

@@ -23,9 +23,12 @@ _PENDING: list = []  # jobs handed to each and not finished
 _LOCK = threading.Lock()
 
 
-def _warm() -> None:
-    """Worker initializer: import matplotlib (Agg) and draw once, so the font cache is loaded before a job comes."""
+def _warm(parent: int = 0, death_signal: bool = False) -> None:
+    """Worker initializer: tie the worker's life to its parent's (`_follow_parent`), then import matplotlib (Agg)
+    and draw once, so the font cache is loaded before a job comes."""
     import io
+
+    _follow_parent(parent, death_signal)
 
     from dstereo.io.figures import pyplot
 
@@ -39,6 +42,42 @@ def _warm() -> None:
     # reached the worker. So a worker ends without it: atexit runs last-registered first, so this runs after
     # anything registered later and multiprocessing has already run its own exit handling by then.
     atexit.register(os._exit, 0)
+
+
+def _follow_parent(parent: int, death_signal: bool) -> None:
+    """A worker never outlives its parent (`kill -9` of a command or of the server must not leave it running,
+    holding the caller's pipes): on Linux the kernel kills it when the parent thread that started it ends
+    (PR_SET_PDEATHSIG; only asked when that thread is the parent's main thread, which lives as long as the
+    process), and a thread checks every WATCH_S that the parent is still its parent, elsewhere or meanwhile.
+    A terminal's Ctrl-C or hang-up reaches the whole process group: the parent handles it and ends the workers,
+    so a worker ignores both (else each would print its own KeyboardInterrupt traceback on the caller's stderr)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    if death_signal and sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass
+    if parent and os.getppid() != parent:  # the parent died before the death signal was set
+        os._exit(1)
+    if parent:
+        threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+
+
+WATCH_S = 0.5
+
+
+def _watch_parent(parent: int) -> None:
+    import time
+
+    while os.getppid() == parent:
+        time.sleep(WATCH_S)
+    os._exit(1)
 
 
 def _noop() -> None:
@@ -98,7 +137,10 @@ def _new_worker():
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_warm)
+        # spawn starts the worker in this thread (the first submit below)
+        main_thread = threading.current_thread() is threading.main_thread()
+        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_warm,
+                                   initargs=(os.getpid(), main_thread))
         # spawn starts the worker at the first job, in this thread, and it would import the parent's main module
         # (the CLI: typer, pydantic, ~0.3-0.5 s): an empty stand-in for that moment, so it imports nothing.
         main = sys.modules["__main__"]
@@ -133,6 +175,32 @@ def stop() -> None:
         _PENDING.clear()
     for pool in pools:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def pids() -> list[int]:
+    """The workers' process ids."""
+    with _LOCK:
+        pools = list(_POOLS)
+    return [pid for pool in pools for pid in (getattr(pool, "_processes", None) or {})]
+
+
+def kill() -> None:
+    """End the workers now, their jobs unfinished (an interrupted command: nothing they draw is kept, and none may
+    write into a folder after the command removed it). The server starts new ones for its next command."""
+    with _LOCK:
+        pools = list(_POOLS)
+        _POOLS.clear()
+        _PENDING.clear()
+    for pool in pools:
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            try:
+                process.kill()
+            except (OSError, ValueError, AttributeError):
+                pass
+        try:
+            pool.shutdown(wait=False, cancel_futures=True)
+        except Exception:  # noqa: BLE001 - a broken pool: its processes are killed already
+            pass
 
 
 def _submit(fn, *args):

@@ -60,9 +60,13 @@ def check_output(out: str | Path, force: bool) -> Path:
 @contextmanager
 def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     """Yield a temporary folder next to `out`; on success it replaces `out`, on error it is removed."""
+    from dstereo import interrupts
+    from dstereo.io import staging
+
     out = check_output(out, force)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    staging.clean_stale(out.parent, out.name)  # what a killed run (kill -9) of this folder left
+    tmp = staging.make(out.parent, out.name, "tmp")
     try:
         follow_umask(tmp, folder=True)  # the results folder is this one renamed
         yield tmp
@@ -73,9 +77,15 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, out)
-    except BaseException:
+    except BaseException as exc:
+        if isinstance(exc, interrupts.Interrupted):  # a figure worker still drawing would write into it again
+            from dstereo.io import figure_pool
+
+            figure_pool.kill()
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        staging.done(tmp)
 
 
 # --- generic tables (reused per camera and by the stereo results) -------------------------------------------
@@ -396,8 +406,10 @@ class EarlyFigures:
     def parameters(self, filtering, full) -> None:
         from dstereo.io.figure_pool import Figures
 
+        from dstereo.io import staging
+
         parent = self.out.parent if self.out.parent.is_dir() else None  # the system's temporary folder otherwise
-        self.staging = Path(tempfile.mkdtemp(prefix=f".{self.out.name}.figures-", dir=parent))
+        self.staging = staging.make(parent, self.out.name, "figures")
         self.figures = Figures()
         self.names = draw_parameter_figures(self.figures, self.staging, filtering, full)
 
@@ -412,13 +424,24 @@ class EarlyFigures:
             shutil.move(self.staging / f"{name}.png", plot_dir / f"{name}.png")
 
     def discard(self) -> None:
+        import sys
+
+        from dstereo import interrupts
+        from dstereo.io import staging
+
         if self.staging is None:
             return
-        try:
-            self.figures.wait()  # a worker still drawing into the folder would recreate files in it
-        except Exception:  # noqa: BLE001 - the command is failing or done; its own error is what counts
-            pass
+        if isinstance(sys.exc_info()[1], interrupts.Interrupted):
+            from dstereo.io import figure_pool
+
+            figure_pool.kill()  # a signal: end the drawing now rather than wait for up to ten figures
+        else:
+            try:
+                self.figures.wait()  # a worker still drawing into the folder would recreate files in it
+            except Exception:  # noqa: BLE001 - the command is failing or done; its own error is what counts
+                pass
         shutil.rmtree(self.staging, ignore_errors=True)
+        staging.done(self.staging)
         self.staging = None
 
 

@@ -212,7 +212,8 @@ def test_a_server_dying_mid_command_ends_the_client_with_one_error_line(tmp_path
     code, out, err = dstereo(_env(tmp_path / "run"), tmp_path, "init", "project")
     worker.join(timeout=STARTUP_S)
     assert code == 1 and out == "half of it\n" and not (tmp_path / "project").exists()
-    assert err.startswith("dstereo: error: the server at ") and len(err.splitlines()) == 1
+    assert err.startswith("dstereo: error: the background server ended during this command") and "its log: " in err \
+        and len(err.splitlines()) == 1
 
 
 def test_the_client_imports_nothing_heavy_when_served(server, tmp_path):
