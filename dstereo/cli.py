@@ -85,7 +85,11 @@ def _command_process() -> bool:
     # a `dstereo serve` process runs many commands: it ends none of them with the process (nor stops its warm
     # figure workers, which `finish` would)
     serving = "dstereo.commands.serve_server" in sys.modules
-    return name in ("dstereo", "dstereo.cli") and "pytest" not in sys.modules and not serving
+    # `dstereo` (the script), `python -m dstereo.cli` or `-m dstereo.serve_client`, or `python -c` code that names
+    # itself dstereo (sys.argv[0], as the tests' subprocesses do): all end as the script does
+    named = name in ("dstereo", "dstereo.cli", "dstereo.serve_client") or (
+        not name and os.path.basename(sys.argv[0] or "") == "dstereo")
+    return named and "pytest" not in sys.modules and not serving
 
 
 def finish(code) -> None:
@@ -95,8 +99,11 @@ def finish(code) -> None:
     results folder is in place (written and renamed before the command returns), the figure workers are joined
     here, the compilation cache and executable files are written synchronously as they compile, and stdout and
     stderr are flushed last."""
+    from dstereo import interrupts
     from dstereo.io import figure_pool
 
+    if interrupts.received() is not None:  # a signal whose exception was lost (interrupts.check): not a success
+        interrupted(interrupts.Interrupted(interrupts.received()))
     if code is not None and not isinstance(code, int):
         print(code, file=sys.stderr)
         code = 1

@@ -36,6 +36,7 @@ _raised = False
 _installed = False
 _said = False  # the one line was written (by the CLI or the watchdog)
 _staging: set[str] = set()
+_completed: list[str] = []  # results folders already in place (`completed`)
 _cleanups: list = []  # callables run by the watchdog before it ends the process (the server: unlink its socket)
 
 
@@ -88,6 +89,16 @@ def install() -> bool:
         if signal.getsignal(signum) is not signal.SIG_IGN:
             signal.signal(signum, _raise)
     signal.signal(POKE, lambda *_: None)
+    _default_unraisable = sys.unraisablehook
+
+    def unraisable(info):
+        # the handler's exception raised where Python ignores exceptions (a weakref callback, a __del__, an atexit
+        # function) is reported as "Exception ignored in ..." with a traceback: say nothing; `check` and the
+        # CLI's end (`finish`) still end the command as interrupted
+        if not isinstance(info.exc_value, Interrupted):
+            _default_unraisable(info)
+
+    sys.unraisablehook = unraisable
     threading.Thread(target=_read_wakeups, args=(read_end,), name="dstereo-signals", daemon=True).start()
     return True
 
@@ -133,6 +144,14 @@ def _arm(signum: int, counted: bool) -> None:
         abandon()
 
 
+def check() -> None:
+    """Raise `Interrupted` if a signal came: its first raise can be lost (Python ignores an exception raised in a
+    weakref callback, a __del__ or an atexit function, and the handler raises once). Called before a command
+    makes its results visible and before it ends with success."""
+    if _received is not None:
+        raise Interrupted(_received)
+
+
 def staging(path) -> None:
     """`path` is a folder the command writes and removes itself; the watchdog removes it if the command cannot."""
     with _lock:
@@ -148,12 +167,20 @@ def on_abandon(fn) -> None:
     _cleanups.append(fn)
 
 
+def completed(path) -> None:
+    """The command's results folder `path` is in place, whole: a signal from now on ends the process, but the
+    line says that the results were written before it came (they are complete, not half-written)."""
+    _completed.append(str(path))
+
+
 def say(exc: Interrupted, stream=None) -> None:
     """The command's one line, once per process."""
     global _said
     if not _said:
         _said = True
         stream = sys.stderr if stream is None else stream
+        if _completed and not exc.detail:
+            exc = exc.with_detail(f"{_completed[-1]} had been written whole before it came")
         stream.write(f"dstereo: error: {exc}\n")
         stream.flush()
 

@@ -3,9 +3,8 @@ served, and record how long it took to end, its exit code, the child processes l
 
     .venv/bin/python -m experiments.signal_stages [--served RUN_DIR]
 
-The stage a signal hit is read from the progress lines seen before it (`detect: ... done`, `full-set solve: ...
-done`, `subsets: ... done`, `writing results: ... done`): the first stage not yet reported done. Served: start
-`DSTEREO_SERVE_DIR=RUN_DIR dstereo serve` first and run one calibration through it (so nothing compiles).
+The signal is sent at the first appearance of a progress text on stderr (TRIGGERS): a stage's start, or the end of
+the stage before it. Served: start `DSTEREO_SERVE_DIR=RUN_DIR dstereo serve` first and run one calibration through it (so nothing compiles).
 Results go to docs/validation.md by hand (section "Signals").
 """
 
@@ -22,21 +21,26 @@ from pathlib import Path
 from dstereo.interrupts import children
 from tests.test_signals import SUBSET_FLAGS, alive, render_views
 
-STAGES = (("detect:", "detection"), ("full-set solve:", "full-set solve"), ("subsets:", "subsets"),
-          ("writing results:", "writing"))
-DELAYS = (1.0, 3.0, 6.0, 12.0, 16.0)
+# (stage, the progress text whose first appearance on stderr triggers the signal, extra delay s)
+TRIGGERS = (("detection", b"detect:", 0.0), ("full-set solve", b"detect: 16/16 done", 0.0),
+            ("subsets", b"full-set solve: 1/1 done", 0.5),
+            ("final solve and figures", b"subsets: 12870/12870 done", 0.0),
+            # "writing results:" is printed once the folder is in place: 0.8 s after the subsets is the writing
+            ("final solve, figures, writing", b"subsets: 12870/12870 done", 0.8),
+            ("results in place, process ending", b"writing results:", 0.0))
 
 
-def one(views: Path, folder: Path, sig: int, delay: float, env: dict) -> dict:
+def one(views: Path, folder: Path, sig: int, trigger: bytes, delay: float, env: dict) -> dict:
     folder.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "dstereo.serve_client", "calibrate", "--images", str(views),
                              *SUBSET_FLAGS, "--out", "results"], cwd=folder, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     os.set_blocking(proc.stderr.fileno(), False)
     seen, t0 = b"", time.monotonic()
-    while time.monotonic() - t0 < delay and proc.poll() is None:
+    while trigger not in seen and proc.poll() is None and time.monotonic() - t0 < 300:
         seen += proc.stderr.read() or b""
-        time.sleep(0.02)
+        time.sleep(0.005)
+    time.sleep(delay)
     kids = children(proc.pid)
     sent = time.monotonic()
     proc.send_signal(sig)
@@ -44,8 +48,7 @@ def one(views: Path, folder: Path, sig: int, delay: float, env: dict) -> dict:
     out, err = proc.communicate(timeout=60)  # returns once every holder of the pipes has closed them
     ended = time.monotonic() - sent
     text = (seen + err).decode()
-    stage = next((name for key, name in STAGES if f"{key}" not in (seen.decode())), "done")
-    return {"signal": signal.Signals(sig).name, "stage": stage, "end_s": round(ended, 2), "code": proc.returncode,
+    return {"signal": signal.Signals(sig).name, "end_s": round(ended, 2), "code": proc.returncode,
             "left": [k for k in kids if alive(k)], "children": len(kids), "folder": sorted(os.listdir(folder)),
             "last": text.strip().splitlines()[-1] if text.strip() else ""}
 
@@ -57,8 +60,12 @@ def main() -> None:
         env["DSTEREO_SERVE_DIR"] = sys.argv[sys.argv.index("--served") + 1]
     root = Path(tempfile.mkdtemp(prefix="signal-stages-"))
     views = render_views(root / "images", 16)
-    for i, (sig, delay) in enumerate((s, d) for d in DELAYS for s in (signal.SIGINT, signal.SIGTERM)):
-        print(one(views, root / f"run{i}", sig, delay, env), flush=True)
+    i = 0
+    for stage, trigger, delay in TRIGGERS:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            print({"stage": stage, "served": served, **one(views, root / f"run{i}", sig, trigger, delay, env)},
+                  flush=True)
+            i += 1
 
 
 if __name__ == "__main__":

@@ -70,6 +70,9 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     try:
         follow_umask(tmp, folder=True)  # the results folder is this one renamed
         yield tmp
+        # A signal whose exception was swallowed (raised inside a weakref callback or a __del__, which Python
+        # reports and ignores) must still keep the results out: this is the last moment they can be.
+        interrupts.check()
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, old / out.name)
@@ -77,6 +80,7 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, out)
+        interrupts.completed(out)
     except BaseException as exc:
         if isinstance(exc, interrupts.Interrupted):  # a figure worker still drawing would write into it again
             from dstereo.io import figure_pool
