@@ -27,16 +27,24 @@ FISHEYE = _calib(fisheye_rig())
 MIXED = _calib(fisheye_rig(mixed=True))
 
 
+def _swapped(c: StereoCalibration) -> StereoCalibration:
+    """The same rig seen from its other camera: the right camera of this one is the left of that, so the camera
+    whose rectified focal is the smaller changes sides (cv2.fisheye gives both the smaller one)."""
+    R, T = np.asarray(c.R), np.asarray(c.T).reshape(3)
+    return StereoCalibration(c.K2, c.D2, c.K1, c.D1, R.T, -R.T @ T, c.image_size, models=c.models[::-1])
+
+
 def _rel(ours, ref) -> float:
     ours, ref = np.asarray(ours, float), np.asarray(ref, float)
     return float(np.abs(ours - ref).max() / np.abs(ref).max())
 
 
 @pytest.mark.numerics
+@pytest.mark.parametrize("side", ["as built", "swapped"])
 @pytest.mark.parametrize("zero_disparity", [True, False])
 @pytest.mark.parametrize("balance", [0.0, 0.5, 1.0])
-def test_fisheye_pair_matches_cv2_fisheye_stereo_rectify(balance, zero_disparity):
-    c = FISHEYE
+def test_fisheye_pair_matches_cv2_fisheye_stereo_rectify(balance, zero_disparity, side):
+    c = FISHEYE if side == "as built" else _swapped(FISHEYE)
     ours = rectify_any(c, SIZE, alpha=balance, zero_disparity=zero_disparity)
     flags = cv2.CALIB_ZERO_DISPARITY if zero_disparity else 0
     ref = cv2.fisheye.stereoRectify(c.K1, c.D1[:4], c.K2, c.D2[:4], SIZE, c.R, c.T.reshape(3, 1), flags,

@@ -95,3 +95,17 @@ def test_files_record_method_and_mask(mc, tmp_path):
     entry = write_projection_uncertainty(tmp_path, cal, method="intrinsics-only")
     assert entry["method"] == "intrinsics-only" and str(np.load(tmp_path / "projection_uncertainty.npz")["method"]) \
         == "intrinsics-only"
+
+
+def test_a_pose_compensated_map_without_normal_equations_is_refused_not_downgraded(mc):
+    """Issue 32: falling back to the intrinsics-only map where the pose-compensated one was asked passed the suite.
+    The two differ (the test above: the pose-compensated one follows the Monte Carlo, the other does not), so a
+    silent fallback would report the wrong map under the asked-for name."""
+    from dataclasses import replace
+
+    from dstereo.errors import DstereoError
+
+    with pytest.raises(DstereoError, match="no per-view normal"):
+        solution_map(replace(mc.nominal, normal=None), SIZE, mc.range_, "pose-compensated", grid=(6, 4))
+    assert solution_map(replace(mc.nominal, normal=None), SIZE, mc.range_, "intrinsics-only",
+                        grid=(6, 4)).method == "intrinsics-only"

@@ -115,3 +115,60 @@ def test_own_nnls_equals_scipys():
         assert np.all(x >= 0)
         # residual norms O(1-10): 1e-9 is ~1e6 roundings, far below any wrong active set's excess (~1e-2)
         assert np.linalg.norm(a @ x - b) <= np.linalg.norm(a @ scipy_nnls(a, b)[0] - b) + 1e-9
+
+
+def test_an_excess_alike_in_every_direction_is_carried_by_the_reported_covariance():
+    """A linear problem (12 views, G = 4 shared parameters, each view its own 6-vector, every view the same design)
+    whose views each displace the shared parameters by a random delta_v with Cov tau S_v^-1: its score covariance is
+    (sigma^2 + tau) S_v, so the estimate's covariance is (sigma^2 + tau) S^-1 exactly, twice the Jacobian's at
+    tau = sigma^2. The covariance `view_effects` reports, averaged over 200 draws, must match the draws' scatter:
+    mean variance ratio 0.8-1.25 (a variance from 200 draws scatters by sqrt(2/200) = 10 %; measured 1.08).
+    Issue 32: dropping tau from the reported covariance passed the suite; here it reads 1.40."""
+    rng = np.random.default_rng(5)
+    views, g, rows, sigma, tau = 12, 4, 30, 0.5, 0.25
+    a, b = rng.normal(size=(rows, g)), rng.normal(size=(rows, 6))
+    design = np.zeros((views * rows, g + 6 * views))
+    for v in range(views):
+        design[v * rows:(v + 1) * rows, :g] = a
+        design[v * rows:(v + 1) * rows, g + 6 * v: g + 6 * (v + 1)] = b
+    s_view = a.T @ (np.eye(rows) - b @ np.linalg.pinv(b)) @ a  # one view's information, its pose profiled out
+    root = np.linalg.cholesky(np.linalg.inv(s_view))
+    dof = views * rows - design.shape[1]
+    thetas, covs = [], []
+    for _ in range(200):
+        delta = (root @ rng.normal(size=(g, views))).T * np.sqrt(tau)
+        y = (rng.normal(0.0, sigma, (views, rows)) + delta @ a.T).ravel()
+        sol = np.linalg.lstsq(design, y, rcond=None)[0]
+        r = (y - design @ sol).reshape(views, rows)
+        normal = np.array([np.c_[a, b, r[v]].T @ np.c_[a, b, r[v]] for v in range(views)])
+        thetas.append(sol[:g])
+        covs.append(view_effects(normal, g, sigma ** 2, dof).cov)
+    ratio = np.diag(np.cov(np.array(thetas).T)) / np.diag(np.mean(covs, axis=0))
+    assert 0.8 <= ratio.mean() <= 1.25, ratio
+
+
+@pytest.mark.parametrize("effect", [5.0, 20.0, 100.0])
+def test_views_that_dominate_the_residuals_leave_a_positive_definite_covariance(effect):
+    """Each view displaces one shared parameter by N(0, effect^2): the effects take nearly all of the residual
+    energy. Whatever the fit takes, the white noise left (sigma^2 with the effects' energy out) may not go below
+    SIGMA2_FLOOR of the solve's, and the reported covariance stays positive definite (issue 32: without the
+    floor the white noise went negative at effect 100 and the covariance had a negative eigenvalue; the suite
+    passed)."""
+    from dstereo.uncertainty.view_effects import SIGMA2_FLOOR
+
+    rng = np.random.default_rng(7)
+    views, g, rows = 12, 4, 30
+    a, b = rng.normal(size=(rows, g)), rng.normal(size=(rows, 6))
+    design = np.zeros((views * rows, g + 6 * views))
+    for v in range(views):
+        design[v * rows:(v + 1) * rows, :g] = a
+        design[v * rows:(v + 1) * rows, g + 6 * v: g + 6 * (v + 1)] = b
+    delta = np.zeros((views, g))
+    delta[:, 0] = rng.normal(0.0, effect, views)
+    y = (rng.normal(0.0, 0.5, (views, rows)) + delta @ a.T).ravel()
+    r = (y - design @ np.linalg.lstsq(design, y, rcond=None)[0]).reshape(views, rows)
+    normal = np.array([np.c_[a, b, r[v]].T @ np.c_[a, b, r[v]] for v in range(views)])
+    dof = views * rows - design.shape[1]
+    fx = view_effects(normal, g, float((r ** 2).sum()) / dof, dof)
+    assert fx.fitted and fx.sigma2 >= SIGMA2_FLOOR * fx.sigma2_solve * (1 - 1e-12)
+    assert np.linalg.eigvalsh(fx.cov).min() > 0
