@@ -6,7 +6,7 @@ full set, then its held-out folds (as `--model auto` does, the case that hung) a
 experiment's time-out, not the library's, decides whether a trial hung. Corners come from the odd wide-angle lens
 (dstereo/synth/odd_lens.py) projected directly, not rendered: what is stressed is the compiled solver's
 concurrency, not corner detection. A trial ends as "ended" (with its seconds), "failed" (an exception: its last
-line is kept) or "hung" (killed at TIMEOUT_S).
+line is kept) or "timed out" (killed at TIMEOUT_S; its CPU time tells a slow trial from a hung one).
 
     .venv/bin/python -m experiments.stress_subsets [--trials 200] [--seed 0]
 
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import textwrap
@@ -66,15 +67,24 @@ def draw(rng: np.random.Generator, i: int) -> dict:
             "wave": float(rng.uniform(0.0, 2.0)), "seed": int(rng.integers(1 << 30))}
 
 
+def _children_cpu() -> float:
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
 def run_trial(t: dict) -> dict:
+    """One trial in a child process; `cpu_s` its CPU time: a trial killed at the time-out that used about as much
+    CPU as wall time was slow (a splined lens on a tiny board), one near 0 % CPU was hung."""
     env = {**os.environ, "DSTEREO_WATCHDOG": "0", "DSTEREO_THREADS": str(t["threads"])}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     try:
         done = subprocess.run([sys.executable, "-c", CHILD, json.dumps(t)], env=env, capture_output=True, text=True,
                               timeout=TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        return {**t, "outcome": "hung", "wall_s": time.perf_counter() - t0}
+        wall = time.perf_counter() - t0
+        return {**t, "outcome": "timed out", "wall_s": wall, "cpu_s": _children_cpu() - c0}
     wall = time.perf_counter() - t0
+    t = {**t, "cpu_s": _children_cpu() - c0}
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
         return {**t, "outcome": "failed", "wall_s": wall, "error": last, "code": done.returncode}
@@ -97,7 +107,7 @@ def main() -> None:
         RESULTS.parent.mkdir(exist_ok=True)
         RESULTS.write_text(json.dumps({"cpu_count": os.cpu_count(), "load_at_end": os.getloadavg()[0],
                                        "trials": out}, indent=1))
-    tally = {k: sum(r["outcome"] == k for r in out) for k in ("ended", "failed", "hung")}
+    tally = {k: sum(r["outcome"] == k for r in out) for k in ("ended", "failed", "timed out")}
     walls = [r["wall_s"] for r in out if r["outcome"] == "ended"]
     print(f"{len(out)} trials: {tally}; wall per ended trial median {np.median(walls):.1f} s, max {max(walls):.1f} s"
           if walls else f"{len(out)} trials: {tally}")
