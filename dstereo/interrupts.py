@@ -26,6 +26,11 @@ import sys
 import threading
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+# The process's own exit, taken before anything can stand in for it: a served command runs with os._exit
+# replaced (commands/serve_request.py: the command's end must not end the server), and a watchdog that ends the
+# server from another thread during that command must really end it (measured: with os._exit it raised in the
+# watchdog's thread instead, whose traceback then waited forever on the client's stream lock).
+_hard_exit = getattr(__import__("posix"), "_exit", None) if os.name == "posix" else os._exit
 POKE = signal.SIGUSR2  # sent to the main thread only to end a blocked system call; its handler does nothing
 GRACE_S = 1.2  # the main thread's time to unwind cleanly; then the watchdog ends the process (within the 2 s)
 
@@ -210,7 +215,7 @@ def abandon(line: str | None = None, code: int | None = None) -> None:
             os.write(2, f"dstereo: error: {line or Interrupted(signum)}\n".encode())
         except OSError:
             pass
-    os._exit(128 + signum if code is None else code)
+    _hard_exit(128 + signum if code is None else code)
 
 
 def children(pid: int | None = None) -> list[int]:

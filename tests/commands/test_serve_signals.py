@@ -161,3 +161,36 @@ def test_status_shows_memory_age_commands_and_what_differs():
     assert "2 command(s) served" in text and "calibrate  exit 0  3.50 s" in text and "reconstruct  exit 143" in text
     assert "NOT the same" in text and "XLA_FLAGS unset here, --xla_cpu_max_isa=SSE4_2 in the server" in text
     assert json.dumps(state)  # what the server sends is JSON as it is
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
+def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_path):
+    """A signal while the served command compiles (native code: no Python handler runs until it returns): after
+    serve_server.STUCK_S the server tells the client the command's line and code and ends itself. Found by
+    experiments/signal_stages.py: the server's exit there went through the os._exit a served command runs with
+    (a stand-in that raises), and the server lived on, deadlocked on the client's stream, holding its socket's
+    lock. A cold cache (its own JAX cache folder, no executables) makes the first solve a compile."""
+    views = render_views(tmp_path / "images", 16)
+    env = _env(tmp_path / "run", DSTEREO_JAX_CACHE=str(tmp_path / "jax"), DSTEREO_AOT="0")
+    server = subprocess.Popen([sys.executable, "-c", ENTRY, "serve"], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert "ready" in server.stderr.readline()
+        threading.Thread(target=server.stderr.read, daemon=True).start()
+        work = tmp_path / "work"
+        work.mkdir()
+        run = Run(["calibrate", "--images", views, *SUBSET_FLAGS, "--out", "results"], work, env)
+        run.wait_for(b"detect: 16/16 done")  # the full-set solve's compile starts now (a second or more)
+        run.proc.send_signal(signal.SIGTERM)
+        code = run.proc.wait(timeout=STARTUP_S)
+        assert code == 143, b"".join(run.err).decode()
+        assert run.err[-1].startswith(b"dstereo: error: interrupted (SIGTERM)"), b"".join(run.err).decode()
+        try:  # the server: ended (stuck: it ended itself) or still serving (the compile ended within STUCK_S)
+            server.wait(timeout=END_S + 5)
+        except subprocess.TimeoutExpired:
+            assert _status(wire.socket_path(env)) is not None, "the server neither ended nor answers"
+        assert os.listdir(work) == []
+    finally:
+        if server.poll() is None:
+            dstereo(env, tmp_path, "serve", "--stop")
+            server.wait(timeout=STARTUP_S)
