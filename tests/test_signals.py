@@ -196,3 +196,25 @@ def test_results_are_not_put_in_place_after_a_signal(tmp_path, monkeypatch):
             (tmp / "a.txt").write_text("x")
             monkeypatch.setattr(interrupts, "_received", int(signal.SIGTERM))  # its first raise was lost
     assert os.listdir(tmp_path) == []
+
+
+STAND_IN = """
+import os, sys, threading
+from dstereo import interrupts
+def stand_in(code=0):  # what a served command runs with (commands/serve_request.py): it must not end the server
+    raise SystemExit(f"stand-in called with {code}")
+os._exit = stand_in
+thread = threading.Thread(target=interrupts.abandon, args=("a compiled call made no progress", 1))
+thread.start()
+thread.join()
+print("still running", flush=True)
+"""
+
+
+def test_a_watchdog_ends_the_process_even_while_os_exit_is_replaced():
+    """The server replaces os._exit while it runs a command; a watchdog ending the server from another thread
+    then (a command stuck in a compile, a stalled compiled call) must still end the process: measured before the
+    fix, the stand-in raised in the watchdog's thread and the server lived on, deadlocked on the client's stream."""
+    done = subprocess.run([sys.executable, "-c", STAND_IN], env=env_for(), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "still running" not in done.stdout, (done.stdout, done.stderr)
+    assert done.stderr == "dstereo: error: a compiled call made no progress\n"

@@ -169,7 +169,8 @@ def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_
     serve_server.STUCK_S the server tells the client the command's line and code and ends itself. Found by
     experiments/signal_stages.py: the server's exit there went through the os._exit a served command runs with
     (a stand-in that raises), and the server lived on, deadlocked on the client's stream, holding its socket's
-    lock. A cold cache (its own JAX cache folder, no executables) makes the first solve a compile."""
+    lock. A cold cache (its own JAX cache folder, no executables) makes the first solve a compile. Which way it
+    goes depends on the machine; the exit itself is tested deterministically in tests/test_signals.py."""
     views = render_views(tmp_path / "images", 16)
     env = _env(tmp_path / "run", DSTEREO_JAX_CACHE=str(tmp_path / "jax"), DSTEREO_AOT="0")
     server = subprocess.Popen([sys.executable, "-c", ENTRY, "serve"], env=env, stdout=subprocess.DEVNULL,
@@ -179,13 +180,17 @@ def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_
         threading.Thread(target=server.stderr.read, daemon=True).start()
         work = tmp_path / "work"
         work.mkdir()
-        run = Run(["calibrate", "--images", views, *SUBSET_FLAGS, "--out", "results"], work, env)
-        run.wait_for(b"detect: 16/16 done")  # the full-set solve's compile starts now (a second or more)
+        # the splined lens's solver compiles for seconds (cold), past STUCK_S (0.9 s) on a loaded machine; where
+        # the command stops within it the server survives instead, as it should (both are checked below)
+        flags = ["--pattern", "9x6", "--square", "20", "--model", "splined", "--no-cache"]
+        run = Run(["calibrate", "--images", views, *flags, "--out", "results"], work, env)
+        run.wait_for(b"detect: 16/16 done")  # the full-set solve's compile starts now
+        time.sleep(0.3)
         run.proc.send_signal(signal.SIGTERM)
         code = run.proc.wait(timeout=STARTUP_S)
         assert code == 143, b"".join(run.err).decode()
         assert run.err[-1].startswith(b"dstereo: error: interrupted (SIGTERM)"), b"".join(run.err).decode()
-        try:  # the server: ended (stuck: it ended itself) or still serving (the compile ended within STUCK_S)
+        try:  # the server: ended (the compile outlasted STUCK_S) or still serving (the command stopped in time)
             server.wait(timeout=END_S + 5)
         except subprocess.TimeoutExpired:
             assert _status(wire.socket_path(env)) is not None, "the server neither ended nor answers"
