@@ -85,10 +85,11 @@ def _command_process() -> bool:
     # a `dstereo serve` process runs many commands: it ends none of them with the process (nor stops its warm
     # figure workers, which `finish` would)
     serving = "dstereo.commands.serve_server" in sys.modules
-    # `dstereo` (the script), `python -m dstereo.cli` or `-m dstereo.serve_client`, or `python -c` code that names
-    # itself dstereo (sys.argv[0], as the tests' subprocesses do): all end as the script does
-    named = name in ("dstereo", "dstereo.cli", "dstereo.serve_client") or (
-        not name and os.path.basename(sys.argv[0] or "") == "dstereo")
+    # `dstereo` (the script), `python -m dstereo.cli` or `-m dstereo.serve_client`, or any process that came in
+    # through the script's entry point (`serve_client.main`, as the tests' `python -c` subprocesses do) ends as
+    # the script does; `python -c` code calling this `main` itself is library use
+    client = sys.modules.get("dstereo.serve_client")
+    named = name in ("dstereo", "dstereo.cli", "dstereo.serve_client") or bool(getattr(client, "entered", False))
     return named and "pytest" not in sys.modules and not serving
 
 

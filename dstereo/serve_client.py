@@ -344,9 +344,14 @@ def _server_died(path: str) -> int:
     return 1
 
 
+entered = False  # this process came in through `main`, the `dstereo` script's entry (dstereo.cli._command_process)
+
+
 def main() -> None:
+    global entered
     from dstereo import interrupts
 
+    entered = True
     interrupts.install()  # first: a signal at any moment from here on ends the command cleanly
     try:
         _main()
