@@ -4,8 +4,8 @@ served, and record how long it took to end, its exit code, the child processes l
     .venv/bin/python -m experiments.signal_stages [--served RUN_DIR]
 
 The signal is sent at the first appearance of a progress text on stderr (TRIGGERS): a stage's start, or the end of
-the stage before it. Served: start `DSTEREO_SERVE_DIR=RUN_DIR dstereo serve` first and run one calibration through it (so nothing compiles).
-Results go to docs/validation.md by hand (section "Signals").
+the stage before it. Served: start `DSTEREO_SERVE_DIR=RUN_DIR dstereo serve` first and run one calibration
+through it (so nothing compiles). Results go to docs/validation.md by hand (section "Signals").
 """
 
 from __future__ import annotations
