@@ -123,3 +123,18 @@ def run_cli(*args) -> tuple[int, str, str]:
     finally:
         sys.argv = argv
     return code, out.getvalue(), err.getvalue()
+
+
+def refused(args, out: Path | None, *mentions: str) -> str:
+    """Run the CLI in process; assert exit 1, one stderr line `dstereo: error: ...` holding each of `mentions`,
+    and that neither `out` nor `out.partial` was created. Returns the line."""
+    code, _, err = run_cli(*args)
+    lines = err.strip().splitlines()
+    assert code == 1, (code, err)
+    assert len(lines) == 1 and lines[0].startswith("dstereo: error: "), err
+    for m in mentions:
+        assert m in lines[0], (m, lines[0])
+    if out is not None:
+        assert not Path(out).exists(), f"{out} was written"
+        assert not Path(str(out) + ".partial").exists(), f"{out}.partial was left"
+    return lines[0]
