@@ -92,13 +92,6 @@ def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | 
     summary["ply_points"] = n_points
     summary["mesh"] = {"vertices": n_vertices, "faces": n_faces, "max_jump": config.max_jump}
     summary["config"] = config.as_dict()
-    if summary.get("mode") == "calibrated" and "calibration_unit" not in summary:
-        # the unit the calibration file was in (read_stereo_calibration converts it to the summary's mm), or that
-        # mm was assumed (a file without one). Read back from the file by name here because the summary is built
-        # in stereo/pipeline.py, which holds `calib.unit_note` itself and is the place for it.
-        from dstereo.io.calib_files import calibration_unit_note
-
-        summary["calibration_unit"] = calibration_unit_note(summary.get("calibration", ""))
     summary["timings_s"] = {**summary.get("timings_s", {}), "write_s": time.perf_counter() - t0}
     (folder / "summary.json").write_text(json.dumps(summary, indent=2, default=json_default))
 

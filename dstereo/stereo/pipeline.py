@@ -112,7 +112,9 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                                                                calib=calib)
     timings["disparity_s"] = time.perf_counter() - t0
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
-    summary = {"mode": "calibrated", "calibration": calib.source, "units": "mm", "scaled": True,
+    # calibration_unit: the unit the calibration file was in (converted to mm here), or that mm was assumed
+    summary = {"mode": "calibrated", "calibration": calib.source, "calibration_unit": calib.unit_note,
+               "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
                "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
