@@ -17,6 +17,7 @@ import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
 from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, list_camera_images
+from dstereo.calib.rig_consistency import RigConsistency, of_multiview
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
@@ -39,6 +40,8 @@ class MultiviewJob:
     solution: MultiviewSolution  # the joint solve: cameras.yml
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all
+    consistency: RigConsistency | None = None  # calib/rig_consistency.py on the joint solve
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""
@@ -81,18 +84,24 @@ def _camera_of(cal: CameraCalibration) -> Camera:
                          cal.detection.image_size)
 
 
-def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(frame names, visible (F, K), observations (F, K, n, 2)) from each camera's used views, by image stem."""
-    stems = [{Path(name).stem: name for name in cal.used} for cal in cams]
+def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """(frame names, visible (F, K), observations (F, K, n, 2), inliers (F, K, n)) from each camera's used views,
+    by image stem. A view its camera's outlier rejection rejected whole is not seen; a rejected corner is no inlier
+    of the rig either: the rig is solved on the corners each camera kept."""
+    rejected = [{v for v, _ in cal.outliers.views} if cal.outliers is not None else set() for cal in cams]
+    stems = [{Path(name).stem: name for name in cal.used if name not in gone} for cal, gone in zip(cams, rejected)]
     frames = sorted(set().union(*stems))
     n = cams[0].observations.shape[1]
     obs = np.full((len(frames), len(cams), n, 2), np.nan)
+    inliers = np.zeros((len(frames), len(cams), n), bool)
     for k, (cal, by_stem) in enumerate(zip(cams, stems)):
         row = {name: i for i, name in enumerate(cal.used)}
         for f, stem in enumerate(frames):
             if stem in by_stem:
-                obs[f, k] = cal.observations[row[by_stem[stem]]]
-    return frames, np.isfinite(obs[..., 0, 0]), obs
+                i = row[by_stem[stem]]
+                obs[f, k] = cal.observations[i]
+                inliers[f, k] = True if cal.full.inliers is None else cal.full.inliers[i]
+    return frames, np.isfinite(obs[..., 0, 0]), obs, inliers
 
 
 def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
@@ -119,7 +128,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     if len(shapes) != 1 or any(not np.allclose(c.detection.object_points, cams[0].detection.object_points)
                                for c in cams):
         raise DstereoError("cameras: the cameras' boards differ (pattern or square); one rig calibrates from one board")
-    frames, visible, obs = frame_table(cams)
+    frames, visible, obs, inliers = frame_table(cams)
     shared = visible.sum(axis=1)
     lonely = [frames[f] for f in np.flatnonzero(shared < 2)]
     if len(lonely) == len(frames):
@@ -135,14 +144,21 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     sizes = [c.detection.image_size for c in cams]
     obj = cams[0].detection.object_points
     sag = config.board_sag
-    held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels, board_warp=sag)
+    rig_inliers = None if inliers[visible].all() else inliers
+    held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels, board_warp=sag,
+                           inliers=rig_inliers)
     if progress is not None:
-        progress("rig solve", 1, 2)
-    joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels, board_warp=sag)
+        progress("rig solve", 1, 3)
+    joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels, board_warp=sag,
+                            inliers=rig_inliers)
     if progress is not None:
-        progress("rig solve", 2, 2)
+        progress("rig solve", 2, 3)
+    consistency = of_multiview(joint, obj, obs, rig_inliers, frames)
+    if progress is not None:
+        progress("rig solve", 3, 3)
     timings["rig_s"] = time.perf_counter() - t
-    job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings)
+    job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings,
+                       inliers=rig_inliers, consistency=consistency)
     _check(job)
     timings["total_s"] = time.perf_counter() - t0
     return job
@@ -161,6 +177,8 @@ def _check(job: MultiviewJob) -> None:
     for name, s in (("held", job.held), ("joint", sol)):
         if not s.converged:
             job.warnings.append(f"the {name} rig solve did not converge ({s.status_text}); its values are unreliable")
+    if job.consistency is not None and job.consistency.warning() is not None:
+        job.warnings.append(job.consistency.warning())
     if sol.flipped:
         views = ", ".join(f"{job.labels[c]}/{job.frames[f]}" for f, c in sol.flipped[:6])
         job.warnings.append(f"{len(sol.flipped)} view(s) had their corners in reversed order against the other "

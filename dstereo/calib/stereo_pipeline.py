@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera
+from dstereo.calib.rig_consistency import RigConsistency, of_stereo
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
     solve_stereo_subsets
@@ -167,6 +168,7 @@ class StereoCalibrationJob:
     calibration_covariance: tuple | None = None  # rig_covariance(job) of the written calibration
     full_set_sigma: object | None = None  # final_solution.RigSigma of the full-set solve
     board_sag: str = FLAT_BOARD_NOTE  # what this rig assumes of the board
+    consistency: RigConsistency | None = None  # calib/rig_consistency.py: does one rig explain the pairs?
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -277,9 +279,15 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     inliers = _pair_inliers(det, cams, obs_l, obs_r)
     full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed",
                             inliers=inliers)
+    check_baseline(full, det.board, config.unit)
+    # the rig with the intrinsics refined too: the solve the consistency test compares with each camera alone
+    joint = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "joint",
+                             inliers=inliers)
+    consistency = of_stereo(joint, det.object_points, obs_l, obs_r, det.pairs)
+    if consistency.warning() is not None:
+        warnings.append("stereo: " + consistency.warning())
     if progress is not None:
-        progress("stereo solve", 1, 1)
-    check_baseline(full, det.board, config.unit)  # before the subsets: a rig with no baseline is not worth them
+        progress("stereo solve", 1, 1)  # before the subsets: a rig with no baseline is not worth them
     timings["stereo_s"] = time.perf_counter() - t0
     if not full.converged:
         warnings.append(f"stereo full-set solve did not converge ({full.status_text}); its values are unreliable")
@@ -327,6 +335,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         config=config, sources=sources, left=cams["left"], right=cams["right"], detection=det, full=full, plan=plan,
         subsets=subsets, filtering=filtering, final=final, spread=spread, R=np.asarray(rodrigues(rvec)), T=T, E=E,
         F=F, warnings=warnings, timings=timings, rig_final=rig_fs, subset_mean=subset_mean, board_sag=board_note,
+        consistency=consistency,
     )
     from dstereo.calib.final_solution import attach_rig_uncertainty
 
@@ -416,6 +425,8 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     for k in STEP_COLUMNS:
         lines.append(f"{k:>9}  {pm(full_vals[k], full_std[k]):>28}  {pm(shown[k], job.spread[k])}")
     lines.append(f"baseline |T| = {s.baseline:.6g} +- {full_std['Tnorm']:.3g} {unit} (full set, {kind})")
+    if job.consistency is not None:
+        lines.append(job.consistency.line())
     if job.rig_final is not None:
         c = job.rig_final.check
         lines.append(f"stereo.yml: {job.rig_final.source()}")

@@ -260,6 +260,8 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
                        f"cy {float(cam.k[3]):.3f}  |T| {np.linalg.norm(T):.4f}  RMS {rms:.4f} px "
                        f"({int(job.visible[:, job.labels.index(label)].sum())} views)")
         typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
+        if job.consistency is not None:
+            typer.echo(job.consistency.line())
         typer.echo(f"wrote {out}")
 
 

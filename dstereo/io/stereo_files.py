@@ -285,6 +285,7 @@ def stereo_summary(job) -> dict:
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
         "board_sag": job.board_sag,
+        "rig_consistency": None if getattr(job, "consistency", None) is None else job.consistency.as_dict(),
         "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
                                      "square": det.board.square, "unit": job.config.unit},
         "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
@@ -503,6 +504,9 @@ def report_markdown(job, summary: dict) -> str:
         lines.append(f"| {k} | {fmt(job.final[k])} | {fmt(full_vals[k])} | {fmt(std.get(k, float('nan')))} | "
                      f"{fmt(mean.get(k, float('nan')))} | {fmt(job.spread[k])} |")
     lines += ["", f"+- std: {summary['full_set']['std_kind']}."]
+    from dstereo.io.cameras_files import consistency_markdown
+
+    lines += consistency_markdown(summary.get("rig_consistency"))
     check = summary.get("final_check", {}).get("mean_check")
     if check is not None:
         lines += ["", f"Fit on the {check['views']} surviving pairs' corners, board poses refitted: the rig solve RMS "
