@@ -414,10 +414,10 @@ def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
         (tmp_path / "project" / "images" / folder).mkdir(parents=True)
         for f in files:
             (tmp_path / "project" / "images" / folder / f.name).symlink_to(f)
-    # Without outlier rejection: the CLI must then reproduce the library's solve of every corner exactly
-    # (`calibrate_stereo_folders`, itself checked against OpenCV on every corner)
+    # Without outlier rejection and on a flat board: the CLI must then reproduce the library's solve of every
+    # corner exactly (`calibrate_stereo_folders`, itself checked against OpenCV on every corner, flat board)
     code, out, err = run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1",
-                             "--no-outlier-rejection")
+                             "--no-outlier-rejection", "--no-board-sag")
     assert code == 0, err
     res = tmp_path / "project" / "results"
     assert "stereo: 13 pairs (0 dropped)" in out and "baseline |T|" in out

@@ -2,9 +2,11 @@
 
 DIR's subfolders (sorted by name; the first is the reference) each hold one camera's images; an image of the
 same name (stem) in two subfolders is one frame, seen by both; a camera may miss any frame. Each camera is first
-calibrated alone by the one-camera pipeline (its own results: corners, subsets and steps as configured), then
-all cameras and frames together: the rig with every camera held at its own calibration, then everything
-jointly (`calib/multiview.py`). The joint solve is what cameras.yml holds; the held one is reported beside it.
+calibrated alone by the one-camera pipeline (its own results: corners, outliers, subsets and steps as configured,
+`--model auto` among the parametric lenses), then all cameras and frames together on the corners each camera
+kept: the rig with every camera held at its own calibration, then everything jointly (`calib/multiview.py`). The
+joint solve is what cameras.yml holds; the held one is reported beside it, and the joint one is tested against
+each camera alone (`calib/rig_consistency.py`: do the frames show one board at one moment for every camera?).
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
         t = time.perf_counter()
         try:
             cal = calibrate_camera(folder, config, progress=_prefixed(progress, label), use_cache=use_cache,
-                                   scratch=scratch)
+                                   scratch=scratch, in_rig=True)
         except DstereoError as exc:
             raise DstereoError(f"camera {label} ({folder}): {exc}") from None
         cams.append(cal)

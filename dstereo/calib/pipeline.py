@@ -162,6 +162,7 @@ def calibrate_camera(
     use_cache: bool = True,
     scratch: Path | None = None,
     after_steps: Callable | None = None,
+    in_rig: bool = False,
 ) -> CameraCalibration:
     """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
     `config.steps`). Raises DstereoError for unreadable files, m > N, a step that leaves no subset, or a run
@@ -170,7 +171,8 @@ def calibrate_camera(
     `scratch`: folder for the per-subset table of a huge run (default the system temp folder; the CLI passes
     the results folder's parent). `progress` may carry a `note(text)` method: the run's estimate goes there.
     `after_steps(filtering, full)`: called once the subsets' steps are done, before the survivors' solve (the
-    command starts drawing their figures then, `io.results.EarlyFigures`)."""
+    command starts drawing their figures then, `io.results.EarlyFigures`). `in_rig`: a camera of a rig, whose
+    `--model auto` chooses among the parametric lenses (`reconstruct` rectifies no splined lens)."""
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
@@ -196,7 +198,7 @@ def calibrate_camera(
         warnings.append(f"image {name} rejected: {reason}")
     choice = None
     if config.model_auto:  # before the plan: the subsets, steps and files run with the chosen model
-        config, choice = _choose_model(config, det, obs, progress)
+        config, choice = _choose_model(config, det, obs, progress, in_rig)
         timings["model_choice_s"] = choice.timings["model_choice_s"]
     plan = None
     if config.per_set is not None:
@@ -323,15 +325,16 @@ def _reject_outliers(config, det, used, obs, full, warnings, alone: bool = False
     return full, [used[i] for i in keep], obs[keep], report
 
 
-def _choose_model(config, det, obs, progress):
+def _choose_model(config, det, obs, progress, in_rig: bool = False):
     """--model auto: (the config with the chosen model, the ModelChoice)."""
     from dataclasses import replace
 
     from dstereo.calib.model_choice import CANDIDATES, PARAMETRIC, choose_model
 
     report = None if progress is None else (lambda i, n: progress("model choice", i, n))
-    # the subset analysis is not available for the splined lens (~160 knots): with `per_set`, parametric only
-    candidates = CANDIDATES if config.per_set is None else PARAMETRIC
+    # the subset analysis is not available for the splined lens (~160 knots), nor a rig's rectification: with
+    # `per_set` or in a rig, parametric only
+    candidates = CANDIDATES if config.per_set is None and not in_rig else PARAMETRIC
     choice = choose_model(det.object_points, obs, det.image_size, candidates, progress=report)
     return validate(replace(config, model=choice.chosen_candidate.free, model_auto=False)), choice
 

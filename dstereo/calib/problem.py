@@ -29,7 +29,7 @@ import numpy as np
 
 from dstereo import watchdog
 from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
-from dstereo.models import camera, fisheye, splined
+from dstereo.models import board, camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
 from dstereo.solver import aot
@@ -117,12 +117,8 @@ def _intrinsics(problem: Problem, g, shared):
 
 
 def sag_basis(obj):
-    """(n, 2) how far each corner moves out of the board plane per unit of the two sag parameters: a parabola
-    along x and one along y, 1 at the board's centre line and 0 at its outer corner rows (mrcal's calobject_warp
-    model): z = sag_x (1 - u^2) + sag_y (1 - v^2), u, v the corners' positions scaled to [-1, 1]."""
-    lo, hi = jnp.min(obj[:, :2], axis=0), jnp.max(obj[:, :2], axis=0)
-    uv = 2.0 * (obj[:, :2] - lo) / (hi - lo) - 1.0
-    return 1.0 - uv ** 2
+    """`models.board.sag_basis` in traced code (jax.numpy)."""
+    return board.sag_basis(obj, jnp)
 
 
 def board_points(problem: Problem, g, obj):
@@ -134,12 +130,9 @@ def board_points(problem: Problem, g, obj):
 
 
 def sagged_board(obj, sag) -> np.ndarray:
-    """(n, 3) numpy: the board's corners sagged by (sag_x, sag_y) (`sag_basis`); the flat board for None. The
-    board a camera solved with the sag was fitted on (refits, held-sag subsets, corners.npz)."""
-    board = np.array(obj, float)
-    if sag is not None:
-        board[:, 2] += np.asarray(sag_basis(board)) @ np.asarray(sag, float)
-    return board
+    """(n, 3) numpy: the board's corners sagged by (sag_x, sag_y) (`models.board.sagged`); the flat board for None.
+    The board a camera solved with the sag was fitted on (refits, held-sag subsets, corners.npz)."""
+    return board.sagged(obj, sag)
 
 
 def _seen(obs_c):

@@ -24,8 +24,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
-
 from dstereo.calib.problem import POSE_SIZE, WARP_SIZE, Problem, residual_weights, run, shared_data
 from dstereo.models.camera import Camera
 from dstereo.solver.lm import LMOptions
@@ -64,6 +62,8 @@ class RigConsistency:
 
     def worst_frames(self, n: int = TOP_FRAMES) -> list[tuple[str, float, int, float]]:
         """(frame, T_f, dof_f, p_f) of the frames seen by two or more cameras, the least likely first."""
+        from scipy import stats  # where used: a one-camera run never loads scipy.stats (tests/test_startup.py)
+
         frames = np.flatnonzero(self.frame_dof > 0)
         # ordered by the log of p, then by T_f / dof_f: far outliers all have p = 0 (even log p = -inf)
         log_p = stats.chi2.logsf(self.frame_statistic[frames], self.frame_dof[frames])
@@ -168,6 +168,8 @@ def rig_consistency(obj, obs, mask, cameras: list[Camera], rig_sse: np.ndarray, 
     n_rig = POSE_SIZE * int((k_f > 0).sum()) + POSE_SIZE * (k - 1) + (WARP_SIZE if sag is not None else 0)
     dof = max(n_alone - n_rig, 1)
     statistic = float(frame_stat.sum())
+    from scipy import stats
+
     p = float(stats.f.sf(statistic / dof, dof, dof_noise))
     counts = np.maximum(mask.sum(axis=(0, 2)), 1)
     return RigConsistency(

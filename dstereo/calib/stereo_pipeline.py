@@ -104,7 +104,8 @@ SAG_ALARM_Z = 3.0  # a sag this many of its own (reported) sigmas from zero: the
 
 
 def flat_board_check(cams: dict, warnings: list[str]) -> str:
-    """This rig solves on a flat board; check that assumption on each camera's own views: solve the camera once
+    """A rig asked to solve on a flat board (--no-board-sag); check that assumption on each camera's own views: solve
+    the camera once
     with the board's sag (one more full-set solve each, ~0.1 s) and, where the sag lies beyond SAG_ALARM_Z of its
     sigma, warn with the figures and how far the camera's focal length moves (the synthetic 0.3 mm sag biased a flat
     solve's fx by 8.6 px; the real boards here sag 3-23 sigma). Returns the summary's `board_sag` text."""
@@ -127,16 +128,60 @@ def flat_board_check(cams: dict, warnings: list[str]) -> str:
                          f"fx moves {dfx:+.3g} px ({abs(dfx) / std[0]:.1f} sigma)")
     if not found:
         return FLAT_BOARD_NOTE
-    text = ("the board is not flat, but a --left/--right rig assumes it is: " + "; ".join(found)
-            + ". The cameras and the rig are biased by it; put each camera's images in a subfolder and run "
-            "--cameras DIR, whose rig solve has the sag")
+    text = ("the board is not flat, but --no-board-sag assumes it is: " + "; ".join(found)
+            + ". The cameras and the rig are biased by it; leave --no-board-sag out to solve the sag")
     warnings.append(text)
     return FLAT_BOARD_NOTE + ". Measured on each camera's own views: " + "; ".join(found)
 
 
-FLAT_BOARD_NOTE = ("not solved: a --left/--right rig assumes a flat board for both cameras and the rig (the real boards "
-                   "measured sag 3-22 sigma); put each camera's images in a subfolder and run --cameras DIR, whose "
-                   "rig solve has it")
+FLAT_BOARD_NOTE = "not solved (--no-board-sag): a flat board for both cameras and the rig, as OpenCV"
+SAG_DISAGREE_Z = 3.0  # the two cameras' sags this many sigmas apart: one board cannot sag two ways
+
+
+@dataclass(frozen=True)
+class RigSag:
+    """The board's sag a rig is solved on (x, y in the board unit) and its sigma, with the summary's text."""
+
+    value: np.ndarray
+    std: np.ndarray
+    note: str
+
+    def as_dict(self) -> dict:
+        return {"x": float(self.value[0]), "y": float(self.value[1]), "std_x": float(self.std[0]),
+                "std_y": float(self.std[1])}
+
+
+def rig_board_sag(det, cams: dict, warnings: list[str]) -> RigSag | None:
+    """The board's sag for the rig: each camera solved it on its own views (the one-camera default); the rig is
+    solved on the board sagged by their inverse-variance mean, held there as the subsets hold a camera's (one board
+    in every frame; re-estimating it in the rig adds the cameras' noise only). Sets `det.solved_board` (the
+    board every rig solve uses; corners.npz's `object_points_solved`) and returns it (None when a camera solved none); warns when
+    the two cameras' sags disagree beyond SAG_DISAGREE_Z of their sigmas (another board in one folder, or a sag
+    the two-parameter model does not describe)."""
+    from dstereo.calib.problem import sagged_board
+    from dstereo.uncertainty.view_effects import reported_std
+
+    sags, variances = [], []
+    for cal in cams.values():
+        if cal.full.board_sag is None:
+            return None
+        sags.append(np.asarray(cal.full.board_sag, float))
+        variances.append(np.maximum(reported_std(cal.full)[-2:], 1e-300) ** 2)
+    sags, variances = np.array(sags), np.array(variances)
+    weights = 1.0 / variances
+    sag = np.sum(weights * sags, axis=0) / weights.sum(axis=0)
+    sigma = np.sqrt(1.0 / weights.sum(axis=0))
+    det.solved_board = sagged_board(det.board.object_points(), sag)
+    unit = next(iter(cams.values())).config.unit
+    per = "; ".join(f"{side} {s[0]:+.4g} +- {np.sqrt(v[0]):.2g}, {s[1]:+.4g} +- {np.sqrt(v[1]):.2g}"
+                    for side, s, v in zip(cams, sags, variances))
+    z = np.abs(sags[0] - sags[1]) / np.sqrt(variances.sum(axis=0))
+    if np.max(z) > SAG_DISAGREE_Z:
+        warnings.append(f"board sag: the left and right cameras measure different sags of the one board ({per} "
+                        f"{unit}; {np.max(z):.1f} sigma apart): another board in one folder, or a board that bends "
+                        "in a way the two-parameter sag does not describe; the rig uses their weighted mean")
+    return RigSag(sag, sigma, f"solved: x {sag[0]:+.4g} +- {sigma[0]:.2g}, y {sag[1]:+.4g} +- {sigma[1]:.2g} {unit}, "
+                  f"the weighted mean of each camera's own solve ({per}), held in the rig solve and its subsets")
 
 
 @dataclass
@@ -169,6 +214,7 @@ class StereoCalibrationJob:
     full_set_sigma: object | None = None  # final_solution.RigSigma of the full-set solve
     board_sag: str = FLAT_BOARD_NOTE  # what this rig assumes of the board
     consistency: RigConsistency | None = None  # calib/rig_consistency.py: does one rig explain the pairs?
+    rig_sag: RigSag | None = None  # the board's sag the rig was solved on (None: flat)
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -237,9 +283,6 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
 
     if config.stereo_steps and config.per_set is None:
         raise DstereoError("stereo steps need subsets of pairs; set images per set (`per_set` m)")
-    # the rig problem of this job has no board sag yet: both cameras and the rig assume a flat board, so that
-    # the cameras' intrinsics and the rig are solved on one board model (the summary says so: FLAT_BOARD_NOTE)
-    config = config.with_overrides(board_sag=False)
     timings, warnings = {}, []
     t0 = time.perf_counter()
     if progress is not None:
@@ -254,14 +297,15 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     for side, files, fmt in (("left", sources.mono_left, config.image_format_left),
                              ("right", sources.mono_right, config.image_format_right)):
         t0 = time.perf_counter()
-        cfg = config.with_overrides(image_format=fmt, model=config.model_right if side == "right" else None)
+        own = config.model_right if side == "right" else None  # the right camera's own lens model: not chosen
+        cfg = config.with_overrides(image_format=fmt, model=own, model_auto=False if own is not None else None)
         if cfg.model != config.model:  # the right camera's own lens model: its steps are checked against it
             from dstereo.config.calibration import validate
 
             cfg = validate(cfg)
         try:
             cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
-                                          use_cache=use_cache, scratch=scratch)
+                                          use_cache=use_cache, scratch=scratch, in_rig=True)
         except DstereoError as exc:
             raise DstereoError(f"{side} camera: {exc}") from None
         timings[f"{side}_s"] = time.perf_counter() - t0
@@ -271,7 +315,8 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
             raise DstereoError(f"{side} camera: individual images are {cams[side].detection.image_size} px but its "
                                f"stereo images are {stereo_size} px; one camera has one image size")
     _drop_pairs_rejected_by_both(det, cams, warnings)
-    board_note = flat_board_check(cams, warnings)
+    rig_sag = rig_board_sag(det, cams, warnings) if config.board_sag else None
+    board_note = rig_sag.note if rig_sag is not None else flat_board_check(cams, warnings)
     obs_l, obs_r = det.observations()
     t0 = time.perf_counter()
     if progress is not None:
@@ -335,7 +380,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         config=config, sources=sources, left=cams["left"], right=cams["right"], detection=det, full=full, plan=plan,
         subsets=subsets, filtering=filtering, final=final, spread=spread, R=np.asarray(rodrigues(rvec)), T=T, E=E,
         F=F, warnings=warnings, timings=timings, rig_final=rig_fs, subset_mean=subset_mean, board_sag=board_note,
-        consistency=consistency,
+        consistency=consistency, rig_sag=rig_sag,
     )
     from dstereo.calib.final_solution import attach_rig_uncertainty
 
@@ -413,7 +458,10 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     if job.full_set_sigma is not None:  # the honest +-: intrinsics errors carried into the rig
         full_std |= job.full_set_sigma.std
         kind = job.full_set_sigma.label.split(":")[0]
-    lines = [f"individual: left RMS {job.left.full.rms:.4f} px ({len(job.left.used)} images), right RMS "
+    chosen = [f"{side} {cal.model_choice.chosen}" for side, cal in (("left", job.left), ("right", job.right))
+              if cal.model_choice is not None]
+    lines = [f"model auto (each camera on its own views, parametric lenses): {', '.join(chosen)}"] if chosen else []
+    lines += [f"individual: left RMS {job.left.full.rms:.4f} px ({len(job.left.used)} images), right RMS "
              f"{job.right.full.rms:.4f} px ({len(job.right.used)} images)",
              f"stereo: {len(job.detection.pairs)} pairs ({len(job.detection.dropped)} dropped), RMS {s.rms:.4f} px, "
              f"stereo_re {s.stereo_re:.4f} px, {s.status_text}",

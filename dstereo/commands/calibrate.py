@@ -27,8 +27,8 @@ def calibrate(
         None, "--model", help="Free distortion coefficients: k1,k2,p1,p2,k3 or a preset (k1, k1k2, k1k2p1p2, "
         "k1k2k3p1p2, rational), or fisheye (cv2.fisheye's k1..k4, as fk1,fk2,fk3,fk4), or splined (a smooth "
         "correction surface over a stereographic lens, splined:NXxNY knots, default 10x8; one camera, full set), or "
-        "auto (the model that best predicts held-out views, of k1k2, default, fisheye, rational, splined; one "
-        "camera)."),
+        "auto (the model that best predicts held-out views, of k1k2, default, fisheye, rational, splined; in a rig "
+        "each camera chooses on its own views among the parametric ones)."),
     model_right: Optional[str] = typer.Option(
         None, "--model-right", help="Stereo: the right camera's lens model when it differs from the left's --model "
         "(e.g. fisheye); default: --model for both."),
@@ -50,8 +50,8 @@ def calibrate(
         "rejection of outlier corners and views, each one reported)."),
     board_sag: Optional[bool] = typer.Option(
         None, "--board-sag/--no-board-sag", help="Solve the board's sag (two parameters, x and y, in the board "
-        "unit, as mrcal) with the rest, reported with its sigma (default on: one camera and --cameras; a "
-        "--left/--right rig assumes a flat board and says so). --no-board-sag: a flat board, as OpenCV."),
+        "unit, as mrcal) with the rest, reported with its sigma (default on, for one camera and every rig). "
+        "--no-board-sag: a flat board, as OpenCV."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -114,9 +114,9 @@ def calibrate(
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
-        if cross_validate or cfg.model_auto or stereo_steps:
-            raise DstereoError("--cameras: --cross-validate, --model auto and stereo --step are not available for "
-                               "N cameras yet; calibrate a camera alone for those")
+        if cross_validate or stereo_steps:
+            raise DstereoError("--cameras: --cross-validate and stereo --step are not available for N cameras yet; "
+                               "calibrate a camera alone (--cross-validate) or the pair with --left/--right (--step)")
         if cfg.model_right is not None:
             raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig "
                                "(--left/--right); --cameras takes one --model")
@@ -127,13 +127,6 @@ def calibrate(
         if cross_validate:
             raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
                                "with --images DIR --cross-validate N")
-        if cfg.model_auto:
-            raise DstereoError(f"{_as_given(cfg, 'model_auto', '--model', 'auto')}: choosing the model for a "
-                               "stereo rig is not supported yet; run dstereo calibrate --images DIR --model auto on "
-                               "each camera, then give the rig the chosen --model")
-        if board_sag:  # asked for on the command line: it cannot be honoured (the default just runs flat)
-            raise DstereoError("--board-sag: not for a stereo rig's --left/--right run yet; put each camera's images in "
-                               "a subfolder and run --cameras DIR, whose rig solve has it")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, use_cache, started,
                     projection_range)
@@ -258,11 +251,17 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
         for label, cam, T, rms in zip(job.labels, sol.cameras, sol.T, sol.camera_rms()):
             typer.echo(f"{label}: fx {float(cam.k[0]):.3f} fy {float(cam.k[1]):.3f} cx {float(cam.k[2]):.3f} "
                        f"cy {float(cam.k[3]):.3f}  |T| {np.linalg.norm(T):.4f}  RMS {rms:.4f} px "
-                       f"({int(job.visible[:, job.labels.index(label)].sum())} views)")
+                       f"({int(job.visible[:, job.labels.index(label)].sum())} views)" + _chosen(job, label))
         typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
         if job.consistency is not None:
             typer.echo(job.consistency.line())
         typer.echo(f"wrote {out}")
+
+
+def _chosen(job, label: str) -> str:
+    """", model auto: <preset>" for a camera whose lens --model auto chose."""
+    choice = job.cameras[job.labels.index(label)].model_choice
+    return "" if choice is None else f", model auto: {choice.chosen}"
 
 
 def _view_warnings(cal) -> list[str]:

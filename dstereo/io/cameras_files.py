@@ -2,8 +2,10 @@
 
     <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
-                                 json adds every parameter's std and the held (fixed-intrinsics) solve beside
-    stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B)
+                                 json adds every parameter's std, the held (fixed-intrinsics) solve's values
+                                 beside and the rig-consistency test (`calib/rig_consistency.py`)
+    stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B),
+                                 with the pair's calibration covariance (`uncertainty.rig.pair_covariance`)
     frames.csv                   which camera saw which frame, each view's RMS (joint solve)
     summary.json, report.md
 """
@@ -93,9 +95,12 @@ def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | No
     E = np.asarray(essential_matrix(rotation_vector(R), T))
     F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
+    from dstereo.uncertainty.rig import pair_covariance
+
+    cov_names, cov, structure = pair_covariance(sol, a, b)  # so reconstruct's point sigmas carry the calibration's
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
                      ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
-                     unit=job.config.unit)
+                     unit=job.config.unit, cov=cov, cov_names=cov_names, cov_structure=structure)
     if tuple(ca.image_size) != tuple(cb.image_size):
         return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
                       "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")
@@ -115,18 +120,6 @@ def write_frames_csv(path: Path, job) -> None:
     path.write_text("\n".join(rows) + "\n")
 
 
-def consistency_markdown(rc: dict | None) -> list[str]:
-    """report.md's section on the rig-consistency test (`calib/rig_consistency.py`, its `as_dict`)."""
-    if rc is None:
-        return []
-    lines = ["", "## Rig consistency", "",
-             f"Each camera alone (a board pose per view) against the rig (one pose per frame): T/c = "
-             f"{rc['statistic']:.1f}/{rc['dof']} = {rc['ratio']:.2f} (1 expected), p = {rc['p_value']:.2g}: "
-             + ("consistent." if rc["consistent"] else "**the rig does not explain its frames** (see Warnings)."),
-             "", "| camera | RMS alone (px) | RMS rig (px) |", "|---|---|---|"]
-    return lines + [f"| {c['camera']} | {c['rms_alone_px']:.4f} | {c['rms_rig_px']:.4f} |" for c in rc["cameras"]]
-
-
 def report_markdown(summary: dict) -> str:
     lines = [f"# {len(summary['cameras'])} cameras, {summary['frames']} frames", "",
              f"Reference: {summary['reference']}; {summary['convention']}.", "",
@@ -142,6 +135,8 @@ def report_markdown(summary: dict) -> str:
               f"(each camera at its own calibration): RMS {summary['held']['rms']:.4f} px.", "",
               "| parameter | joint | std |", "|---|---|---|"]
     lines += [f"| {n} | {v:.6g} | {std[n]:.3g} |" for n, v in summary["joint"]["parameters"].items()]
+    from dstereo.io.rig_report import consistency_markdown
+
     lines += consistency_markdown(summary.get("rig_consistency"))
     if summary["flipped_views"]:
         lines += ["", "Views re-read in reversed corner order: "

@@ -39,6 +39,8 @@ class StereoDetection:
     pairs: list[tuple[str, str]]
     dropped: list[DroppedPair] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)  # images left out for want of a partner named like them
+    # (n, 3) the board the rig was solved on when it is not flat (the board's sag, `stereo_pipeline.rig_board_sag`)
+    solved_board: np.ndarray | None = None
 
     @property
     def board(self) -> Board:
@@ -46,7 +48,8 @@ class StereoDetection:
 
     @property
     def object_points(self) -> np.ndarray:
-        return self.board.object_points()
+        """The board's corners the rig was solved on: sagged when solved so (corners.npz's `object_points_solved`)."""
+        return self.board.object_points() if self.solved_board is None else self.solved_board
 
     def observations(self) -> tuple[np.ndarray, np.ndarray]:
         """(V, n, 2) left and right corners of the pairs, in pair order."""
@@ -222,8 +225,11 @@ def write_json(path, data: dict) -> Path:
 
 
 def write_stereo_corners(path, detection: StereoDetection) -> Path:
-    """corners.npz: `left/<file>`, `right/<file>` (n, 2) px of the stereo pairs, and `object_points` (n, 3)."""
-    arrays = {"object_points": detection.object_points}
+    """corners.npz: `left/<file>`, `right/<file>` (n, 2) px of the stereo pairs, `object_points` (n, 3) the nominal
+    flat board and, when the rig was solved on a sagged one, `object_points_solved` (as one camera's corners.npz)."""
+    arrays = {"object_points": detection.board.object_points()}
+    if detection.solved_board is not None:
+        arrays["object_points_solved"] = detection.solved_board
     for a, b in detection.pairs:
         arrays[f"left/{a}"] = detection.left.corners[a]
         arrays[f"right/{b}"] = detection.right.corners[b]
@@ -285,6 +291,7 @@ def stereo_summary(job) -> dict:
     summary = {
         "config": as_dict(job.config), "sources": job.sources.description, "same_images": job.sources.shared,
         "board_sag": job.board_sag,
+        "board_sag_solved": None if getattr(job, "rig_sag", None) is None else job.rig_sag.as_dict(),
         "rig_consistency": None if getattr(job, "consistency", None) is None else job.consistency.as_dict(),
         "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
                                      "square": det.board.square, "unit": job.config.unit},
@@ -504,7 +511,7 @@ def report_markdown(job, summary: dict) -> str:
         lines.append(f"| {k} | {fmt(job.final[k])} | {fmt(full_vals[k])} | {fmt(std.get(k, float('nan')))} | "
                      f"{fmt(mean.get(k, float('nan')))} | {fmt(job.spread[k])} |")
     lines += ["", f"+- std: {summary['full_set']['std_kind']}."]
-    from dstereo.io.cameras_files import consistency_markdown
+    from dstereo.io.rig_report import consistency_markdown
 
     lines += consistency_markdown(summary.get("rig_consistency"))
     check = summary.get("final_check", {}).get("mean_check")

@@ -58,3 +58,21 @@ class Board:
         yy, xx = np.mgrid[0:self.rows, 0:self.cols]
         grid = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(self.n_corners)]).astype(np.float64)
         return grid * self.square
+
+
+def sag_basis(obj, xp=np):
+    """(n, 2) how far each corner moves out of the board plane per unit of the two sag parameters: a parabola
+    along x and one along y, 1 at the board's centre line and 0 at its outer corner rows (mrcal's calobject_warp
+    model): z = sag_x (1 - u^2) + sag_y (1 - v^2), u, v the corners' positions scaled to [-1, 1]. `xp`: numpy, or
+    jax.numpy inside a traced solve (the one definition of the sag for both)."""
+    lo, hi = xp.min(obj[:, :2], axis=0), xp.max(obj[:, :2], axis=0)
+    uv = 2.0 * (obj[:, :2] - lo) / (hi - lo) - 1.0
+    return 1.0 - uv ** 2
+
+
+def sagged(obj, sag) -> np.ndarray:
+    """(n, 3) the board's corners sagged by (sag_x, sag_y) (`sag_basis`); the flat board for None."""
+    board = np.array(obj, float)
+    if sag is not None:
+        board[:, 2] += sag_basis(board) @ np.asarray(sag, float)
+    return board

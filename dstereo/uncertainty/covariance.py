@@ -127,7 +127,9 @@ def conditioning(schur: np.ndarray, names: tuple[str, ...], values=None, std=Non
     weak = [names[i] for i in range(len(names)) if weak_dirs.size and np.max(np.abs(weak_dirs[i])) > 0.2]
     corr = np.linalg.pinv(scaled, hermitian=True)
     cd = np.sqrt(np.maximum(np.diag(corr), 1e-300))
-    corr = corr / np.outer(cd, cd)
+    with np.errstate(over="ignore", invalid="ignore"):  # a singular candidate model (--model auto tries several)
+        corr = np.nan_to_num(corr / np.outer(cd, cd), nan=1.0, posinf=1.0, neginf=-1.0)
+    corr = np.clip(corr, -1.0, 1.0)  # a correlation; rounding in a near-singular pinv can leave it past +-1
     np.fill_diagonal(corr, 0.0)
     i, j = np.unravel_index(np.argmax(np.abs(corr)), corr.shape)
     wild = [] if values is None else wild_parameters(names, values, std, image_size)

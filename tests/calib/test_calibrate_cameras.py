@@ -83,6 +83,28 @@ def test_each_camera_gets_its_own_folder_and_each_adjacent_pair_a_stereo_file(ri
     assert lines[0].startswith("frame,cam0_seen,cam0_rms_px") and len(lines) == 21
 
 
+def test_pair_files_carry_the_calibration_covariance_and_the_rig_its_consistency(rig_run):
+    """Each stereo file carries the pair's covariance (intrinsics and rig, `uncertainty.rig.pair_covariance`), in
+    names reconstruct's point sigmas read; for the pair with the reference its rig std is the joint solve's own
+    (cameras.json, the same number); the rig's consistency test is in cameras.json and report.md."""
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.uncertainty.point_jacobians import theta_index
+
+    out, _ = rig_run
+    summary = json.loads((out / "cameras.json").read_text())
+    for name in ("stereo_cam0_cam1.yml", "stereo_cam1_cam2.yml"):
+        extras = read_stereo_calibration(out / name).extras
+        names, cov = list(extras["cov_names"]), np.asarray(extras["cov"])
+        assert len(theta_index(names)) == len(names) == cov.shape[0] and np.all(np.linalg.eigvalsh(cov) > 0)
+        assert "left.fx" in names and "right.k1" in names and names[-6:] == ["RVx", "RVy", "RVz", "Tx", "Ty", "Tz"]
+    extras = read_stereo_calibration(out / "stereo_cam0_cam1.yml").extras
+    std = np.sqrt(np.diag(extras["cov"]))
+    for n in ("RVy", "Tx"):
+        assert std[list(extras["cov_names"]).index(n)] == pytest.approx(summary["joint"]["std"][f"cam1.{n}"], rel=1e-9)
+    assert summary["rig_consistency"]["consistent"] and "## Rig consistency" in (out / "report.md").read_text()
+    assert "std" not in summary["held"]  # the held solve's std omitted the intrinsics' uncertainty
+
+
 def test_a_chosen_pair_and_the_refusals(rig_folder, tmp_path):
     root, _ = rig_folder
     code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "--pair",
@@ -121,3 +143,21 @@ def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder,
     assert code == 0, text
     full = json.loads((tmp_path / "one" / "summary.json").read_text())["full_set"]
     assert "board_sag_x" in full["std"] and "board_sag" not in (tmp_path / "one" / "config.toml").read_text()
+
+
+@pytest.mark.parametrize("layout", ["cameras", "left_right"])
+def test_model_auto_chooses_each_rig_cameras_lens_among_the_parametric_ones(rig_folder, tmp_path, layout):
+    """--model auto in a rig (issue 29): each camera chooses on its own views (its folder's summary has the
+    table), never the splined lens (`reconstruct` cannot rectify it), and the rig is solved with the chosen
+    models; the consistency test runs on it (simultaneous renders: consistent)."""
+    root, _ = rig_folder
+    args = (["--cameras", root] if layout == "cameras" else ["--left", root / "cam0", "--right", root / "cam1"])
+    code, text = _cli(*args, "--pattern", "9x6", "--square", "20", "--model", "auto", "--out", tmp_path / "r", "-q")
+    assert code == 0, text
+    folders = ["cam0", "cam1", "cam2"] if layout == "cameras" else ["left", "right"]
+    for name in folders:
+        choice = json.loads((tmp_path / "r" / name / "summary.json").read_text())["model_choice"]
+        presets = [c["preset"] for c in choice["candidates"]]
+        assert "splined" not in presets and choice["chosen"] in presets, choice
+    summary = json.loads((tmp_path / "r" / ("cameras.json" if layout == "cameras" else "summary.json")).read_text())
+    assert summary["rig_consistency"]["consistent"], summary["rig_consistency"]

@@ -159,13 +159,6 @@ def test_too_few_views_is_a_clear_error():
         choose_model(obj, np.zeros((3, len(obj), 2)), (640, 480))
 
 
-def test_cli_auto_refused_for_a_stereo_rig(tmp_path):
-    (tmp_path / "l").mkdir(), (tmp_path / "r").mkdir()
-    code, _, err = run_cli("calibrate", "--left", tmp_path / "l", "--right", tmp_path / "r", "--pattern", "9x6",
-                           "--model", "auto", "--out", tmp_path / "out")
-    assert code == 1 and "--model auto" in err and "Traceback" not in err
-
-
 def _cv_rms(obj, obs, size):
     """OpenCV's rational and fisheye calibrations on the same corners (tight criteria): their RMS px."""
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
