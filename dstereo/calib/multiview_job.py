@@ -20,6 +20,7 @@ import numpy as np
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
 from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, list_camera_images
 from dstereo.calib.rig_consistency import RigConsistency, of_multiview
+from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
@@ -44,6 +45,7 @@ class MultiviewJob:
     timings: dict[str, float] = field(default_factory=dict)
     inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all
     consistency: RigConsistency | None = None  # calib/rig_consistency.py on the joint solve
+    cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""
@@ -107,9 +109,9 @@ def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, n
 
 
 def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
-                              scratch: Path | None = None) -> MultiviewJob:
+                              scratch: Path | None = None, cross_validate: int = 0) -> MultiviewJob:
     """Run the job of the module docstring. Raises DstereoError for folders, boards or frames that cannot make
-    one rig."""
+    one rig. `cross_validate`: that many random halvings of the frames (`calib/rig_cross_validation.py`)."""
     from dstereo.calib.stereo_pipeline import _prefixed
 
     t0 = time.perf_counter()
@@ -159,8 +161,18 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     if progress is not None:
         progress("rig solve", 3, 3)
     timings["rig_s"] = time.perf_counter() - t
+    cv = None
+    if cross_validate:
+        t = time.perf_counter()
+        if progress is not None:
+            progress("rig cross-validation", 0, 1)
+        cv = cross_validate_rig(obj, obs, visible, sizes, start, labels, cross_validate, seed=config.seed or 0,
+                                inliers=rig_inliers, board_warp=sag)
+        if progress is not None:
+            progress("rig cross-validation", 1, 1)
+        timings["rig_cross_validation_s"] = time.perf_counter() - t
     job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings,
-                       inliers=rig_inliers, consistency=consistency)
+                       inliers=rig_inliers, consistency=consistency, cross_validation=cv)
     _check(job)
     timings["total_s"] = time.perf_counter() - t0
     return job
@@ -181,6 +193,8 @@ def _check(job: MultiviewJob) -> None:
             job.warnings.append(f"the {name} rig solve did not converge ({s.status_text}); its values are unreliable")
     if job.consistency is not None and job.consistency.warning() is not None:
         job.warnings.append(job.consistency.warning())
+    if job.cross_validation is not None and not job.cross_validation.trusted:
+        job.warnings.append(job.cross_validation.verdict())
     if sol.flipped:
         views = ", ".join(f"{job.labels[c]}/{job.frames[f]}" for f, c in sol.flipped[:6])
         job.warnings.append(f"{len(sol.flipped)} view(s) had their corners in reversed order against the other "

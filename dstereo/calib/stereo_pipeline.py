@@ -215,6 +215,7 @@ class StereoCalibrationJob:
     board_sag: str = FLAT_BOARD_NOTE  # what this rig assumes of the board
     consistency: RigConsistency | None = None  # calib/rig_consistency.py: does one rig explain the pairs?
     rig_sag: RigSag | None = None  # the board's sag the rig was solved on (None: flat)
+    cross_validation: object | None = None  # calib/rig_cross_validation.RigCrossValidation (--cross-validate N)
 
     @property
     def columns(self) -> tuple[str, ...]:
@@ -273,9 +274,13 @@ def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
 
 
 def calibrate_stereo_project(sources: StereoSources, config: Config, progress: Progress | None = None,
-                             use_cache: bool = True, scratch: Path | None = None) -> StereoCalibrationJob:
+                             use_cache: bool = True, scratch: Path | None = None,
+                             cross_validate: int = 0) -> StereoCalibrationJob:
     """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps, or a
-    subset run that cannot fit this machine. `scratch`: folder for huge runs' per-subset tables (as mono)."""
+    subset run that cannot fit this machine. `scratch`: folder for huge runs' per-subset tables (as mono).
+    `cross_validate`: that many random halvings of the pairs, each solved jointly (`calib/rig_cross_validation.py`;
+    it checks the joint solve's +-, the one stereo.json's `rig_consistency` compares, not the fixed-mode propagated
+    +- that stereo.yml carries)."""
     from dstereo.calib.subset_runs import check_subset_run
     from dstereo.calib.subsets import plan_subsets
     from dstereo.models.rig import essential_matrix, fundamental_matrix
@@ -331,6 +336,19 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     consistency = of_stereo(joint, det.object_points, obs_l, obs_r, det.pairs)
     if consistency.warning() is not None:
         warnings.append("stereo: " + consistency.warning())
+    cv = None
+    if cross_validate:
+        from dstereo.calib.rig_cross_validation import cross_validate_rig
+
+        t_cv = time.perf_counter()
+        data = np.stack([obs_l, obs_r], axis=1)
+        cv = cross_validate_rig(det.object_points, data, np.ones(data.shape[:2], bool),
+                                [det.left.image_size, det.right.image_size],
+                                [_camera(cams["left"]), _camera(cams["right"])], ("left", "right"), cross_validate,
+                                seed=config.seed or 0, inliers=inliers)
+        if not cv.trusted:
+            warnings.append("stereo: " + cv.verdict())
+        timings["rig_cross_validation_s"] = time.perf_counter() - t_cv
     if progress is not None:
         progress("stereo solve", 1, 1)  # before the subsets: a rig with no baseline is not worth them
     timings["stereo_s"] = time.perf_counter() - t0
@@ -380,7 +398,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         config=config, sources=sources, left=cams["left"], right=cams["right"], detection=det, full=full, plan=plan,
         subsets=subsets, filtering=filtering, final=final, spread=spread, R=np.asarray(rodrigues(rvec)), T=T, E=E,
         F=F, warnings=warnings, timings=timings, rig_final=rig_fs, subset_mean=subset_mean, board_sag=board_note,
-        consistency=consistency, rig_sag=rig_sag,
+        consistency=consistency, rig_sag=rig_sag, cross_validation=cv,
     )
     from dstereo.calib.final_solution import attach_rig_uncertainty
 
@@ -475,6 +493,8 @@ def summary_lines(job: StereoCalibrationJob, out: Path) -> list[str]:
     lines.append(f"baseline |T| = {s.baseline:.6g} +- {full_std['Tnorm']:.3g} {unit} (full set, {kind})")
     if job.consistency is not None:
         lines.append(job.consistency.line())
+    if job.cross_validation is not None:
+        lines.append(job.cross_validation.verdict())
     if job.rig_final is not None:
         c = job.rig_final.check
         lines.append(f"stereo.yml: {job.rig_final.source()}")

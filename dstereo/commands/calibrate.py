@@ -75,7 +75,8 @@ def calibrate(
         "the boards' frame, as mrcal) or intrinsics-only (fixed in the camera frame)."),
     cross_validate: int = typer.Option(
         0, "--cross-validate", help="Split the views in random halves N times (N >= 4 recommended), calibrate each "
-        "half and check the projection difference against the predicted one (report, cross_validation.npz)."),
+        "half and check the projection difference against the predicted one (report, cross_validation.npz); for a "
+        "rig, the frames: each half's joint solve, the cameras' placements and intrinsics against their +-."),
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
@@ -114,22 +115,20 @@ def calibrate(
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
-        if cross_validate or stereo_steps:
-            raise DstereoError("--cameras: --cross-validate and stereo --step are not available for N cameras yet; "
-                               "calibrate a camera alone (--cross-validate) or the pair with --left/--right (--step)")
+        if stereo_steps:
+            raise DstereoError("--cameras: stereo --step is not available for N cameras yet; calibrate the pair with "
+                               "--left/--right for the thesis's stereo steps")
         if cfg.model_right is not None:
             raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig "
                                "(--left/--right); --cameras takes one --model")
-        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range)
+        _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range,
+                     cross_validate)
         return
     stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
     if left is not None or right is not None or (stereo_images is not None and _stereo_layout(stereo_images)):
-        if cross_validate:
-            raise DstereoError("--cross-validate: not available for a stereo rig yet; calibrate each camera alone "
-                               "with --images DIR --cross-validate N")
         _refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
         _run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, use_cache, started,
-                    projection_range)
+                    projection_range, cross_validate)
         return
     if cfg.model_right is not None:
         raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig; give --left DIR "
@@ -190,7 +189,7 @@ def _stereo_layout(images: Path) -> bool:
 
 
 def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started,
-                projection_range=None) -> None:
+                projection_range=None, cross_validate: int = 0) -> None:
     """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
     from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
     from dstereo.errors import DstereoError
@@ -204,7 +203,8 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
                                                              *sources.stereo_left, *sources.stereo_right])
     use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
-        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
+        job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
+                                       cross_validate=cross_validate)
         _check_rig_fits(job)
         job.warnings += _stereo_view_warnings(job)  # before writing: summary.json keeps them
         write_stereo_results(out, job, force, projection_range=projection_range)
@@ -226,7 +226,8 @@ def _pair(spec: Optional[str]):
     return tuple(names)
 
 
-def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None) -> None:
+def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None,
+                 cross_validate: int = 0) -> None:
     """N cameras (--cameras DIR): see dstereo.calib.multiview_job."""
     import numpy as np
 
@@ -237,7 +238,8 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
     out = _results_folder(out, project, force, cfg, inputs=[root, *folders])
     use_cache = use_cache and _corner_cache_usable()
     with progress_bars(quiet) as progress:
-        job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent)
+        job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
+                                        cross_validate=cross_validate)
         job.pairs(pair)  # a wrong --pair is refused before anything is written
         _check_camera_baselines(job)
         job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
@@ -255,6 +257,8 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
         typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
         if job.consistency is not None:
             typer.echo(job.consistency.line())
+        if job.cross_validation is not None:
+            typer.echo(job.cross_validation.verdict())
         typer.echo(f"wrote {out}")
 
 

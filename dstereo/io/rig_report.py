@@ -13,3 +13,17 @@ def consistency_markdown(rc: dict | None) -> list[str]:
              + ("consistent." if rc["consistent"] else "**the rig does not explain its frames** (see Warnings)."),
              "", "| camera | RMS alone (px) | RMS rig (px) |", "|---|---|---|"]
     return lines + [f"| {c['camera']} | {c['rms_alone_px']:.4f} | {c['rms_rig_px']:.4f} |" for c in rc["cameras"]]
+
+
+def cross_validation_markdown(cv: dict | None) -> list[str]:
+    """report.md's section on the rig's cross-validation (`calib/rig_cross_validation.py`, its `as_dict`)."""
+    if cv is None:
+        return []
+    lo, hi = cv["rig_band_if_right"]
+    ilo, ihi = cv["intrinsics_band_if_right"]
+    return ["", "## Rig cross-validation", "",
+            f"{cv['splits']} random halvings of the frames, each half solved jointly: the halves' difference against "
+            f"their +- (chi^2 / dof, 1 when the +- is right): placements {cv['rig_ratio']:.2f} (a right +- reads "
+            f"{lo:.2f}-{hi:.2f}), intrinsics {cv['intrinsics_ratio']:.2f} ({ilo:.2f}-{ihi:.2f}): "
+            + ("the rig's +- holds." if cv["trusted"] else "**the rig's +- is optimistic** (see Warnings)."),
+            "", f"Band: {cv['band_note']}."]

@@ -293,6 +293,8 @@ def stereo_summary(job) -> dict:
         "board_sag": job.board_sag,
         "board_sag_solved": None if getattr(job, "rig_sag", None) is None else job.rig_sag.as_dict(),
         "rig_consistency": None if getattr(job, "consistency", None) is None else job.consistency.as_dict(),
+        "rig_cross_validation": (None if getattr(job, "cross_validation", None) is None
+                                 else job.cross_validation.as_dict()),
         "cameras": cams, "pattern": {"columns": det.board.cols, "rows": det.board.rows,
                                      "square": det.board.square, "unit": job.config.unit},
         "final": {"R": job.R, "rvec": [job.final[k] for k in ("RVx", "RVy", "RVz")], "T": job.T, "E": job.E,
@@ -511,9 +513,10 @@ def report_markdown(job, summary: dict) -> str:
         lines.append(f"| {k} | {fmt(job.final[k])} | {fmt(full_vals[k])} | {fmt(std.get(k, float('nan')))} | "
                      f"{fmt(mean.get(k, float('nan')))} | {fmt(job.spread[k])} |")
     lines += ["", f"+- std: {summary['full_set']['std_kind']}."]
-    from dstereo.io.rig_report import consistency_markdown
+    from dstereo.io.rig_report import consistency_markdown, cross_validation_markdown
 
     lines += consistency_markdown(summary.get("rig_consistency"))
+    lines += cross_validation_markdown(summary.get("rig_cross_validation"))
     check = summary.get("final_check", {}).get("mean_check")
     if check is not None:
         lines += ["", f"Fit on the {check['views']} surviving pairs' corners, board poses refitted: the rig solve RMS "

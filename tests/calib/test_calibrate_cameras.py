@@ -146,13 +146,15 @@ def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder,
 
 
 @pytest.mark.parametrize("layout", ["cameras", "left_right"])
-def test_model_auto_chooses_each_rig_cameras_lens_among_the_parametric_ones(rig_folder, tmp_path, layout):
+def test_model_auto_and_cross_validation_in_a_rig(rig_folder, tmp_path, layout):
     """--model auto in a rig (issue 29): each camera chooses on its own views (its folder's summary has the
     table), never the splined lens (`reconstruct` cannot rectify it), and the rig is solved with the chosen
-    models; the consistency test runs on it (simultaneous renders: consistent)."""
+    models; the consistency test runs on it (simultaneous renders: consistent) and --cross-validate halves the
+    frames (calib/rig_cross_validation.py), in the summary and report.md."""
     root, _ = rig_folder
     args = (["--cameras", root] if layout == "cameras" else ["--left", root / "cam0", "--right", root / "cam1"])
-    code, text = _cli(*args, "--pattern", "9x6", "--square", "20", "--model", "auto", "--out", tmp_path / "r", "-q")
+    code, text = _cli(*args, "--pattern", "9x6", "--square", "20", "--model", "auto", "--cross-validate", "2",
+                      "--out", tmp_path / "r", "-q")
     assert code == 0, text
     folders = ["cam0", "cam1", "cam2"] if layout == "cameras" else ["left", "right"]
     for name in folders:
@@ -161,3 +163,6 @@ def test_model_auto_chooses_each_rig_cameras_lens_among_the_parametric_ones(rig_
         assert "splined" not in presets and choice["chosen"] in presets, choice
     summary = json.loads((tmp_path / "r" / ("cameras.json" if layout == "cameras" else "summary.json")).read_text())
     assert summary["rig_consistency"]["consistent"], summary["rig_consistency"]
+    cv = summary["rig_cross_validation"]
+    assert cv["splits"] == 2 and cv["trusted"], cv
+    assert "## Rig cross-validation" in (tmp_path / "r" / "report.md").read_text()
