@@ -146,10 +146,18 @@ def write_rig_cameramodels(folder: Path, cameras, R, T) -> list[str]:
     import cv2
 
     rt_right = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(), np.asarray(T, float).ravel()])
+    return write_cameramodels_of_rig(folder, cameras, ("left", "right"), (np.zeros(6), rt_right))
+
+
+def write_cameramodels_of_rig(folder: Path, cameras, names, rts) -> list[str]:
+    """<name>.cameramodel for each camera of a rig of any size, camera names[0] mrcal's reference: camera k's
+    rt_cam_ref = rts[k] (rvec, T of x_cam_k = R_k x_ref + T_k; zeros for the reference). `cameras` as in
+    `write_rig_cameramodels`. Returns what was done per camera."""
     done = []
-    for side, (k, coeffs, free, size), rt in zip(("left", "right"), cameras, (np.zeros(6), rt_right)):
+    for name, (k, coeffs, free, size), rt in zip(names, cameras, rts):
         k = np.asarray(k, float)
-        done.append(write_cameramodel(Path(folder) / f"{side}.cameramodel", free, k[[0, 1, 0, 1], [0, 1, 2, 2]],
-                                      coeffs, size, rt, note=f"written by dstereo calibrate: the rig's {side} camera "
-                                      "(reference: the left camera)"))
+        done.append(write_cameramodel(Path(folder) / f"{name}.cameramodel", free, k[[0, 1, 0, 1], [0, 1, 2, 2]],
+                                      coeffs, size, np.asarray(rt, float),
+                                      note=f"written by dstereo calibrate: the rig's camera {name} (reference: "
+                                      f"camera {names[0]})"))
     return done

@@ -4,6 +4,8 @@
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
                                  json adds every parameter's std, the held (fixed-intrinsics) solve's values
                                  beside and the rig-consistency test (`calib/rig_consistency.py`)
+    rig_<camera>.cameramodel     mrcal's file of each camera in the rig's frame (the reference first), where mrcal
+                                 has the lens model
     stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B),
                                  with the pair's calibration covariance (`uncertainty.rig.pair_covariance`)
     frames.csv                   which camera saw which frame, each view's RMS (joint solve)
@@ -169,6 +171,12 @@ def write_multiview_results(out, job, force: bool = False, pairs=None, projectio
                 if note:
                     summary["stereo_notes"].append(note)
                     job.warnings.append(note)  # printed by the command too, not only in report.md
+            from dstereo.io.cameramodel import write_cameramodels_of_rig  # mrcal's format, the reference first
+
+            sol = job.solution
+            summary["cameramodels"] = write_cameramodels_of_rig(
+                tmp, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
+                [f"rig_{label}" for label in job.labels], np.concatenate([sol.rvecs, sol.T], axis=1))
             summary["warnings"] = list(job.warnings)
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)

@@ -105,6 +105,21 @@ def test_pair_files_carry_the_calibration_covariance_and_the_rig_its_consistency
     assert "std" not in summary["held"]  # the held solve's std omitted the intrinsics' uncertainty
 
 
+def test_every_rig_camera_gets_an_mrcal_file_in_the_rigs_frame(rig_run):
+    """rig_<camera>.cameramodel: each camera's intrinsics and its place in the reference, as cameras.yml holds them
+    (mrcal's rt_cam_ref is the same reference -> camera transform)."""
+    from dstereo.io.cameramodel import read_cameramodel
+
+    out, _ = rig_run
+    fs = cv2.FileStorage(str(out / "cameras.yml"), cv2.FILE_STORAGE_READ)
+    for i in range(3):
+        m = read_cameramodel(out / f"rig_cam{i}.cameramodel")
+        R, T, K = fs.getNode(f"R_{i}").mat(), fs.getNode(f"T_{i}").mat().ravel(), fs.getNode(f"K_{i}").mat()
+        np.testing.assert_allclose(m.rt_cam_ref[:3], cv2.Rodrigues(R)[0].ravel(), atol=1e-12)
+        np.testing.assert_allclose(m.rt_cam_ref[3:], T, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(m.intrinsics, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
+
+
 def test_a_chosen_pair_and_the_refusals(rig_folder, tmp_path):
     root, _ = rig_folder
     code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "--pair",
