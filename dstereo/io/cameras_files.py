@@ -9,6 +9,8 @@
     stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B),
                                  with the pair's calibration covariance (`uncertainty.rig.pair_covariance`)
     frames.csv                   which camera saw which frame, each view's RMS (joint solve)
+    plots/                       rig.png (the rig and every frame's board), rig_consistency.png (each frame's
+                                 share of the consistency statistic)
     summary.json, report.md
 """
 
@@ -148,9 +150,25 @@ def report_markdown(summary: dict) -> str:
     if summary["stereo_files"] or summary["stereo_notes"]:
         lines += ["", "Stereo files: " + ", ".join(summary["stereo_files"]) + "".join(
             f"\n- {n}" for n in summary["stereo_notes"])]
+    lines += ["", "## Figures", "", "![rig](plots/rig.png)", "",
+              "![rig consistency per frame](plots/rig_consistency.png)"]
     if summary["warnings"]:
         lines += ["", "## Warnings"] + [f"- {w}" for w in summary["warnings"]]
     return "\n".join(lines) + "\n"
+
+
+def _rig_figures(plots: Path, job) -> None:
+    """plots/rig.png (the rig in the reference's frame with every frame's board) and plots/rig_consistency.png."""
+    from dstereo.io.rig_figures import consistency_figure, rig_view
+
+    plots.mkdir()
+    sol = job.solution
+    cams = [(np.asarray(c.k), c.image_size) for c in sol.cameras]
+    board = job.cameras[0].detection.board
+    rig_view(cams, np.concatenate([sol.rvecs, sol.T], axis=1), job.labels, sol.poses, board.object_points(),
+             board.pattern, plots / "rig.png", job.config.unit, title=f"rig of {len(job.labels)} cameras")
+    if job.consistency is not None:
+        consistency_figure(job.consistency, plots / "rig_consistency.png")
 
 
 def write_multiview_results(out, job, force: bool = False, pairs=None, projection_range: float | None = None) -> Path:
@@ -180,6 +198,7 @@ def write_multiview_results(out, job, force: bool = False, pairs=None, projectio
             summary["warnings"] = list(job.warnings)
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)
+            _rig_figures(tmp / "plots", job)
             write_json(tmp / "summary.json", summary)
             (tmp / "report.md").write_text(report_markdown(summary))
     finally:

@@ -381,6 +381,10 @@ def _fill_stereo_folder(folder: Path, job) -> None:
                                      (("RVnorm", "RVx", "RVy", "RVz"), "RV.png", "rotation vector RV")):
             box_plots(f, names, plots / target, title, job.config.unit)
     rig_figure(s, det, plots / "rig.png", job.config.unit)
+    if getattr(job, "consistency", None) is not None:
+        from dstereo.io.rig_figures import consistency_figure
+
+        consistency_figure(job.consistency, plots / "rig_consistency.png")
     pair_rms_figure([a for a, _ in det.pairs], s.per_pair_rms, rms_l, rms_r, plots / "pair_rms.png")
     write_json(folder / "summary.json", summary)
     (folder / "report.md").write_text(report_markdown(job, summary))
@@ -408,69 +412,14 @@ def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
     plt.close(fig)
 
 
-def _frustum(k: np.ndarray, size: tuple[int, int], depth: float) -> np.ndarray:
-    """(5, 3) apex and image-corner rays of a camera at `depth`, camera frame."""
-    fx, fy, cx, cy = k
-    w, h = size
-    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float) - 0.5
-    rays = np.column_stack([(corners[:, 0] - cx) / fx, (corners[:, 1] - cy) / fy, np.ones(4)]) * depth
-    return np.vstack([np.zeros(3), rays])
-
-
-def frustum_depth(baseline: float, distance: float) -> float:
-    """Drawn depth of a camera frustum: half the baseline (two frusta side by side then stay apart and the
-    baseline reads at a glance), kept between 3 % and 25 % of the board distance so they remain visible."""
-    return float(np.clip(0.5 * baseline, 0.03 * distance, 0.25 * distance))
-
-
 def rig_figure(solution, detection: StereoDetection, path: Path, unit: str) -> None:
-    """3D view in the left camera's frame: both cameras (frusta sized by `frustum_depth`), the baseline
-    between their centres, and every pair's board."""
-    from dstereo.models.pose import rotation_matrix
+    """3D view in the left camera's frame: both cameras, the baseline and every pair's board (`io.rig_figures`)."""
+    from dstereo.io.rig_figures import rig_view
 
-    plt = _pyplot()
-    obj = detection.object_points
-    cols, rows = detection.board.pattern
-    outline = obj[[0, cols - 1, cols * rows - 1, cols * (rows - 1), 0]]
-    fig = plt.figure(figsize=(8, 7))
-    ax = fig.add_subplot(projection="3d")
-    boards = []
-    for pose in solution.poses:
-        pts = outline @ rotation_matrix(pose[:3]).T + pose[3:]
-        boards.append(pts)
-        ax.plot(pts[:, 0], pts[:, 2], -pts[:, 1], color="tab:gray", lw=0.8)
-    distance = float(np.median([np.linalg.norm(b.mean(axis=0)) for b in boards]))
-    depth = frustum_depth(float(solution.baseline), distance)
-    centre_r = -solution.R.T @ solution.T
-    ax.plot(*_display([np.zeros(3), centre_r]), color="k", lw=2.5, marker="o", ms=4,
-            label=f"baseline {solution.baseline:.4g} {unit}")
-    for name, cam, rot, centre, colour in (("left", solution.left, np.eye(3), np.zeros(3), "tab:blue"),
-                                           ("right", solution.right, solution.R.T, centre_r, "tab:red")):
-        f = _frustum(np.asarray(cam.k), cam.image_size, depth) @ rot.T + centre
-        for i in range(1, 5):
-            ax.plot(*_display([f[0], f[i]]), color=colour, lw=1)
-        ax.plot(*_display(f[[1, 2, 3, 4, 1]]), color=colour, lw=1.5, label=name)
-    ax.set_xlabel(f"x ({unit})")
-    ax.set_ylabel(f"z ({unit})")
-    ax.set_zlabel(f"-y ({unit})")
-    everything = np.vstack(boards + [np.zeros((1, 3)), centre_r[None]])
-    span = np.ptp(everything, axis=0).max() / 2
-    mid = (everything.max(axis=0) + everything.min(axis=0)) / 2
-    ax.set_xlim(mid[0] - span, mid[0] + span)
-    ax.set_ylim(mid[2] - span, mid[2] + span)
-    ax.set_zlim(-mid[1] - span, -mid[1] + span)
-    ax.set_title(f"rig: baseline {solution.baseline:.4g} {unit}, {len(solution.poses)} board poses "
-                 f"(median distance {distance:.4g} {unit}); frusta drawn {depth:.3g} {unit} deep", fontsize=10)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def _display(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Camera frame (x right, y down, z forward) -> plot axes (x, z, -y): the cameras look 'into' the plot."""
-    p = np.asarray(points)
-    return p[:, 0], p[:, 2], -p[:, 1]
+    rts = np.stack([np.zeros(6), np.concatenate([solution.rvec, solution.T])])
+    cams = [(np.asarray(c.k), c.image_size) for c in (solution.left, solution.right)]
+    rig_view(cams, rts, ("left", "right"), solution.poses, detection.object_points, detection.board.pattern, path,
+             unit, title=f"rig: baseline {solution.baseline:.4g} {unit}")
 
 
 def pair_rms_figure(names: list[str], rms: np.ndarray, left: np.ndarray, right: np.ndarray, path: Path) -> None:
@@ -528,6 +477,8 @@ def report_markdown(job, summary: dict) -> str:
         lines += ["## Stereo steps", ""] + [f"- {st.message}" for st in job.filtering.steps] + [
             "", "![T](plots/T.png)", "", "![RV](plots/RV.png)", ""]
     lines += ["## Figures", "", "![rig](plots/rig.png)", "", "![pair rms](plots/pair_rms.png)", ""]
+    if getattr(job, "consistency", None) is not None:
+        lines += ["![rig consistency per pair](plots/rig_consistency.png)", ""]
     if det.dropped:
         lines += ["## Dropped pairs", ""] + [f"- {d.left} / {d.right}: {d.reason}" for d in det.dropped] + [""]
     if job.warnings:

@@ -118,6 +118,8 @@ def test_every_rig_camera_gets_an_mrcal_file_in_the_rigs_frame(rig_run):
         np.testing.assert_allclose(m.rt_cam_ref[:3], cv2.Rodrigues(R)[0].ravel(), atol=1e-12)
         np.testing.assert_allclose(m.rt_cam_ref[3:], T, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(m.intrinsics, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
+    for figure in ("rig.png", "rig_consistency.png"):  # the rig's figures, linked from report.md
+        assert cv2.imread(str(out / "plots" / figure)) is not None and f"plots/{figure}" in (out / "report.md").read_text()
 
 
 def test_a_chosen_pair_and_the_refusals(rig_folder, tmp_path):

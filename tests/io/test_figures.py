@@ -13,7 +13,7 @@ from dstereo.io import plots
 from dstereo.io.figures import colour_limits, log_ticks, tick_label
 from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches
 from dstereo.io.sigma_maps import projection_uncertainty_png
-from dstereo.io.stereo_files import frustum_depth
+from dstereo.io.rig_figures import frustum_depth
 from dstereo.uncertainty.projection import ProjectionUncertaintyMap
 
 
