@@ -19,15 +19,12 @@ import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
 from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, list_camera_images
-from dstereo.calib.rig_consistency import RigConsistency, of_multiview
+from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
 
-# The joint solve's RMS above this multiple of the worst camera's own RMS (and 1 px) cannot be one rig seeing
-# one board at each frame (as `commands.calibrate.RIG_RMS_FACTOR` for two cameras).
-RIG_RMS_FACTOR = 5.0
 
 
 @dataclass
@@ -188,6 +185,7 @@ def _check(job: MultiviewJob) -> None:
             f"cameras: the rig fits its {len(job.frames)} frames with RMS {sol.rms:.3g} px (per camera: {per}) while "
             f"the cameras alone fit theirs with {', '.join(f'{r:.3g}' for r in own)} px: images of one name do not "
             "show the board at one moment (check the names and the cameras' synchronisation); nothing written")
+    _check_camera_baselines(job)
     for name, s in (("held", job.held), ("joint", sol)):
         if not s.converged:
             job.warnings.append(f"the {name} rig solve did not converge ({s.status_text}); its values are unreliable")
@@ -199,3 +197,21 @@ def _check(job: MultiviewJob) -> None:
         views = ", ".join(f"{job.labels[c]}/{job.frames[f]}" for f, c in sol.flipped[:6])
         job.warnings.append(f"{len(sol.flipped)} view(s) had their corners in reversed order against the other "
                             f"cameras' and were re-read reversed ({views})")
+
+
+def _check_camera_baselines(job: MultiviewJob) -> None:
+    """Two cameras at one place (one camera's images copied into another's folder) are refused, with the limit of
+    a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
+    from dstereo.calib.stereo_pipeline import SAME_PLACE_BOARD_FRACTION
+
+    board = job.cameras[0].detection.board
+    size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))
+    n = len(job.labels)
+    for a in range(n):
+        for b in range(a + 1, n):
+            baseline = float(np.linalg.norm(np.asarray(job.solution.relative(a, b)[1], float)))
+            if baseline < SAME_PLACE_BOARD_FRACTION * size:
+                raise DstereoError(
+                    f"cameras {job.labels[a]} and {job.labels[b]}: baseline {baseline:.3g} {job.config.unit} (the "
+                    f"board is {size:.3g} {job.config.unit} across): their images show the board from the same "
+                    "place: are they the same images? Give each camera's own images; nothing written")

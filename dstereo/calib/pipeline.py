@@ -304,6 +304,9 @@ def calibrate_camera(
 
     coverage = corner_coverage(obs.reshape(-1, 2), det.image_size)
     warnings += list(coverage.warnings)
+    from dstereo.calib.view_checks import view_warnings
+
+    warnings += view_warnings(used, full, {n: det.corners[n] for n in used}, config.pattern)
     return CameraCalibration(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera
-from dstereo.calib.rig_consistency import RigConsistency, of_stereo
+from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_stereo
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
     solve_stereo_subsets
@@ -329,7 +329,11 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     inliers = _pair_inliers(det, cams, obs_l, obs_r)
     full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed",
                             inliers=inliers)
+    check_rig_fits(full, cams, len(det.pairs))
     check_baseline(full, det.board, config.unit)
+    from dstereo.calib.view_checks import outlying_views
+
+    warnings += outlying_views([f"{a} / {b}" for a, b in det.pairs], full.per_pair_rms, what="stereo pair")
     # the rig with the intrinsics refined too: the solve the consistency test compares with each camera alone
     joint = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "joint",
                              inliers=inliers)
@@ -415,6 +419,17 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
 # baseline: 0.24 mm against the 83 mm of the opencv_stereo rig, whose board is 236 mm across with 25 mm squares).
 SAME_PLACE_SIGMAS = 3.0
 SAME_PLACE_BOARD_FRACTION = 1e-3
+
+
+def check_rig_fits(full, cams: dict, n_pairs: int) -> None:
+    """Refuse a rig that does not fit its pairs at all (`rig_consistency.RIG_RMS_FACTOR`)."""
+    rig, left, right = float(full.rms), float(cams["left"].full.rms), float(cams["right"].full.rms)
+    if rig > max(RIG_RMS_FACTOR * max(left, right), 1.0):
+        raise DstereoError(
+            f"stereo: the rig fits the {n_pairs} pairs with RMS {rig:.3g} px while the cameras alone fit their views "
+            f"with {left:.3g} / {right:.3g} px: the left and right images do not show the board at the same moments "
+            "(partners are matched by name; check the names, the cameras' synchronisation and that both folders "
+            "come from this rig); nothing written")
 
 
 def check_baseline(full, board, unit: str) -> None:

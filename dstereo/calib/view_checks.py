@@ -109,3 +109,11 @@ def align_order(q_ref: np.ndarray, q: np.ndarray, pattern: tuple[int, int]) -> t
         if best is None or gap < best[0]:
             best = (gap, cand, turn)
     return np.ascontiguousarray(best[1]), best[2]
+
+
+def view_warnings(used: list[str], full, corners: dict, pattern) -> list[str]:
+    """A calibration's view warnings from its full-set solve: views far off the rest, stray corners (the rejected
+    ones too: a corner far off may mean a wrong --pattern, whose hint this warning carries), and views in another
+    corner order."""
+    return (outlying_views(used, full.per_view_rms) + stray_corners(used, full.residuals, pattern)
+            + mirrored_views(corners, pattern))

@@ -82,6 +82,7 @@ def calibrate(
     solve, subset analysis and the thesis's robust optimisation steps."""
     from dstereo.config.calibration import build_config, file_layer, find_project_config, parse_step_flags, validate
     from dstereo.config.calibration_flags import flag_layer
+    from dstereo.config.capabilities import RIGHT_LENS, STEREO_STEPS, refuse
     from dstereo.errors import DstereoError
 
     started = time.perf_counter()
@@ -116,11 +117,9 @@ def calibrate(
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
         if stereo_steps:
-            raise DstereoError("--cameras: stereo --step is not available for N cameras yet; calibrate the pair with "
-                               "--left/--right for the thesis's stereo steps")
+            refuse(STEREO_STEPS, "--cameras", "--cameras")
         if cfg.model_right is not None:
-            raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig "
-                               "(--left/--right); --cameras takes one --model")
+            refuse(RIGHT_LENS, "--cameras", _as_given(cfg, "model_right", "--model-right"))
         _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range,
                      cross_validate)
         return
@@ -131,12 +130,9 @@ def calibrate(
                     projection_range, cross_validate)
         return
     if cfg.model_right is not None:
-        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right')}: only for a stereo rig; give --left DIR "
-                           "--right DIR (or "
-                           "images/images_left + images/images_right)")
+        refuse(RIGHT_LENS, "one camera", _as_given(cfg, "model_right", "--model-right"))
     if stereo_steps:
-        raise DstereoError(f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}: stereo steps need a "
-                           "stereo run; give --left DIR --right DIR (or images/images_left + images/images_right)")
+        refuse(STEREO_STEPS, "one camera", f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}")
     if cfg.mode != "individual":
         raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
                            "in images/images_left and images/images_right, or give --left DIR --right DIR")
@@ -205,8 +201,6 @@ def _run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache,
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                        cross_validate=cross_validate)
-        _check_rig_fits(job)
-        job.warnings += _stereo_view_warnings(job)  # before writing: summary.json keeps them
         write_stereo_results(out, job, force, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
@@ -241,9 +235,6 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                         cross_validate=cross_validate)
         job.pairs(pair)  # a wrong --pair is refused before anything is written
-        _check_camera_baselines(job)
-        job.warnings += [f"camera {label}: {w}" for label, cal in zip(job.labels, job.cameras)
-                         for w in _view_warnings(cal)]
         write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
@@ -268,66 +259,6 @@ def _chosen(job, label: str) -> str:
     return "" if choice is None else f", model auto: {choice.chosen}"
 
 
-def _view_warnings(cal) -> list[str]:
-    """Views far off the rest or in another corner order (dstereo.calib.view_checks), from the full-set solve."""
-    from dstereo.calib import view_checks
-
-    pattern = cal.config.pattern
-    return (view_checks.outlying_views(cal.used, cal.full.per_view_rms)
-            + view_checks.stray_corners(cal.used, cal.full.residuals, pattern)  # rejected corners too: a
-            # corner far off may mean a wrong --pattern, whose hint this warning carries
-            + view_checks.mirrored_views({n: cal.detection.corners[n] for n in cal.used}, pattern))
-
-
-# A rig solve whose RMS exceeds this multiple of the worse camera's own RMS (and 1 px) cannot describe pairs of one
-# moment: measured 0.448 px vs 0.409 / 0.459 px (OpenCV's sample pairs), 39.7 px vs 0.61 / 0.14 px for images of
-# two different rigs named alike.
-RIG_RMS_FACTOR = 5.0
-
-
-def _check_rig_fits(job) -> None:
-    """Refuse to write a rig that does not fit its pairs (see RIG_RMS_FACTOR)."""
-    from dstereo.errors import DstereoError
-
-    rig, left, right = float(job.full.rms), float(job.left.full.rms), float(job.right.full.rms)
-    if rig > max(RIG_RMS_FACTOR * max(left, right), 1.0):
-        raise DstereoError(
-            f"stereo: the rig fits the {len(job.detection.pairs)} pairs with RMS {rig:.3g} px while the cameras alone "
-            f"fit their views with {left:.3g} / {right:.3g} px: the left and right images do not show the board at "
-            "the same moments (partners are matched by name; check the names, the cameras' synchronisation and that "
-            "both folders come from this rig); nothing written")
-
-
-def _check_camera_baselines(job) -> None:
-    """--cameras: two cameras at one place (one camera's images copied into another's folder) are refused, with
-    the limit of a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
-    import numpy as np
-
-    from dstereo.calib.stereo_pipeline import SAME_PLACE_BOARD_FRACTION
-    from dstereo.errors import DstereoError
-
-    board = job.cameras[0].detection.board
-    size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))
-    n = len(job.labels)
-    for a in range(n):
-        for b in range(a + 1, n):
-            baseline = float(np.linalg.norm(np.asarray(job.solution.relative(a, b)[1], float)))
-            if baseline < SAME_PLACE_BOARD_FRACTION * size:
-                raise DstereoError(
-                    f"cameras {job.labels[a]} and {job.labels[b]}: baseline {baseline:.3g} {job.config.unit} (the "
-                    f"board is {size:.3g} {job.config.unit} across): their images show the board from the same "
-                    "place: are they the same images? Give each camera's own images; nothing written")
-
-
-def _stereo_view_warnings(job) -> list[str]:
-    from dstereo.calib import view_checks
-
-    names = [f"{a} / {b}" for a, b in job.detection.pairs]
-    out = [f"{side} camera: {w}" for side, cal in (("left", job.left), ("right", job.right))
-           for w in _view_warnings(cal)]
-    return out + view_checks.outlying_views(names, job.full.per_pair_rms, what="stereo pair")
-
-
 def _as_given(cfg, name: str, flag: str, value: str | None = None) -> str:
     """A configuration value as the user gave it: "--model auto" from the flag, "FILE [calibration] model = auto"
     from a file (`Config.origins`), so a message does not put a file's value on a flag."""
@@ -343,16 +274,14 @@ def _refuse_splined_where_unsupported(cfg, rig: bool, cross_validate: int) -> No
     from dstereo.models.distortion import lens_model
 
     right = getattr(cfg, "model_right", None)
+    from dstereo.config.capabilities import SPLINED, refuse
+
     if rig and right is not None and lens_model(tuple(right)) == "splined":
-        raise DstereoError(f"{_as_given(cfg, 'model_right', '--model-right', 'splined')}: stereo rigs with splined "
-                           "cameras are not supported; calibrate that camera alone with --images DIR --model splined")
+        refuse(SPLINED, "--left/--right", _as_given(cfg, "model_right", "--model-right", "splined"))
     if lens_model(tuple(cfg.model)) != "splined":
         return
     if rig:
-        raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: stereo rigs and --cameras with splined "
-                           "cameras are not supported; "
-                           "calibrate each camera alone with --images DIR --model splined, the rig with a "
-                           "parametric model")
+        refuse(SPLINED, "--cameras", _as_given(cfg, "model", "--model", "splined"))
     if cross_validate or cfg.per_set is not None:
         raise DstereoError(f"{_as_given(cfg, 'model', '--model', 'splined')}: subsets (`per_set`) and --cross-validate "
                            "are not available for the "
@@ -381,7 +310,6 @@ def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projectio
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                after_steps=early.parameters)
-        cal.warnings += _view_warnings(cal)  # before writing: summary.json keeps them
         cal.projection_method = projection_method
         if cross_validate:
             from dstereo.calib.cross_validation import cross_validate as run_cross_validation
