@@ -117,6 +117,8 @@ class CameraCalibration:
     residual_pattern: object | None = None  # dstereo.calib.misfit.ResidualPattern of the full-set solve (inliers)
     residual_pattern_all: object | None = None  # ... of the solve on every corner, before outlier rejection
     model_choice: object | None = None  # dstereo.calib.model_choice.ModelChoice with --model auto
+    cross_validation: object | None = None  # dstereo.calib.cross_validation.CrossValidation (--cross-validate N)
+    projection_method: str = "pose-compensated"  # of the projection-uncertainty map the results folder draws
 
     @property
     def unconverged(self) -> list[int]:
@@ -163,6 +165,8 @@ def calibrate_camera(
     scratch: Path | None = None,
     after_steps: Callable | None = None,
     in_rig: bool = False,
+    cross_validate: int = 0,
+    projection_range: float | None = None,
 ) -> CameraCalibration:
     """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
     `config.steps`). Raises DstereoError for unreadable files, m > N, a step that leaves no subset, or a run
@@ -172,7 +176,8 @@ def calibrate_camera(
     the results folder's parent). `progress` may carry a `note(text)` method: the run's estimate goes there.
     `after_steps(filtering, full)`: called once the subsets' steps are done, before the survivors' solve (the
     command starts drawing their figures then, `io.results.EarlyFigures`). `in_rig`: a camera of a rig, whose
-    `--model auto` chooses among the parametric lenses (`reconstruct` rectifies no splined lens)."""
+    `--model auto` chooses among the parametric lenses (`reconstruct` rectifies no splined lens).
+    `cross_validate`: that many random halvings of the views (`calib/cross_validation.py`, at `projection_range`)."""
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
@@ -307,12 +312,22 @@ def calibrate_camera(
     from dstereo.calib.view_checks import view_warnings
 
     warnings += view_warnings(used, full, {n: det.corners[n] for n in used}, config.pattern)
+    cv = None
+    if cross_validate:
+        from dstereo.calib.cross_validation import cross_validate as run_cross_validation
+
+        t0 = time.perf_counter()
+        cv = run_cross_validation(full, det.object_points, obs, det.image_size, cross_validate, seed=config.seed or 0,
+                                  range_=projection_range)
+        if not cv.trusted:
+            warnings.append(cv.verdict())
+        timings["cross_validation_s"] = time.perf_counter() - t0
     return CameraCalibration(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
         subset_mean=subset_mean, outliers=outliers, residual_pattern=pattern,
-        residual_pattern_all=pattern_all, model_choice=choice,
+        residual_pattern_all=pattern_all, model_choice=choice, cross_validation=cv,
     )
 
 

@@ -309,16 +309,9 @@ def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projectio
 
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
-                               after_steps=early.parameters)
+                               after_steps=early.parameters, cross_validate=cross_validate,
+                               projection_range=projection_range)
         cal.projection_method = projection_method
-        if cross_validate:
-            from dstereo.calib.cross_validation import cross_validate as run_cross_validation
-
-            cal.cross_validation = run_cross_validation(cal.full, cal.detection.object_points, cal.observations,
-                                                        cal.detection.image_size, cross_validate, seed=cfg.seed or 0,
-                                                        range_=projection_range)
-            if not cal.cross_validation.trusted:
-                cal.warnings.append(cal.cross_validation.verdict())
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
