@@ -18,12 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
-from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, list_camera_images
+from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
-from dstereo.models.camera import Camera
 
 
 
@@ -77,12 +76,6 @@ def _images(folder: Path, config: Config) -> list[Path]:
         return list_camera_images(folder, config)
     except DstereoError:
         return []
-
-
-def _camera_of(cal: CameraCalibration) -> Camera:
-    f = cal.final
-    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
-                         cal.detection.image_size)
 
 
 def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
@@ -141,7 +134,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     t = time.perf_counter()
     if progress is not None:
         progress("rig solve", 0, 2)
-    start = [_camera_of(c) for c in cams]
+    start = [camera_of(c) for c in cams]
     sizes = [c.detection.image_size for c in cams]
     obj = cams[0].detection.object_points
     sag = config.board_sag

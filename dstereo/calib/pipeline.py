@@ -155,6 +155,16 @@ def list_camera_images(folder: Path, config: Config, image_format: str | None = 
     return files
 
 
+def camera_of(cal: CameraCalibration):
+    """The `Camera` a calibration's file holds (its final values), with the free set a rig's joint solve refines:
+    what every rig starts from."""
+    from dstereo.models.camera import Camera
+
+    f = cal.final
+    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
+                         cal.detection.image_size)
+
+
 def calibrate_camera(
     folder: Path,
     config: Config,

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera
+from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera, camera_of
 from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_stereo
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
@@ -222,14 +222,6 @@ class StereoCalibrationJob:
         return STEP_COLUMNS
 
 
-def _camera(cal: CameraCalibration):
-    from dstereo.models.camera import Camera
-
-    f = cal.final
-    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
-                         cal.detection.image_size)
-
-
 class _Prefixed:
     """A progress callback whose stages (and notes) are prefixed with the camera's side."""
 
@@ -327,7 +319,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
     if progress is not None:
         progress("stereo solve", 0, 1)
     inliers = _pair_inliers(det, cams, obs_l, obs_r)
-    full = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "fixed",
+    full = calibrate_stereo(det.object_points, obs_l, obs_r, camera_of(cams["left"]), camera_of(cams["right"]), "fixed",
                             inliers=inliers)
     check_rig_fits(full, cams, len(det.pairs))
     check_baseline(full, det.board, config.unit)
@@ -335,7 +327,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
 
     warnings += outlying_views([f"{a} / {b}" for a, b in det.pairs], full.per_pair_rms, what="stereo pair")
     # the rig with the intrinsics refined too: the solve the consistency test compares with each camera alone
-    joint = calibrate_stereo(det.object_points, obs_l, obs_r, _camera(cams["left"]), _camera(cams["right"]), "joint",
+    joint = calibrate_stereo(det.object_points, obs_l, obs_r, camera_of(cams["left"]), camera_of(cams["right"]), "joint",
                              inliers=inliers)
     consistency = of_stereo(joint, det.object_points, obs_l, obs_r, det.pairs)
     if consistency.warning() is not None:
@@ -348,7 +340,7 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
         data = np.stack([obs_l, obs_r], axis=1)
         cv = cross_validate_rig(det.object_points, data, np.ones(data.shape[:2], bool),
                                 [det.left.image_size, det.right.image_size],
-                                [_camera(cams["left"]), _camera(cams["right"])], ("left", "right"), cross_validate,
+                                [camera_of(cams["left"]), camera_of(cams["right"])], ("left", "right"), cross_validate,
                                 seed=config.seed or 0, inliers=inliers)
         if not cv.trusted:
             warnings.append("stereo: " + cv.verdict())
