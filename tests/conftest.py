@@ -17,7 +17,7 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _release_compiled_programs():
+def _release_compiled_programs(request):
     """After each test module: drop JAX's in-memory compiled programs and dstereo's caches of compiled functions.
     One process runs ~960 tests; kept, their executables grew the suite past 5 GB of RSS (the budget is 3 GB),
     and a fresh compile's serialization for the persistent cache aborted the process at ~76 % of the run (CI and
@@ -27,6 +27,12 @@ def _release_compiled_programs():
     yield
     import gc
 
+    log = os.environ.get("DSTEREO_RSS_LOG")  # a file: each module's peak RSS so far (where the suite's peak grows)
+    if log:
+        import resource
+
+        with open(log, "a") as f:
+            f.write(f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss} {request.module.__name__}\n")
     jax.clear_caches()
     for name, module in list(sys.modules.items()):
         if name.startswith("dstereo"):
