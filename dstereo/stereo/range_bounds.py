@@ -62,8 +62,9 @@ def infinity_margin(focal_px: float) -> float:
 
 
 def width_bounds(width: int, why: str = "image width") -> DisparityBounds:
-    """-(width - 1)..width - 1: all a pair `width` px wide can hold."""
-    return DisparityBounds(-(width - 1), width - 1, None, None, f"{why}: +-{width - 1} px")
+    """-(width - 1)..width - 1 (in whole blocks of 16): all a pair `width` px wide can hold."""
+    low = -(width - 1)
+    return DisparityBounds(low, whole_blocks(low, width - 1), None, None, f"{why}: +-{width - 1} px")
 
 
 def geometric_bounds(Q: np.ndarray, width: int, extras: dict | None = None) -> DisparityBounds:
@@ -81,5 +82,11 @@ def geometric_bounds(Q: np.ndarray, width: int, extras: dict | None = None) -> D
         high = min(high, math.ceil(d_near))
         notes.append(f"nearest depth {near_mm:.4g} (1/{NEAR_BOARD_FACTOR:g} of the nearest calibration board)")
     notes.append(f"image width {width} px")
-    high = max(high, low + 15)  # one SGBM block of 16 disparities at least
-    return DisparityBounds(low, high, d_inf, near_mm, "; ".join(notes))
+    return DisparityBounds(low, whole_blocks(low, high), d_inf, near_mm, "; ".join(notes))
+
+
+def whole_blocks(low: int, high: int) -> int:
+    """The high bound lowered so that low..high holds a whole number of SGBM's blocks of 16 disparities (one at
+    least): then every range cut to the bounds fits inside them (`search_range.within`). It trims under 16 px at
+    the near end, where the width leaves only a sliver of overlap and the boards' third is a choice anyway."""
+    return low + 16 * max(1, (high - low + 1) // 16) - 1

@@ -1,7 +1,7 @@
 """Matching over a search range and widening it (issue 30): each try is measured (valid share, left-right
 consistent share, saturation), a widening stays inside the rig's disparity bounds (`dstereo.stereo.range_bounds`),
-and a widening try that lowers the valid share or the left-right consistent share is not kept: the range kept is
-the widest one that did not explain less of the scene than the one before it.
+and a widening try that lowers the valid share or the left-right consistent share against the range kept so far is
+not kept: the range kept is the widest one that explained no less of the scene than every narrower one kept.
 
 Why both figures: a wider range gives SGBM more candidates, so it may match pixels the narrow one left invalid
 (the scene did run off) or spread false matches over disparities no scene point has (it did not: a far
@@ -79,30 +79,33 @@ class Matcher:
 
 def search(matcher: Matcher, rng: SearchRange) -> RangeTry:
     """Match over `rng`; a range the tool chose is widened on its saturated sides (within the bounds, at most
-    MAX_WIDENINGS times) while each widening keeps both shares; returns the try kept (all are in matcher.tries)."""
-    kept = matcher.run(rng)
-    while not rng.user and kept.rng.widened < MAX_WIDENINGS:
-        grown = widened(kept.rng, kept.sat, matcher.bounds)
+    MAX_WIDENINGS times, each from the last try) and a wider try replaces the one kept only if neither share
+    falls; returns the try kept (all are in matcher.tries, each with its verdict)."""
+    kept = last = matcher.run(rng)
+    while not rng.user and last.rng.widened < MAX_WIDENINGS:
+        grown = widened(last.rng, last.sat, matcher.bounds)
         if grown is None:
             break
         matcher.measure_lr(kept)
-        trial = matcher.run(grown)
-        matcher.measure_lr(trial)
-        if trial.valid_share < kept.valid_share or trial.lr_share < kept.lr_share:
-            trial.verdict = (f"not kept: valid {100 * kept.valid_share:.1f}% -> {100 * trial.valid_share:.1f}%, "
-                             f"left-right consistent {100 * kept.lr_share:.1f}% -> {100 * trial.lr_share:.1f}%")
-            break
-        kept.verdict = "widened: the wider try explained no less of the scene"
-        kept = trial
+        last = matcher.run(grown)
+        matcher.measure_lr(last)
+        if last.valid_share < kept.valid_share or last.lr_share < kept.lr_share:
+            last.verdict = (f"not kept: against {kept.rng.min_disparity}..{kept.rng.max_disparity} px valid "
+                            f"{100 * kept.valid_share:.1f}% -> {100 * last.valid_share:.1f}%, left-right consistent "
+                            f"{100 * kept.lr_share:.1f}% -> {100 * last.lr_share:.1f}%")
+            continue
+        kept.verdict = f"replaced by {grown.min_disparity}..{grown.max_disparity} px, which explained no less"
+        kept = last
     kept.verdict = "kept"
     return kept
 
 
 def refusal_note(matcher: Matcher, kept: RangeTry) -> str:
     """Why a saturated range kept was not widened further, for the warning ('' when nothing was refused)."""
-    last = matcher.tries[-1]
-    if last is not kept:
-        return f"; the wider range {last.rng.min_disparity}..{last.rng.max_disparity} px was tried and {last.verdict}"
+    refused = [t for t in matcher.tries if t.verdict.startswith("not kept")]
+    if refused:
+        return "; wider ranges were tried and " + "; ".join(
+            f"{t.rng.min_disparity}..{t.rng.max_disparity} px {t.verdict}" for t in refused)
     b = matcher.bounds
     at_low = kept.sat.low and kept.rng.min_disparity <= b.low
     at_high = kept.sat.high and kept.rng.max_disparity >= b.high

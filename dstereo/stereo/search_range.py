@@ -211,7 +211,7 @@ def saturation(d_s: np.ndarray, rng: SearchRange, usable: np.ndarray | None = No
 
 def within(rng: SearchRange, bounds: DisparityBounds) -> SearchRange:
     """`rng` cut to the bounds; num_disparities' rounding up to 16 is taken from the low side where it would
-    pass the high bound (a bounds span under 16 px, never met in practice, is the only way to leave them)."""
+    pass the high bound (the bounds hold whole blocks of 16, `range_bounds.whole_blocks`, so it always fits)."""
     lo, hi = max(rng.min_disparity, bounds.low), min(rng.max_disparity, bounds.high)
     if (lo, hi) == (rng.min_disparity, rng.max_disparity):
         return rng
@@ -223,9 +223,13 @@ def within(rng: SearchRange, bounds: DisparityBounds) -> SearchRange:
 
 def widened(rng: SearchRange, sat: Saturation, bounds: DisparityBounds) -> SearchRange | None:
     """The range grown by its own width on each saturated side, within the rig's bounds (None when neither
-    saturated side can grow: at a bound, or a low end that already holds infinity)."""
+    saturated side can grow: at a bound, or a low end that already holds infinity). A low end that would stop
+    less than one more such step short of a known infinity goes to it: between a far depth Z and infinity lie
+    only f B / Z px, so that is where a far background is, and stopping just short of it leaves all of it out."""
     grow = max(16, rng.num_disparities)
     lo = rng.min_disparity - (grow if sat.low else 0)
+    if sat.low and bounds.infinity is not None and lo - bounds.low <= grow:
+        lo = bounds.low
     hi = rng.max_disparity + (grow if sat.high else 0)
     lo, hi = max(lo, bounds.low), min(hi, bounds.high)
     if lo >= rng.min_disparity and hi <= rng.max_disparity:
