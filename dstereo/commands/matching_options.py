@@ -16,3 +16,18 @@ def search_range_line(search: dict | None) -> str:
     grown = f", widened {search['widened']}x after saturation" if search.get("widened") else ""
     return (f"disparity search range {search['min_disparity']}..{search['max_disparity']} px "
             f"({search['source']}{grown}{cover})")
+
+
+def search_range_tries(search: dict | None) -> list[str]:
+    """One console line per try when the range was widened or a widening was tried: its range, valid and
+    left-right consistent shares, and whether it was kept (and why not); none for a single try."""
+    tries = (search or {}).get("tries") or []
+    if len(tries) < 2:
+        return []
+    lines = []
+    for t in tries:
+        lr = t.get("lr_consistent_share")
+        lr_text = "" if lr is None else f", {100 * lr:.1f}% left-right consistent"
+        lines.append(f"try {t['min_disparity']}..{t['max_disparity']} px: {100 * t['valid_share']:.1f}% valid{lr_text}"
+                     f" ({t['verdict']})")
+    return lines

@@ -56,7 +56,7 @@ def recession(
     from dstereo.frames import FrameRunner, PartialStore, fingerprint
 
     from dstereo.commands.progress import progress_bars
-    from dstereo.commands.matching_options import search_range_line
+    from dstereo.commands.matching_options import search_range_line, search_range_tries
     from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
@@ -126,6 +126,8 @@ def recession(
         return
     fit = result.fit
     typer.echo(search_range_line(summary.get("search_range")) + " (reference frame)")
+    for line in search_range_tries(summary.get("search_range")):
+        typer.echo(f"  {line}")
     typer.echo(f"{summary['frames_used']} of {summary['frames']} frames; stagnation point "
                f"{[round(v, 2) for v in result.sample.point.tolist()]} mm, axis "
                f"{[round(v, 4) for v in result.sample.axis.tolist()]} ({result.sample.source}"

@@ -44,7 +44,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     force: bool = RECONSTRUCT.option("force", False),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
-    from dstereo.commands.matching_options import search_range_line
+    from dstereo.commands.matching_options import search_range_line, search_range_tries
     from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
     from dstereo.stereo.pipeline import run_reconstruction
@@ -93,6 +93,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
                    f"{depth.get('max', float('nan')):.1f} {s['units']}")
         typer.echo(f"  {search_range_line(s.get('search_range'))}")
+        for line in search_range_tries(s.get("search_range")):
+            typer.echo(f"    {line}")
         if s.get("refine", {}).get("enabled"):
             typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
         unc = s.get("uncertainty") or {}

@@ -246,24 +246,28 @@ def _to_float(raw: np.ndarray, min_disparity: int) -> np.ndarray:
 
 
 def _sgbm(params: SGBMParams, channels: int, left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """SGBM's raw 16x disparity with both images padded on the left by the largest disparity searched.
+    """SGBM's raw 16x disparity with both images padded on the left by the largest disparity searched and on the
+    right by the most negative one.
 
-    OpenCV leaves the first min_disparity + num_disparities - 1 columns without a disparity (it only matches
-    where every candidate lies inside the right image), so a wide search range would cost a band of the image.
-    Padded with black, those columns are matched against what the right image holds; a pixel whose match falls
-    into the pad sees black and is not matched (or is caught by the uniqueness and texture tests)."""
+    OpenCV matches only the columns where every candidate lies inside the right image: it leaves the first
+    min_disparity + num_disparities - 1 columns without a disparity and, for a negative min_disparity, the last
+    |min_disparity| columns too, so a wide search range would cost a band of the image (a range -323..124 px on
+    a 640 px pair would keep 193 of its columns, and a widening into negative disparities would look worse than
+    it is). Padded with black, those columns are matched against what the right image holds; a pixel whose
+    match falls into a pad sees black and is not matched (or is caught by the uniqueness and texture tests, or
+    by `compute_disparity`)."""
     import cv2
 
-    pad = max(params.max_disparity, 0)
-    if pad == 0:
+    pad_left, pad_right = max(params.max_disparity, 0), max(-params.min_disparity, 0)
+    if pad_left == pad_right == 0:
         return _matcher(params, channels).compute(left, right)
-    a, b = (cv2.copyMakeBorder(x, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0) for x in (left, right))
-    return _matcher(params, channels).compute(a, b)[:, pad:]
+    a, b = (cv2.copyMakeBorder(x, 0, 0, pad_left, pad_right, cv2.BORDER_CONSTANT, value=0) for x in (left, right))
+    return _matcher(params, channels).compute(a, b)[:, pad_left: pad_left + left.shape[1]]
 
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, params: SGBMParams) -> np.ndarray:
     """Left-image disparity (h, w) float32 of a rectified pair (uint8 grey or BGR), NaN where invalid (also where
-    the match would lie left of the right image)."""
+    the match would lie outside the right image)."""
     if left.shape != right.shape:
         raise DstereoError(
             f"rectified images differ in size {left.shape[:2]} vs {right.shape[:2]}; give a pair of equal size"
@@ -273,7 +277,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, params: SGBMParams) -
     channels = 1 if left.ndim == 2 else left.shape[2]
     disp = _to_float(_sgbm(params, channels, left, right), params.min_disparity)
     u = np.arange(left.shape[1], dtype=np.float32)[None, :]
-    disp[~(u - disp >= 0)] = np.nan  # (NaN stays NaN) a match inside the black pad is no match
+    disp[~((u - disp >= 0) & (u - disp <= left.shape[1] - 1))] = np.nan  # (NaN stays NaN) a match in a pad is none
     if params.texture_threshold > 0:
         disp[_local_std(left, params.block_size) < params.texture_threshold] = np.nan
     if params.lr_check is not None:

@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from dstereo.stereo.range_bounds import DisparityBounds
+
 DEFAULT_RANGE = (0, 64)
 EDGE_SHARE = 0.01  # share of valid pixels within 1 px of a range end above which the scene runs off it
 MAX_WIDENINGS = 2
@@ -169,15 +171,18 @@ def from_sparse(d_s: np.ndarray, width: int) -> SearchRange | None:
 
 @dataclass(frozen=True)
 class Saturation:
-    """Shares of the valid pixels within 1 px of the low / high range end, and of invalid pixels."""
+    """Shares of the valid pixels within 1 px of the low / high range end, and of invalid pixels.
+    `low_at_infinity`: the range's low end already holds infinity (`DisparityBounds.low_reaches_infinity`), so
+    pixels piled there lie at or beyond infinity (far background): normal, not a saturation."""
 
     low_share: float
     high_share: float
     invalid_share: float
+    low_at_infinity: bool = False
 
     @property
     def low(self) -> bool:
-        return self.low_share > EDGE_SHARE
+        return self.low_share > EDGE_SHARE and not self.low_at_infinity
 
     @property
     def high(self) -> bool:
@@ -191,26 +196,46 @@ class Saturation:
         return asdict(self) | {"saturated_low": self.low, "saturated_high": self.high, "edge_share_limit": EDGE_SHARE}
 
 
-def saturation(d_s: np.ndarray, rng: SearchRange, usable: np.ndarray | None = None) -> Saturation:
-    """Saturation figures of a sign-normalised disparity map (NaN = invalid) over the `usable` pixels."""
+def saturation(d_s: np.ndarray, rng: SearchRange, usable: np.ndarray | None = None,
+               bounds: DisparityBounds | None = None) -> Saturation:
+    """Saturation figures of a sign-normalised disparity map (NaN = invalid) over the `usable` pixels; with the
+    rig's `bounds`, a pile-up at a low end that holds infinity is background (`Saturation.low_at_infinity`)."""
     d = d_s if usable is None else d_s[usable]
     valid = np.isfinite(d)
     n = max(int(valid.sum()), 1)
     dv = d[valid]
+    at_infinity = bounds is not None and bounds.low_reaches_infinity(rng.min_disparity)
     return Saturation(float(np.sum(dv < rng.min_disparity + 1) / n), float(np.sum(dv > rng.max_disparity - 1) / n),
-                      float(1.0 - valid.mean()) if d.size else 1.0)
+                      float(1.0 - valid.mean()) if d.size else 1.0, at_infinity)
 
 
-def widened(rng: SearchRange, sat: Saturation, width: int) -> SearchRange | None:
-    """The range grown by its own width on each saturated side (None when it cannot grow inside the image)."""
+def within(rng: SearchRange, bounds: DisparityBounds) -> SearchRange:
+    """`rng` cut to the bounds; num_disparities' rounding up to 16 is taken from the low side where it would
+    pass the high bound (the bounds hold whole blocks of 16, `range_bounds.whole_blocks`, so it always fits)."""
+    lo, hi = max(rng.min_disparity, bounds.low), min(rng.max_disparity, bounds.high)
+    if (lo, hi) == (rng.min_disparity, rng.max_disparity):
+        return rng
+    num = ceil16(hi - lo + 1)
+    lo = max(bounds.low, min(lo, bounds.high - num + 1))
+    detail = f"{rng.detail}; cut to the rig's disparity bounds {bounds.low}..{bounds.high} px".lstrip("; ")
+    return SearchRange(lo, num, rng.source, detail, rng.user, rng.widened)
+
+
+def widened(rng: SearchRange, sat: Saturation, bounds: DisparityBounds) -> SearchRange | None:
+    """The range grown by its own width on each saturated side, within the rig's bounds (None when neither
+    saturated side can grow: at a bound, or a low end that already holds infinity). A low end that would stop
+    less than one more such step short of a known infinity goes to it: between a far depth Z and infinity lie
+    only f B / Z px, so that is where a far background is, and stopping just short of it leaves all of it out."""
     grow = max(16, rng.num_disparities)
     lo = rng.min_disparity - (grow if sat.low else 0)
+    if sat.low and bounds.infinity is not None and lo - bounds.low <= grow:
+        lo = bounds.low
     hi = rng.max_disparity + (grow if sat.high else 0)
-    lo, hi = max(lo, -(width - 1)), min(hi, width - 1)
+    lo, hi = max(lo, bounds.low), min(hi, bounds.high)
     if lo >= rng.min_disparity and hi <= rng.max_disparity:
         return None
-    out = from_bounds(lo, hi, rng.source, rng.detail, rng.user)
-    return SearchRange(out.min_disparity, out.num_disparities, rng.source, rng.detail, rng.user, rng.widened + 1)
+    out = within(from_bounds(lo, hi, rng.source, rng.detail, rng.user), bounds)
+    return SearchRange(out.min_disparity, out.num_disparities, rng.source, out.detail, rng.user, rng.widened + 1)
 
 
 def saturation_warning(name: str, rng: SearchRange, sat: Saturation, Q: np.ndarray) -> str:

@@ -75,13 +75,15 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
         raise DstereoError(f"{name}: fewer than 8 matches triangulate in front of the cameras; check the focal length")
     Q = uncalibrated_q(f, size, baseline, d_sparse[front], z[front])
     timings["rectify_s"] = time.perf_counter() - t0
+    from dstereo.stereo.range_bounds import width_bounds
     from dstereo.stereo.search_range import from_sparse
 
     t0 = time.perf_counter()
     # The sparse matches that fitted F (warped onto the rectified rows) give the range estimate here.
     estimate = from_sparse(np.sign(Q[3, 2]) * d_sparse[front], size[0])
     disparity, params, search_range, warnings = match_in_range(
-        name, left_rect, right_rect, config, Q, np.zeros(left_rect.shape[:2], bool), estimate=estimate)
+        name, left_rect, right_rect, config, Q, np.zeros(left_rect.shape[:2], bool), estimate=estimate,
+        bounds=width_bounds(size[0], "homography rectification (its infinity is not known): image width"))
     timings["disparity_s"] = time.perf_counter() - t0
     if not scaled:
         warnings.insert(0, f"{name}: no baseline given: the reconstruction is UNSCALED (baseline = 1)")

@@ -8,6 +8,7 @@ import pytest
 from conftest import require_data
 from dstereo.stereo.disparity import disparity_range
 from dstereo.errors import DstereoError
+from dstereo.stereo.range_bounds import width_bounds
 from dstereo.stereo.search_range import (SearchRange, from_bounds, from_middlebury, from_sparse, saturation,
                                   sparse_disparities, widened)
 
@@ -62,9 +63,9 @@ def test_saturation_and_widening():
     d[2, :] = 62.5  # now 105 of 900 within 1 px of the top
     sat = saturation(d, rng)
     assert sat.high and not sat.low
-    grown = widened(rng, sat, 640)
+    grown = widened(rng, sat, width_bounds(640))
     assert (grown.min_disparity, grown.max_disparity, grown.widened) == (0, 127, 1)
-    assert widened(SearchRange(-640, 1280, "x"), sat, 640) is None  # -640..639: all a 640 px wide image holds
+    assert widened(SearchRange(-639, 1280, "x"), sat, width_bounds(640)) is None  # all a 640 px wide image holds
 
 
 # --- estimates on pairs whose true range is known ------------------------------------------------------------
