@@ -16,10 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.mono import calibrate_full
-from dstereo.calib.multiview import calibrate_views
+from dstereo.calib.multiview import calibrate_views, cameras_alone
 from dstereo.calib.rig_consistency import of_multiview
-from dstereo.models.camera import Camera
 from dstereo.synth.rig_corners import rig_corners
 
 SHIFTS = (0.0, 0.5)
@@ -27,11 +25,7 @@ SHIFTS = (0.0, 0.5)
 
 def consistency(case: dict):
     obj, obs, visible = case["obj"], case["obs"], case["visible"]
-    cams = []
-    for c, size in enumerate(case["image_sizes"]):
-        rows = np.flatnonzero(visible[:, c])
-        sol = calibrate_full(obj, obs[rows, c], size)
-        cams.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, size))
+    cams = cameras_alone(obj, obs, visible, case["image_sizes"])[0]
     joint = calibrate_views(obj, obs, visible, case["image_sizes"], mode="joint", cameras=cams)
     return of_multiview(joint, obj, obs)
 

@@ -13,21 +13,15 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 
-from dstereo.calib.mono import calibrate_full
+from dstereo.calib.multiview import cameras_alone
 from dstereo.calib.rig_cross_validation import cross_validate_rig
-from dstereo.models.camera import Camera
 from dstereo.synth.rig_corners import rig_corners
 
 
 def run(k: int, seed: int, shift: float = 0.0):
     case = rig_corners(k, 32, seed, 0.1, shift_mm=shift)
-    cams = []
-    for c, size in enumerate(case["image_sizes"]):
-        rows = np.flatnonzero(case["visible"][:, c])
-        sol = calibrate_full(case["obj"], case["obs"][rows, c], size)
-        cams.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, size))
+    cams = cameras_alone(case["obj"], case["obs"], case["visible"], case["image_sizes"])[0]
     return cross_validate_rig(case["obj"], case["obs"], case["visible"], case["image_sizes"], cams,
                               tuple(f"cam{c}" for c in range(k)), 6, seed=seed)
 

@@ -252,6 +252,28 @@ def _solve(problem, options, g0, p0, data, r_w, shared):
     return jax.tree_util.tree_map(lambda a: np.array(a[0]), out)
 
 
+def cameras_alone(obj, obs, visible, image_sizes, free=PRESETS["default"], inliers=None, labels=None):
+    """([Camera], [poses (V_k, 6)]): each camera calibrated alone on the frames it saw (at least 3); `free` one set
+    or one per camera."""
+    k = visible.shape[1]
+    frees = [tuple(f) for f in (free if free and isinstance(free[0], (tuple, list)) else [free] * k)]
+    labels = tuple(labels or (f"cam{c}" for c in range(k)))
+    cameras, own = [], []
+    for c in range(k):
+        rows = np.flatnonzero(visible[:, c])
+        if len(rows) < 3:
+            raise DstereoError(f"multiview: camera {labels[c]} sees {len(rows)} frames; calibrating it alone "
+                               "first needs at least 3 (or pass its intrinsics)")
+        try:
+            sol = calibrate_full(obj, obs[rows, c], tuple(image_sizes[c]), frees[c],
+                                 inliers=None if inliers is None else inliers[rows, c])
+        except DstereoError as exc:
+            raise DstereoError(f"multiview: camera {labels[c]} calibrated alone: {exc}") from None
+        cameras.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, tuple(image_sizes[c])))
+        own.append(sol.poses)
+    return cameras, own
+
+
 def calibrate_views(
     obj: np.ndarray,
     obs: np.ndarray,
@@ -283,19 +305,7 @@ def calibrate_views(
     if cameras is None:
         if mode == "fixed":
             raise DstereoError("multiview fixed mode holds given intrinsics: pass the cameras")
-        cameras, own = [], []
-        for c in range(k):
-            rows = np.flatnonzero(visible[:, c])
-            if len(rows) < 3:
-                raise DstereoError(f"multiview: camera {labels[c]} sees {len(rows)} frames; calibrating it alone "
-                                   "first needs at least 3 (or pass its intrinsics)")
-            try:
-                sol = calibrate_full(obj, obs[rows, c], tuple(image_sizes[c]), frees[c],
-                                     inliers=None if inliers is None else inliers[rows, c])
-            except DstereoError as exc:
-                raise DstereoError(f"multiview: camera {labels[c]} calibrated alone: {exc}") from None
-            cameras.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, tuple(image_sizes[c])))
-            own.append(sol.poses)
+        cameras, own = cameras_alone(obj, obs, visible, image_sizes, frees, inliers, labels)
     ext, poses0, obs, flips = initial_state(obj, obs, visible, cameras, own)
     data, r_w = _data(obs, visible, inliers)
     shared = _shared(obj, cameras)
