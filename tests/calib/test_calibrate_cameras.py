@@ -162,6 +162,130 @@ def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder,
     assert "board_sag_x" in full["std"] and "board_sag" not in (tmp_path / "one" / "config.toml").read_text()
 
 
+def _cli_in_a_child(*args):
+    """The command in a process of its own (DSTEREO_SERVE=0): --model auto compiles a program per candidate lens
+    and camera, a stereo job with its cross-validation a dozen more (~0.7-1 GB measured), which would stay in the
+    suite's process until the module ends (the suite's peak RSS must stay under 3 GB)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, DSTEREO_SERVE="0")
+    done = subprocess.run([sys.executable, "-m", "dstereo.cli", "calibrate", *map(str, args)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    return done.returncode, done.stdout + done.stderr
+
+
+def test_model_auto_and_cross_validation_in_a_rig(rig_folder, tmp_path):
+    """--model auto in a rig (issue 29): each camera chooses on its own views (its folder's summary has the
+    table), never the splined lens (`reconstruct` cannot rectify it), and the rig is solved with the chosen
+    models; the consistency test runs on it (simultaneous renders: consistent) and --cross-validate halves the
+    frames (calib/rig_cross_validation.py), in the summary and report.md. The --left/--right job runs the same
+    per-camera choice (`calibrate_camera(in_rig=True)`) and the same cross-validation (next test)."""
+    root, _ = rig_folder
+    code, text = _cli_in_a_child("--cameras", root, "--pattern", "9x6", "--square", "20", "--model", "auto",
+                                 "--cross-validate", "2", "--out", tmp_path / "r", "-q")
+    assert code == 0, text
+    for name in ("cam0", "cam1", "cam2"):
+        choice = json.loads((tmp_path / "r" / name / "summary.json").read_text())["model_choice"]
+        presets = [c["preset"] for c in choice["candidates"]]
+        assert "splined" not in presets and choice["chosen"] in presets, choice
+    summary = json.loads((tmp_path / "r" / "cameras.json").read_text())
+    assert summary["rig_consistency"]["consistent"], summary["rig_consistency"]
+    cv = summary["rig_cross_validation"]
+    assert cv["splits"] == 2 and cv["trusted"], cv
+    assert "## Rig cross-validation" in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_cross_validation_of_a_left_right_rig(rig_folder, tmp_path):
+    root, _ = rig_folder
+    code, text = _cli_in_a_child("--left", root / "cam0", "--right", root / "cam1", "--pattern", "9x6", "--square",
+                                 "20", "--cross-validate", "2", "--out", tmp_path / "r", "-q")
+    assert code == 0, text
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["rig_cross_validation"]["trusted"] and summary["rig_consistency"]["consistent"], summary
+    assert summary["board_sag_solved"] is not None and "## Rig cross-validation" in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_pair_files_carry_the_calibration_covariance_and_the_rig_its_consistency(rig_run):
+    """Each stereo file carries the pair's covariance (intrinsics and rig, `uncertainty.rig.pair_covariance`), in
+    names reconstruct's point sigmas read; for the pair with the reference its rig std is the joint solve's own
+    (cameras.json, the same number); the rig's consistency test is in cameras.json and report.md."""
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.uncertainty.point_jacobians import theta_index
+
+    out, _ = rig_run
+    summary = json.loads((out / "cameras.json").read_text())
+    for name in ("stereo_cam0_cam1.yml", "stereo_cam1_cam2.yml"):
+        extras = read_stereo_calibration(out / name).extras
+        names, cov = list(extras["cov_names"]), np.asarray(extras["cov"])
+        assert len(theta_index(names)) == len(names) == cov.shape[0] and np.all(np.linalg.eigvalsh(cov) > 0)
+        assert "left.fx" in names and "right.k1" in names and names[-6:] == ["RVx", "RVy", "RVz", "Tx", "Ty", "Tz"]
+    extras = read_stereo_calibration(out / "stereo_cam0_cam1.yml").extras
+    std = np.sqrt(np.diag(extras["cov"]))
+    for n in ("RVy", "Tx"):
+        assert std[list(extras["cov_names"]).index(n)] == pytest.approx(summary["joint"]["std"][f"cam1.{n}"], rel=1e-9)
+    assert summary["rig_consistency"]["consistent"] and "## Rig consistency" in (out / "report.md").read_text()
+    assert "std" not in summary["held"]  # the held solve's std omitted the intrinsics' uncertainty
+
+
+def test_every_rig_camera_gets_an_mrcal_file_in_the_rigs_frame(rig_run):
+    """rig_<camera>.cameramodel: each camera's intrinsics and its place in the reference, as cameras.yml holds them
+    (mrcal's rt_cam_ref is the same reference -> camera transform)."""
+    from dstereo.io.cameramodel import read_cameramodel
+
+    out, _ = rig_run
+    fs = cv2.FileStorage(str(out / "cameras.yml"), cv2.FILE_STORAGE_READ)
+    for i in range(3):
+        m = read_cameramodel(out / f"rig_cam{i}.cameramodel")
+        R, T, K = fs.getNode(f"R_{i}").mat(), fs.getNode(f"T_{i}").mat().ravel(), fs.getNode(f"K_{i}").mat()
+        np.testing.assert_allclose(m.rt_cam_ref[:3], cv2.Rodrigues(R)[0].ravel(), atol=1e-12)
+        np.testing.assert_allclose(m.rt_cam_ref[3:], T, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(m.intrinsics, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
+    for figure in ("rig.png", "rig_consistency.png"):  # the rig's figures, linked from report.md
+        assert cv2.imread(str(out / "plots" / figure)) is not None and f"plots/{figure}" in (out / "report.md").read_text()
+
+
+def test_a_chosen_pair_and_the_refusals(rig_folder, tmp_path):
+    root, _ = rig_folder
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "--pair",
+                      "cam0,cam9", "-q")
+    assert code == 1 and "no camera 'cam9'" in text and not (tmp_path / "r").exists()
+    code, text = _cli("--cameras", root / "cam0", "--pattern", "9x6", "--out", tmp_path / "r2")
+    assert code == 1 and "subfolder" in text and not (tmp_path / "r2").exists()
+    code, text = _cli("--pair", "cam0,cam1", "--images", root / "cam0", "--out", tmp_path / "r3")
+    assert code == 1 and "--pair: only with --cameras" in text
+    assert all(line.startswith("dstereo: error: ") for line in text.strip().splitlines()[-1:])
+
+
+def test_frames_that_share_no_name_are_refused(rig_folder, tmp_path):
+    root, _ = rig_folder
+    other = tmp_path / "renamed"
+    for k in range(2):
+        (other / f"cam{k}").mkdir(parents=True)
+        for p in sorted((root / f"cam{k}").glob("*.png"))[:8]:
+            (other / f"cam{k}" / f"c{k}_{p.name}").write_bytes(p.read_bytes())
+    code, text = _cli("--cameras", other, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "-q")
+    assert code == 1 and "matched by file name" in text and not (tmp_path / "r").exists()
+
+
+def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder, tmp_path):
+    """The renders' board is flat: the solved sag must lie within 3.5 of its own sigma of zero, in cameras.json
+    for the rig and in summary.json for one camera, where it is solved by default (no flag)."""
+    root, _ = rig_folder
+    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "rig", "--board-sag",
+                      "-q")
+    assert code == 0, text
+    joint = json.loads((tmp_path / "rig" / "cameras.json").read_text())["joint"]
+    for name in ("board_sag_x", "board_sag_y"):
+        assert abs(joint["parameters"][name]) < 3.5 * joint["std"][name], (name, joint["parameters"][name])
+    code, text = _cli("--images", root / "cam1", "--pattern", "9x6", "--square", "20", "--out", tmp_path / "one",
+                      "-q")
+    assert code == 0, text
+    full = json.loads((tmp_path / "one" / "summary.json").read_text())["full_set"]
+    assert "board_sag_x" in full["std"] and "board_sag" not in (tmp_path / "one" / "config.toml").read_text()
+
+
 @pytest.mark.parametrize("layout", ["cameras", "left_right"])
 def test_model_auto_and_cross_validation_in_a_rig(rig_folder, tmp_path, layout):
     """--model auto in a rig (issue 29): each camera chooses on its own views (its folder's summary has the
