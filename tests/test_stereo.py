@@ -291,7 +291,7 @@ def test_stereo_covariance_counts_the_board_poses(synthetic):
     n_g, p_shape = len(sol.values), sol.poses.shape
 
     def residuals(x):  # every residual of the problem as a function of [rig, all poses]
-        return st._residuals_fn(spec)(x[None, :n_g], x[n_g:].reshape(p_shape)[None], data, shared).ravel()
+        return st.batched_residuals(spec)(x[None, :n_g], x[n_g:].reshape(p_shape)[None], data, shared).ravel()
 
     x = jnp.asarray(np.r_[sol.values, sol.poses.ravel()])
     r, jac = np.asarray(residuals(x)), np.asarray(jax.jacfwd(residuals)(x))

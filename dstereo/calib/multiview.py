@@ -370,6 +370,7 @@ class MultiviewSubsetSolutions:
     iterations: np.ndarray
     status: np.ndarray
     timings: dict = field(default_factory=dict)
+    poses: np.ndarray | None = None  # (C, m, 6) each subset's frame poses, in its `index` order
 
     @property
     def converged(self) -> np.ndarray:
@@ -402,6 +403,8 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
     out = solve_frame_subsets(problem, data, r_w, _shared(obj, start.cameras), index,
                               SubsetStart(values, start.poses), options, progress)
     m = index.shape[1]
+    # each subset's own poses, in its frames' order (a masked solve returns every frame's, the others unchanged)
+    poses = out.p if out.p.shape[1] == m else np.take_along_axis(np.asarray(out.p), index[:, :, None], axis=1)
     sigma2 = out.sse / (out.n_residuals - (out.g.shape[1] + POSE_SIZE * m))
     cov_diag = np.diagonal(scaled_inverse(out.schur), axis1=1, axis2=2)
     g, std = np.asarray(out.g), np.sqrt(np.maximum(cov_diag * sigma2[:, None], 0.0))
@@ -411,4 +414,4 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
     return MultiviewSubsetSolutions(
         index=index, names=start.names, values=g, std=std,
         rms=np.sqrt(out.sse / (out.n_residuals / 2)), iterations=out.iterations, status=out.status,
-        timings={"solve_s": time.perf_counter() - t0})
+        timings={"solve_s": time.perf_counter() - t0}, poses=np.asarray(poses))

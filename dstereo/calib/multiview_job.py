@@ -21,6 +21,7 @@ from dstereo.calib.multiview import MultiviewSolution, calibrate_views
 from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
+from dstereo.calib.rig_subsets import RigSubsets, run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 
@@ -41,6 +42,7 @@ class MultiviewJob:
     timings: dict[str, float] = field(default_factory=dict)
     inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all
     consistency: RigConsistency | None = None  # calib/rig_consistency.py on the joint solve
+    subsets: RigSubsets | None = None  # with `per_set`: the rig's frame subsets and stereo steps
     cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
@@ -105,6 +107,8 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     from dstereo.calib.stereo_pipeline import _prefixed
 
     t0 = time.perf_counter()
+    if config.stereo_steps and config.per_set is None:
+        raise DstereoError("stereo steps need subsets of frames; set images per set (`per_set` m)")
     folders = camera_folders(root, config)
     labels = tuple(p.name for p in folders)
     cams, warnings, timings = [], [], {}
@@ -143,6 +147,21 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
                            inliers=rig_inliers)
     if progress is not None:
         progress("rig solve", 1, 3)
+    subsets = None
+    if config.per_set is not None:
+        subsets = run_rig_subsets(config, held, obj, obs, visible, rig_inliers, labels, frames, scratch, progress)
+        warnings += subsets.warnings
+        if config.final == "mean":
+            warnings.append("--final mean: each camera's file holds its subset mean; the rig in cameras.yml is the "
+                            "solve on the surviving frames (a K-camera rig has no one subset mean: each pair's is in "
+                            "cameras.json, rig_subsets.statistics)")
+        if subsets.left_out:  # final = the survivors' solve: the frames in no surviving subset leave the rig
+            keep = subsets.frames
+            frames, visible, obs = [f for f, k in zip(frames, keep) if k], visible[keep], obs[keep]
+            inliers = inliers[keep]
+            rig_inliers = None if rig_inliers is None else rig_inliers[keep]
+            held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels,
+                                   board_warp=sag, inliers=rig_inliers)
     joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels, board_warp=sag,
                             inliers=rig_inliers)
     if progress is not None:
@@ -162,7 +181,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
             progress("rig cross-validation", 1, 1)
         timings["rig_cross_validation_s"] = time.perf_counter() - t
     job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings,
-                       inliers=rig_inliers, consistency=consistency, cross_validation=cv)
+                       inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets)
     _check(job)
     timings["total_s"] = time.perf_counter() - t0
     return job

@@ -164,6 +164,13 @@ def frame_residual(problem: Problem):
     return residual
 
 
+@functools.lru_cache(maxsize=None)
+def batched_residuals(problem: Problem):
+    """(C, V) frames -> (C, V, K 2n) residuals: (g (C, G), poses (C, V, 6), obs (C, V, K, n, 2), shared)."""
+    per_view = jax.vmap(frame_residual(problem), in_axes=(None, 0, 0, None))
+    return jax.jit(jax.vmap(per_view, in_axes=(0, 0, 0, None)))
+
+
 def _rotate(rot, d_rot, x):
     """R x (3, n) and d(R x)/d rvec (3 i, 3 k, n) from (R, dR_ij/drvec_k); products over 3-vectors as sums of
     broadcasts: XLA's CPU dot emitter compiles tiny dots into far more code than these fused loops."""

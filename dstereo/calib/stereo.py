@@ -24,7 +24,8 @@ import numpy as np
 
 from dstereo.calib.init_zhang import homography, pose_from_homography
 from dstereo.calib.mono import CameraSolution
-from dstereo.calib.problem import Problem, frame_linearize, frame_residual, residual_weights, run, shared_data
+from dstereo.calib.problem import Problem, batched_residuals, frame_linearize, frame_residual, residual_weights, run, \
+    shared_data
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
 from dstereo.calib.subsets import SubsetPlan
 from dstereo.uncertainty.covariance import Conditioning, conditioning, scaled_inverse
@@ -66,13 +67,6 @@ def _solve(problem: Problem, options: LMOptions, g0, p0, data, shared, r_w):
               np.asarray(data, float)[None], np.ones((1, len(p0))), np.array([options.lambda0]), shared,
               r_weight=np.asarray(r_w, float)[None])
     return jax.tree_util.tree_map(lambda a: a[0], out)
-
-
-@functools.lru_cache(maxsize=None)
-def _residuals_fn(problem: Problem):
-    """(C, V) pairs -> (C, V, 4n) residuals; the full set is C = 1."""
-    per_view = jax.vmap(frame_residual(problem), in_axes=(None, 0, 0, None))
-    return jax.jit(jax.vmap(per_view, in_axes=(0, 0, 0, None)))
 
 
 @jax.jit
@@ -314,7 +308,7 @@ def _solution_from(out, spec: Problem, mode: str, obj, data, left: Camera, right
     cov, jac, _ = solve_covariance(out, len(g) + out.p.size)
     cam_l, cam_r = cameras_from(spec, g, left, right)
     shared = _shared(obj, left, right)
-    resid = np.asarray(_residuals_fn(spec)(g[None], out.p[None], data[None], shared))[0]
+    resid = np.asarray(batched_residuals(spec)(g[None], out.p[None], data[None], shared))[0]
     n = obj.shape[0]
     resid = resid.reshape(len(out.p), 2, n, 2)
     R, E, F = (np.array(a) for a in _rig_matrices(jnp.asarray(g[:6]), cam_l.k, cam_r.k))
@@ -400,7 +394,7 @@ def solve_stereo_subsets(
 
 def _pair_rms(problem, g, poses, data, w, shared) -> np.ndarray:
     """(C,) thesis stereo_re of each subset: the mean over its pairs of each pair's RMS over its inlier corners."""
-    r = np.asarray(_residuals_fn(problem)(g, poses, data, shared)) * w  # (C, m, 4n), outliers zeroed
+    r = np.asarray(batched_residuals(problem)(g, poses, data, shared)) * w  # (C, m, 4n), outliers zeroed
     return np.mean(np.sqrt(np.sum(r ** 2, axis=2) / (np.sum(w, axis=2) / 2)), axis=1)
 
 

@@ -116,8 +116,6 @@ def calibrate(
     if cameras is not None:
         if left is not None or right is not None or images is not None:
             raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
-        if stereo_steps:
-            refuse(STEREO_STEPS, "--cameras", "--cameras")
         if cfg.model_right is not None:
             refuse(RIGHT_LENS, "--cameras", _as_given(cfg, "model_right", "--model-right"))
         _run_cameras(cameras, cfg, _pair(pair), project, out, force, quiet, use_cache, started, projection_range,
@@ -250,6 +248,8 @@ def _run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started
             typer.echo(job.consistency.line())
         if job.cross_validation is not None:
             typer.echo(job.cross_validation.verdict())
+        if job.subsets is not None:
+            typer.echo("\n".join(job.subsets.lines()))
         typer.echo(f"wrote {out}")
 
 

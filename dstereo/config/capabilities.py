@@ -28,11 +28,9 @@ SPLINED = "splined lens (full set, no subsets or cross-validation)"
 CAPABILITIES: dict[str, tuple] = {
     "subsets of views and the thesis's camera steps (`--per-set`, `--step`)": (True, True, True),
     STEREO_STEPS: (
-        NotApplicable("stereo steps need a stereo run; give --left DIR --right DIR (or images/images_left + "
-                      "images/images_right)"),
-        True,
-        "stereo --step is not available for N cameras yet: the thesis's stereo steps filter one pair's subsets; "
-        "calibrate the pair with --left/--right for them"),
+        NotApplicable("stereo steps need a rig; give --left DIR --right DIR (or images/images_left + "
+                      "images/images_right), or --cameras DIR"),
+        True, True),
     "outlier rejection (corners and views; the rig solved on the corners each camera kept)": (True, True, True),
     "board sag (`--no-board-sag`: flat)": (True, True, True),
     "`--cross-validate N` (views for one camera, frames for a rig)": (True, True, True),
@@ -43,9 +41,8 @@ CAPABILITIES: dict[str, tuple] = {
                       "images/images_right)"), True,
         "--model-right: only for a stereo rig (--left/--right); --cameras takes one --model for every camera"),
     SPLINED: (True, SPLINED_RIG, SPLINED_RIG),
-    "final = the survivors' solve (`--final mean`: the thesis's mean)": (
-        True, True, "per camera (each camera's file); the rig is solved on every frame: rig subsets have no command "
-        "yet"),
+    "final = the survivors' solve (`--final mean`: the thesis's mean; a K-camera rig's file keeps the solve, each "
+    "pair's subset mean beside it)": (True, True, True),
     "mrcal `.cameramodel` (each camera; a rig's in its frame)": (True, True, True),
     "rig consistency test, rig figures": ("-", True, True),
     "stereo files with the calibration covariance (`reconstruct`'s point sigmas)": ("-", True, True),

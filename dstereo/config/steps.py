@@ -26,9 +26,14 @@ class Step:
     min_subsets: int | None = None  # stop the step before it leaves fewer subsets (None: the config's value)
 
     def describe(self) -> str:
-        parts = [f"{p} <= {e:g} px" if p in ABSOLUTE_PARAMETERS else f"{p} within {e:g} IQR"
+        parts = [f"{p} <= {e:g} px" if is_absolute(p) else f"{p} within {e:g} IQR"
                  for p, e in zip(self.parameters, self.max_error)]
         return ", ".join(parts)
+
+
+def is_absolute(column: str) -> bool:
+    """A column filtered by an absolute limit (px): `re`, `stereo_re`, and a rig pair's `stereo_re@a-b`."""
+    return column.split("@")[0] in ABSOLUTE_PARAMETERS
 
 
 def canonical_parameter(name: str, where: str, stereo: bool = False) -> str:

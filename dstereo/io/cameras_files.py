@@ -83,6 +83,7 @@ def cameras_summary(job) -> dict:
                          "uncertainty (the joint solve's std is the rig's)"},
         "rig_consistency": None if job.consistency is None else job.consistency.as_dict(),
         "rig_cross_validation": None if job.cross_validation is None else job.cross_validation.as_dict(),
+        "rig_subsets": None if job.subsets is None else job.subsets.as_dict(),
         "flipped_views": [[job.labels[c], job.frames[f]] for f, c in sol.flipped],
         "warnings": list(job.warnings), "timings_s": dict(job.timings),
     }
@@ -140,10 +141,11 @@ def report_markdown(summary: dict) -> str:
               f"(each camera at its own calibration): RMS {summary['held']['rms']:.4f} px.", "",
               "| parameter | joint | std |", "|---|---|---|"]
     lines += [f"| {n} | {v:.6g} | {std[n]:.3g} |" for n, v in summary["joint"]["parameters"].items()]
-    from dstereo.io.rig_report import consistency_markdown, cross_validation_markdown
+    from dstereo.io.rig_report import consistency_markdown, cross_validation_markdown, subsets_markdown
 
     lines += consistency_markdown(summary.get("rig_consistency"))
     lines += cross_validation_markdown(summary.get("rig_cross_validation"))
+    lines += subsets_markdown(summary.get("rig_subsets"))
     if summary["flipped_views"]:
         lines += ["", "Views re-read in reversed corner order: "
                   + ", ".join(f"{c}/{f}" for c, f in summary["flipped_views"])]

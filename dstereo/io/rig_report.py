@@ -27,3 +27,20 @@ def cross_validation_markdown(cv: dict | None) -> list[str]:
             f"{lo:.2f}-{hi:.2f}), intrinsics {cv['intrinsics_ratio']:.2f} ({ilo:.2f}-{ihi:.2f}): "
             + ("the rig's +- holds." if cv["trusted"] else "**the rig's +- is optimistic** (see Warnings)."),
             "", f"Band: {cv['band_note']}."]
+
+
+def subsets_markdown(rs: dict | None) -> list[str]:
+    """report.md's section on the rig's frame subsets and stereo steps (`calib/rig_subsets.py`, its `as_dict`)."""
+    if rs is None:
+        return []
+    lines = ["", "## Rig subsets and stereo steps", "",
+             f"{rs['subsets']} subsets of m = {rs['per_set']} frames ({'every one' if rs['exhaustive'] else 'a sample'}"
+             f"), {rs['usable']} converged, {rs['surviving']} survive the steps; each stereo step filters every "
+             "adjacent pair's column at once (`NAME@a-b`).", ""]
+    lines += [f"- {m}" for m in rs["steps"]]
+    left = rs["left_out_frames"]
+    lines += ["", (f"Frames in no surviving subset, left out of the rig solve: {', '.join(left)}." if left else
+                   "Every frame is in a surviving subset: the rig solve is on every frame."), "",
+              "| column | mean | std over the surviving subsets |", "|---|---|---|"]
+    lines += [f"| {name} | {v['mean']:.6g} | {v['std']:.3g} |" for name, v in rs["statistics"].items()]
+    return lines

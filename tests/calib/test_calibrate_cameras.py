@@ -145,14 +145,23 @@ def test_frames_that_share_no_name_are_refused(rig_folder, tmp_path):
     assert code == 1 and "matched by file name" in text and not (tmp_path / "r").exists()
 
 
-def test_board_sag_is_solved_and_reported_for_the_rig_and_one_camera(rig_folder, tmp_path):
+def test_board_sag_rig_subsets_and_stereo_steps(rig_folder, tmp_path):
     """The renders' board is flat: the solved sag must lie within 3.5 of its own sigma of zero, in cameras.json
-    for the rig and in summary.json for one camera, where it is solved by default (no flag)."""
+    for the rig and in summary.json for one camera, where it is solved by default (no flag). The same rig run has
+    subsets and the thesis's stereo steps (calib/rig_subsets.py, on each adjacent pair): in cameras.json, report.md
+    and the console; these renders have no bad frame, and a generous absolute stereo_re limit keeps every subset."""
     root, _ = rig_folder
     code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "rig", "--board-sag",
-                      "-q")
+                      "--per-set", "6", "--max-subsets", "24", "--step", "stereo_re=3", "--step", "Tnorm=3")
     assert code == 0, text
-    joint = json.loads((tmp_path / "rig" / "cameras.json").read_text())["joint"]
+    summary = json.loads((tmp_path / "rig" / "cameras.json").read_text())
+    rs = summary["rig_subsets"]
+    assert rs["subsets"] == 24 and rs["per_set"] == 6 and rs["usable"] == 24, rs
+    assert rs["steps"][0].startswith("step 1 (stereo_re@cam0-cam1 <= 3 px, stereo_re@cam1-cam2 <= 3 px): 24 -> 24")
+    assert "Tnorm@cam1-cam2 within 3 IQR" in rs["steps"][1] and rs["left_out_frames"] == []
+    assert "rig subsets: 24 of m = 6 frames, 24 converged" in text
+    assert "## Rig subsets and stereo steps" in (tmp_path / "rig" / "report.md").read_text()
+    joint = summary["joint"]
     for name in ("board_sag_x", "board_sag_y"):
         assert abs(joint["parameters"][name]) < 3.5 * joint["std"][name], (name, joint["parameters"][name])
     code, text = _cli("--images", root / "cam1", "--pattern", "9x6", "--square", "20", "--out", tmp_path / "one",

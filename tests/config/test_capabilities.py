@@ -24,8 +24,9 @@ def test_every_cell_is_built_or_one_line_that_says_what_to_do():
 
 
 def test_a_refused_request_gets_the_tables_line_with_how_it_was_asked():
-    with pytest.raises(DstereoError, match=r"^--cameras: stereo --step is not available for N cameras yet"):
-        refuse(STEREO_STEPS, "--cameras", "--cameras")
+    with pytest.raises(DstereoError, match=r"^--step Tnorm=1: stereo steps need a rig; give --left DIR"):
+        refuse(STEREO_STEPS, "one camera", "--step Tnorm=1")
+    refuse(STEREO_STEPS, "--cameras")  # built: nothing raised
     with pytest.raises(DstereoError, match="no such inverse"):
         refuse(SPLINED, "--left/--right", "--model splined")
     refuse(SPLINED, "one camera")  # built: nothing raised
