@@ -36,7 +36,7 @@ def _enable_compilation_cache(jax) -> None:
         return  # read-only home: run without the cache
     if not os.access(folder, os.W_OK | os.X_OK):
         return  # a folder that exists but takes no files: JAX would warn at every compile; run without the cache
-    # (the executables' folder, solver/aot.py, lives in this one: no cache folder, no executables either)
+    # (the executables' folder, runtime/aot.py, lives in this one: no cache folder, no executables either)
     jax.config.update("jax_compilation_cache_dir", folder)
     # Every program, however quick to compile: a warm run compiled ~10 small ones (eager ops, rotations) afresh
     # each time under the 0.5 s threshold JAX suggests, 10-540 ms each, where a fetch takes a few ms.

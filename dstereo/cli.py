@@ -1,12 +1,16 @@
-"""`dstereo` command line: thin wrappers that parse, call one library function and print.
+"""`dstereo`: the entry point. It parses, calls one library function and prints; the runtime is around it.
 
-Each subcommand lives in `dstereo/commands/<name>.py` (heavy imports inside the function body so
-`dstereo --help` stays instant). Errors a user can fix (`DstereoError`) become one line on stderr, exit 1.
+`main` is the `dstereo` script: where the process runs only this command it first offers it to a running
+`dstereo serve` (dstereo/runtime/client.py, standard library only, before typer, numpy or JAX load), and runs it
+here when none takes it; DSTEREO_SERVE=0 always runs here. Each subcommand lives in `dstereo/commands/<name>.py`
+(heavy imports inside the function body so `dstereo --help` stays instant). Errors a user can fix
+(`DstereoError`) become one line on stderr, exit 1.
 """
 
 from __future__ import annotations
 
 import errno
+import functools
 import os
 import sys
 
@@ -18,46 +22,74 @@ import sys
 if "pytest" not in sys.modules:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import typer  # noqa: E402
 
-from dstereo.commands import register_all  # noqa: E402
-from dstereo.errors import DstereoError  # noqa: E402
+@functools.lru_cache(maxsize=None)
+def _app():
+    """The typer application with every command (built on first use: a served command never loads typer)."""
+    import typer
 
-app = typer.Typer(
-    name="dstereo",
-    help="Differentiable stereo photogrammetry: calibrate, rectify, reconstruct, measure with error bars.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    rich_markup_mode=None,  # help reads as written: option texts use [brackets] for sections and defaults
-)
-register_all(app)
+    from dstereo.commands import register_all
+
+    app = typer.Typer(
+        name="dstereo",
+        help="Differentiable stereo photogrammetry: calibrate, rectify, reconstruct, measure with error bars.",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        rich_markup_mode=None,  # help reads as written: option texts use [brackets] for sections and defaults
+    )
+    register_all(app)
+
+    @app.callback()
+    def _root() -> None:
+        """Keeps typer in multi-command mode even while only one subcommand is registered."""
+
+    return app
 
 
-@app.callback()
-def _root() -> None:
-    """Keeps typer in multi-command mode even while only one subcommand is registered."""
+def __getattr__(name: str):
+    if name == "app":  # `dstereo.cli.app`, built on first use
+        return _app()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _echo(text: str) -> None:
+    import typer
+
+    typer.echo(text, err=True)
 
 
 def main(end_process: bool | None = None) -> None:
     """Run the command line; ends with SystemExit (its exit code), or, where this process runs only the command
     (`end_process`, default: started as the `dstereo` script or `python -m dstereo.cli`, never under pytest),
-    ends the process itself once the command's work is done (`finish`)."""
-    from dstereo import interrupts
+    offers it to a running server first (`runtime.client.run_served`) and ends the process itself once the
+    command's work is done (`finish`)."""
+    from dstereo.runtime import interrupts, request
 
     end_process = _command_process() if end_process is None else end_process
+    request.set_command(main)  # what a server started from this process runs for its clients
     if end_process:
-        interrupts.install()  # idempotent: the entry point (serve_client.main) installed them already
+        interrupts.install()  # first: a signal at any moment from here on ends the command cleanly
+        from dstereo.runtime.client import run_served
+
+        try:
+            code = run_served(sys.argv[1:])
+        except interrupts.Interrupted as exc:  # while the server ran it: the client said the line
+            interrupted(exc)
+        if code is not None:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
     try:
         _dispatch()
     except SystemExit as exc:
         if not end_process:
             raise
         finish(exc.code)
-    except interrupts.Interrupted as exc:  # SIGINT, SIGTERM, SIGHUP (dstereo/interrupts.py), or a served client's
-        if not end_process:  # library use, pytest, the server: the caller decides; the command's line is said
-            typer.echo(f"dstereo: error: {exc}", err=True)
-            interrupts.mark_said()  # the entry point (serve_client.main) ends the process without saying it again
+    except interrupts.Interrupted as exc:  # SIGINT, SIGTERM, SIGHUP (dstereo/runtime/interrupts.py), or a served
+        if not end_process:  # client's; library use, pytest, the server: the caller decides; the line is said
+            _echo(f"dstereo: error: {exc}")
+            interrupts.mark_said()
             raise
         interrupted(exc)
     if end_process:
@@ -68,7 +100,7 @@ def interrupted(exc) -> None:
     """End the process of a command that a signal stopped: its one line, every child process killed (figure
     workers, multiprocessing's resource tracker, a local Dask cluster's workers: none may keep the caller's pipes
     open), exit 128 + the signal's number. Its staging folders were removed while it unwound."""
-    from dstereo import interrupts
+    from dstereo.runtime import interrupts
 
     interrupts.say(exc)
     # SIGKILL, not the pools' shutdown: joining a worker takes time, and a pool's manager thread, seeing its
@@ -84,12 +116,10 @@ def _command_process() -> bool:
     name = spec.name if spec is not None else os.path.basename(getattr(main_module, "__file__", "") or "")
     # a `dstereo serve` process runs many commands: it ends none of them with the process (nor stops its warm
     # figure workers, which `finish` would)
-    serving = "dstereo.commands.serve_server" in sys.modules
-    # `dstereo` (the script), `python -m dstereo.cli` or `-m dstereo.serve_client`, or any process that came in
-    # through the script's entry point (`serve_client.main`, as the tests' `python -c` subprocesses do) ends as
-    # the script does; `python -c` code calling this `main` itself is library use
-    client = sys.modules.get("dstereo.serve_client")
-    named = name in ("dstereo", "dstereo.cli", "dstereo.serve_client") or bool(getattr(client, "entered", False))
+    serving = "dstereo.runtime.server" in sys.modules
+    # `dstereo` (the script) and `python -m dstereo.cli` end as the script does; `python -c` code calling this
+    # `main` is library use unless it says `end_process=True` (as the tests' stand-ins for the script do)
+    named = name in ("dstereo", "dstereo.cli")
     return named and "pytest" not in sys.modules and not serving
 
 
@@ -100,8 +130,7 @@ def finish(code) -> None:
     results folder is in place (written and renamed before the command returns), the figure workers are joined
     here, the compilation cache and executable files are written synchronously as they compile, and stdout and
     stderr are flushed last."""
-    from dstereo import interrupts
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool, interrupts
 
     if interrupts.received() is not None:  # a signal whose exception was lost (interrupts.check): not a success
         interrupted(interrupts.Interrupted(interrupts.received()))
@@ -115,12 +144,14 @@ def finish(code) -> None:
 
 
 def _dispatch() -> None:
+    from dstereo.errors import DstereoError
+
     try:
-        app()  # standalone: usage errors print and exit 2 by themselves
+        _app()()  # standalone: usage errors print and exit 2 by themselves
     except DstereoError as exc:  # the library names parameters; the line names the flags of the command that ran
         from dstereo.config.messages import command_of, with_flags
 
-        typer.echo(f"dstereo: error: {with_flags(str(exc), command_of(sys.argv))}", err=True)
+        _echo(f"dstereo: error: {with_flags(str(exc), command_of(sys.argv))}")
         sys.exit(1)
     except OSError as exc:  # a file system refusal while reading or writing (disk full, permissions): name the file
         if os.environ.get("DSTEREO_DEBUG"):
@@ -130,14 +161,12 @@ def _dispatch() -> None:
 
             limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
             opening = f" while opening {exc.filename}" if exc.filename else ""
-            typer.echo(f"dstereo: error: {exc.strerror or exc}: this process (or the system) has run out of open "
-                       f"files (limit {limit}, `ulimit -n`){opening}; the file is not at fault: give fewer "
-                       "--workers, stop stray dstereo/Dask processes "
-                       "(`dstereo serve --stop`), or raise the limit", err=True)
+            _echo(f"dstereo: error: {exc.strerror or exc}: this process (or the system) has run out of open "
+                  f"files (limit {limit}, `ulimit -n`){opening}; the file is not at fault: give fewer --workers, "
+                  "stop stray dstereo/Dask processes (`dstereo serve --stop`), or raise the limit")
             sys.exit(1)
         where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        typer.echo(f"dstereo: error:{where}: {exc.strerror or exc}; check the path, free space and permissions",
-                   err=True)
+        _echo(f"dstereo: error:{where}: {exc.strerror or exc}; check the path, free space and permissions")
         sys.exit(1)
     except Exception as exc:
         # OpenCV's own errors on input no check above caught: one line instead of a traceback (DSTEREO_DEBUG=1
@@ -146,8 +175,8 @@ def _dispatch() -> None:
         if cv is None or os.environ.get("DSTEREO_DEBUG"):
             raise
         detail = " ".join(str(cv).split()).rsplit("error: ", 1)[-1]
-        typer.echo(f"dstereo: error: OpenCV refused the input ({detail}); check the images and parameters, and "
-                   "report this if they are right (DSTEREO_DEBUG=1 shows where)", err=True)
+        _echo(f"dstereo: error: OpenCV refused the input ({detail}); check the images and parameters, and "
+              "report this if they are right (DSTEREO_DEBUG=1 shows where)")
         sys.exit(1)
 
 

@@ -1,6 +1,6 @@
 """`dstereo ...` in this process with a breakdown on stderr (one line `PROFILE {json}` at exit): when JAX finished
 importing, JAX's own compile-pipeline durations (jax.monitoring: tracing, lowering to MLIR, XLA compile, persistent
-cache retrieval) and the time spent loading executables from disk (solver/aot.py). Used by
+cache retrieval) and the time spent loading executables from disk (runtime/aot.py). Used by
 experiments/startup_breakdown.py; run as `python -m experiments._profiled_cli calibrate ...`."""
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ def _after_jax(configure):
 
 
 def _time_aot() -> None:
-    """Wrap solver/aot.py's loading once it is imported (it imports JAX, so after the hook above)."""
-    from dstereo.solver import aot
+    """Wrap runtime/aot.py's loading once it is imported (it imports JAX, so after the hook above)."""
+    from dstereo.runtime import aot
 
     load, compile_ = aot._load, aot.AotFunction._compile
 
@@ -92,7 +92,7 @@ if __name__ == "__main__":
 
     class _AfterAot(importlib.abc.MetaPathFinder):  # time aot once it exists, without importing JAX early
         def find_spec(self, name, path=None, target=None):
-            if name == "dstereo.solver.aot":
+            if name == "dstereo.runtime.aot":
                 sys.meta_path.remove(self)
                 spec = importlib.util.find_spec(name)
                 run = spec.loader.exec_module

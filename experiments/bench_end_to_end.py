@@ -12,7 +12,7 @@ beforehand and cached, so neither side pays detection):
   - plain: `dstereo calibrate` without subsets (warm cache, results folder included) vs a new Python process that
     loads the same corners, calls cv2.calibrateCamera once and writes its yml with cv2.FileStorage;
   - served, as a user gets it from the second command on: the same commands through the `dstereo` entry point's
-    client with no server at first (the first command runs in its own process and starts one, serve_autostart.py),
+    client with no server at first (the first command runs in its own process and starts one, runtime/autostart.py),
     then, once it answers, plain runs alternating with the cv2 process and (with C = 4845 among the sizes) the
     C = 4845 run alternating with the thesis approach; each first served command is timed apart;
     `--plain-only` runs the plain cases alone and writes bench_end_to_end_plain.md.
@@ -118,13 +118,13 @@ def prepare(work: Path, n_images: int) -> tuple[Path, Path]:
     return folder, corners
 
 
-CLIENT = [sys.executable, "-c", "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"]
+CLIENT = [sys.executable, "-c", "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main(end_process=True)"]
 
 
 def served_cases(plain: list[str], cv2_run: list[str], subsets: list[str] | None, thesis_run: list[str] | None,
                  env: dict, work: Path, repeat: int) -> dict:
     """The same commands through the `dstereo` entry point's client, as a user gets them: no server at first, so
-    the first command runs in its own process and starts one (serve_autostart.py); once it answers, the first
+    the first command runs in its own process and starts one (runtime/autostart.py); once it answers, the first
     served command (the new server loads the run's executables) is timed apart, then `repeat` served plain runs
     alternate with the cv2 process and, with `subsets`, `repeat` served subset runs with the thesis approach, so
     each pair sees the same load. Checks from the server's count that every timed command was served."""
@@ -268,7 +268,7 @@ def main() -> None:
     lines += ["", "Times: best of the repeats (all repeats in brackets), wall clock of the whole process.", "",
               "Breakdown of the dstereo runs (medians, s): jax_imported_at_s when `import jax` had finished in the "
               "process; trace_s, lower_s, xla_compile_or_fetch_s JAX's own sums over the run's programs; aot_load_s "
-              "executables loaded from disk (dstereo/solver/aot.py); the rest the command's stage timings; outside_s "
+              "executables loaded from disk (dstereo/runtime/aot.py); the rest the command's stage timings; outside_s "
               "the wall clock outside the wrapper's (Python's start-up before it, the process's end after it).", "",
               "| run | wall | " + " | ".join(BREAKDOWN) + " |", "|---|---|" + "---|" * len(BREAKDOWN)]
     walls = {**{(c, "cold"): cold for c, _, _, cold, _, _ in rows}, **{(c, "warm"): warm for c, _, _, _, warm, _ in rows}}

@@ -56,7 +56,7 @@ from dstereo.recession.analysis import FrameReconstructor, _measure, measure_fra
 from dstereo.stereo.pipeline import ReconstructionConfig
 
 try:  # this tree's serial runner holds BLAS to one thread while frames run; an older tree's does not
-    from dstereo.frames.blas_threads import one_blas_thread
+    from dstereo.runtime.blas_threads import one_blas_thread
 except ImportError:
     from contextlib import nullcontext as one_blas_thread
 folder = Path(sys.argv[1])

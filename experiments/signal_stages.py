@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from dstereo.interrupts import children
+from dstereo.runtime.interrupts import children
 from tests.test_signals import SUBSET_FLAGS, alive, render_views
 
 # (stage, the progress text whose first appearance on stderr triggers the signal, extra delay s)
@@ -32,7 +32,7 @@ TRIGGERS = (("detection", b"detect:", 0.0), ("full-set solve", b"detect: 16/16 d
 
 def one(views: Path, folder: Path, sig: int, trigger: bytes, delay: float, env: dict) -> dict:
     folder.mkdir()
-    proc = subprocess.Popen([sys.executable, "-m", "dstereo.serve_client", "calibrate", "--images", str(views),
+    proc = subprocess.Popen([sys.executable, "-m", "dstereo.runtime.client", "calibrate", "--images", str(views),
                              *SUBSET_FLAGS, "--out", "results"], cwd=folder, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
     os.set_blocking(proc.stderr.fileno(), False)

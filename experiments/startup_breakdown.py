@@ -1,4 +1,4 @@
-"""Where a warm `dstereo calibrate` run's time goes, with the executables on disk (solver/aot.py) and without
+"""Where a warm `dstereo calibrate` run's time goes, with the executables on disk (runtime/aot.py) and without
 (DSTEREO_AOT=0: JAX traces and lowers every program, then fetches its compile from the persistent cache).
 
 Cases, each in a new process, back to back and alternating (so a change of load hits both alike): the plain run

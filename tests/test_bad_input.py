@@ -282,7 +282,7 @@ def test_stereo_steps_from_flags_reach_the_stereo_run(tmp_path):
     _refused(("calibrate", "--left", left_dir, "--right", right_dir, "--pattern", "9x6", "--step", "stereo_re=3",
               "--out", out), out, "stereo steps need subsets")
     _refused(("calibrate", "--images", left_dir, "--pattern", "9x6", "--per-set", "3", "--step", "stereo_re=3",
-              "--out", out), out, "--step stereo_re=3", "stereo run")
+              "--out", out), out, "--step stereo_re=3", "stereo steps need a rig")
     _refused(("calibrate", "--images", left_dir, "--pattern", "9x6", "--per-set", "3", "--step", "re=1,Tx=1",
               "--out", out), out, "re=1,Tx=1", "separate --step")
 

@@ -111,7 +111,7 @@ def _refit(stereo: bool, free: tuple[str, ...] = (), right_free: tuple[str, ...]
         pose, _, cost, _, _ = jax.lax.while_loop(lambda s: ~s[4] & (s[3] < POSE_ITERATIONS), body, state)
         return pose, cost
 
-    from dstereo.solver import aot  # kept on disk: a new process skips tracing it
+    from dstereo.runtime import aot  # kept on disk: a new process skips tracing it
 
     return aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit", (stereo, free))
 

@@ -27,12 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dstereo import watchdog
-from dstereo.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
+from dstereo.runtime import watchdog
+from dstereo.runtime.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRENT_CALLS
 from dstereo.models import board, camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
-from dstereo.solver import aot
+from dstereo.runtime import aot
 from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
 
 POSE_SIZE = 6  # rvec, tvec: of a frame's board pose and of a camera's extrinsics
@@ -316,7 +316,7 @@ def _compiled_solver(problem: Problem, options: LMOptions):
                                       weight, lambda0, normal0, r_weight, None if prior is None else jnp.asarray(prior),
                                       max_passes)
 
-    # kept on disk as an executable: a new process skips tracing it too (solver/aot.py)
+    # kept on disk as an executable: a new process skips tracing it too (runtime/aot.py)
     return aot.jit(batch, "calib.problem.compiled_solver", (problem, options), COMPILE_OPTIONS)
 
 
@@ -373,7 +373,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     limit = np.int32(np.iinfo(np.int32).max if max_passes is None else max_passes)
     solver = compiled_solver(problem, key)
     # the compiled call and its results' transfer (where a hung call waits) under the watchdog, keyed by program
-    # and shapes: the allowance comes from the longest such call before it (dstereo/watchdog.py)
+    # and shapes: the allowance comes from the longest such call before it (dstereo/runtime/watchdog.py)
     what = f"a chunk of {rows} problem(s) of {problem.k} camera(s), {n_frames} view(s) x {n_pts} corner(s)"
     with watchdog.watched((problem, key, rows, n_frames, k * n_pts, max_passes is None), what):
         out = solver(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,

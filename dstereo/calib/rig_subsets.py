@@ -25,6 +25,7 @@ from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS
 from dstereo.config.steps import Step, is_absolute
 from dstereo.errors import DstereoError
+from dstereo.models.pose import rotation_vectors
 
 SEP = "@"
 RESIDUAL_BLOCK = 256  # subsets whose residuals are evaluated at once (C x m x K x 2n floats)
@@ -53,7 +54,7 @@ def _relative(values: np.ndarray, k: int, a: int, b: int) -> tuple[np.ndarray, n
     ext = np.concatenate([np.zeros((len(values), 1, 6)), values[:, :6 * (k - 1)].reshape(len(values), k - 1, 6)], 1)
     r_a, r_b = Rotation.from_rotvec(ext[:, a, :3]), Rotation.from_rotvec(ext[:, b, :3])
     r = r_b * r_a.inv()
-    return r.as_rotvec(), ext[:, b, 3:] - r.apply(ext[:, a, 3:])
+    return rotation_vectors(r.as_matrix()), ext[:, b, 3:] - r.apply(ext[:, a, 3:])  # the one rotation log
 
 
 def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:

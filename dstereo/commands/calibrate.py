@@ -86,7 +86,7 @@ def calibrate(
     from dstereo.errors import DstereoError
 
     started = time.perf_counter()
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool
 
     # One figure worker now, before JAX is imported (next line): its imports (matplotlib, its fonts) then run on the
     # core that JAX's single-threaded import leaves idle; the others once that is done (`figure_pool.start`)

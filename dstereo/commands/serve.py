@@ -1,6 +1,6 @@
 """`dstereo serve`: keep dstereo loaded so that each `dstereo` command skips the ~1-2 s of start-up.
 
-The machinery is in serve_server.py (the server) and dstereo/serve_client.py (the entry point's client).
+The machinery is in runtime/server.py (the server) and dstereo/runtime/client.py (the entry point's client).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ def serve(
     status: bool = typer.Option(False, "--status", help="Say whether a server runs, and what it has done."),
     idle_timeout: float = typer.Option(0.0, "--idle-timeout", min=0.0,
                                        help="Stop after this many seconds without a command (0: never)."),
-    started_by: int = typer.Option(0, "--started-by", hidden=True, min=0),  # serve_autostart.py: the client's pid
+    started_by: int = typer.Option(0, "--started-by", hidden=True, min=0),  # runtime/autostart.py: the client's pid
 ) -> None:
     """Run a resident server in the foreground: JAX, the commands and the figure workers load once, then every
     `dstereo` command (but serve and demo) started by this user from this installation with the same dstereo code
@@ -28,7 +28,7 @@ def serve(
     (DSTEREO_SERVE_IDLE seconds). DSTEREO_SERVE=0 runs a command in its own process and starts none;
     DSTEREO_SERVE=manual starts none. The socket is in $DSTEREO_SERVE_DIR, else $XDG_RUNTIME_DIR/dstereo, else
     ~/.cache/dstereo/serve."""
-    from dstereo import serve_client as wire
+    from dstereo.runtime import client as wire
     from dstereo.errors import DstereoError
 
     if stop and status:
@@ -49,7 +49,7 @@ def serve(
         _wait_gone(path)
         typer.echo(f"dstereo serve: stopped the server at {path} (pid {state['pid']})")
         return
-    from dstereo.commands.serve_server import Server
+    from dstereo.runtime.server import Server
 
     Server(path, idle_timeout, started_by).run()
 
@@ -58,12 +58,12 @@ def _stop_starting(path: str) -> dict | None:
     """`--stop` while a server is starting (it holds the installation's lock but does not listen yet: JAX and the
     figure workers are loading): wait until it answers, then stop it, rather than report "no server" and leave it
     running for its idle time. None where no server holds the lock, or none answered within STARTING_WAIT_S."""
-    from dstereo import serve_autostart
-    from dstereo import serve_client as wire
+    from dstereo.runtime import autostart
+    from dstereo.runtime import client as wire
 
     deadline = time.monotonic() + STARTING_WAIT_S
     said = False
-    while serve_autostart.lock_taken(wire.sibling(path, ".lock")) and time.monotonic() < deadline:
+    while autostart.lock_taken(wire.sibling(path, ".lock")) and time.monotonic() < deadline:
         state = ask(path, "stop")
         if state is not None:
             return state
@@ -76,7 +76,7 @@ def _stop_starting(path: str) -> dict | None:
 
 def describe(path: str, state: dict) -> str:
     """`serve --status`: where, its memory, age and commands, and whether (else why not) it serves this dstereo."""
-    from dstereo import serve_client as wire
+    from dstereo.runtime import client as wire
 
     age = time.time() - state["since"]
     mib = (state.get("rss", 0) + state.get("children_rss", 0)) / 2**20
@@ -108,7 +108,7 @@ def _duration(seconds: float) -> str:
 
 
 def ask(path: str, op: str) -> dict | None:
-    from dstereo import serve_client as wire
+    from dstereo.runtime import client as wire
 
     try:
         with wire.connect(path) as sock:

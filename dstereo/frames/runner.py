@@ -196,7 +196,7 @@ class FrameRunner:
             progress=None, stage: str = "frames", done: int = 0, total: int | None = None) -> None:
         """fn(arg) for every (index, arg); on_done(TaskDone) here, in finishing order. `done`/`total`: the
         progress count before these tasks and in all."""
-        from dstereo.frames.blas_threads import one_blas_thread
+        from dstereo.runtime.blas_threads import one_blas_thread
 
         total = done + len(items) if total is None else total
         ticker = _Ticker(progress, stage, done, total, self)

@@ -60,7 +60,7 @@ def check_output(out: str | Path, force: bool) -> Path:
 @contextmanager
 def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
     """Yield a temporary folder next to `out`; on success it replaces `out`, on error it is removed."""
-    from dstereo import interrupts
+    from dstereo.runtime import interrupts
     from dstereo.io import staging
 
     out = check_output(out, force)
@@ -83,7 +83,7 @@ def atomic_folder(out: str | Path, force: bool) -> Iterator[Path]:
         interrupts.completed(out)
     except BaseException as exc:
         if isinstance(exc, interrupts.Interrupted):  # a figure worker still drawing would write into it again
-            from dstereo.io import figure_pool
+            from dstereo.runtime import figure_pool
 
             figure_pool.kill()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -345,7 +345,7 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
     `figure_pool.Figures` that draws the PNG (else drawn here)."""
     from types import SimpleNamespace
 
-    from dstereo.io.figure_pool import Figures
+    from dstereo.runtime.figure_pool import Figures
 
     from dstereo.io.sigma_maps import projection_uncertainty_png
     from dstereo.uncertainty.projection import mean_board_distance, solution_map
@@ -408,7 +408,7 @@ class EarlyFigures:
         self.figures = None
 
     def parameters(self, filtering, full) -> None:
-        from dstereo.io.figure_pool import Figures
+        from dstereo.runtime.figure_pool import Figures
 
         from dstereo.io import staging
 
@@ -430,13 +430,13 @@ class EarlyFigures:
     def discard(self) -> None:
         import sys
 
-        from dstereo import interrupts
+        from dstereo.runtime import interrupts
         from dstereo.io import staging
 
         if self.staging is None:
             return
         if isinstance(sys.exc_info()[1], interrupts.Interrupted):
-            from dstereo.io import figure_pool
+            from dstereo.runtime import figure_pool
 
             figure_pool.kill()  # a signal: end the drawing now rather than wait for up to ten figures
         else:
@@ -482,7 +482,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
     `projection_range`: distance of the projection-uncertainty map (default: the mean board distance); `early`:
     parameter figures drawn already (`EarlyFigures`)."""
     from dstereo.io import plots
-    from dstereo.io.figure_pool import Figures
+    from dstereo.runtime.figure_pool import Figures
 
     full, det = cal.full, cal.detection
     summary = summary_dict(cal)

@@ -4,7 +4,7 @@ OUT at the end) and `.OUT.figures-<pid>@<host>-XXXX` (figures drawn early).
 The owner's pid and host are in the name so that a later run can tell a folder left by a process that no longer
 exists (`kill -9`, a power cut: no cleanup ran) from one that a live run is writing: `clean_stale` removes the
 former only, and only on the host that made it (on a shared file system another host's pid says nothing here).
-Each folder is also registered with `dstereo.interrupts`, whose watchdog removes it if a signal's clean unwinding
+Each folder is also registered with `dstereo.runtime.interrupts`, whose watchdog removes it if a signal's clean unwinding
 does not get to it in time.
 """
 
@@ -17,7 +17,7 @@ import socket
 import tempfile
 from pathlib import Path
 
-from dstereo import interrupts
+from dstereo.runtime import interrupts
 
 KINDS = ("tmp", "figures")
 

@@ -277,7 +277,7 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     from functools import partial
 
     from dstereo.frames import FrameRunner
-    from dstereo.frames.blas_threads import one_blas_thread
+    from dstereo.runtime.blas_threads import one_blas_thread
     from dstereo.stereo.pipeline import ReconstructionConfig
 
     recon_config = recon_config or ReconstructionConfig()
@@ -288,7 +288,7 @@ def run_recession(frames: list[Frame], calib, config: RecessionConfig = Recessio
     outcomes: dict[int, FrameOutcome] = {}
     ref, ref_index = None, -1
     report("frames", 0, len(frames))
-    with one_blas_thread():  # as the frames after it (`dstereo.frames.blas_threads`)
+    with one_blas_thread():  # as the frames after it (`dstereo.runtime.blas_threads`)
         for i, frame in enumerate(frames):  # in order: the first frame that gives a surface is the reference
             outcomes[i], ref = _measure(frame, reconstruct, config)
             report("frames", i + 1, len(frames))

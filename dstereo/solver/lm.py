@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 # XLA options for the compiled solvers (re-exported): measured on one jaxlib, kept with the other workarounds.
-from dstereo.jax_workarounds import COMPILE_OPTIONS
+from dstereo.runtime.jax_workarounds import COMPILE_OPTIONS
 from dstereo.solver import cholesky
 
 STATUS_TEXT = {

@@ -164,7 +164,7 @@ def _map_fn(index: tuple[int, ...], method: str = "intrinsics-only", model: str 
     else:
         one = lambda params, poses, cov, q, r: pose_compensated_covariance(  # noqa: E731
             params, index, poses, cov, q, r, model)
-    from dstereo.solver import aot  # kept on disk: a new process skips tracing it (~1 s, the most of any program)
+    from dstereo.runtime import aot  # kept on disk: a new process skips tracing it (~1 s, the most of any program)
 
     return aot.jit(jax.vmap(one, in_axes=(None, None, None, 0, None)), "uncertainty.projection.map",
                    (index, method, model))

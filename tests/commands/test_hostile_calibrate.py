@@ -211,7 +211,7 @@ class _FakeJax:
 
 
 def test_the_jax_cache_is_skipped_without_a_home_or_a_writable_folder(tmp_path, monkeypatch):
-    """The JAX compilation cache (and the executables' folder inside it, solver/aot.py) falls back to none: a user
+    """The JAX compilation cache (and the executables' folder inside it, runtime/aot.py) falls back to none: a user
     without a home got a folder named '~' in the working folder; an existing folder that takes no files was used."""
     import dstereo
 

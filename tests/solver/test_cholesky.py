@@ -49,7 +49,7 @@ def test_the_compiled_calibration_solver_holds_no_custom_call(monkeypatch):
     from dstereo.calib.mono import calibrate_full, solve_subsets
     from dstereo.calib.subsets import plan_subsets
     from dstereo.models.distortion import PRESETS
-    from dstereo.solver import aot
+    from dstereo.runtime import aot
     from dstereo.synth.odd_lens import OddLens, board_points, views
 
     calls = []

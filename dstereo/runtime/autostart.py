@@ -1,9 +1,9 @@
-"""Starting `dstereo serve` in the background from the `dstereo` entry point (serve_client.py), standard library only.
+"""Starting `dstereo serve` in the background from the `dstereo` entry point (runtime/client.py), standard library only.
 
 A command that finds no server for its installation runs in its own process as before and, on its way, starts a
 detached server: a new session (no terminal, no hang-up signal), stdin from /dev/null, stdout and stderr to
 serve-<id>.log beside the socket (mode 0600 in the 0700 folder), working folder /. Nothing it does reaches the
-command's output or exit code. The server (serve_server.py) takes the installation's lock (one per user and
+command's output or exit code. The server (runtime/server.py) takes the installation's lock (one per user and
 installation; a second one started at the same moment finds it taken and exits), waits until this process has
 ended, loads, listens, and stops after DSTEREO_SERVE_IDLE seconds without a command (default IDLE_S).
 """
@@ -15,13 +15,13 @@ import sys
 
 IDLE_S = 900.0  # an auto-started server exits after this long without a command (DSTEREO_SERVE_IDLE)
 # The server, started as `python -m dstereo.cli serve ...`: a `dstereo` command's process in every way the code
-# asks (solver/aot.py builds missing executables there, as in `dstereo serve` started by hand).
+# asks (runtime/aot.py builds missing executables there, as in `dstereo serve` started by hand).
 SERVER = ("-m", "dstereo.cli")
 
 
 def wanted(servable: bool, env=None) -> bool:
     """Whether this command, run here for want of a server, starts one: a command a server may run (`servable`,
-    serve_client.servable), not DSTEREO_SERVE=0 or manual, not under pytest (PYTEST_CURRENT_TEST, which its
+    client.servable), not DSTEREO_SERVE=0 or manual, not under pytest (PYTEST_CURRENT_TEST, which its
     subprocesses inherit) or in CI (`CI` set), not with a relative PYTHONPATH entry, and where Unix sockets exist."""
     env = os.environ if env is None else env
     # a relative PYTHONPATH entry would name another folder from the server's working folder (/)
@@ -60,7 +60,7 @@ def start(path: str, replacing: bool = False) -> bool:
     """Start a detached server for the socket `path` (see the module); False where none was started: the folder
     cannot be made private, a server holds the lock (unless `replacing` a retiring one, which releases it), or the
     process could not be started. Never raises."""
-    from dstereo.serve_paths import private, sibling
+    from dstereo.runtime.paths import private, sibling
 
     folder = os.path.dirname(path)
     try:
@@ -85,7 +85,7 @@ def start(path: str, replacing: bool = False) -> bool:
 def tell_once(path: str) -> None:
     """The first server started for this installation says so, once: a background process holding ~0.6-0.75 GB
     for IDLE_S must not come unannounced. A marker file beside the socket remembers that it was said."""
-    from dstereo.serve_paths import sibling
+    from dstereo.runtime.paths import sibling
 
     marker = sibling(path, ".told")
     try:

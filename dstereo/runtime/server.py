@@ -1,5 +1,5 @@
 """The resident server behind `dstereo serve`: JAX, the commands and the figure workers loaded once, the
-commands of `dstereo` clients (dstereo/serve_client.py) run one at a time on a Unix socket.
+commands of `dstereo` clients (dstereo/runtime/client.py) run one at a time on a Unix socket.
 
 Threads: the main thread runs the commands (so a client's Ctrl-C can interrupt one as a signal would, and JAX
 runs where a CLI runs it); a listener thread answers every connection at once: status, stop, `busy` while a
@@ -9,7 +9,7 @@ disconnection.
 
 One server per user and installation: it holds serve-<id>.lock (flock) beside the socket for its life, so two
 started at the same moment (two commands that both found none) cannot both load and bind. An auto-started server
-(serve_autostart.py, `started_by` the client's pid) waits for that client to end before it loads, so the command
+(runtime/autostart.py, `started_by` the client's pid) waits for that client to end before it loads, so the command
 that started it keeps both cores; it stops after `idle_timeout` seconds without a command.
 """
 
@@ -24,9 +24,9 @@ import sys
 import threading
 import time
 
-from dstereo import serve_client as wire
-from dstereo import interrupts, watchdog
-from dstereo.commands.serve_request import client_stream, install_interrupt, interrupt_command, run_request
+from dstereo.runtime import client as wire
+from dstereo.runtime import interrupts, watchdog
+from dstereo.runtime.request import client_stream, install_interrupt, interrupt_command, run_request
 from dstereo.errors import DstereoError
 
 GREETING_TIMEOUT_S = 5.0  # a connection that sends no request in this time is dropped
@@ -95,7 +95,7 @@ def wait_for_exit(pid: int, limit_s: float = CLIENT_WAIT_S) -> None:
 class Server:
     def __init__(self, path: str, idle_timeout: float = 0.0, started_by: int = 0):
         """`idle_timeout` > 0: stop after that many seconds without a command. `started_by` > 0: auto-started by
-        that client process (serve_autostart.py): wait for its end before loading, and stop rather than answer
+        that client process (runtime/autostart.py): wait for its end before loading, and stop rather than answer
         `mismatch` when a client of other code or start-up settings comes."""
         self.path = path
         self.parts = wire.key_parts()
@@ -122,7 +122,7 @@ class Server:
                                "dstereo serve --stop")
         prepare_folder(self.path)
         _preload()
-        from dstereo.io import figure_pool
+        from dstereo.runtime import figure_pool
 
         self.workers = figure_pool.started()
         self.last = time.monotonic()
@@ -141,7 +141,7 @@ class Server:
             self.stopping = True
             self.listener.close()
             _unlink_if(self.path, inode)
-            from dstereo.io import figure_pool
+            from dstereo.runtime import figure_pool
 
             figure_pool.stop()
 
@@ -301,7 +301,7 @@ def _truncate_log() -> None:
 def _preload() -> None:
     import importlib
 
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool
 
     figure_pool.start()  # the workers import matplotlib meanwhile
     for name in PRELOAD:
@@ -312,7 +312,7 @@ def _preload() -> None:
 def _warm_up() -> None:
     """What every calibration runs first whatever its shapes: LAPACK's kernels readied for loaded executables
     (imports scipy.linalg: ~0.1-0.2 s of a first served command, measured)."""
-    from dstereo.jax_workarounds import prepare_loaded_executables
+    from dstereo.runtime.jax_workarounds import prepare_loaded_executables
 
     prepare_loaded_executables()
 
@@ -321,7 +321,7 @@ def _renew_figure_pool(workers: int) -> None:
     """A worker killed during a command leaves the pool broken (its figures were drawn here instead), and an
     interrupted command kills them all (`_end_command_children`): start new workers for the next command rather
     than draw in the server from then on."""
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool
 
     figure_pool.renew_broken()
     if figure_pool.started() < workers:
@@ -333,7 +333,7 @@ def _end_command_children(before: list[int]) -> None:
     workers, a figure still drawing into a folder the command removed). The figure workers go too; new ones come
     for the next command (`_renew_figure_pool`). multiprocessing's resource tracker, the server's since its
     first worker, stays: killed, it is relaunched with a warning and tracebacks for the semaphores it lost."""
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool
 
     workers = figure_pool.pids()
     figure_pool.kill()

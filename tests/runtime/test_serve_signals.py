@@ -16,14 +16,14 @@ from pathlib import Path
 
 import pytest
 
-from dstereo import serve_client as wire
-from dstereo.interrupts import children
+from dstereo.runtime import client as wire
+from dstereo.runtime.interrupts import children
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from test_signals import END_S, SUBSET_FLAGS, Run, alive, render_views  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"
+ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main(end_process=True)"
 STARTUP_S = 300  # not timed: JAX and the figure workers import on a loaded 2-core machine
 
 
@@ -99,7 +99,7 @@ def _fake_versions(monkeypatch, **versions) -> None:
 def test_a_server_of_another_dependency_version_refuses_the_client_which_says_so(monkeypatch, tmp_path, auto):
     """The server's key made with numpy 0.0.1 (faked through the key function, not by reinstalling); a real client
     (a subprocess with the installed numpy) is refused, runs the command itself and names numpy in its one note."""
-    from dstereo.commands.serve_server import Server
+    from dstereo.runtime.server import Server
 
     run_dir = tmp_path / "run"
     run_dir.mkdir(mode=0o700)

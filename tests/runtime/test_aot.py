@@ -1,4 +1,4 @@
-"""Executables kept on disk (dstereo/solver/aot.py): the same results as the traced program, bit for bit, and a
+"""Executables kept on disk (dstereo/runtime/aot.py): the same results as the traced program, bit for bit, and a
 stale, foreign or broken file is detected and rebuilt, never used.
 
 Bit for bit is the right tolerance: a loaded file holds the executable that the same XLA compile of the same
@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dstereo.solver import aot
+from dstereo.runtime import aot
 
 
 def _toy(a, b):

@@ -1,9 +1,9 @@
-"""dstereo.frames.blas_threads: numpy's OpenBLAS on one thread inside the block, its count restored after."""
+"""dstereo.runtime.blas_threads: numpy's OpenBLAS on one thread inside the block, its count restored after."""
 
 import numpy as np
 import pytest
 
-from dstereo.frames.blas_threads import blas_threads, one_blas_thread
+from dstereo.runtime.blas_threads import blas_threads, one_blas_thread
 
 
 def test_one_blas_thread_inside_the_block_and_restored_after_even_on_error():

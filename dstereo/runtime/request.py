@@ -17,8 +17,8 @@ import threading
 import traceback
 import warnings
 
-from dstereo.interrupts import Interrupted
-from dstereo.serve_client import send
+from dstereo.runtime.interrupts import Interrupted
+from dstereo.runtime.client import send
 
 
 class _FrameWriter(io.RawIOBase):
@@ -53,7 +53,7 @@ def client_stream(conn, kind: bytes, traits: dict, lock: threading.Lock, line_bu
 
 # The client's signal reaches the command as this signal, sent to the main thread by the server's watcher
 # (a real signal, not a simulated one: it also ends a blocked wait there). SIGINT, SIGTERM and SIGHUP stay the
-# server's own (dstereo/interrupts.py: they stop the server). It interrupts the command only while the command
+# server's own (dstereo/runtime/interrupts.py: they stop the server). It interrupts the command only while the command
 # runs, never the restoring around it.
 INTERRUPT_SIGNAL = signal.SIGUSR1
 _command_running = False
@@ -95,9 +95,19 @@ def _exit_instead(code: int = 0) -> None:
     raise _ProcessExit(int(code))
 
 
+_COMMAND = []  # the command line's `main` (dstereo.cli registers it: the runtime does not import the command line)
+
+
+def set_command(main) -> None:
+    """Register the command line's entry (`dstereo.cli.main`) that `run_request` runs for a client."""
+    _COMMAND[:] = [main]
+
+
 def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrapper) -> int:
     """Run `dstereo ARGV` in the request's folder and environment with these streams; its exit code."""
-    from dstereo.cli import main
+    if not _COMMAND:
+        raise RuntimeError("no command line registered (dstereo.cli.main registers itself before it dispatches)")
+    main = _COMMAND[0]
 
     saved_streams = sys.argv, sys.stdout, sys.stderr, sys.stdin, sys.__stdout__, sys.__stderr__, sys.__stdin__
     saved_env, saved_cwd, saved_exit = dict(os.environ), os.getcwd(), os._exit

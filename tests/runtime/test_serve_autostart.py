@@ -1,4 +1,4 @@
-"""The `dstereo` entry point starts a server when none runs (dstereo/serve_autostart.py): the first command runs in
+"""The `dstereo` entry point starts a server when none runs (dstereo/runtime/autostart.py): the first command runs in
 its own process with the output and exit code it always had, a detached server comes up once that command has
 ended, the next command is served, and a server made for other code makes way for one of the client's own. Never
 under pytest, in CI, with DSTEREO_SERVE=0 or manual; an idle server stops.
@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from dstereo import serve_autostart
-from dstereo import serve_client as wire
+from dstereo.runtime import autostart
+from dstereo.runtime import client as wire
 
 ROOT = Path(__file__).resolve().parents[2]
-ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"
+ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main(end_process=True)"
 STARTUP_S = 300  # generous: JAX and the figure workers import on a loaded 2-core machine; not a timed assertion
 
 
@@ -54,12 +54,12 @@ def _wait(condition, what: str) -> None:
 def _stop(env: dict, path: str) -> None:
     """Stop whatever server answers at `path`, and wait until its lock is free (the process has ended)."""
     dstereo({**env, "DSTEREO_SERVE": "manual"}, Path("/"), "serve", "--stop")
-    _wait(lambda: not serve_autostart.lock_taken(wire.sibling(path, ".lock")), "the server's end")
+    _wait(lambda: not autostart.lock_taken(wire.sibling(path, ".lock")), "the server's end")
 
 
 def test_wanted_only_from_a_served_command_outside_tests_and_ci():
     env = {"HOME": "/h"}
-    wanted = lambda argv, e=env: serve_autostart.wanted(wire.servable(argv), e)  # noqa: E731 - as main asks it
+    wanted = lambda argv, e=env: autostart.wanted(wire.servable(argv), e)  # noqa: E731 - as main asks it
     assert wanted(["calibrate", "--images", "x"])
     assert not wanted(["serve"]) and not wanted(["demo"]) and not wanted(["--help"]) and not wanted([])
     for name, value in (("DSTEREO_SERVE", "0"), ("DSTEREO_SERVE", "manual"), ("PYTEST_CURRENT_TEST", "t"),
@@ -67,7 +67,7 @@ def test_wanted_only_from_a_served_command_outside_tests_and_ci():
         assert not wanted(["init", "x"], {**env, name: value}), name
     assert wanted(["init", "x"], {**env, "DSTEREO_SERVE": "1", "PYTHONPATH": "/abs/src"})
     # the tests' own environment: pytest's variable keeps every test's clients from starting servers
-    assert not serve_autostart.wanted(wire.servable(["init", "x"]))
+    assert not autostart.wanted(wire.servable(["init", "x"]))
 
 
 def test_no_server_is_started_under_pytest_or_when_off(tmp_path):
@@ -106,8 +106,8 @@ def test_first_command_runs_here_and_starts_a_server_that_serves_the_next(tmp_pa
         assert dstereo(env, tmp_path, *bad) == dstereo({**env, "DSTEREO_SERVE": "0"}, tmp_path, *bad)
         assert _status(path)["served"] == 2
         # no second server: a command that finds one busy or running starts none (the lock is held)
-        assert serve_autostart.lock_taken(wire.sibling(path, ".lock"))
-        assert not serve_autostart.start(path)
+        assert autostart.lock_taken(wire.sibling(path, ".lock"))
+        assert not autostart.start(path)
         # A client of other start-up settings (another key): it runs here without a note, the server made for
         # the old settings stops, and one made for the client's comes up in its place.
         other = {**env, "MPLCONFIGDIR": str(tmp_path / "mpl")}
@@ -127,7 +127,7 @@ def test_an_idle_server_stops_and_answers_busy_meanwhile(tmp_path):
     import socket as socket_module
     import threading
 
-    from dstereo.commands.serve_server import Server
+    from dstereo.runtime.server import Server
 
     s = Server(str(tmp_path / "serve.sock"), idle_timeout=30.0)
     assert not s._idle_expired()

@@ -108,6 +108,6 @@ def _give_up(waited: float, limit: float, what: str, key) -> None:
             reporter(f"dstereo: error: {line}\n")
         except Exception:  # noqa: BLE001 - the process ends either way
             pass
-    from dstereo import interrupts
+    from dstereo.runtime import interrupts
 
     interrupts.abandon(line, 1)

@@ -1,4 +1,4 @@
-"""A compiled call that stops making progress ends the command (dstereo/watchdog.py): one line, exit 1, no child
+"""A compiled call that stops making progress ends the command (dstereo/runtime/watchdog.py): one line, exit 1, no child
 process left, nothing written. The hang is made by hand: the solver's compiled function is wrapped so that one
 call of an already-seen shape never returns (as the two concurrent LAPACK calls of issue 28 never did)."""
 
@@ -10,9 +10,9 @@ import pytest
 
 from test_signals import START_S, SUBSET_FLAGS, Run, alive, env_for, render_views
 
-from dstereo import watchdog
+from dstereo.runtime import watchdog
 from dstereo.errors import DstereoError
-from dstereo.interrupts import children
+from dstereo.runtime.interrupts import children
 
 # The third call of a shape sleeps for an hour; the earlier two of it finished, so its allowance is the
 # test's 3 x their longest (at least 1 s), not the first call's.
@@ -31,8 +31,8 @@ def hanging(p, key):
         return fn(*args)
     return call
 problem.compiled_solver = hanging
-from dstereo.serve_client import main
-main()
+from dstereo.cli import main
+main(end_process=True)
 """
 
 

@@ -40,7 +40,7 @@ from typing import Callable, Hashable
 import jax
 import numpy as np
 
-from dstereo.jax_workarounds import fresh_compile, prepare_loaded_executables
+from dstereo.runtime.jax_workarounds import fresh_compile, prepare_loaded_executables
 
 FORMAT = "dstereo-aot-1"  # bump when the file layout below changes
 FOLDER = "dstereo-aot"  # under the JAX compilation cache folder

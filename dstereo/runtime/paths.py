@@ -22,7 +22,7 @@ def runtime_dir(env=None) -> str:
 def install_id() -> str:
     """12 hex digits naming this installation: the package's folder, the Python environment and interpreter."""
     h = hashlib.sha256()
-    for part in (os.path.dirname(os.path.abspath(__file__)), sys.prefix, os.path.realpath(sys.executable)):
+    for part in (os.path.dirname(os.path.dirname(os.path.abspath(__file__))), sys.prefix, os.path.realpath(sys.executable)):
         h.update(part.encode() + b"\0")
     return h.hexdigest()[:12]
 

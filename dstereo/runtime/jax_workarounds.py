@@ -16,10 +16,10 @@ Settings (used by the code through the names below):
   on the same pool are done; two of them fill a 2-core machine's pool and wait on each other. The solver now
   factors with XLA's own operations (`solver/cholesky.py`; `tests/solver/test_cholesky.py` fails if a custom
   call comes back into it), so these numbers are chunk sizes only, kept where the chunk timings were measured.
-  Every compiled solver call also runs under `dstereo/watchdog.py`: a call that stops making progress ends the
+  Every compiled solver call also runs under `dstereo/runtime/watchdog.py`: a call that stops making progress ends the
   command with one line, never a silent wait.
 
-Executables loaded from disk (`solver/aot.py`, `jax.experimental.serialize_executable`):
+Executables loaded from disk (`runtime/aot.py`, `jax.experimental.serialize_executable`):
 - `prepare_loaded_executables`: a loaded executable that calls LAPACK (Cholesky, LU) segfaulted in a new process
   until something had lowered a LAPACK op there: jaxlib sets its LAPACK kernel pointers while lowering
   (`prepare_lapack_call`), and a loaded executable is never lowered (jax issues 24982, 28908). Initialising them
@@ -82,5 +82,5 @@ def version_mismatch() -> str | None:
     have = installed_jaxlib()
     if have == MEASURED_ON:
         return None
-    return (f"jaxlib {have} is installed but the CPU-runtime workarounds in dstereo/jax_workarounds.py were "
+    return (f"jaxlib {have} is installed but the CPU-runtime workarounds in dstereo/runtime/jax_workarounds.py were "
             f"measured on {MEASURED_ON}; re-measure them (see that module) and update MEASURED_ON")

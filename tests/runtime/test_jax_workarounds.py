@@ -1,10 +1,10 @@
 """The CPU-runtime workarounds were measured on one jaxlib: an upgrade must re-measure them, not pass silently."""
 
-from dstereo import jax_workarounds
+from dstereo.runtime import jax_workarounds
 
 
 def test_workarounds_were_measured_on_the_installed_jaxlib():
-    # Fails after `make lock` brings another jaxlib: re-measure each entry of dstereo/jax_workarounds.py, then
+    # Fails after `make lock` brings another jaxlib: re-measure each entry of dstereo/runtime/jax_workarounds.py, then
     # update MEASURED_ON. The lock pins the version, so a fresh machine gets the one measured.
     assert jax_workarounds.version_mismatch() is None, jax_workarounds.version_mismatch()
 

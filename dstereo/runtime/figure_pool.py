@@ -30,9 +30,11 @@ def _warm(parent: int = 0, death_signal: bool = False) -> None:
 
     _follow_parent(parent, death_signal)
 
-    from dstereo.io.figures import pyplot
+    import matplotlib
 
-    plt = pyplot()
+    matplotlib.use("Agg", force=True)  # as io.figures.pyplot: files only, forced (a worker starts fresh)
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(1, 1))
     ax.set_title("x")
     fig.savefig(io.BytesIO(), format="png", dpi=20)

@@ -27,7 +27,7 @@ import threading
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 # The process's own exit, taken before anything can stand in for it: a served command runs with os._exit
-# replaced (commands/serve_request.py: the command's end must not end the server), and a watchdog that ends the
+# replaced (runtime/request.py: the command's end must not end the server), and a watchdog that ends the
 # server from another thread during that command must really end it (measured: with os._exit it raised in the
 # watchdog's thread instead, whose traceback then waited forever on the client's stream lock).
 _hard_exit = getattr(__import__("posix"), "_exit", None) if os.name == "posix" else os._exit
@@ -196,7 +196,7 @@ def mark_said() -> None:
 
 
 def abandon(line: str | None = None, code: int | None = None) -> None:
-    """The watchdog: the main thread did not end the command in time (a signal's, or dstereo/watchdog.py's `line`
+    """The watchdog: the main thread did not end the command in time (a signal's, or dstereo/runtime/watchdog.py's `line`
     and `code` for a compiled call that stopped making progress). Everything here avoids locks the main thread
     may hold (no print: sys.stderr's buffer lock; os.write to fd 2)."""
     global _said

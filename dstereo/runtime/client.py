@@ -1,7 +1,8 @@
-"""The `dstereo` entry point: hand the command to a running `dstereo serve` if there is one, else run it here.
+"""The client of `dstereo serve`: the `dstereo` script (`dstereo.cli.main`) hands its command to a running server
+if there is one (`run_served`), else runs it itself.
 
-A new process pays ~0.5-1 s to import JAX and the commands before any work; a resident server (dstereo/commands/
-serve.py) has paid it once. This module decides with the standard library alone (no numpy, JAX or typer before
+A new process pays ~0.5-1 s to import JAX and the commands before any work; a resident server (dstereo/runtime/
+server.py) has paid it once. This module decides with the standard library alone (no numpy, JAX or typer before
 the socket has been tried): it sends argv, cwd, the environment and the terminal's traits, streams back the
 command's stdout and stderr, and exits with its code. Whenever the server cannot run the command exactly as this
 process would, the command runs here as before: no server (silent), DSTEREO_SERVE=0 (silent), server busy with
@@ -9,7 +10,7 @@ another command (silent), a stale socket or a server started by hand from other 
 (one `dstereo: note:` line on stderr, so a user knows why the fast path is not taken).
 
 Auto-start (as Gradle's daemon or dmypy do): a command that runs here because no server runs for this
-installation starts one, detached (dstereo/serve_autostart.py): it waits until the command that started it has
+installation starts one, detached (dstereo/runtime/autostart.py): it waits until the command that started it has
 ended (so the two never share the cores), loads, serves the commands that follow, and exits after
 DSTEREO_SERVE_IDLE seconds (default 900) without one. An auto-started server that meets a client of other code or
 start-up settings (an edit, an upgrade) answers `retired` and stops: the client runs the command here silently and
@@ -34,7 +35,7 @@ import socket
 import struct
 import sys
 
-from dstereo.serve_paths import install_id, private, runtime_dir, sibling, socket_path  # noqa: F401
+from dstereo.runtime.paths import install_id, private, runtime_dir, sibling, socket_path  # noqa: F401
 
 NOT_SERVED = ("serve", "demo")  # the server itself; demo writes a large folder and is run once, not often
 CONNECT_TIMEOUT_S = 2.0
@@ -68,7 +69,7 @@ def key_parts(env=None, package: str | None = None, versions: dict | None = None
 
     # the default `dstereo.cli` sets in a command's process (and so in a server's) counts as set on both sides
     env = {"OPENBLAS_NUM_THREADS": "1", **(os.environ if env is None else env)}
-    package = package or os.path.dirname(os.path.abspath(__file__))
+    package = package or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the dstereo package
     h = hashlib.sha256()
     for folder, dirs, files in os.walk(package):
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
@@ -287,7 +288,7 @@ def _stream(sock: socket.socket, path: str) -> int:
     """Copy the command's output here until its exit code comes. A signal here (Ctrl-C, SIGTERM, SIGHUP) is sent
     on to the server, which stops the command (its line `dstereo: error: interrupted (...)` and exit code come
     back as output); without an answer in INTERRUPT_GRACE_S this process says the line and exits itself."""
-    from dstereo import interrupts
+    from dstereo.runtime import interrupts
 
     out, err = sys.stdout.buffer, sys.stderr.buffer
     sock.settimeout(None)
@@ -344,38 +345,16 @@ def _server_died(path: str) -> int:
     return 1
 
 
-entered = False  # this process came in through `main`, the `dstereo` script's entry (dstereo.cli._command_process)
+def run_served(argv: list[str]) -> int | None:
+    """The `dstereo` script's first step (`dstereo.cli.main`): the command's exit code once a server has run it,
+    or None to run it here; starts a server for the next commands where none runs (module docstring)."""
+    from dstereo.runtime import autostart
 
-
-def main() -> None:
-    global entered
-    from dstereo import interrupts
-
-    entered = True
-    interrupts.install()  # first: a signal at any moment from here on ends the command cleanly
-    try:
-        _main()
-    except interrupts.Interrupted as exc:  # before dstereo.cli took over (its own handler ends the process there)
-        interrupts.say(exc)
-        interrupts.kill_children()
-        os._exit(exc.code)
-
-
-def _main() -> None:
-    from dstereo import serve_autostart
-
-    argv = sys.argv[1:]
-    auto = serve_autostart.wanted(servable(argv))
+    auto = autostart.wanted(servable(argv))
     code, why = _try_served(argv, auto)
     if code is not None:
-        sys.exit(code)
+        return code
     if auto and why in ("absent", "stale", "retired") and \
-            serve_autostart.start(socket_path(), replacing=why == "retired"):
-        serve_autostart.tell_once(socket_path())
-    from dstereo.cli import main as run_here
-
-    run_here()
-
-
-if __name__ == "__main__":
-    main()
+            autostart.start(socket_path(), replacing=why == "retired"):
+        autostart.tell_once(socket_path())
+    return None

@@ -2,7 +2,7 @@
 same command in its own process; every case the server cannot run exactly so runs in the client's process.
 
 One server (a subprocess, its own runtime folder) serves the module. Each client is a new process through the
-real entry point (dstereo.serve_client:main). Whether a command was served or ran in the client is read from the
+real entry point (dstereo.cli:main). Whether a command was served or ran in the client is read from the
 server's own count of served commands, so a silent fallback cannot pass for a served run.
 """
 
@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dstereo import serve_client as wire
+from dstereo.runtime import client as wire
 
 ROOT = Path(__file__).resolve().parents[2]
-ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"
+ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main(end_process=True)"
 FLAGS = ["--pattern", "9x6", "--square", "20", "--model", "k1k2p1p2"]
 STARTUP_S = 300  # generous: JAX and the figure workers import on a loaded 2-core machine; not a timed assertion
 # Board poses (rvec, tvec mm) that keep the whole 9x6 board in a 640x480 view at 600-750 mm.
@@ -219,7 +219,7 @@ def test_a_server_dying_mid_command_ends_the_client_with_one_error_line(tmp_path
 def test_the_client_imports_nothing_heavy_when_served(server, tmp_path):
     env, path = server
     before = served(path)
-    probe = ("import sys\nfrom dstereo.serve_client import try_served\ncode = try_served(['init', 'project'])\n"
+    probe = ("import sys\nfrom dstereo.runtime.client import try_served\ncode = try_served(['init', 'project'])\n"
              "print(code, *[m for m in ('numpy', 'jax', 'typer', 'click', 'cv2') if m in sys.modules])")
     done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=STARTUP_S)
@@ -241,7 +241,7 @@ def _greeted(server, request: dict) -> bytes:
 
 
 def test_the_server_answers_busy_mismatch_or_accepts(tmp_path):
-    from dstereo.commands.serve_server import Server
+    from dstereo.runtime.server import Server
 
     s = Server(str(tmp_path / "serve.sock"))
     request = {"op": "run", "key": s.key, "argv": ["init", "x"]}
@@ -255,7 +255,7 @@ def test_the_code_key_follows_the_source_and_the_startup_settings(tmp_path):
     import shutil
 
     package = tmp_path / "dstereo"
-    shutil.copytree(Path(wire.__file__).parent, package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(Path(wire.__file__).parents[1], package, ignore=shutil.ignore_patterns("__pycache__"))
     env = {"HOME": "/h", "DSTEREO_DEBUG": "1"}
     key = wire.code_key(env, str(package))
     assert wire.code_key({**env, "DSTEREO_DEBUG": "0"}, str(package)) == key  # read per command: sent, not keyed
@@ -265,11 +265,11 @@ def test_the_code_key_follows_the_source_and_the_startup_settings(tmp_path):
 
 
 def _run_in_server(monkeypatch, tmp_path, command) -> tuple[int, str, str]:
-    """serve_request.run_request with `command` standing in for dstereo.cli.main; (code, stdout, stderr)."""
-    import dstereo.cli
-    from dstereo.commands.serve_request import client_stream, run_request
+    """runtime.request.run_request with `command` standing in for dstereo.cli.main; (code, stdout, stderr)."""
+    from dstereo.runtime import request as serve_request
+    from dstereo.runtime.request import client_stream, run_request
 
-    monkeypatch.setattr(dstereo.cli, "main", command)
+    monkeypatch.setattr(serve_request, "_COMMAND", [command])
     ours, theirs = socket.socketpair()
     lock, traits = threading.Lock(), {"tty": False, "encoding": "utf-8"}
     request = {"cwd": str(tmp_path), "env": {"ONLY_THIS": "1"}, "argv0": "dstereo", "argv": ["init", "x"]}

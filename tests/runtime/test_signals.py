@@ -1,4 +1,4 @@
-"""SIGTERM, SIGINT and SIGHUP end a `dstereo` command mid-run (dstereo/interrupts.py): a subprocess with captured
+"""SIGTERM, SIGINT and SIGHUP end a `dstereo` command mid-run (dstereo/runtime/interrupts.py): a subprocess with captured
 pipes, as a pipeline or CI runs it, sent the signal during its subsets. It must end within a few seconds with
 128 + the signal and one line, leave no child process (figure workers, multiprocessing's resource tracker), close
 both pipes (the readers see end of file) and leave no results or staging folder. Also: staging folders of a dead
@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dstereo.interrupts import children
+from dstereo.runtime.interrupts import children
 
 ROOT = Path(__file__).resolve().parents[1]
-ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.serve_client import main; main()"
+ENTRY = "import sys; sys.argv[0] = 'dstereo'; from dstereo.cli import main; main(end_process=True)"
 SIGINT_DEFAULT = "import signal; signal.signal(signal.SIGINT, signal.SIG_DFL); "
 END_S = 5.0  # the design's bound is 2 s (GRACE_S 1.2 s then the watchdog); margin for a loaded 2-core machine
 START_S = 300  # not timed: JAX's start-up and the full-set solve on a loaded machine
@@ -152,7 +152,7 @@ def test_stale_staging_folders_of_a_dead_owner_are_cleaned_a_live_ones_kept(tmp_
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
 def test_a_figure_worker_dies_with_its_parents_kill_9(tmp_path):
-    code = ("import os, sys, time\nfrom dstereo.io import figure_pool\nos.environ['DSTEREO_FIGURE_WORKERS'] = '1'\n"
+    code = ("import os, sys, time\nfrom dstereo.runtime import figure_pool\nos.environ['DSTEREO_FIGURE_WORKERS'] = '1'\n"
             "figure_pool.start()\nfigure_pool._POOLS[0].submit(figure_pool._noop).result()\n"
             "print(*figure_pool.pids(), flush=True)\ntime.sleep(600)")
     parent = subprocess.Popen([sys.executable, "-c", code], env=env_for(), stdout=subprocess.PIPE, text=True)
@@ -171,7 +171,7 @@ def test_a_figure_worker_dies_with_its_parents_kill_9(tmp_path):
 LOST = """
 import os, signal, sys, time
 sys.argv[0] = 'dstereo'
-from dstereo import interrupts
+from dstereo.runtime import interrupts
 interrupts.install()
 class Dropped:
     def __del__(self):
@@ -193,7 +193,7 @@ def test_a_signal_raised_where_python_ignores_exceptions_still_ends_the_command(
 
 
 def test_results_are_not_put_in_place_after_a_signal(tmp_path, monkeypatch):
-    from dstereo import interrupts
+    from dstereo.runtime import interrupts
     from dstereo.io.results import atomic_folder
 
     with pytest.raises(interrupts.Interrupted):
@@ -205,8 +205,8 @@ def test_results_are_not_put_in_place_after_a_signal(tmp_path, monkeypatch):
 
 STAND_IN = """
 import os, sys, threading
-from dstereo import interrupts
-def stand_in(code=0):  # what a served command runs with (commands/serve_request.py): it must not end the server
+from dstereo.runtime import interrupts
+def stand_in(code=0):  # what a served command runs with (runtime/request.py): it must not end the server
     raise SystemExit(f"stand-in called with {code}")
 os._exit = stand_in
 thread = threading.Thread(target=interrupts.abandon, args=("a compiled call made no progress", 1))

@@ -4,7 +4,8 @@ on where its figures were drawn), and a job's error reaches the caller."""
 import numpy as np
 import pytest
 
-from dstereo.io import figure_pool, plots
+from dstereo.io import plots
+from dstereo.runtime import figure_pool
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ from pathlib import Path
 if __name__ != "__main__":  # a spawned worker importing this main module (as __mp_main__): what start() avoids
     Path(os.environ["MARKER"]).write_text(__name__)
 else:
-    from dstereo.io import figure_pool
+    from dstereo.runtime import figure_pool
     figure_pool.start(now=1)
     figure_pool.start_rest()
     print(figure_pool.started())  # every worker started, each under the stand-in main module
