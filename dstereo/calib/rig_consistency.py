@@ -121,16 +121,18 @@ def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate([rotation_vectors((ra * rb).as_matrix()), ra.apply(b[..., 3:]) + a[..., 3:]], axis=-1)
 
 
-def _alone(camera: Camera, obj, obs, mask, poses0, sag0):
+def _alone(camera: Camera, obj, obs, mask, poses0, sag0, seen):
     """One camera's views, each with its own pose, its intrinsics and the board's sag solved (its own calibration
-    on exactly these corners): (SSE per view (V,), inlier corners per view (V,), converged)."""
+    on exactly these corners): (SSE per frame (F,), inlier corners per frame (F,), converged). Every frame of the
+    rig is passed, the ones this camera did not see with weight 0 (their poses take no part), so that every
+    camera of one lens model solves one program: a camera's own frame count made a compile per camera and rig."""
     problem = Problem.of([tuple(camera.dist.free)], refined=True, board_warp=True)
     shared = shared_data(obj, np.asarray(camera.k)[None], np.asarray(camera.dist.coeffs)[None])
-    r_w = residual_weights(mask[:, None])  # (V, 2n)
+    r_w = residual_weights(mask[:, None])  # (F, 2n)
     data = np.where(mask[:, None, :, None], obs[:, None], np.nan)
     g0 = np.concatenate([np.asarray(camera.free_vector(), float), np.asarray(sag0, float)])
-    out = run(problem, LMOptions(), g0[None], poses0[None], data[None], np.ones((1, len(obs))), np.array([1e-3]),
-              shared, r_weight=r_w[None], rows=1)
+    out = run(problem, LMOptions(), g0[None], poses0[None], data[None], np.asarray(seen, float)[None],
+              np.array([1e-3]), shared, r_weight=r_w[None], rows=1)
     resid = np.asarray(out.residuals)[0] * r_w
     return np.sum(resid ** 2, axis=-1), mask.sum(axis=-1), int(np.asarray(out.status)[0]) > 0
 
@@ -152,11 +154,11 @@ def rig_consistency(obj, obs, mask, cameras: list[Camera], rig_sse: np.ndarray, 
     sag0 = np.zeros(WARP_SIZE) if sag is None else np.asarray(sag, float)
     for c in range(k):
         rows = np.flatnonzero(seen[:, c])
-        start = _compose(np.asarray(extrinsics[c], float)[None], np.asarray(poses, float)[rows])
-        sse, count, converged = _alone(cameras[c], obj, obs[rows, c], mask[rows, c], start, sag0)
+        start = _compose(np.asarray(extrinsics[c], float)[None], np.asarray(poses, float))
+        sse, count, converged = _alone(cameras[c], obj, obs[:, c], mask[:, c], start, sag0, seen[:, c])
         if not converged:
             notes.append(f"camera {labels[c]}: the alone fit did not converge; the test is approximate")
-        sse_alone[rows, c] = sse
+        sse_alone[:, c] = np.where(seen[:, c], sse, 0.0)
         n_params = POSE_SIZE * len(rows) + WARP_SIZE + 4 + len(cameras[c].dist.free)
         dof = int(2 * count.sum() - n_params)
         sigma2[c] = sse.sum() / max(dof, 1)
