@@ -244,6 +244,9 @@ def planted(tmp_path):
         "io/report.py": "import fakepkg.commands.run\n",  # io reaching up into a command
         "commands/__init__.py": "",
         "commands/run.py": "def main(): ...\n",
+        # The runtime reaching up to the command line it serves (it must be handed it instead)
+        "runtime/__init__.py": "",
+        "runtime/server.py": "def serve():\n    from fakepkg.commands.run import main\n    main()\n",
     })
 
 
@@ -269,6 +272,9 @@ def test_checker_reports_the_planted_breaches(planted):
         "io.report -> commands.run: only cli and commands import commands",
         "io.report -> commands.run: io never imports commands",
         "models.rig -> stereo.a: models/ imports only models and errors",
+        "runtime.server -> commands.run: runtime/ imports only runtime and errors (it runs the command line it is "
+        "given: runtime.request.set_command)",
+        "runtime.server -> commands.run: only cli and commands import commands",
     ]
     waived = layering_breaches(import_graph(planted), orchestration={"calib.job"}, waived=set())
     assert not any("io.files" in b for b in waived)
