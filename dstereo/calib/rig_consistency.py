@@ -36,6 +36,11 @@ ALPHA = 1e-3
 # 0.14 px for images of two different rigs named alike. Below it, the consistency test says how well it does.
 RIG_RMS_FACTOR = 5.0
 TOP_FRAMES = 5  # frames named in the warning
+# A frame the rig cannot explain (`RigConsistency.outlying_frames`): its T_f beyond chi^2(dof_f) at ALPHA shared
+# among the frames (Bonferroni: a consistent rig loses a frame once in 1,000 calibrations), and its T_f / dof_f
+# far above the other frames' (the median plus FRAME_ROBUST_SIGMAS robust sigmas, 1.4826 x MAD), as an outlier
+# view is far above the other views: a rig whose every frame reads high has a cause no frame removal fixes.
+FRAME_ROBUST_SIGMAS = 6.0
 
 
 @dataclass
@@ -74,6 +79,23 @@ class RigConsistency:
         order = frames[np.lexsort((-self.frame_statistic[frames] / self.frame_dof[frames], log_p))][:n]
         return [(self.frames[f], float(self.frame_statistic[f]), int(self.frame_dof[f]),
                  float(stats.chi2.sf(self.frame_statistic[f], self.frame_dof[f]))) for f in order]
+
+    def outlying_frames(self) -> list[int]:
+        """The frames (indices) the rig cannot explain and the other frames can (FRAME_ROBUST_SIGMAS), the worst
+        first. One bad frame pulls the rig and raises the others' T_f with it: a caller removes the worst only and
+        solves again, as outlier views are removed round by round."""
+        from scipy import stats
+
+        shared = np.flatnonzero(self.frame_dof > 0)
+        if len(shared) < 4:
+            return []  # too few frames to tell one from the rest
+        ratio = self.frame_statistic[shared] / self.frame_dof[shared]
+        med = float(np.median(ratio))
+        mad = 1.4826 * float(np.median(np.abs(ratio - med)))
+        p = stats.chi2.sf(self.frame_statistic[shared], self.frame_dof[shared])
+        far = (p < self.alpha / len(shared)) & (ratio > med + FRAME_ROBUST_SIGMAS * max(mad, 1e-12))
+        order = np.argsort(-ratio[far], kind="stable")
+        return [int(f) for f in shared[far][order]]
 
     def line(self) -> str:
         per = ", ".join(f"{lab} {a:.4f} -> {r:.4f} px" for lab, a, r in zip(self.labels, self.rms_alone, self.rms_rig))

@@ -84,6 +84,7 @@ def cameras_summary(job) -> dict:
         "rig_consistency": None if job.consistency is None else job.consistency.as_dict(),
         "rig_cross_validation": None if job.cross_validation is None else job.cross_validation.as_dict(),
         "rig_subsets": None if job.subsets is None else job.subsets.as_dict(),
+        "rejected_frames": [{"frame": n, "statistic_per_constraint": r} for n, r in job.rejected_frames],
         "flipped_views": [[job.labels[c], job.frames[f]] for f, c in sol.flipped],
         "warnings": list(job.warnings), "timings_s": dict(job.timings),
     }
