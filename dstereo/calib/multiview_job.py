@@ -22,13 +22,12 @@ import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
 from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, camera_of, list_camera_images
-from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_multiview
+from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
 from dstereo.calib.rig_subsets import RigSubsets, run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 
-MAX_FRAME_ROUNDS = 10  # frames the consistency test may remove, one per round (as calib/outliers.py's rounds)
 
 
 @dataclass

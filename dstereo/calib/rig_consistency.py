@@ -41,6 +41,7 @@ TOP_FRAMES = 5  # frames named in the warning
 # far above the other frames' (the median plus FRAME_ROBUST_SIGMAS robust sigmas, 1.4826 x MAD), as an outlier
 # view is far above the other views: a rig whose every frame reads high has a cause no frame removal fixes.
 FRAME_ROBUST_SIGMAS = 6.0
+MAX_FRAME_ROUNDS = 10  # frames a job may remove this way, one a round (as calib/outliers.py's rounds)
 
 
 @dataclass
