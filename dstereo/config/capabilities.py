@@ -45,6 +45,9 @@ CAPABILITIES: dict[str, tuple] = {
     "pair's subset mean beside it)": (True, True, True),
     "mrcal `.cameramodel` (each camera; a rig's in its frame)": (True, True, True),
     "rig consistency test, rig figures": ("-", True, True),
+    "a frame the rig cannot explain (the other frames can) leaves the rig, with outlier rejection": (
+        "-", "a stereo pair's inconsistent pairs are named in the consistency warning, not removed yet (on the "
+        "shared rigs removal would drop 1 and 4 pairs); remove them from the folders, or use --cameras DIR", True),
     "stereo files with the calibration covariance (`reconstruct`'s point sigmas)": ("-", True, True),
 }
 
