@@ -45,9 +45,10 @@ CAPABILITIES: dict[str, tuple] = {
     "pair's subset mean beside it)": (True, True, True),
     "mrcal `.cameramodel` (each camera; a rig's in its frame)": (True, True, True),
     "rig consistency test, rig figures": ("-", True, True),
-    "a frame the rig cannot explain (the other frames can) leaves the rig, with outlier rejection": (
-        "-", "a stereo pair's inconsistent pairs are named in the consistency warning, not removed yet (on the "
-        "shared rigs removal would drop 1 and 4 pairs); remove them from the folders, or use --cameras DIR", True),
+    "a frame the rig cannot explain (the other frames can) leaves the rig": (
+        "-", "not yet: the consistency warning names the frames; remove them from the folders",
+        "not yet: the rule finds one bad frame on exact-corner renders but removed 1-2 simultaneous frames of a "
+        "rendered rig with detected corners; the consistency warning names the frames; remove them from the folders"),
     "stereo files with the calibration covariance (`reconstruct`'s point sigmas)": ("-", True, True),
 }
 
