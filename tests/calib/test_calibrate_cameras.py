@@ -115,6 +115,8 @@ def test_every_rig_camera_gets_an_mrcal_file_in_the_rigs_frame(rig_run):
     for i in range(3):
         m = read_cameramodel(out / f"rig_cam{i}.cameramodel")
         R, T, K = fs.getNode(f"R_{i}").mat(), fs.getNode(f"T_{i}").mat().ravel(), fs.getNode(f"K_{i}").mat()
+        # the same solve's numbers written twice (YAML at 17 digits, the .cameramodel's text) and, for R, one
+        # Rodrigues conversion of a rotation of ~1 rad: a few ulp (~1e-15) on any processor, 1e-12 leaves 1000x
         np.testing.assert_allclose(m.rt_cam_ref[:3], cv2.Rodrigues(R)[0].ravel(), atol=1e-12)
         np.testing.assert_allclose(m.rt_cam_ref[3:], T, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(m.intrinsics, [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-12)
