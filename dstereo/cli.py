@@ -53,6 +53,16 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
+# What a served calibration imports (test_startup lists the same modules): loaded at start-up, not at the first command;
+# the second line: what a first served calibration still imported (typer's value coercion imports pydantic;
+# OpenCV; scipy.linalg for LAPACK's kernels; the modules the pipeline and results folder import where used).
+SERVER_PRELOAD = ("jax", "jax.numpy", "dstereo.cli", "dstereo.jobs.calibrate_camera", "dstereo.jobs.calibrate_stereo",
+                  "dstereo.calib.misfit", "dstereo.calib.mono", "dstereo.io.results",
+                  "pydantic", "cv2", "scipy.linalg", "jax.experimental.serialize_executable", "dstereo.calib.outliers",
+                  "dstereo.calib.model_choice", "dstereo.calib.view_checks", "dstereo.io.plots", "dstereo.io.sigma_maps",
+                  "dstereo.io.cameramodel", "dstereo.uncertainty.projection")
+
+
 def _echo(text: str) -> None:
     import typer
 
@@ -67,7 +77,7 @@ def main(end_process: bool | None = None) -> None:
     from dstereo.runtime import interrupts, request
 
     end_process = _command_process() if end_process is None else end_process
-    request.set_command(main)  # what a server started from this process runs for its clients
+    request.set_command(main, SERVER_PRELOAD)  # what a server started from this process runs for its clients
     if end_process:
         interrupts.install()  # first: a signal at any moment from here on ends the command cleanly
         from dstereo.runtime.client import run_served

@@ -62,7 +62,7 @@ CALIBRATIONS: list = []  # what calibrate_camera returned: its `timings` are com
 
 
 def _keep_calibrations() -> None:
-    from dstereo.calib import pipeline
+    from dstereo.jobs import calibrate_camera as pipeline
 
     run = pipeline.calibrate_camera
 

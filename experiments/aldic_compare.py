@@ -1,6 +1,6 @@
 """dstereo recession against pyALDIC-3D on the same rendered sequence: seconds per frame and accuracy (issue 19).
 
-A rendered 640x480 recession sequence (`dstereo.recession.synthetic`: cork sample, reduced Plasmatron rig, true
+A rendered 640x480 recession sequence (`dstereo.jobs.synthetic_recession`: cork sample, reduced Plasmatron rig, true
 calibration, 0 -> 2 mm) is measured by `dstereo recession --workers 1` (serial, in one process) and by
 pyALDIC-3D's headless CLI `al-dic-3d run config.toml`, installed in a separate environment (not a dstereo
 dependency):
@@ -202,7 +202,7 @@ def main(argv=None) -> None:
         print(f"aldic_compare: skipped: {cli} not found; install pyALDIC-3D in a separate environment: "
               f"python3 -m venv {args.aldic} && {args.aldic}/bin/pip install al-dic-3d")
         return
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     version = subprocess.run([str(cli), "--version"], capture_output=True, text=True).stdout.strip()
     loads = {"start": load()}

@@ -1,6 +1,6 @@
 """Frames per second against Dask workers for `dstereo recession` (issue 19).
 
-A rendered recession sequence (`dstereo.recession.synthetic`, the reduced Plasmatron rig) per size is measured
+A rendered recession sequence (`dstereo.jobs.synthetic_recession`, the reduced Plasmatron rig) per size is measured
 serially in this process and on local clusters of N workers, side by side in one run (the machine's load is
 recorded before and after: on a shared machine the speed-up is only as good as the load was steady). Reported
 per size and worker count: the wall time of the frames after the reference (the parallel part; the reference
@@ -30,11 +30,13 @@ def load() -> str:
 
 
 def measure(folder: Path, workers: int, grid: float) -> dict:
-    from dstereo.frames import FrameRunner
-    from dstereo.frames.runner import _peak_rss_mb
+    from dstereo.runtime.tasks import FrameRunner
+    from dstereo.runtime.tasks import _peak_rss_mb
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.recession import RecessionConfig, discover, run_recession
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.recession import RecessionConfig
+    from dstereo.io.sequence_files import discover
+    from dstereo.jobs.recession import run_recession
+    from dstereo.stereo.reconstruct import ReconstructionConfig
 
     frames = discover(folder)
     calib = read_stereo_calibration(folder / "stereo.yml")
@@ -69,7 +71,7 @@ def main(argv=None) -> None:
                         "a shared machine changes between runs)")
     parser.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "bench_frames.md")
     args = parser.parse_args(argv)
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     rows, loads = [], {"start": load()}
     with tempfile.TemporaryDirectory(prefix="bench_frames_") as tmp:

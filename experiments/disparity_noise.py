@@ -86,7 +86,7 @@ def contrast_pair(noise_dn: float, size=(320, 240), low_contrast: float = 0.3, s
 
 
 def render_rows(noise_levels=(1.0, 3.0)) -> list[dict]:
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 
     rows = []
     for noise in noise_levels:
@@ -130,7 +130,8 @@ def board_rows(calib_dir: Path, sets=("opencv_stereo", "rig640"), pairs_per_set:
     from matplotlib.path import Path as Polygon
 
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.io.images import read_image
 
     rows = []
     for name, cal in zip(sets, ("opencv", "rig640")):
@@ -201,7 +202,8 @@ def middlebury_rows(scenes=("Adirondack", "Motorcycle", "Piano", "Pipes", "Teddy
     import cv2
 
     from dstereo.io.calib_files import read_pfm, read_stereo_calibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.io.images import read_image
 
     rows = []
     for scene in scenes:

@@ -65,7 +65,7 @@ def camera_study(folder: str, glob: str, cap: int) -> dict:
     import cv2
 
     from dstereo.calib.mono import calibrate_full
-    from dstereo.calib.pipeline import calibrate_camera
+    from dstereo.jobs.calibrate_camera import calibrate_camera
     from dstereo.models.distortion import COEFF_NAMES
 
     cfg = thesis_config(cap).with_overrides(glob=glob)
@@ -128,7 +128,7 @@ def split_halves(n: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def rig_half(files_l, files_r):
-    from dstereo.calib.stereo_pipeline import StereoSources, calibrate_stereo_project
+    from dstereo.jobs.calibrate_stereo import StereoSources, calibrate_stereo_project
     from dstereo.io.stereo_files import stereo_summary
 
     src = StereoSources(tuple(files_l), tuple(files_r), tuple(files_l), tuple(files_r), "half")

@@ -1,6 +1,6 @@
 """Where one frame of `dstereo recession` spends its time after start-up, this tree against another (issue 19).
 
-A rendered 640x480 recession sequence (`dstereo.recession.synthetic`, the reduced Plasmatron rig) is measured
+A rendered 640x480 recession sequence (`dstereo.jobs.synthetic_recession`, the reduced Plasmatron rig) is measured
 by two server processes, one importing dstereo from this tree and one from `--against` (default /work/main),
 each warmed up on the reference frame (compilation, rectification) and then asked for the same frames in
 turn, alternating which goes first, so that both see the same load on a shared machine. Reported: the median
@@ -49,11 +49,14 @@ SERVER = r'''
 import cProfile, hashlib, json, pstats, sys, tempfile, time
 from pathlib import Path
 import numpy as np
-from dstereo.frames import PartialStore
+from dstereo.io.partial_store import PartialStore
 from dstereo.io.calib_files import read_stereo_calibration
-from dstereo.recession import RecessionConfig, discover, run_recession
-from dstereo.recession.analysis import FrameReconstructor, _measure, measure_frame
-from dstereo.stereo.pipeline import ReconstructionConfig
+from dstereo.recession import RecessionConfig
+from dstereo.io.sequence_files import discover
+from dstereo.jobs.recession import run_recession
+from dstereo.recession.analysis import _measure, measure_frame
+from dstereo.jobs.recession import FrameReconstructor
+from dstereo.stereo.reconstruct import ReconstructionConfig
 
 try:  # this tree's serial runner holds BLAS to one thread while frames run; an older tree's does not
     from dstereo.runtime.blas_threads import one_blas_thread
@@ -166,12 +169,12 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory(prefix="frame_profile_") as tmp:
         folder = args.sequence
         if folder is None:
-            from dstereo.recession.synthetic import write_synthetic_sequence
+            from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
             folder = Path(tmp) / "seq"
             write_synthetic_sequence(folder, n_frames=args.frames, duration_s=40.0, total_mm=2.0,
                                      image_size=(640, 480))
-        from dstereo.recession import discover
+        from dstereo.io.sequence_files import discover
 
         n = len(discover(folder))
         loads = {"start": load()}

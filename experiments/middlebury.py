@@ -21,7 +21,8 @@ import numpy as np
 
 from dstereo.stereo.disparity import SGBMParams
 from dstereo.io.calib_files import read_middlebury_calib, read_pfm
-from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
+from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+from dstereo.io.images import read_image
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"

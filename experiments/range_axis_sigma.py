@@ -32,10 +32,10 @@ def first_frame_points(size, seed: int, yaw: float, pitch: float, cache: Path) -
         data = np.load(path)
         return data["points"], json.loads(str(data["truth"]))
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.stereo.pipeline import ReconstructionConfig
-    from dstereo.recession import discover
-    from dstereo.recession.analysis import _reconstructor
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.stereo.reconstruct import ReconstructionConfig
+    from dstereo.io.sequence_files import discover
+    from dstereo.jobs.recession import _reconstructor
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     with tempfile.TemporaryDirectory() as tmp:
         truth = write_synthetic_sequence(Path(tmp) / "seq", n_frames=2, image_size=size, seed=seed, yaw_deg=yaw,

@@ -29,7 +29,8 @@ def main() -> None:
     import cv2
 
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range, read_image, rectifying_maps
+    from dstereo.stereo.reconstruct import ReconstructionConfig, match_in_range, rectifying_maps
+    from dstereo.io.images import read_image
 
     calib = read_stereo_calibration(DATA / "intrinsics.yml")
     maps = rectifying_maps(calib, (640, 512))

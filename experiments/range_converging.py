@@ -1,7 +1,7 @@
 """Issue 14's own case: a converging rig with fx 4700 / 4900 px, 100 mm baseline, 600 mm, a tilted sample, and
 `dstereo recession` with no depth flags (issue 14 follow-up).
 
-Renders the domed sample turned `--yaw` deg (side wall in view) with `recession.synthetic.converging_rig`, runs
+Renders the domed sample turned `--yaw` deg (side wall in view) with `jobs.synthetic_recession.converging_rig`, runs
 the `dstereo recession` CLI with defaults only, and reports the search range it printed, the share of the true
 face (grid cells within `head radius - 1.5 mm` of the true stagnation point, in the tool's face coordinates)
 that has a height in the reference frame, the axis error, the stagnation point's offset, the stagnation RMS
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def one(size, seed: int, yaw: float, tmp: Path) -> dict:
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     scale = size[0] / 640.0
     seq = tmp / f"seq_{size[0]}_{seed}"

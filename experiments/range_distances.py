@@ -35,7 +35,7 @@ def true_disparities(render, result) -> tuple[np.ndarray, np.ndarray]:
 
 def one(size, distance: float) -> dict:
     from dstereo.io.calib_files import StereoCalibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
     from dstereo.synth import Sample, plasmatron_rig, sample_pose
     from dstereo.synth.scenes import sample_pair
 

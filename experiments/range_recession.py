@@ -26,8 +26,10 @@ ROOT = Path(__file__).resolve().parents[1]
 def one(size: tuple[int, int], seed: int, yaw: float, tmp: Path, n_frames: int) -> dict:
     from dstereo.commands.matching_options import search_range_line
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.recession import RecessionConfig, discover, run_recession
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.recession import RecessionConfig
+    from dstereo.io.sequence_files import discover
+    from dstereo.jobs.recession import run_recession
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     folder = tmp / f"seq_{size[0]}_{seed}"
     truth = write_synthetic_sequence(folder, n_frames=n_frames, image_size=size, seed=seed, yaw_deg=yaw)

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.io.calib_files import read_stereo_calibration
-from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
+from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+from dstereo.io.images import read_image
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rig640"
 

@@ -25,7 +25,7 @@ def one(distance: float, size=(640, 480)) -> dict:
     from scipy import ndimage
 
     from dstereo.io.calib_files import StereoCalibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
     from dstereo.synth import Sample, plasmatron_rig, sample_pose
     from dstereo.synth.scenes import sample_pair
     from experiments.range_distances import true_disparities

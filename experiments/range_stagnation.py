@@ -42,8 +42,10 @@ def maps(size, seed: int, grid: float, cache: Path) -> tuple[dict, dict]:
     if path.exists():
         return pickle.loads(path.read_bytes())
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.recession import RecessionConfig, discover, run_recession
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.recession import RecessionConfig
+    from dstereo.io.sequence_files import discover
+    from dstereo.jobs.recession import run_recession
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     with tempfile.TemporaryDirectory() as tmp:
         seq = Path(tmp) / "seq"

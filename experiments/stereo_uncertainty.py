@@ -30,7 +30,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dstereo.calib import stereo as st  # noqa: E402
-from dstereo.calib.stereo_folders import calibrate_stereo_folders  # noqa: E402
+from dstereo.jobs.stereo_folders import calibrate_stereo_folders  # noqa: E402
 from dstereo.calib.subsets import plan_subsets  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import require_data, run_cli, subset_agreement, subset_rms_agreement
-from dstereo.calib.pipeline import corner_coverage, suggest_model
+from dstereo.jobs.calibrate_camera import corner_coverage, suggest_model
 from dstereo.errors import DstereoError
 from test_robust_steps import reference_removed_at
 
@@ -310,7 +310,7 @@ def test_bad_input_is_one_line_and_leaves_no_folder(case, message, tmp_path, lef
 def test_a_failure_after_the_early_figures_leaves_nothing(tmp_path, left_images, monkeypatch):
     """The parameter figures are drawn as soon as the steps end (io.results.EarlyFigures), into a staging folder
     next to the results: a command that fails after that (here in the survivors' solve) removes it too."""
-    from dstereo.calib import pipeline
+    from dstereo.jobs import calibrate_camera as pipeline
 
     def fail(*args, **kwargs):
         raise DstereoError("survivors: refused for this test")

@@ -2,7 +2,10 @@
 
 The graph is read from the source with `ast`, not by importing: every `import` and `from ... import` counts,
 at module level, inside functions (a deferred import is still a dependency, and one that hides a cycle is
-still a cycle) and under `if TYPE_CHECKING:` (a type named in a signature ties the two modules as well).
+still a cycle) and under `if TYPE_CHECKING:` (a type named in a signature ties the two modules as well), and
+`importlib` loads: `import_module("dstereo.io.results")` is an edge to that module, `import_module(f"dstereo.commands.
+{name}")` an edge to every module under that prefix, and a "dstereo.config.x:Config" string (the entry-point form
+loaded by name) an edge to its module. A name held in a variable (a tuple of modules to preload) is not followed.
 Relative imports are resolved against the importing module's package. `from pkg import name` is an edge to
 `pkg.name` when that is a module of the package, else to `pkg`. Importing `a.b.c` also runs `a/__init__` and
 `a/b/__init__`; those implied edges are left out, as import-linter and pydeps leave them out, because a
@@ -10,6 +13,7 @@ package's `__init__` re-exporting its own modules would otherwise put every room
 """
 
 import ast
+import re
 import textwrap
 from pathlib import Path
 
@@ -17,32 +21,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dstereo"
 
-# Rooms that compute: they take arrays and finished results, never a command-line option or a file format.
-COMPUTE_ROOMS = ("models", "solver", "calib", "stereo", "uncertainty", "recession", "reference", "optics",
-                 "synth", "frames")
-
-# Compute-room modules whose job is to run a whole stage from files to files, or to read a room's input folder:
-# they may call `io` (reading the inputs, writing the results folder). Each is orchestration, not computation.
-ORCHESTRATION = {
-    "stereo.pipeline",  # `reconstruct`: images + stereo.yml in, a results folder out (run_reconstruction)
-    "reference.files",  # `refine`: a calibration, a pair and a reference object in, a refined folder out
-    "recession.sequence",  # reads a sequence folder (pairs by file name, the times file)
-    "recession.synthetic",  # writes a synthetic sequence folder (images, stereo.yml) the command reads
-    "frames.pairs",  # one frame of a run: reads the calibration, reconstructs, writes the frame's folder
-    "frames.store",  # the per-frame results store on disk (one JSON a frame)
-    "synth.truth",  # writes and reads the truth files beside a synthetic render
-    "calib.pipeline",  # `calibrate`, one camera: an image folder in (corner detection), a finished job out
-    "calib.stereo_pipeline",  # `calibrate`, a stereo rig: the pairs' folders in, a finished job out
-    "calib.stereo_folders",  # the same from two folders alone, for tests and experiments
-}
-
-LEAD_TO_CLEAR: set[str] = set()  # calibration modules waived while the core was rewritten: none left
-
-# Compute modules waived to import io.calib_files for the `StereoCalibration` type while it lived there.
-RIG_TYPE_IN_IO: set[str] = set()  # `StereoCalibration` now lives in models/stereo_calibration.py: none left
-
-# Cycles waived while the calibration core was rewritten: none left (`rig_covariance` moved to uncertainty/rig.py).
-LEAD_CYCLES: list[set[str]] = []
+from dstereo.layers import RANKS
 
 
 def module_names(package: Path) -> dict[str, Path]:
@@ -67,6 +46,16 @@ def _absolute(node: ast.ImportFrom, module: str, is_package: bool, top: str) -> 
     return ".".join(base + ([node.module] if node.module else []))
 
 
+_ENTRY_STRING = re.compile(r"^[A-Za-z_]\w*(\.\w+)+:\w+$")
+
+
+def _is_import_call(node: ast.Call) -> bool:
+    """`importlib.import_module(...)`, `import_module(...)` or `__import__(...)`."""
+    f = node.func
+    return (isinstance(f, ast.Attribute) and f.attr == "import_module") or \
+        (isinstance(f, ast.Name) and f.id in ("import_module", "__import__"))
+
+
 def imports_of(path: Path, module: str, top: str, known: set[str]) -> set[str]:
     """The package modules that `module` (file `path`) imports, as names relative to the package `top`."""
     is_package = path.name == "__init__.py"
@@ -82,7 +71,17 @@ def imports_of(path: Path, module: str, top: str, known: set[str]) -> set[str]:
         return False
 
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and _ENTRY_STRING.match(node.value):
+            add(node.value.split(":")[0])  # a "module:attribute" reference, loaded with importlib
+        elif isinstance(node, ast.Call) and _is_import_call(node) and node.args:
+            name = node.args[0]
+            if isinstance(name, ast.Constant) and isinstance(name.value, str):
+                add(name.value)
+            elif isinstance(name, ast.JoinedStr) and name.values and isinstance(name.values[0], ast.Constant):
+                prefix = str(name.values[0].value)  # f"pkg.commands.{name}": every module under the prefix
+                if prefix.startswith(top + "."):
+                    found.update(k for k in known if k.startswith(prefix[len(top) + 1:]) and k != module)
+        elif isinstance(node, ast.Import):
             for alias in node.names:
                 add(alias.name)
         elif isinstance(node, ast.ImportFrom):
@@ -153,34 +152,21 @@ def room(module: str) -> str:
     return module.split(".")[0]
 
 
-def layering_breaches(graph: dict[str, set[str]], orchestration=ORCHESTRATION,
-                      waived=LEAD_TO_CLEAR | RIG_TYPE_IN_IO) -> list[str]:
-    """Every import that crosses a room boundary the wrong way, as 'a -> b: the rule'."""
+def layering_breaches(graph: dict[str, set[str]], ranks: dict[str, int] = RANKS) -> list[str]:
+    """Every import against the rank table, as 'a -> b: the rule'."""
     breaches = []
     for source, targets in sorted(graph.items()):
         for target in sorted(targets):
-            for rule in _broken_rules(source, target, orchestration, waived):
-                breaches.append(f"{source} -> {target}: {rule}")
+            a, b = room(source), room(target)
+            if a == b:
+                continue
+            for r in (a, b):
+                if r not in ranks:
+                    breaches.append(f"{source} -> {target}: room '{r}' is not in the rank table (dstereo/layers.py)")
+            if a in ranks and b in ranks and ranks[b] >= ranks[a]:
+                rule = "of the same rank" if ranks[b] == ranks[a] else "of a higher rank"
+                breaches.append(f"{source} -> {target}: {a} ({ranks[a]}) imports {b} ({ranks[b]}), a room {rule}")
     return breaches
-
-
-def _broken_rules(source: str, target: str, orchestration, waived):
-    if room(source) == "models" and room(target) not in ("models", "errors"):
-        yield "models/ imports only models and errors"
-    if room(source) == "runtime" and room(target) not in ("runtime", "errors", ""):  # "": the package's version
-        yield ("runtime/ imports only runtime and errors (it runs the command line it is given: "
-               "runtime.request.set_command)")
-    if room(source) in COMPUTE_ROOMS and room(target) in ("commands", "cli"):
-        yield "a compute room never imports commands or the cli"
-    if room(target) == "commands" and room(source) not in ("commands", "cli"):
-        yield "only cli and commands import commands"
-    if room(source) == "io" and room(target) == "commands":
-        yield "io never imports commands"
-    if (room(source) in COMPUTE_ROOMS and room(target) == "io" and source not in orchestration
-            and source not in waived):
-        yield "a compute room imports io only from its orchestration modules (ORCHESTRATION)"
-    if source in RIG_TYPE_IN_IO and room(target) == "io" and target != "io.calib_files":
-        yield "a module waived for the rig type (RIG_TYPE_IN_IO) imports no other io module"
 
 
 # --- the real package ---------------------------------------------------------------------------------------
@@ -193,7 +179,7 @@ def test_the_graph_is_read_from_every_module():
 
 
 def test_no_import_cycle():
-    cycles = [c for c in find_cycles(import_graph(PACKAGE)) if set(c) not in LEAD_CYCLES]
+    cycles = find_cycles(import_graph(PACKAGE))
     assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
 
 
@@ -202,15 +188,17 @@ def test_rooms_import_only_downwards():
     assert not breaches, "layering breaches:\n" + "\n".join(breaches)
 
 
-def test_named_exceptions_still_exist_and_still_need_their_waiver():
+def test_every_room_has_a_rank_and_every_rank_a_room():
+    rooms = {room(m) for m in import_graph(PACKAGE)}
+    assert rooms == set(RANKS), f"rooms without a rank: {sorted(rooms - set(RANKS))}; ranks without a room: " \
+        f"{sorted(set(RANKS) - rooms)}"
+
+
+def test_no_two_rooms_import_each_other():
     graph = import_graph(PACKAGE)
-    stale = sorted(m for m in ORCHESTRATION | LEAD_TO_CLEAR | RIG_TYPE_IN_IO if m not in graph)
-    assert not stale, f"ORCHESTRATION/LEAD_TO_CLEAR/RIG_TYPE_IN_IO name modules that no longer exist: {stale}"
-    cleared = sorted(m for m in ORCHESTRATION | LEAD_TO_CLEAR | RIG_TYPE_IN_IO
-                     if "io" not in {room(t) for t in graph[m]})
-    assert not cleared, f"these no longer import io; take them out of their exception set: {cleared}"
-    gone = [c for c in LEAD_CYCLES if set(c) not in [set(f) for f in find_cycles(graph)]]
-    assert not gone, f"these cycles are broken; take them out of LEAD_CYCLES: {gone}"
+    edges = {(room(s), room(t)) for s, ts in graph.items() for t in ts if room(s) != room(t)}
+    mutual = sorted({tuple(sorted(e)) for e in edges if e[::-1] in edges})
+    assert not mutual, f"rooms importing each other: {mutual}"
 
 
 # --- the checker on a planted package -----------------------------------------------------------------------
@@ -247,6 +235,12 @@ def planted(tmp_path):
         # The runtime reaching up to the command line it serves (it must be handed it instead)
         "runtime/__init__.py": "",
         "runtime/server.py": "def serve():\n    from fakepkg.commands.run import main\n    main()\n",
+        # importlib loads by name: a plain string, a "module:attribute" reference, an f-string over a package
+        "config/__init__.py": "",
+        "config/options.py": "import importlib\nTYPE = 'fakepkg.calib.job:Job'\n",
+        "cli.py": "import importlib\ndef load(n):\n    return importlib.import_module(f'fakepkg.commands.{n}')\n",
+        "solver/__init__.py": "",
+        "solver/lm.py": "import importlib\nimportlib.import_module('fakepkg.stereo.a')\n",
     })
 
 
@@ -256,6 +250,9 @@ def test_checker_resolves_relative_and_deferred_imports(planted):
     assert graph["calib.job"] == {"commands.run", "io.files"}  # `from ..commands.run import main`
     assert graph["io.files"] == {"models"}  # `Camera` is an attribute of the package, not a module
     assert graph["models"] == {"models.camera"}
+    assert graph["config.options"] == {"calib.job"}  # "module:attribute"
+    assert graph["cli"] == {"commands.run"}  # f"fakepkg.commands.{n}": every module under the prefix
+    assert graph["solver.lm"] == {"stereo.a"}
 
 
 def test_checker_reports_the_planted_cycle_as_a_path(planted):
@@ -264,17 +261,23 @@ def test_checker_reports_the_planted_cycle_as_a_path(planted):
 
 
 def test_checker_reports_the_planted_breaches(planted):
-    breaches = layering_breaches(import_graph(planted), orchestration=set(), waived=set())
+    breaches = layering_breaches(import_graph(planted))
     assert breaches == [
-        "calib.job -> commands.run: a compute room never imports commands or the cli",
-        "calib.job -> commands.run: only cli and commands import commands",
-        "calib.job -> io.files: a compute room imports io only from its orchestration modules (ORCHESTRATION)",
-        "io.report -> commands.run: only cli and commands import commands",
-        "io.report -> commands.run: io never imports commands",
-        "models.rig -> stereo.a: models/ imports only models and errors",
-        "runtime.server -> commands.run: runtime/ imports only runtime and errors (it runs the command line it is "
-        "given: runtime.request.set_command)",
-        "runtime.server -> commands.run: only cli and commands import commands",
+        "calib.job -> commands.run: calib (6) imports commands (12), a room of a higher rank",
+        "calib.job -> io.files: calib (6) imports io (8), a room of a higher rank",
+        "config.options -> calib.job: config (4) imports calib (6), a room of a higher rank",
+        "io.report -> commands.run: io (8) imports commands (12), a room of a higher rank",
+        "models.rig -> stereo.a: models (2) imports stereo (6), a room of a higher rank",
+        "runtime.server -> commands.run: runtime (2) imports commands (12), a room of a higher rank",
+        "solver.lm -> stereo.a: solver (3) imports stereo (6), a room of a higher rank",
     ]
-    waived = layering_breaches(import_graph(planted), orchestration={"calib.job"}, waived=set())
-    assert not any("io.files" in b for b in waived)
+
+
+def test_checker_reports_same_rank_and_unranked_rooms(planted):
+    graph = import_graph(planted)
+    graph["stereo.a"] = graph["stereo.a"] | {"calib.job"}  # calib and stereo share rank 6
+    graph["calib.job"] = {"extra.x"}
+    graph["extra.x"] = set()
+    breaches = layering_breaches(graph)
+    assert "stereo.a -> calib.job: stereo (6) imports calib (6), a room of the same rank" in breaches
+    assert "calib.job -> extra.x: room 'extra' is not in the rank table (dstereo/layers.py)" in breaches

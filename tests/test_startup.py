@@ -33,7 +33,7 @@ def test_a_one_camera_run_imports_neither_scipy_stats_nor_spatial():
     # The modules a one-camera `calibrate` imports (the stereo ones too: the command checks for a stereo layout):
     # scipy.stats alone cost ~0.7 s CPU and scipy.spatial.transform ~0.3 s of every run (measured); the one
     # function of each in use is imported where it is called, or a lighter one (scipy.special's chdtrc) stands in.
-    loaded = _run("import sys\nimport dstereo.calib.pipeline, dstereo.calib.stereo_pipeline, dstereo.calib.misfit, "
+    loaded = _run("import sys\nimport dstereo.jobs.calibrate_camera, dstereo.jobs.calibrate_stereo, dstereo.calib.misfit, "
                   "dstereo.calib.mono, dstereo.io.results\n"
                   "print(*[m for m in ('scipy.stats', 'scipy.spatial') if m in sys.modules])")
     assert loaded == "", loaded

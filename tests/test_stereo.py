@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dstereo.calib import stereo as st
-from dstereo.calib.stereo_folders import calibrate_stereo_folders
+from dstereo.jobs.stereo_folders import calibrate_stereo_folders
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.io.corners import Detection

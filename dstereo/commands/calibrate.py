@@ -132,7 +132,7 @@ def calibrate(
         if base is None:
             raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
         images = base / cfg.images
-    from dstereo.calib.pipeline import list_camera_images
+    from dstereo.jobs.calibrate_camera import list_camera_images
     from dstereo.io.pairing import check_one_camera
 
     check_one_camera(list_camera_images(images, cfg), str(images))

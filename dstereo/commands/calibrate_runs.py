@@ -14,8 +14,8 @@ from dstereo.commands.progress import progress_bars
 
 def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started,
                 projection_range=None, cross_validate: int = 0) -> None:
-    """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.calib.stereo_pipeline."""
-    from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources, summary_lines
+    """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.jobs.calibrate_stereo."""
+    from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources, summary_lines
     from dstereo.errors import DstereoError
     from dstereo.io.stereo_files import write_stereo_results
 
@@ -39,10 +39,10 @@ def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, 
 
 def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None,
                  cross_validate: int = 0) -> None:
-    """N cameras (--cameras DIR): see dstereo.calib.multiview_job."""
+    """N cameras (--cameras DIR): see dstereo.jobs.calibrate_cameras."""
     import numpy as np
 
-    from dstereo.calib.multiview_job import calibrate_cameras_project, camera_folders
+    from dstereo.jobs.calibrate_cameras import calibrate_cameras_project, camera_folders
     from dstereo.io.cameras_files import write_multiview_results
 
     folders = camera_folders(root, cfg)
@@ -94,7 +94,7 @@ def run_camera(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache
 
 def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,
                    cross_validate, early) -> None:
-    from dstereo.calib.pipeline import calibrate_camera
+    from dstereo.jobs.calibrate_camera import calibrate_camera
     from dstereo.io.results import write_camera_results
 
     with progress_bars(quiet) as progress:

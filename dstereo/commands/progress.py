@@ -6,7 +6,7 @@ import time
 
 import typer
 
-from dstereo.frames.runner import eta_text
+from dstereo.runtime.tasks import eta_text
 
 PLAIN_EVERY_S = 30.0  # without a terminal, a long stage prints a line with its ETA at most this often
 

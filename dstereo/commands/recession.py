@@ -53,7 +53,8 @@ def recession(
     from dataclasses import asdict
 
     from dstereo import __version__
-    from dstereo.frames import FrameRunner, PartialStore, fingerprint
+    from dstereo.io.partial_store import PartialStore, fingerprint
+    from dstereo.runtime.tasks import FrameRunner
 
     from dstereo.commands.progress import progress_bars
     from dstereo.commands.matching_options import search_range_line, search_range_tries
@@ -61,7 +62,9 @@ def recession(
     from dstereo.errors import DstereoError
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import check_output
-    from dstereo.recession import RecessionConfig, check_sizes, discover, run_recession
+    from dstereo.recession import RecessionConfig
+    from dstereo.io.sequence_files import check_sizes, discover
+    from dstereo.jobs.recession import run_recession
     from dstereo.stereo.pair_result import calibration_size_check, check_rig
     from dstereo.io.recession_files import write_results
 

@@ -47,7 +47,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     from dstereo.commands.matching_options import search_range_line, search_range_tries
     from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
-    from dstereo.stereo.pipeline import run_reconstruction
+    from dstereo.jobs.reconstruct import run_reconstruction
 
     if len(left) != len(right):
         raise DstereoError(f"{len(left)} --left but {len(right)} --right images; give them in pairs")
@@ -55,7 +55,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     from dstereo.io.pairing import check_distinct_images, check_order_agrees_with_names
 
     check_not_inputs(out, [*left, *right, calib, config])
-    from dstereo.frames import FrameRunner
+    from dstereo.runtime.tasks import FrameRunner
 
     FrameRunner(workers, scheduler, retries)  # refuses a worker count or address it cannot use, before any work
 
@@ -117,12 +117,13 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
 
 
 def _several_pairs(pairs, out, calib, config_file, cfg, force, workers, scheduler, resume, retries):
-    """Each pair a task (`dstereo.frames.pairs`); Ctrl-C keeps the finished pairs for --resume."""
+    """Each pair a task (`dstereo.jobs.reconstruct_pairs`); Ctrl-C keeps the finished pairs for --resume."""
     from dstereo import __version__
     from dstereo.commands.progress import progress_bars
     from dstereo.errors import DstereoError
-    from dstereo.frames import FrameRunner, PartialStore, fingerprint
-    from dstereo.frames.pairs import reconstruct_pairs
+    from dstereo.io.partial_store import PartialStore, fingerprint
+    from dstereo.runtime.tasks import FrameRunner
+    from dstereo.jobs.reconstruct_pairs import reconstruct_pairs
     from dstereo.io.results import check_output
 
     check_output(out, force)
@@ -145,6 +146,6 @@ def _several_pairs(pairs, out, calib, config_file, cfg, force, workers, schedule
 
 def _size(path: Path) -> tuple[int, int] | None:
     """The image's (width, height) from its header (None when unreadable: reading it later reports that)."""
-    from dstereo.recession.sequence import image_size
+    from dstereo.io.sequence_files import image_size
 
     return image_size(path)

@@ -45,17 +45,17 @@ def refine(
     check_distinct_images(left, right)
     from dstereo.reference import Board, Sphere, read_marks
     from dstereo.reference.correction import RIG_CORRECTION_NAMES
-    from dstereo.reference.files import run_refinement
+    from dstereo.jobs.refine import run_refinement
 
     marks, config = None, None
     if board is not None:
-        from dstereo.io.corners import parse_pattern
+        from dstereo.config.values import parse_pattern
 
         reference = Board.from_pattern(parse_pattern(board), float(square))
     elif sphere_diameter is not None:
         reference = Sphere(float(sphere_diameter))
         if z_min is not None:
-            from dstereo.stereo.pipeline import ReconstructionConfig
+            from dstereo.stereo.reconstruct import ReconstructionConfig
 
             config = ReconstructionConfig(depth_range=(z_min, z_max))
     else:

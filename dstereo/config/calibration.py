@@ -69,7 +69,7 @@ class Config:
     outlier_rejection: bool = True
     # solve the board's two sag parameters with the rest (calib/problem.py). On by default: every real board
     # measured sags 3-22 sigma and fits 4-22 % better (experiments/results/board_sag_real.md); a --left/--right
-    # rig does not solve it yet and runs flat (calib/stereo_pipeline.py says so)
+    # rig does not solve it yet and runs flat (jobs/calibrate_stereo.py says so)
     board_sag: bool = True
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
@@ -100,7 +100,7 @@ def file_layer(path: str | Path) -> dict:
 def build_config(*layers: dict) -> Config:
     """Config from layers, lowest first (a file's, then the flags'): defaults < file < flags, key by key. The
     unit follows the square when none is given: a square size given anywhere is in mm."""
-    merged = merge(CALIBRATE, *layers)  # `model_auto` (set with `model`), `source` and `warnings` pass through
+    merged = merge(CALIBRATE, Config, *layers)  # `model_auto` (set with `model`), `source` and `warnings` pass through
     if not any("unit" in layer for layer in layers) and any("square" in layer for layer in layers):
         merged["unit"] = "mm"
     origins: dict[str, str] = {}

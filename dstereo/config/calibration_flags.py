@@ -16,7 +16,7 @@ def flag_layer(values: dict) -> dict:
     if "board_sag" in raw:  # --board-sag / --no-board-sag (None: not given)
         layer["board_sag"] = bool(raw["board_sag"])
     if "pattern" in raw:
-        from dstereo.io.corners import parse_pattern
+        from dstereo.config.values import parse_pattern
 
         layer["pattern"] = parse_pattern(raw["pattern"])
     if "images" in raw:

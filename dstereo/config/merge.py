@@ -37,6 +37,7 @@ def merge_layers(table: OptionTable, *layers: Mapping[str, Any]) -> dict[str, An
     return merged
 
 
-def merge(table: OptionTable, *layers: Mapping[str, Any]) -> dict[str, Any]:
-    """The table's defaults, then each layer in turn (see `merge_layers`)."""
-    return {**table.defaults(), **merge_layers(table, *layers)}
+def merge(table: OptionTable, kind: type, *layers: Mapping[str, Any]) -> dict[str, Any]:
+    """The defaults (the fields of `kind`, the table's settings dataclass), then each layer in turn
+    (see `merge_layers`)."""
+    return {**table.defaults(kind), **merge_layers(table, *layers)}

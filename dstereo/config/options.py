@@ -9,7 +9,6 @@ flag. Library errors name parameters in backticks (`square`); the CLI turns them
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import MISSING, dataclass, fields
 from typing import Any
 
@@ -29,10 +28,10 @@ class Option:
 
 @dataclass(frozen=True)
 class OptionTable:
-    """One command's options; `config_type` ('module:Class') holds the defaults of the `in_config` ones."""
+    """One command's options; its settings type (a dataclass, e.g. `config.calibration.Config`) holds the
+    defaults of the `in_config` ones."""
 
     command: str
-    config_type: str
     options: tuple[Option, ...]
 
     def __getitem__(self, name: str) -> Option:
@@ -52,10 +51,8 @@ class OptionTable:
         """dotted file key -> parameter."""
         return {key: o.name for o in self.options for key in o.file}
 
-    def defaults(self) -> dict[str, Any]:
-        """parameter -> default, from the configuration type's fields (imported on first use)."""
-        module, _, cls = self.config_type.partition(":")
-        kind = getattr(importlib.import_module(module), cls)
+    def defaults(self, kind: type) -> dict[str, Any]:
+        """parameter -> default, from the fields of the settings dataclass `kind`."""
         out = {}
         for f in fields(kind):
             if f.default is not MISSING:
@@ -76,7 +73,7 @@ def _opt(name, file=(), flag=None, help="", type=str, replaces=(), in_config=Tru
     return Option(name, (file,) if isinstance(file, str) else tuple(file), flag, help, type, replaces, in_config)
 
 
-CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
+CALIBRATE = OptionTable("calibrate", (
     _opt("mode", "mode"),
     _opt("pattern", ("pattern.columns", "pattern.rows"), "--pattern", "Inner corners COLSxROWS, e.g. 9x6."),
     _opt("square", "pattern.square", "--square", "Square size of the board.", float),
@@ -114,7 +111,7 @@ CALIBRATE = OptionTable("calibrate", "dstereo.config.calibration:Config", (
     _opt("pair", (), "--pair", in_config=False),
 ))
 
-RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:ReconstructionConfig", (
+RECONSTRUCT = OptionTable("reconstruct", (
     _opt("preset", ("reconstruct.preset", "sgbm.preset"), "--preset",
          "SGBM preset: default, thesis-5.9, thesis-5.15.", replaces=("sgbm.",), in_config=False),
     _opt("sgbm", "sgbm.*", "--sgbm", "SGBM parameter NAME=VALUE (repeat), e.g. block_size=7.", list),
@@ -176,7 +173,7 @@ RECONSTRUCT = OptionTable("reconstruct", "dstereo.stereo.pipeline:Reconstruction
     _opt("force", (), "--force", "Replace an existing results folder.", bool, in_config=False),
 ))
 
-OPTICS = OptionTable("optics", "dstereo.optics.calculator:OpticsConfig", (
+OPTICS = OptionTable("optics", (
     _opt("focus_distance", "optics.focus_distance", "--focus-distance", "Distance to the subject, mm.", float),
     _opt("focal_length", "optics.focal_length", "--focal-length", "Lens focal length, mm.", float),
     _opt("sensor", "optics.sensor", "--sensor", "Sensor WIDTHxHEIGHT in mm, e.g. 22.5x16.9.",

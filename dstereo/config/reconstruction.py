@@ -1,6 +1,6 @@
 """The reconstruction configuration (`dstereo reconstruct`, and the matching options of `dstereo recession`):
 layers of parameters from files ([reconstruct] and [sgbm] tables) and flags, merged by the one rule, built into
-`dstereo.stereo.reconstruction_config.ReconstructionConfig`.
+`dstereo.config.reconstruction_config.ReconstructionConfig`.
 
 SGBM fields travel as `sgbm.<field>` parameters, so a file's [sgbm] block_size and a flag's --sgbm P1=200 both
 apply; a `preset` sets every SGBM field, so one given drops the SGBM fields of the layers below it (its
@@ -23,7 +23,7 @@ _SGBM = "sgbm."
 
 
 def _sgbm_name(key: str) -> str:
-    from dstereo.stereo.disparity import CV_NAMES
+    from dstereo.config.sgbm import CV_NAMES
 
     return CV_NAMES.get(key, key).strip().lower().replace("-", "_")
 
@@ -104,7 +104,7 @@ def flag_layer(values: dict) -> dict:
     """`values`: parameter -> the flag's raw value (None: not given). `sgbm` is the list of NAME=VALUE texts,
     `z_min`/`z_max` the depth range's ends, `roi` 'x,y,w,h', `disparity_sigma` a number or 'auto';
     `uncertainty` and `full_covariance` are the switches --no-uncertainty / --full-covariance (True: given)."""
-    from dstereo.stereo.disparity import parse_overrides
+    from dstereo.config.sgbm import parse_overrides
 
     raw = given(values)
     layer = {k: v for k, v in raw.items()
@@ -128,8 +128,8 @@ def build(*layers: dict, sgbm_base=None):
     `sgbm_base`: the SGBM parameters without a preset (default: the 'default' preset)."""
     from dataclasses import replace
 
-    from dstereo.stereo.disparity import PRESETS
-    from dstereo.stereo.reconstruction_config import ReconstructionConfig
+    from dstereo.config.sgbm import PRESETS
+    from dstereo.config.reconstruction_config import ReconstructionConfig
 
     origins: dict[str, str | None] = {}
     plain = []
@@ -196,7 +196,7 @@ def check(cfg, image_size: tuple[int, int] | None = None) -> None:
         raise DstereoError(f"{given_as(cfg, 'sgbm.lr_check', lr)}: the left-right tolerance is a distance in px, >= 0")
     if image_size is None:
         return
-    from dstereo.stereo.matching import user_sgbm_names
+    from dstereo.config.reconstruction_config import user_sgbm_names
 
     image_width = image_size[0]
     # colour matching gives SGBM three channels (judged by the setting: a grey image is then checked as colour)

@@ -69,3 +69,17 @@ def model_layer(spec, where: str) -> dict:
         return {"model": model(spec, where), "model_auto": False}
     except DstereoError as exc:  # one camera's model may also be chosen from the data
         raise DstereoError(f"{exc}; or auto (the model that best predicts held-out views)") from None
+
+
+def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
+    """'9x6' -> (9, 6) inner corners (columns x rows)."""
+    if isinstance(text, tuple):
+        cols, rows = text
+    else:
+        try:
+            cols, rows = (int(v) for v in str(text).lower().replace(",", "x").split("x"))
+        except ValueError:
+            raise DstereoError(f"pattern: '{text}' is not COLSxROWS inner corners, e.g. 9x6") from None
+    if cols < 2 or rows < 2:
+        raise DstereoError(f"pattern: {cols}x{rows} has fewer than 2 inner corners per side; use e.g. 9x6")
+    return int(cols), int(rows)

@@ -9,7 +9,7 @@ One run, all under `out/` (filled under a temporary name and renamed at the end)
                            sub-pixel refinement on, point sigmas from the joint covariance)
     comparison.json / .md  every estimate against its truth, with the bound it is held to
 
-Calibration, the thesis's path (`calib.stereo_pipeline`, as `dstereo calibrate` runs it): each camera alone
+Calibration, the thesis's path (`jobs.calibrate_stereo`, as `dstereo calibrate` runs it): each camera alone
 with C(N, m) subsets, the rig with those intrinsics fixed, its subsets filtered by the stereo steps of the
 thesis's Figure 5.14; the answer is the mean over the surviving subsets. Then the joint refinement: both
 cameras' intrinsics and the rig solved together on all pairs (`calib.stereo`, mode "joint"). The reduced rig
@@ -99,7 +99,7 @@ def thesis_config(board: dict, settings: DemoSettings, seed: int):
 
 def calibrate_thesis(images: Path, folder: Path, board: dict, settings: DemoSettings, seed: int, report):
     """`dstereo calibrate`'s stereo job on images/images_left + images_right; writes its results folder."""
-    from dstereo.calib.stereo_pipeline import calibrate_stereo_project, stereo_sources
+    from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
     from dstereo.io.stereo_files import write_stereo_results
 
     config = thesis_config(board, settings, seed)
@@ -173,7 +173,8 @@ def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> 
     reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
     from dstereo.io.reconstruction_files import write_atomically, write_pair
-    from dstereo.stereo.pipeline import ReconstructionConfig, read_image, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.io.images import read_image
 
     d = settings.distance_mm
     config = ReconstructionConfig(depth_range=(d - 50.0, d + 50.0), refine=True)

@@ -1,4 +1,4 @@
-"""The results folder of `dstereo calibrate --cameras DIR` (a finished `calib.multiview_job.MultiviewJob`):
+"""The results folder of `dstereo calibrate --cameras DIR` (a finished `jobs.calibrate_cameras.MultiviewJob`):
 
     <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the

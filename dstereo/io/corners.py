@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dstereo.config.values import parse_pattern  # noqa: F401 - the readers' name for it
 from dstereo.errors import DstereoError
 from dstereo.models.board import Board
 
@@ -51,20 +52,6 @@ class Detection:
 def board_points(pattern: tuple[int, int], square: float) -> np.ndarray:
     """(cols*rows, 3) object points of the inner corners (`dstereo.models.board.Board.object_points`)."""
     return Board.from_pattern(pattern, square).object_points()
-
-
-def parse_pattern(text: str | tuple[int, int]) -> tuple[int, int]:
-    """'9x6' -> (9, 6) inner corners (columns x rows)."""
-    if isinstance(text, tuple):
-        cols, rows = text
-    else:
-        try:
-            cols, rows = (int(v) for v in str(text).lower().replace(",", "x").split("x"))
-        except ValueError:
-            raise DstereoError(f"pattern: '{text}' is not COLSxROWS inner corners, e.g. 9x6") from None
-    if cols < 2 or rows < 2:
-        raise DstereoError(f"pattern: {cols}x{rows} has fewer than 2 inner corners per side; use e.g. 9x6")
-    return int(cols), int(rows)
 
 
 def list_images(folder: Path, suffix: str | None = None) -> list[Path]:

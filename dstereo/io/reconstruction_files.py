@@ -15,7 +15,7 @@ from dstereo.io.results import atomic_folder
 
 if TYPE_CHECKING:  # annotations only: a writer takes a finished result and imports none of the pipeline
     from dstereo.stereo.pair_result import PairResult
-    from dstereo.stereo.reconstruction_config import ReconstructionConfig
+    from dstereo.config.reconstruction_config import ReconstructionConfig
 
 
 def _epipolar_image(left: np.ndarray, right: np.ndarray, step: int = 32) -> np.ndarray:
@@ -50,7 +50,7 @@ def _disparity_png(path: Path, disparity: np.ndarray, title: str) -> None:
 def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | None = None) -> None:
     """All outputs of one pair into `folder` (which exists)."""
     if config is None:
-        from dstereo.stereo.reconstruction_config import ReconstructionConfig
+        from dstereo.config.reconstruction_config import ReconstructionConfig
 
         config = ReconstructionConfig()
     import cv2

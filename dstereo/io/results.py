@@ -511,7 +511,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
     plot_dir = folder / "plots"
     plot_dir.mkdir()
     pts = cal.observations.reshape(-1, 2)
-    from dstereo.calib.pipeline import CORNER_MIN_PERCENT
+    from dstereo.calib.coverage import CORNER_MIN_PERCENT
 
     # The full-set figures first: the workers draw them while the parameter figures' data are reduced here.
     figures.draw(plots.coverage_heatmap, pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",

@@ -14,7 +14,7 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_fit, rate_map
-from dstereo.recession.sequence import Frame
+from dstereo.recession.frame import Frame
 from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_points, fit_face, frame_from_axis
 from dstereo.recession.surface import grid_over, valid_points
 
@@ -263,26 +263,25 @@ def _measure(frame: Frame, reconstruct, config: RecessionConfig, ref: _Reference
     return out, current
 
 
-def run_recession(frames: list[Frame], calib, config: RecessionConfig = RecessionConfig(), recon_config=None,
-                  progress=None, reconstruct=None, runner=None, store=None) -> RecessionResult:
-    """Reconstruct every frame with `calib` (a StereoCalibration) and measure the recession (module docstring).
+def measure_recession(frames: list[Frame], reconstruct, config: RecessionConfig = RecessionConfig(),
+                      progress=None, runner=None, store=None) -> RecessionResult:
+    """Reconstruct every frame with `reconstruct` and measure the recession (module docstring).
 
     The reference (the first frame that gives a surface) is found here, frame after frame; it fixes the grid
     and the disparity search range, and the frames after it are independent tasks on `runner`
-    (`dstereo.frames.FrameRunner`; default: one after another in this process). `store`
-    (`dstereo.frames.PartialStore`): each finished frame is saved at once and frames already there are reused.
-    `progress(stage, done, total)` is called once per frame. `reconstruct(frame) -> points (h, w, 3)` replaces
-    the image reading and stereo matching (tests, other matchers); it raises DstereoError for a failed frame.
+    (`dstereo.runtime.tasks.FrameRunner`; default: one after another in this process). `store`
+    (`dstereo.io.partial_store.PartialStore`): each finished frame is saved at once and frames already there are reused.
+    `progress(stage, done, total)` is called once per frame. `reconstruct(frame) -> points (h, w, 3)`, or
+    (points, per-point sigma vectors, noise check): `dstereo.jobs.recession.FrameReconstructor` reads and matches
+    the images (`dstereo.jobs.recession.run_recession`); tests and other matchers pass their own. It raises
+    DstereoError for a failed frame.
     """
     from functools import partial
 
-    from dstereo.frames import FrameRunner
     from dstereo.runtime.blas_threads import one_blas_thread
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.runtime.tasks import FrameRunner
 
-    recon_config = recon_config or ReconstructionConfig()
     report = progress or (lambda stage, done, total: None)
-    reconstruct = reconstruct or _reconstructor(calib, recon_config, config.refine_subpixel)
     runner = runner or FrameRunner(workers=1)
     results = [FrameResult(i, f.key.strip("_-. ") or f.left.stem, f.time_s) for i, f in enumerate(frames)]
     outcomes: dict[int, FrameOutcome] = {}
@@ -421,71 +420,6 @@ def _check_reference(heights: np.ndarray, config: RecessionConfig, min_cells: in
         raise DstereoError(f"only {n} grid cells of {config.grid_mm:g} mm hold {config.min_points_per_cell} or more "
                            "points in the reference frame; use a coarser `grid` (cells of ~4 x 4 pixels or more) or "
                            "a lower `min_points`")
-
-
-MAPS_KEPT = 2  # rectifying maps kept per process (one calibration and image size per sequence; 10 MB at 640x480)
-_MAPS: dict = {}  # key of (calibration, configuration, size) -> RectifyingMaps, oldest first
-
-
-def _reconstructor(calib, recon_config, refine: bool):
-    return FrameReconstructor(calib, recon_config, refine)
-
-
-class FrameReconstructor:
-    """frame -> (points, per-point random sigma vectors, noise check): the images read and matched with
-    `calib`. An object (not a closure) so that it travels to Dask workers. `log`: frame key -> the search range
-    and warnings of every frame that matched here. After the first frame that matched, `config` holds that
-    frame's search range, and every later frame is matched over it (the same matcher for the whole sequence,
-    and no sparse matching per frame); it is still widened where a frame runs off it."""
-
-    def __init__(self, calib, recon_config, refine: bool):
-        from dataclasses import replace
-
-        # The points and their random (disparity-noise) sigmas: the calibration's share is common to all frames
-        # and cancels in a recession, so its propagation is skipped.
-        self.calib, self.config, self.log = calib, replace(recon_config, refine=refine, uncertainty=False), {}
-
-    def _maps(self, size: tuple[int, int]):
-        """The rectifying maps of this calibration and configuration at `size`, made once per process (a worker
-        keeps them for every frame it runs: they travel neither with the tasks nor from the client)."""
-        import hashlib
-        import pickle
-        from dataclasses import replace
-
-        from dstereo.stereo.pipeline import rectifying_maps
-
-        # the search range is set after the first frame and does not change the maps; every other setting may
-        key = hashlib.sha256(pickle.dumps((self.calib, replace(self.config, search_range=None), size))).hexdigest()
-        if key not in _MAPS:
-            maps = rectifying_maps(self.calib, size, self.config)
-            while len(_MAPS) >= MAPS_KEPT:
-                _MAPS.pop(next(iter(_MAPS)))
-            _MAPS[key] = maps
-        return _MAPS[key]
-
-    def __call__(self, frame: Frame):
-        from dataclasses import replace
-
-        from dstereo.stereo.disparity_noise import point_sigma_vectors
-        from dstereo.stereo.pipeline import check_pair, disparity_sigma_hook, read_image, reconstruct_calibrated
-
-        left, right = read_image(frame.left), read_image(frame.right)
-        try:
-            check_pair(left, right, self.calib)
-            r = reconstruct_calibrated(self.calib, left, right, self.config, name=str(frame.left),
-                                       maps=self._maps((left.shape[1], left.shape[0])))
-            # the originals' own noise is only reported by `dstereo reconstruct`; a recession does not use it
-            sigma_d, _ = disparity_sigma_hook(r, self.config, originals=(left, right), report_image_noise=False)
-            vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
-        except DstereoError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only
-            raise DstereoError(f"{frame.left}: reconstruction failed ({type(exc).__name__}: {exc})") from exc
-        search = r.summary["search_range"]
-        self.log[frame.key] = {"search_range": search, "warnings": r.warnings}
-        if not search["user"] and self.config.search_range is None:
-            self.config = replace(self.config, search_range=(search["min_disparity"], search["num_disparities"]))
-        return r.points, vectors, r.summary["disparity_noise"]["plane_check"]
 
 
 def _assemble(results, ref: _Reference, ref_index: int, maps: dict, ses: dict, config) -> RecessionResult:

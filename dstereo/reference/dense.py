@@ -32,7 +32,7 @@ def _to_raw(k, coeffs, R, P, uv):
 def dense_matches(calib: StereoCalibration, left: np.ndarray, right: np.ndarray, config=None,
                   max_points: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(q_left, q_right) raw pixel pairs (n, 2) of up to `max_points` valid SGBM matches (a seeded random subset)."""
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 
     if calib.rectified:
         raise DstereoError(f"calibration {calib.source}: an already rectified (Middlebury) pair has no rig to refine")

@@ -96,11 +96,18 @@ def _exit_instead(code: int = 0) -> None:
 
 
 _COMMAND = []  # the command line's `main` (dstereo.cli registers it: the runtime does not import the command line)
+_PRELOAD: list[str] = []  # the modules a server loads at start-up for its first command (the command line names them)
 
 
-def set_command(main) -> None:
-    """Register the command line's entry (`dstereo.cli.main`) that `run_request` runs for a client."""
+def set_command(main, preload: tuple[str, ...] = ()) -> None:
+    """Register the command line's entry (`dstereo.cli.main`) that `run_request` runs for a client, and the modules
+    a server started from this process imports before its first request."""
     _COMMAND[:] = [main]
+    _PRELOAD[:] = list(preload)
+
+
+def preload_modules() -> tuple[str, ...]:
+    return tuple(_PRELOAD)
 
 
 def run_request(request: dict, stdout: io.TextIOWrapper, stderr: io.TextIOWrapper) -> int:

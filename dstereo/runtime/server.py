@@ -26,7 +26,7 @@ import time
 
 from dstereo.runtime import client as wire
 from dstereo.runtime import interrupts, watchdog
-from dstereo.runtime.request import client_stream, install_interrupt, interrupt_command, run_request
+from dstereo.runtime.request import client_stream, install_interrupt, interrupt_command, preload_modules, run_request
 from dstereo.errors import DstereoError
 
 GREETING_TIMEOUT_S = 5.0  # a connection that sends no request in this time is dropped
@@ -37,16 +37,6 @@ CLIENT_WAIT_S = 30.0  # an auto-started server loads once its client has ended, 
 STUCK_S = 0.9
 HISTORY = 20  # `serve --status` lists this many of the latest commands
 LOCK_WAIT_S = 60.0  # an auto-started server waits this long for a retiring server's lock, then gives up
-# What a calibration imports (test_startup lists the same modules): loaded at start-up, not at the first command;
-# the second line: what a first served calibration still imported (typer's value coercion imports pydantic;
-# OpenCV; scipy.linalg for LAPACK's kernels; the modules the pipeline and results folder import where used).
-PRELOAD = ("jax", "jax.numpy", "dstereo.cli", "dstereo.calib.pipeline", "dstereo.calib.stereo_pipeline",
-           "dstereo.calib.misfit", "dstereo.calib.mono", "dstereo.io.results",
-           "pydantic", "cv2", "scipy.linalg", "jax.experimental.serialize_executable", "dstereo.calib.outliers",
-           "dstereo.calib.model_choice", "dstereo.calib.view_checks", "dstereo.io.plots", "dstereo.io.sigma_maps",
-           "dstereo.io.cameramodel", "dstereo.uncertainty.projection")
-
-
 def prepare_folder(path: str) -> None:
     """The socket's folder, mode 0700 and ours; an old socket nobody answers on is removed, a live one refused."""
     folder = os.path.dirname(path)
@@ -304,7 +294,7 @@ def _preload() -> None:
     from dstereo.runtime import figure_pool
 
     figure_pool.start()  # the workers import matplotlib meanwhile
-    for name in PRELOAD:
+    for name in preload_modules():  # named by the command line (`request.set_command`)
         importlib.import_module(name)
     _warm_up()
 

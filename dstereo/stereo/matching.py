@@ -11,19 +11,7 @@ from dstereo.errors import DstereoError
 from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.stereo.disparity import PRESETS, SGBMParams, compute_disparity, disparity_range
 from dstereo.stereo.pair_result import grey
-from dstereo.stereo.reconstruction_config import ReconstructionConfig
-
-
-def user_sgbm_names(config: ReconstructionConfig) -> set[str]:
-    """SGBM fields the user chose: named in `sgbm_user` (CLI, configuration file; "preset" = all) or set to a
-    value other than the default's (library callers passing their own SGBMParams)."""
-    from dataclasses import fields
-
-    names = {f.name for f in fields(SGBMParams)}
-    if "preset" in config.sgbm_user:
-        return names
-    default = PRESETS["default"]
-    return set(config.sgbm_user) | {n for n in names if getattr(config.sgbm, n) != getattr(default, n)}
+from dstereo.config.reconstruction_config import ReconstructionConfig, user_sgbm_names  # noqa: F401
 
 
 def sized_sgbm(params: SGBMParams, user: set[str], shape: tuple[int, ...]) -> SGBMParams:

@@ -11,7 +11,7 @@ from dstereo.errors import DstereoError
 from dstereo.stereo.matching import require_disparity
 from dstereo.stereo.pair_result import PairResult
 from dstereo.stereo.point_outliers import remove_statistical_outliers
-from dstereo.stereo.reconstruction_config import ReconstructionConfig
+from dstereo.config.reconstruction_config import ReconstructionConfig
 
 LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 

@@ -12,7 +12,7 @@ from dstereo.errors import DstereoError
 from dstereo.stereo.matching import match_in_range, refine_subpixel
 from dstereo.stereo.pair_result import PairResult, check_pair
 from dstereo.stereo.points_from_disparity import points_and_summary
-from dstereo.stereo.reconstruction_config import ReconstructionConfig
+from dstereo.config.reconstruction_config import ReconstructionConfig
 
 
 def uncalibrated_q(f_px: float, size, baseline: float, d_sparse: np.ndarray, z_sparse: np.ndarray) -> np.ndarray:

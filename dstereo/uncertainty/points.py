@@ -106,8 +106,8 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
     disparity noise `sigma_d` (rectified px): one value, or an (h, w) map (`dstereo.stereo.disparity_noise`).
 
     `result_or_disparity`: a `reconstruction.PairResult` (its disparity, points' validity and rectification) or
-    an (h, w) disparity on the rectified grid of `matrices` (R1 R2 P1 P2 Q; default: `stereo_rectify` of the
-    calibration with the reconstruction's defaults). Points are processed in fixed-size vmapped chunks, so memory
+    an (h, w) disparity on the rectified grid of `matrices` (R1 R2 P1 P2 Q, required with a bare disparity).
+    Points are processed in fixed-size vmapped chunks, so memory
     stays bounded and one compilation serves any image size. `full` keeps the (h, w, 3, 3) covariances.
     """
     if hasattr(result_or_disparity, "disparity"):
@@ -117,11 +117,9 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
     else:
         disparity = np.asarray(result_or_disparity, float)
         valid = np.isfinite(disparity)
-    if matrices is None:
-        from dstereo.stereo.rectify import rectify_calibration
-
-        r = rectify_calibration(calib, (disparity.shape[1], disparity.shape[0]), zero_disparity=False)
-        matrices = {k: getattr(r, k) for k in ("R1", "R2", "P1", "P2", "Q")}
+    if matrices is None:  # the rectification is the caller's (stereo/ ranks above this room): it must be given
+        raise DstereoError("point_covariances: a bare disparity map needs the rectification it was computed on "
+                           "(matrices= R1 R2 P1 P2 Q, e.g. from dstereo.stereo.rectify.rectify_calibration)")
     sigma_map = np.broadcast_to(np.asarray(sigma_d, float), disparity.shape)
     valid &= np.isfinite(sigma_map)
     if np.any(sigma_map[valid] < 0) or (np.ndim(sigma_d) == 0 and not np.isfinite(sigma_d)):

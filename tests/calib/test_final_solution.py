@@ -115,7 +115,7 @@ def test_warning_fires_when_the_mean_fits_clearly_worse(free, seed, worse):
     """Rational model, 6 views per half: the halves' k's run wild (mean k1 ~ 8e2, correlated with k2, k4-k6)
     and the mean of the two is no camera (1.21x the solve's RMS, measured; seeds 1-6 give 1.002-1.21x); the
     5-coefficient halves average benignly."""
-    from dstereo.calib.pipeline import _final_solution
+    from dstereo.jobs.calibrate_camera import _final_solution
 
     obj, obs, full, index, filtering, mean = _halves_final(seed, free)
     warnings = []

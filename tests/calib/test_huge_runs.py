@@ -18,7 +18,7 @@ from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subset_runs import estimate_run, solve_in_blocks
 from dstereo.calib.subset_table import SubsetTable
 from dstereo.calib.subsets import REJECTION_MAX, plan_subsets, unrank
-from dstereo.frames.runner import eta_text
+from dstereo.runtime.tasks import eta_text
 from dstereo.config.calibration import Step
 from dstereo.errors import DstereoError
 
@@ -178,7 +178,7 @@ def test_csv_lines_are_what_csv_writer_writes(tmp_path):
 def test_stereo_blocks_fill_the_step_columns(tmp_path, monkeypatch):
     # The stereo glue (solve per block -> STEP_COLUMNS rows -> table), with a stand-in for the rig solver: the
     # real one is exercised by tests/test_stereo.py (a real run per data set, under KEEP_SOLUTIONS subsets).
-    from dstereo.calib import stereo_pipeline
+    from dstereo.jobs import calibrate_stereo as stereo_pipeline
     from dstereo.calib.stereo import STEP_COLUMNS, StereoSubsetSolutions
 
     def fake(obj, obs_l, obs_r, block, full, progress=None):

@@ -189,7 +189,7 @@ def test_config_key_and_the_pipeline_switch():
     """[calibration] outlier_rejection = false reaches the pipeline: every corner kept; on (the default) the
     OpenCV sample's left camera loses its stray corners (measured: 15 of 702, RMS 0.41 -> 0.18 px)."""
     from conftest import require_data
-    from dstereo.calib.pipeline import calibrate_camera
+    from dstereo.jobs.calibrate_camera import calibrate_camera
     from dstereo.config.calibration import Config, config_from_toml
     from dstereo.errors import DstereoError
 

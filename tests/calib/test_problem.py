@@ -358,7 +358,7 @@ def test_a_flat_board_rig_checks_its_assumption_on_each_cameras_views():
     from types import SimpleNamespace
 
     from dstereo.calib.mono import calibrate_full
-    from dstereo.calib.stereo_pipeline import FLAT_BOARD_NOTE, flat_board_check
+    from dstereo.jobs.calibrate_stereo import FLAT_BOARD_NOTE, flat_board_check
 
     def cam(sag, seed):
         obj, obs = _sagged_views(sag, seed=seed)

@@ -77,7 +77,7 @@ def test_the_stereo_solve_gives_the_same_test_as_the_k_camera_solve():
 
 
 def _rejecting(case, reject=True):
-    from dstereo.calib.multiview_job import reject_inconsistent_frames
+    from dstereo.jobs.calibrate_cameras import reject_inconsistent_frames
 
     n = len(case["obs"])
     inliers = np.broadcast_to(case["visible"][:, :, None], case["obs"].shape[:3]).copy()

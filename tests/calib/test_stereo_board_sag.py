@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from dstereo.calib.mono import calibrate_full
 from dstereo.calib.stereo import calibrate_stereo
-from dstereo.calib.stereo_pipeline import rig_board_sag
+from dstereo.jobs.calibrate_stereo import rig_board_sag
 from dstereo.models.camera import Camera
 from dstereo.synth.rig_corners import rig_corners
 

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from dstereo.calib.stereo_pipeline import _drop_pairs_rejected_by_both
+from dstereo.jobs.calibrate_stereo import _drop_pairs_rejected_by_both
 from dstereo.errors import DstereoError
 from dstereo.io.stereo_files import StereoDetection
 

@@ -8,8 +8,8 @@ import pytest
 
 from conftest import require_data
 from dstereo.calib import mono
-from dstereo.calib import stereo_pipeline
-from dstereo.calib.pipeline import calibrate_camera
+from dstereo.jobs import calibrate_stereo as stereo_pipeline
+from dstereo.jobs.calibrate_camera import calibrate_camera
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.solver.lm import LMOptions

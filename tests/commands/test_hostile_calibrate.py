@@ -153,7 +153,7 @@ def test_a_real_rig_passes_the_baseline_check():
     """The check's limits against a measured rig: OpenCV's sample, |T| 83 mm with 25 mm squares."""
     from types import SimpleNamespace
 
-    from dstereo.calib.stereo_pipeline import check_baseline
+    from dstereo.jobs.calibrate_stereo import check_baseline
     from dstereo.errors import DstereoError
     from dstereo.models.board import Board
 

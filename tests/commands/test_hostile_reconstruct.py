@@ -146,7 +146,7 @@ def test_a_pair_whose_every_point_is_removed_writes_its_folder_whole_with_a_warn
 
     from dstereo.io.reconstruction_files import write_pair
     from dstereo.stereo.points_from_disparity import points_and_summary
-    from dstereo.stereo.reconstruction_config import ReconstructionConfig
+    from dstereo.config.reconstruction_config import ReconstructionConfig
 
     h, w = 40, 64
     disparity = np.full((h, w), np.nan, np.float32)
@@ -218,7 +218,7 @@ def test_a_worker_count_the_open_file_limit_cannot_hold_is_refused(monkeypatch):
     import resource
 
     from dstereo.errors import DstereoError
-    from dstereo.frames import FrameRunner
+    from dstereo.runtime.tasks import FrameRunner
 
     monkeypatch.setattr(resource, "getrlimit", lambda _: (100, 100))
     with pytest.raises(DstereoError, match="open-file limit .100"):

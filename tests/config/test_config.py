@@ -292,7 +292,7 @@ def test_calibrate_unit_follows_a_square_given_anywhere(monkeypatch, tmp_path):
 
 
 def test_reconstruct_precedence_default_project_file_config_flag(monkeypatch, tmp_path):
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.stereo.reconstruct import ReconstructionConfig
 
     assert _reconstruct_cfg(monkeypatch, tmp_path, None).max_jump == ReconstructionConfig().max_jump
     assert _reconstruct_cfg(monkeypatch, tmp_path, "[reconstruct]\nmax_jump = 0.2\n").max_jump == 0.2
@@ -502,11 +502,10 @@ def test_unknown_keys_are_refused_naming_the_file(tmp_path, command, write, need
 
 
 def test_one_merge_rule_over_layers():
-    table = OptionTable("t", "dstereo.config.calibration:Config", (
-        Option("a", replaces=("b",)), Option("b"), Option("seed")))
+    table = OptionTable("t", (Option("a", replaces=("b",)), Option("b"), Option("seed")))
     assert merge_layers(table, {"a": 1, "b": 2}, {"b": 3, "a": None}) == {"a": 1, "b": 3}  # None: not given
     assert merge_layers(table, {"b": 2}, {"a": 1}) == {"a": 1}  # a given above drops b below
-    assert merge(table, {}) == {"seed": Config().seed}  # the defaults come from the configuration type
+    assert merge(table, Config, {}) == {"seed": Config().seed}  # the defaults come from the configuration type
 
 
 def test_library_errors_name_parameters_and_the_cli_line_names_flags():

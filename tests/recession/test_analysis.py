@@ -16,7 +16,8 @@ from scipy import stats
 
 from conftest import run_cli
 from dstereo.errors import DstereoError
-from dstereo.recession import at_stagnation, discover, line_fit, rate_map, time_from_name
+from dstereo.recession import at_stagnation, line_fit, rate_map
+from dstereo.io.sequence_files import discover, time_from_name
 from dstereo.recession.surface import Grid, cell_heights, frame_from_axis
 from dstereo.synth.recession import RecessionProfile
 
@@ -27,7 +28,7 @@ ARGS = ("--grid", "1", "--z-min", "550", "--z-max", "650")
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     folder = tmp_path_factory.mktemp("recession") / "seq"
     truth = write_synthetic_sequence(folder, n_frames=N_FRAMES, duration_s=40.0, total_mm=2.0, image_size=SIZE)
@@ -228,8 +229,9 @@ def test_recession_of_a_tilted_cloud_masks_cells_off_the_face():
     stagnation recession follows, and only grid cells on the face (within its 20 mm radius) carry heights."""
     from pathlib import Path
 
-    from dstereo.recession import RecessionConfig, run_recession
-    from dstereo.recession.sequence import Frame
+    from dstereo.recession import RecessionConfig
+    from dstereo.jobs.recession import run_recession
+    from dstereo.recession.frame import Frame
 
     steps = [0.0, 0.5, 1.0]
     frames = [Frame(f"{i}", Path(f"l{i}.png"), Path(f"r{i}.png"), 10.0 * i) for i in range(3)]
@@ -247,7 +249,7 @@ def test_recession_of_a_tilted_cloud_masks_cells_off_the_face():
 def tilted(tmp_path_factory):
     """A domed sample turned 12 deg off the rig axis (side wall in view), 320 x 240, analysed with defaults only:
     no depth range, automatic axis."""
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     folder = tmp_path_factory.mktemp("tilted") / "seq"
     truth = write_synthetic_sequence(folder, n_frames=N_FRAMES, image_size=SIZE, yaw_deg=12.0)
@@ -412,8 +414,8 @@ def test_frame_reconstructor_makes_the_maps_once_per_process(sequence):
     from dataclasses import replace
 
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.recession.analysis import FrameReconstructor
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.jobs.recession import FrameReconstructor
+    from dstereo.stereo.reconstruct import ReconstructionConfig
 
     folder, _ = sequence
     calib = read_stereo_calibration(folder / "stereo.yml")

@@ -46,7 +46,7 @@ def truth(rig):
 
 @pytest.fixture(scope="module")
 def board_view(rig):
-    from dstereo.reference.files import board_corners
+    from dstereo.jobs.refine import board_corners
 
     bp = board_pair(rig)
     ref = Board.from_pattern(bp.board.pattern, bp.board.square)  # the renderer's geometry, as a reference
@@ -183,7 +183,7 @@ def test_distances_cli(tmp_path, rig, truth, board_view):
     """The same marks through `dstereo refine --distances marks.csv` (images only fix the size here)."""
     import cv2
 
-    from dstereo.reference.files import write_calibration
+    from dstereo.jobs.refine import write_calibration
 
     (q_l, q_r), pairs, lengths = _cube_marks(rig, truth)
     start = perturbed(truth)
@@ -216,7 +216,7 @@ SPHERE_POINTS = 2000  # matches per solve (the library default is 4000): halves 
 @pytest.fixture(scope="module")
 def all_sphere_matches(sphere_view, truth):
     """Every dense match on the sphere pair (~46,000), rectified with the calibration 1 % long in baseline."""
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.stereo.reconstruct import ReconstructionConfig
     from dstereo.reference.dense import dense_matches
 
     start = perturbed(truth, 0.01, 0.0)
@@ -239,7 +239,7 @@ def sphere_matches(all_sphere_matches):
 def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
     """Dense SGBM matches on a rendered 120 mm sphere: the baseline scale from +1 % to within 0.3 % (measured:
     -0.18 %); a sphere does not determine the rest of the rig (second solve)."""
-    from dstereo.stereo.pipeline import ReconstructionConfig
+    from dstereo.stereo.reconstruct import ReconstructionConfig
     from dstereo.reference.dense import refine_dense
 
     start, (q_l, q_r) = sphere_matches
@@ -311,7 +311,7 @@ def test_metric_scale_of_unscaled_points(sphere_matches, truth, board_view):
 def test_cli_end_to_end(tmp_path, board_view, truth):
     import cv2
 
-    from dstereo.reference.files import write_calibration
+    from dstereo.jobs.refine import write_calibration
 
     bp, ref, _, _ = board_view
     cv2.imwrite(str(tmp_path / "L.png"), bp.left)
@@ -332,7 +332,7 @@ def test_cli_end_to_end(tmp_path, board_view, truth):
 def test_bad_inputs(tmp_path, board_view, truth):
     import cv2
 
-    from dstereo.reference.files import write_calibration
+    from dstereo.jobs.refine import write_calibration
 
     bp, _, _, _ = board_view
     cv2.imwrite(str(tmp_path / "L.png"), bp.left)

@@ -24,13 +24,13 @@ from dstereo.io.calib_files import (
 from dstereo.io.pointcloud import grid_faces
 from dstereo.models.camera import Camera
 from dstereo.stereo.disparity import PRESETS, SGBMParams, parse_overrides
-from dstereo.stereo.pipeline import (
+from dstereo.io.images import read_image
+from dstereo.jobs.reconstruct import run_reconstruction
+from dstereo.stereo.reconstruct import (
     ReconstructionConfig,
-    read_image,
     reconstruct_calibrated,
     reconstruct_uncalibrated,
     rectifying_maps,
-    run_reconstruction,
 )
 from dstereo.stereo.point_outliers import remove_statistical_outliers
 from dstereo.synth.objects import Sample, Sphere

@@ -12,7 +12,8 @@ from conftest import run_cli
 from dstereo.io.calib_files import write_opencv_stereo
 from dstereo.models.pose import rotation_matrix, rotation_vector
 from dstereo.models.stereo_calibration import StereoCalibration
-from dstereo.stereo.pipeline import ReconstructionConfig, run_reconstruction
+from dstereo.stereo.reconstruct import ReconstructionConfig
+from dstereo.jobs.reconstruct import run_reconstruction
 from dstereo.synth import Plane, fisheye_rig, object_pair
 
 PLANE_Z, TILT_DEG, BASELINE = 450.0, 20.0, 120.0

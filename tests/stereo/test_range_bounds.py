@@ -60,7 +60,7 @@ def scene():
 
     from dstereo.io.calib_files import StereoCalibration
     from dstereo.models.camera import Camera
-    from dstereo.stereo.pipeline import rectifying_maps
+    from dstereo.stereo.reconstruct import rectifying_maps
     from dstereo.synth import Plane, stereo_rig
     from dstereo.synth.layered import Layer, layered_pair
 
@@ -81,7 +81,7 @@ def scene():
 
 
 def _match(scene, estimate, **kwargs):
-    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range
+    from dstereo.stereo.reconstruct import ReconstructionConfig, match_in_range
 
     _, calib, maps, Q, rect, _ = scene
     return match_in_range("render", *rect, ReconstructionConfig(), Q, maps.outside, calib, estimate=estimate, **kwargs)
@@ -147,7 +147,7 @@ def test_the_nearest_board_of_the_calibration_caps_the_widening(scene):
 
     _, calib, maps, Q, rect, _ = scene
     near = replace(calib, extras={"board_depth_min": 900.0})
-    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range
+    from dstereo.stereo.reconstruct import ReconstructionConfig, match_in_range
 
     _, _, s, warnings = match_in_range("render", *rect, ReconstructionConfig(), Q, maps.outside, near,
                                        estimate=SearchRange(-2, 112, "sparse matches"))
@@ -158,7 +158,7 @@ def test_the_nearest_board_of_the_calibration_caps_the_widening(scene):
 def test_reconstruct_chooses_its_own_range_inside_the_bounds(scene):
     """End to end, from the sparse matches: they see the wall (~0 px) and the board, the range starts at the
     infinity bound and needs no widening."""
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 
     render, calib, *_ = scene
     result = reconstruct_calibrated(calib, render.left, render.right, ReconstructionConfig(uncertainty=False))

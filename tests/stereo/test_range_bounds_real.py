@@ -16,7 +16,7 @@ PAIRS = ("01", "02", "07", "11", "19", "23")
 @pytest.fixture(scope="module")
 def rig640():
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.stereo.pipeline import rectifying_maps
+    from dstereo.stereo.reconstruct import rectifying_maps
 
     folder = require_data("rig640")
     calib = read_stereo_calibration(folder / "intrinsics.yml")
@@ -26,7 +26,8 @@ def rig640():
 def _match(rig640, name):
     import cv2
 
-    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range, read_image
+    from dstereo.stereo.reconstruct import ReconstructionConfig, match_in_range
+    from dstereo.io.images import read_image
 
     folder, calib, maps = rig640
     rect = [cv2.remap(read_image(folder / f"{side}{name}.jpg"), mx, my, cv2.INTER_LINEAR)

@@ -76,7 +76,7 @@ def converging_pair():
     """A tilted sample 640 mm from the reduced Plasmatron rig (aimed at 600 mm): behind the rectified
     zero-disparity plane, so its disparities are negative. Rendered at 240 x 180."""
     from dstereo.io.calib_files import StereoCalibration
-    from dstereo.recession.synthetic import sample_truth
+    from dstereo.jobs.synthetic_recession import sample_truth
     from dstereo.synth import Sample, plasmatron_rig, sample_pose
     from dstereo.synth.scenes import sample_pair
 
@@ -107,7 +107,7 @@ def _true_disparities(render, calib, result):
 
 
 def test_converging_rig_range_holds_its_negative_disparities(converging_pair):
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 
     render, calib, _ = converging_pair
     result = reconstruct_calibrated(calib, render.left, render.right, ReconstructionConfig(uncertainty=False))
@@ -129,7 +129,7 @@ def test_middlebury_upscaled_2x_range_from_the_pair():
     import cv2
 
     from dstereo.io.calib_files import read_pfm
-    from dstereo.stereo.pipeline import read_image
+    from dstereo.io.images import read_image
 
     scene = require_data("middlebury2014q") / "Adirondack"
     up = [cv2.resize(read_image(scene / n), None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC)
@@ -148,14 +148,14 @@ def test_middlebury_upscaled_2x_range_from_the_pair():
 @pytest.fixture(scope="module")
 def teddy():
     from dstereo.io.calib_files import read_middlebury_calib
-    from dstereo.stereo.pipeline import read_image
+    from dstereo.io.images import read_image
 
     scene = require_data("middlebury2014q") / "Teddy"  # ground truth 15..53 px
     return read_middlebury_calib(scene / "calib.txt"), read_image(scene / "im0.png"), read_image(scene / "im1.png")
 
 
 def test_a_users_short_range_is_kept_with_a_warning(teddy):
-    from dstereo.stereo.pipeline import ReconstructionConfig, reconstruct_calibrated
+    from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
     from dstereo.stereo.disparity import SGBMParams
 
     calib, left, right = teddy
@@ -172,7 +172,7 @@ def test_a_users_short_range_is_kept_with_a_warning(teddy):
 
 
 def test_a_short_estimated_range_is_widened(teddy):
-    from dstereo.stereo.pipeline import ReconstructionConfig, match_in_range
+    from dstereo.stereo.reconstruct import ReconstructionConfig, match_in_range
 
     calib, left, right = teddy
     Q = np.array([[1, 0, 0, -calib.K1[0, 2]], [0, 1, 0, -calib.K1[1, 2]], [0, 0, 0, calib.K1[0, 0]],
@@ -207,7 +207,7 @@ def test_doffs_within_the_files_rounding_is_accepted_and_used(tmp_path):
 
 def test_sgbm_settings_follow_the_image_unless_set():
     from dstereo.stereo.disparity import PRESETS, SGBMParams
-    from dstereo.stereo.pipeline import ReconstructionConfig, sized_sgbm, user_sgbm_names
+    from dstereo.stereo.reconstruct import ReconstructionConfig, sized_sgbm, user_sgbm_names
 
     default = ReconstructionConfig()
     webcam = sized_sgbm(default.sgbm, user_sgbm_names(default), (480, 640))
@@ -260,7 +260,7 @@ def test_converging_rig_of_the_issue_gets_the_whole_face(tmp_path):
     import json
 
     from conftest import run_cli
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     seq, out = tmp_path / "seq", tmp_path / "out"
     truth = write_synthetic_sequence(seq, n_frames=4, image_size=(320, 240), yaw_deg=12.0, focal_px=(2350.0, 2450.0))
@@ -312,7 +312,7 @@ def test_board_depth_prior_is_used_when_sparse_matches_are_too_few():
     from dataclasses import replace
 
     from dstereo.io.calib_files import StereoCalibration
-    from dstereo.stereo.pipeline import ReconstructionConfig, initial_range
+    from dstereo.stereo.reconstruct import ReconstructionConfig, initial_range
 
     q = np.array([[1, 0, 0, -320], [0, 1, 0, -240], [0, 0, 0, 1000.0], [0, 0, 1 / 100.0, 0]])
     flat = np.full((480, 640), 128, np.uint8)

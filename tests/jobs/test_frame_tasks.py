@@ -1,4 +1,4 @@
-"""Frames in parallel (`dstereo.frames`): a local Dask cluster of 2 workers gives the serial results, a worker
+"""Frames in parallel (`dstereo.runtime.tasks`): a local Dask cluster of 2 workers gives the serial results, a worker
 that dies has its frame retried (or reported failed), and an interrupted run resumed from OUT.partial gives the
 uninterrupted run's summary.json.
 
@@ -19,7 +19,7 @@ ARGS = ("--grid", "1", "--z-min", "550", "--z-max", "650")
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
-    from dstereo.recession.synthetic import write_synthetic_sequence
+    from dstereo.jobs.synthetic_recession import write_synthetic_sequence
 
     folder = tmp_path_factory.mktemp("frames") / "seq"
     write_synthetic_sequence(folder, n_frames=N_FRAMES, duration_s=20.0, total_mm=1.0, image_size=(320, 240))
@@ -99,10 +99,12 @@ def test_a_killed_worker_has_its_frame_retried_then_reported(sequence, serial, t
 
     import cloudpickle
 
-    from dstereo.frames import FrameRunner
+    from dstereo.runtime.tasks import FrameRunner
     from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.recession import RecessionConfig, discover, run_recession
-    from dstereo.recession.analysis import FrameReconstructor
+    from dstereo.recession import RecessionConfig
+    from dstereo.io.sequence_files import discover
+    from dstereo.jobs.recession import run_recession
+    from dstereo.jobs.recession import FrameReconstructor
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
     frames = discover(sequence)
@@ -128,7 +130,7 @@ def test_a_killed_worker_has_its_frame_retried_then_reported(sequence, serial, t
 
 
 def test_interrupted_run_resumes_to_the_same_summary(sequence, serial, tmp_path, monkeypatch):
-    from dstereo.recession import analysis
+    from dstereo.jobs import recession as analysis
 
     out = tmp_path / "out"
     real = analysis.FrameReconstructor.__call__
@@ -182,7 +184,7 @@ def _pairs_index(out):
 
 
 def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_path, monkeypatch):
-    from dstereo.frames import pairs
+    from dstereo.jobs import reconstruct_pairs as pairs
 
     serial = tmp_path / "serial"
     code, _, err = _reconstruct(sequence, serial, "--workers", "1")
@@ -220,7 +222,7 @@ def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_pa
 def test_default_runner_stays_serial_when_a_cluster_would_not_pay(monkeypatch):
     """workers=None: the first task is timed here; a short remainder runs here too (no cluster started), a long
     one would start a cluster (checked by the decision alone, the cluster itself replaced)."""
-    from dstereo.frames import runner as runner_mod
+    from dstereo.runtime import tasks as runner_mod
 
     done = []
     r = runner_mod.FrameRunner()

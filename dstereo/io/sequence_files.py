@@ -21,26 +21,16 @@ from __future__ import annotations
 import csv
 import math
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 from dstereo.errors import DstereoError
+from dstereo.recession.frame import Frame  # noqa: F401 - what discover returns
 from dstereo.io.pairing import by_key, natural_key, pair_key, partner_name  # noqa: F401 - pair_key re-exported
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 FOLDER_PAIRS = (("left", "right"), ("images_left", "images_right"), ("L", "R"))
 TIME_IN_NAME = re.compile(r"(?i)(?:^|[_\-\s.=])(?:t=?)?(\d+(?:\.\d*)?|\.\d+)(ms|s)(?=$|[_\-\s])")
 LAST_INTEGER = re.compile(r"(\d+)(?!.*\d)")
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One stereo pair of the sequence: its key (the name without the side word), files and time (s)."""
-
-    key: str
-    left: Path
-    right: Path
-    time_s: float
 
 
 def find_folders(sequence: Path) -> tuple[Path, Path]:

@@ -59,7 +59,8 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
     """Read, refine and write the results folder `out` (see the module docstring)."""
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.results import atomic_folder, check_output, write_json
-    from dstereo.stereo.pipeline import check_pair, read_image
+    from dstereo.stereo.reconstruct import check_pair
+    from dstereo.io.images import read_image
 
     check_output(out, force)
     calib = read_stereo_calibration(calib_path, unscaled=True)  # a rig in board squares: the reference scales it

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.pipeline import CameraCalibration, Progress, calibrate_camera, camera_of
+from dstereo.jobs.calibrate_camera import CameraCalibration, Progress, calibrate_camera, camera_of
 from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_stereo
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \

@@ -1,17 +1,16 @@
-"""The reconstruction pipeline: rectify, match (SGBM), triangulate, and write a results folder atomically.
+"""One calibrated pair reconstructed: rectify, match (SGBM), triangulate (files: `dstereo.jobs.reconstruct`).
 
 Calibrated path (here): Bouguet rectification in JAX (`dstereo.stereo.rectify`), images resampled by `cv2.remap`
 on maps computed in JAX, SGBM disparity (`dstereo.stereo.matching`), optionally refined to sub-pixel accuracy
 (`dstereo.stereo.subpixel`: the originals resampled again by cubic B-spline at the exact map positions,
 Lucas-Kanade along the rows; `refine`), points from Q in the original left camera frame (mm,
 `dstereo.stereo.points_from_disparity`). A Middlebury-style calibration of an already rectified pair skips the
-resampling. Uncalibrated path: `dstereo.stereo.uncalibrated`. `run_reconstruction` reads the files and writes the
-results folder. Library functions return results and warnings; they never print.
+resampling. Uncalibrated path: `dstereo.stereo.uncalibrated`. `dstereo.jobs.reconstruct.run_reconstruction` reads the
+files and writes the results folder. Library functions return results and warnings; they never print.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,20 +19,18 @@ import numpy as np
 
 from dstereo.errors import DstereoError
 from dstereo.models.stereo_calibration import StereoCalibration
-from dstereo.io.images import read_image
-from dstereo.io.results import check_output
 from dstereo.stereo.disparity import SGBMParams
 from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
 from dstereo.stereo.pair_result import PairResult, calibration_size_check, check_pair, check_rig, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
-from dstereo.stereo.reconstruction_config import ReconstructionConfig
+from dstereo.config.reconstruction_config import ReconstructionConfig
 from dstereo.stereo.uncalibrated import reconstruct_uncalibrated, uncalibrated_q
 
 # Names the commands, tests and experiments import from here (the pipeline's public face).
 __all__ = [
     "LOW_DENSITY", "PairResult", "ReconstructionConfig", "RectifyingMaps", "add_uncertainty", "check_pair",
-    "disparity_sigma_hook", "initial_range", "match_in_range", "read_image", "reconstruct_calibrated",
-    "reconstruct_uncalibrated", "rectifying_maps", "run_reconstruction", "sized_sgbm", "uncalibrated_q",
+    "disparity_sigma_hook", "initial_range", "match_in_range", "reconstruct_calibrated",
+    "reconstruct_uncalibrated", "rectifying_maps", "sized_sgbm", "uncalibrated_q",
     "user_sgbm_names",
 ]
 
@@ -177,50 +174,3 @@ def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, param
     result.warnings.extend(warnings)
     return sigma, info["basis"] + (f"; scaled by {info['scaled_by']:.3g} by the plane check"
                                    if info["scaled_by"] != 1.0 else "")
-
-
-def run_reconstruction(
-    pairs: list[tuple[str | Path, str | Path]],
-    out: str | Path,
-    calib_path: str | Path | None = None,
-    config: ReconstructionConfig = ReconstructionConfig(),
-    force: bool = False,
-) -> list[PairResult]:
-    """Reconstruct every (left, right) pair and write the results folder (one sub-folder per pair if several)."""
-    from dstereo.io.calib_files import read_stereo_calibration
-    from dstereo.io.json_files import json_default
-    from dstereo.io.reconstruction_files import write_atomically, write_pair
-
-    check_output(out, force)
-    if not pairs:
-        raise DstereoError("no image pair given; pass --left and --right")
-    calib = read_stereo_calibration(calib_path) if calib_path is not None else None
-    if calib is not None:
-        check_rig(calib)
-    results = []
-    for left_path, right_path in pairs:
-        left, right = read_image(left_path), read_image(right_path)
-        check_pair(left, right, calib, names=(str(left_path), str(right_path)))
-        name = Path(left_path).stem
-        if calib is None:
-            results.append(reconstruct_uncalibrated(left, right, config, name))
-        else:
-            results.append(reconstruct_calibrated(calib, left, right, config, name))
-    names = [r.name for r in results]
-    if len(set(names)) != len(names):
-        for i, r in enumerate(results):
-            r.name = f"{i:02d}_{r.name}"
-
-    def fill(tmp: Path):
-        if len(results) == 1:
-            write_pair(tmp, results[0], config)
-            return
-        for r in results:
-            (tmp / r.name).mkdir()
-            write_pair(tmp / r.name, r, config)
-        index = {"pairs": [r.summary for r in results], "config": config.as_dict()}
-        (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=json_default))
-
-    write_atomically(out, force, fill)
-    return results
-

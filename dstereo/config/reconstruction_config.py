@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from dstereo.stereo.disparity import PRESETS, SGBMParams
+from dstereo.config.sgbm import PRESETS, SGBMParams
 
 
 @dataclass(frozen=True)
@@ -53,3 +53,14 @@ class ReconstructionConfig:
     def as_dict(self) -> dict:
         return asdict(self)
 
+
+def user_sgbm_names(config: ReconstructionConfig) -> set[str]:
+    """SGBM fields the user chose: named in `sgbm_user` (CLI, configuration file; "preset" = all) or set to a
+    value other than the default's (library callers passing their own SGBMParams)."""
+    from dataclasses import fields
+
+    names = {f.name for f in fields(SGBMParams)}
+    if "preset" in config.sgbm_user:
+        return names
+    default = PRESETS["default"]
+    return set(config.sgbm_user) | {n for n in names if getattr(config.sgbm, n) != getattr(default, n)}

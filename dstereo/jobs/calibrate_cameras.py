@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
-from dstereo.calib.pipeline import CameraCalibration, calibrate_camera, camera_of, list_camera_images
+from dstereo.jobs.calibrate_camera import CameraCalibration, calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
 from dstereo.calib.rig_subsets import RigSubsets, run_rig_subsets
@@ -108,7 +108,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
                               scratch: Path | None = None, cross_validate: int = 0) -> MultiviewJob:
     """Run the job of the module docstring. Raises DstereoError for folders, boards or frames that cannot make
     one rig. `cross_validate`: that many random halvings of the frames (`calib/rig_cross_validation.py`)."""
-    from dstereo.calib.stereo_pipeline import _prefixed
+    from dstereo.jobs.calibrate_stereo import _prefixed
 
     t0 = time.perf_counter()
     if config.stereo_steps and config.per_set is None:
@@ -267,7 +267,7 @@ def _check(job: MultiviewJob) -> None:
 def _check_camera_baselines(job: MultiviewJob) -> None:
     """Two cameras at one place (one camera's images copied into another's folder) are refused, with the limit of
     a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
-    from dstereo.calib.stereo_pipeline import SAME_PLACE_BOARD_FRACTION
+    from dstereo.jobs.calibrate_stereo import SAME_PLACE_BOARD_FRACTION
 
     board = job.cameras[0].detection.board
     size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))

@@ -37,7 +37,8 @@ def reconstruct_pair(job, calib, config, folder: str) -> PairDone:
     """Task: reconstruct one pair and write its folder under `folder` (atomically)."""
     from dstereo.io.json_files import json_default
     from dstereo.io.reconstruction_files import write_pair
-    from dstereo.stereo.pipeline import check_pair, read_image, reconstruct_calibrated, reconstruct_uncalibrated
+    from dstereo.stereo.reconstruct import check_pair, reconstruct_calibrated, reconstruct_uncalibrated
+    from dstereo.io.images import read_image
 
     name, left_path, right_path = job
     left, right = read_image(left_path), read_image(right_path)
