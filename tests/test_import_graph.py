@@ -281,3 +281,42 @@ def test_checker_reports_same_rank_and_unranked_rooms(planted):
     breaches = layering_breaches(graph)
     assert "stereo.a -> calib.job: stereo (6) imports calib (6), a room of the same rank" in breaches
     assert "calib.job -> extra.x: room 'extra' is not in the rank table (dstereo/layers.py)" in breaches
+
+
+# --- io computes nothing ----------------------------------------------------------------------------------------
+
+COMPUTE_ROOMS = ("solver", "uncertainty", "calib", "stereo", "reference", "recession", "optics")
+# Functions of a compute room that io may call, each with why it is reading or writing, not computing a result.
+IO_MAY_CALL = {
+    ("io.stereo_files", "calib.view_checks", "align_order"): "renumbers a right detection's corners to the left's "
+    "order: part of reading the detections into corresponding pairs (as io/corner_order.py for one camera)",
+}
+
+
+def io_imports_from_compute_rooms(package: Path) -> list[tuple[str, str, str]]:
+    """(io module, compute module, name) of every `from dstereo.<compute room>... import name` inside io/."""
+    names, found = module_names(package), []
+    for module, path in names.items():
+        if room(module) != "io":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("dstereo."):
+                source = node.module[len("dstereo."):]
+                if room(source) in COMPUTE_ROOMS:
+                    found += [(module, source, alias.name) for alias in node.names]
+    return found
+
+
+def test_io_takes_finished_results_and_computes_nothing():
+    """io may import types and constants from the rooms that compute, never a function that computes (the job
+    computes, then hands io the finished result), except IO_MAY_CALL."""
+    import importlib
+    import inspect
+
+    calls = []
+    for io_module, source, name in io_imports_from_compute_rooms(PACKAGE):
+        value = getattr(importlib.import_module(f"dstereo.{source}"), name)
+        if callable(value) and not inspect.isclass(value) and (io_module, source, name) not in IO_MAY_CALL:
+            calls.append(f"{io_module} calls {source}.{name}")
+    assert not calls, "io computing (compute it in the job and pass the result):\n" + "\n".join(calls)
+    assert set(IO_MAY_CALL) <= set(io_imports_from_compute_rooms(PACKAGE)), "IO_MAY_CALL names an import gone"

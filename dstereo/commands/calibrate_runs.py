@@ -28,8 +28,8 @@ def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, 
     use_cache = use_cache and corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
-                                       cross_validate=cross_validate)
-        write_stereo_results(out, job, force, projection_range=projection_range)
+                                       cross_validate=cross_validate, projection_range=projection_range)
+        write_stereo_results(out, job, force)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -50,9 +50,9 @@ def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started,
     use_cache = use_cache and corner_cache_usable()
     with progress_bars(quiet) as progress:
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
-                                        cross_validate=cross_validate)
-        job.pairs(pair)  # a wrong --pair is refused before anything is written
-        write_multiview_results(out, job, force, pairs=pair, projection_range=projection_range)
+                                        cross_validate=cross_validate, projection_range=projection_range,
+                                        pairs=pair)
+        write_multiview_results(out, job, force)
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -100,12 +100,11 @@ def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projectio
     with progress_bars(quiet) as progress:
         cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                after_steps=early.parameters, cross_validate=cross_validate,
-                               projection_range=projection_range)
-        cal.projection_method = projection_method
+                               projection_range=projection_range, projection_method=projection_method)
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
-        write_camera_results(out, cal, force, projection_range=projection_range, early=early)
+        write_camera_results(out, cal, force, early=early)
         if progress is not None:
             progress("writing results", 1, 1)
     cal.timings["write_s"] = time.perf_counter() - t0

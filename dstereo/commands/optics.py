@@ -110,7 +110,7 @@ def optics(
     if plots is not None:
         from dstereo.io.optics_figures import write_plots
 
-        results["plots"] = [str(p) for p in write_plots(setup, plots)]
+        results["plots"] = [str(p) for p in write_plots(setup, lib.dof_curves(setup), plots)]
     if json_output:
         typer.echo(to_json(results))
         return

@@ -90,24 +90,17 @@ def cameras_summary(job) -> dict:
     }
 
 
-def _write_pair(folder: Path, job, a: int, b: int) -> tuple[str | None, str | None]:
-    """(file name, None) written, or (None, why not)."""
+def _write_pair(folder: Path, job, pair) -> tuple[str | None, str | None]:
+    """(file name, None) written, or (None, why not). `pair`: a `calib.rig_pairs.PairCalibration` (with the
+    covariance, so reconstruct's point sigmas carry the calibration's)."""
     from dstereo.io.stereo_files import write_stereo_yml
-    from dstereo.models.rig import essential_matrix, fundamental_matrix
-    from dstereo.models.pose import rotation_vector
 
-    sol = job.solution
+    sol, a, b = job.solution, pair.a, pair.b
     ca, cb = sol.cameras[a], sol.cameras[b]
-    R, T = sol.relative(a, b)
-    E = np.asarray(essential_matrix(rotation_vector(R), T))
-    F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
-    from dstereo.uncertainty.rig import pair_covariance
-
-    cov_names, cov, structure = pair_covariance(sol, a, b)  # so reconstruct's point sigmas carry the calibration's
-    write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), R, T, E, F,
-                     ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
-                     unit=job.config.unit, cov=cov, cov_names=cov_names, cov_structure=structure)
+    write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), pair.R, pair.T,
+                     pair.E, pair.F, ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
+                     unit=job.config.unit, cov=pair.cov, cov_names=pair.cov_names, cov_structure=pair.structure)
     if tuple(ca.image_size) != tuple(cb.image_size):
         return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
                       "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")
@@ -174,19 +167,20 @@ def _rig_figures(plots: Path, job) -> None:
         consistency_figure(job.consistency, plots / "rig_consistency.png")
 
 
-def write_multiview_results(out, job, force: bool = False, pairs=None, projection_range: float | None = None) -> Path:
-    """Write the folder of the module docstring under a temporary name, renamed into place at the end."""
+def write_multiview_results(out, job, force: bool = False) -> Path:
+    """Write the folder of the module docstring under a temporary name, renamed into place at the end; the pair
+    files are `job.pair_files` (`MultiviewJob.choose_pairs`)."""
     out = Path(out)
     try:
         with atomic_folder(out, force) as tmp:
             for label, cal in zip(job.labels, job.cameras):
                 (tmp / label).mkdir()
-                fill_camera_folder(tmp / label, cal, projection_range=projection_range)
+                fill_camera_folder(tmp / label, cal)
             write_cameras_yml(tmp / "cameras.yml", job)
             summary = cameras_summary(job)
             summary["stereo_files"], summary["stereo_notes"] = [], []
-            for a, b in job.pairs(pairs):
-                name, note = _write_pair(tmp, job, a, b)
+            for pair in job.pair_files:
+                name, note = _write_pair(tmp, job, pair)
                 if name:
                     summary["stereo_files"].append(name)
                 if note:

@@ -9,15 +9,17 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.io.figures import log_ticks, pyplot, tick_label
-from dstereo.optics.calculator import PLOT_NAMES, OpticsConfig, f_number_axis, focal_axis, total_dof_curve
+from dstereo.optics.calculator import PLOT_NAMES, DofCurves, OpticsConfig
 
 
-def write_plots(config: OpticsConfig, out_dir: str | os.PathLike) -> list[Path]:
-    """Total DoF vs focal length (fixed N), vs N (fixed f) and over (f, N) with the set-up marked; PNGs."""
+def write_plots(config: OpticsConfig, curves: DofCurves, out_dir: str | os.PathLike) -> list[Path]:
+    """Total DoF vs focal length (fixed N), vs N (fixed f) and over (f, N) with the set-up marked; PNGs of the
+    `curves` (`optics.calculator.dof_curves`)."""
     plt = pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    figures = (_plot_vs_focal(config, plt), _plot_vs_f_number(config, plt), _plot_contour(config, plt))
+    figures = (_plot_vs_focal(config, curves, plt), _plot_vs_f_number(config, curves, plt),
+               _plot_contour(config, curves, plt))
     paths = []
     for name, fig in zip(PLOT_NAMES, figures):
         tmp = out_dir / f".{name}.partial"
@@ -32,11 +34,10 @@ def _label_focal(config: OpticsConfig) -> str:
     return f"lens focal length (mm); DoF with the {config.dof_focal_length} focal length"
 
 
-def _plot_vs_focal(config: OpticsConfig, plt):
+def _plot_vs_focal(config: OpticsConfig, curves: DofCurves, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
-    focal = focal_axis(config)
-    ax.plot(focal, total_dof_curve(config, focal, config.f_number))
-    chosen = float(total_dof_curve(config, config.focal_length, config.f_number))
+    ax.plot(curves.focal, curves.total_vs_focal)
+    chosen = curves.chosen
     ax.plot([config.focal_length], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel=_label_focal(config), ylabel="total depth of field (mm)",
            title=f"N = {config.f_number:g}, s = {config.focus_distance:g} mm")
@@ -46,11 +47,10 @@ def _plot_vs_focal(config: OpticsConfig, plt):
     return fig
 
 
-def _plot_vs_f_number(config: OpticsConfig, plt):
+def _plot_vs_f_number(config: OpticsConfig, curves: DofCurves, plt):
     fig, ax = plt.subplots(figsize=(6, 4))
-    f_number = f_number_axis(config)
-    ax.plot(f_number, total_dof_curve(config, config.focal_length, f_number))
-    chosen = float(total_dof_curve(config, config.focal_length, config.f_number))
+    ax.plot(curves.f_number, curves.total_vs_f_number)
+    chosen = curves.chosen
     ax.plot([config.f_number], [chosen], "rx", ms=10, label=f"chosen set-up: {chosen:.3g} mm")
     ax.set(xlabel="f-number N", ylabel="total depth of field (mm)",
            title=f"f = {config.focal_length:g} mm, s = {config.focus_distance:g} mm")
@@ -60,13 +60,12 @@ def _plot_vs_f_number(config: OpticsConfig, plt):
     return fig
 
 
-def _plot_contour(config: OpticsConfig, plt):
+def _plot_contour(config: OpticsConfig, curves: DofCurves, plt):
     fig, ax = plt.subplots(figsize=(6, 4.5))
     from matplotlib.colors import LogNorm
     from matplotlib.ticker import FuncFormatter
 
-    focal, f_number = np.meshgrid(focal_axis(config, 120), f_number_axis(config, 120))
-    total = total_dof_curve(config, focal, f_number)
+    focal, f_number, total = curves.grid_focal, curves.grid_f_number, curves.grid_total
     if np.all(np.isnan(total)):
         ax.text(0.5, 0.5, "focus beyond the hyperfocal distance everywhere", ha="center", transform=ax.transAxes)
     else:
@@ -75,7 +74,7 @@ def _plot_contour(config: OpticsConfig, plt):
         bar = fig.colorbar(filled, ax=ax, label="total depth of field (mm, log scale)",
                            ticks=log_ticks(levels[0], levels[-1]), format=FuncFormatter(tick_label))
         bar.minorticks_off()
-    chosen = float(total_dof_curve(config, config.focal_length, config.f_number))
+    chosen = curves.chosen
     if np.isfinite(chosen):
         line = ax.contour(focal, f_number, total, levels=[chosen], colors="white", linewidths=1)
         ax.clabel(line, fmt="%.0f mm")

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 
 from dstereo.io.figures import log_colour_bar, map_norm, pyplot
-from dstereo.recession.fits import line_band
 
 
 def recession_vs_time(result, path: Path) -> None:
@@ -23,8 +22,8 @@ def recession_vs_time(result, path: Path) -> None:
     tt = np.linspace(t.min(), t.max(), 200)
     ax.plot(tt, fit.intercept + fit.rate * tt, "C1-",
             label=f"fit: {1000 * fit.rate:.3f} mm/ks, 95% [{1000 * fit.ci95[0]:.3f}, {1000 * fit.ci95[1]:.3f}]")
-    band = line_band(fit, t[ok], r[ok], tt)
-    if band is not None:
+    if result.fit_band is not None:
+        tt, band = result.fit_band
         ax.fill_between(tt, fit.intercept + fit.rate * tt - band, fit.intercept + fit.rate * tt + band, color="C1",
                         alpha=0.2, label="95% band of the line")
     for f in result.frames:

@@ -248,15 +248,9 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
 
 def summary_dict(cal) -> dict:
     """summary.json of a `CameraCalibration`."""
-    from dstereo.uncertainty.view_effects import reported_std, solution_effects
-    from dstereo.uncertainty.view_scatter import solution_view_scatter
-
-    full, det = cal.full, cal.detection
+    full, det, done = cal.full, cal.detection, finished(cal)
     names = list(full.names)
-    scatter = solution_view_scatter(full)
-    # the +- every file shows: with the views' effects (the Jacobian's when the views agree as the noise says)
-    std = reported_std(full)
-    effects = solution_effects(full)
+    scatter, std, effects = done.view_scatter, done.std, done.view_effects
     summary = {
         "config": as_dict(cal.config),
         "image_size": list(det.image_size),
@@ -323,51 +317,43 @@ def summary_dict(cal) -> dict:
     return summary
 
 
-def write_camera_results(out: str | Path, cal, force: bool = False, projection_range: float | None = None,
-                         early: "EarlyFigures | None" = None) -> Path:
+def write_camera_results(out: str | Path, cal, force: bool = False, early: "EarlyFigures | None" = None) -> Path:
     """Write the whole results folder of one camera's `CameraCalibration` (see the module docstring); `early`: the
     parameter figures already drawn (`EarlyFigures`), taken in instead of drawn again."""
     out = Path(out)
     try:
         with atomic_folder(out, force) as tmp:
-            fill_camera_folder(tmp, cal, projection_range=projection_range, early=early)
+            fill_camera_folder(tmp, cal, early=early)
     finally:
         if cal.filtering is not None:
             cal.filtering.table.close()  # a huge run's per-subset file (now in subsets.csv) goes
     return out
 
 
-def write_projection_uncertainty(folder: Path, cal, projection_range: float | None = None,
-                                 method: str = "pose-compensated", figures=None) -> dict:
+def write_projection_uncertainty(folder: Path, cal, figures=None) -> dict:
     """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
-    the full-set solve at `projection_range` (default: the mean board distance; board unit); returns the summary
-    entry. `method`: pose-compensated (needs the solve's per-view blocks) or intrinsics-only. `figures`: a
-    `figure_pool.Figures` that draws the PNG (else drawn here)."""
+    the full-set solve's map (`calib.finished`); returns the summary entry. `figures`: a `figure_pool.Figures`
+    that draws the PNG (else drawn here)."""
     from types import SimpleNamespace
 
     from dstereo.runtime.figure_pool import Figures
 
     from dstereo.io.sigma_maps import projection_uncertainty_png
-    from dstereo.uncertainty.projection import mean_board_distance, solution_map
 
-    full, det = cal.full, cal.detection
-    source = "given" if projection_range is not None else "mean board distance of the full-set solve"
-    if projection_range is None:
-        projection_range = mean_board_distance(full.poses, det.object_points)
-    fallback = method == "pose-compensated" and getattr(full, "normal", None) is None
-    pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
+    done = finished(cal).projection
+    pmap = done.map
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
              range=pmap.range_, mask=pmap.mask, method=pmap.method)
     drawing = figures if figures is not None else Figures()
     # The map's arrays only, in a namespace: the worker then needs no JAX-importing class to unpickle it.
     plain = SimpleNamespace(u=np.asarray(pmap.u), v=np.asarray(pmap.v), std=np.asarray(pmap.std), range_=pmap.range_)
-    drawing.draw(projection_uncertainty_png, folder / "plots" / "projection_uncertainty.png", plain, det.image_size,
-                 f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
+    drawing.draw(projection_uncertainty_png, folder / "plots" / "projection_uncertainty.png", plain,
+                 cal.detection.image_size, f"projection uncertainty ({pmap.method}, full-set solve)", cal.config.unit)
     if figures is None:
         drawing.wait()
-    entry = {**pmap.summary(), "range_source": source, "unit": cal.config.unit,
+    entry = {**pmap.summary(), "range_source": done.range_source, "unit": cal.config.unit,
              "files": ["plots/projection_uncertainty.png", "projection_uncertainty.npz"]}
-    if fallback:
+    if done.fallback:
         entry["note"] += " (the solve kept no per-view blocks, so the pose-compensated map could not be made)"
     if pmap.view_scatter is not None and pmap.view_scatter.alarm:
         entry["view_scatter_warning"] = "projection uncertainty: " + pmap.view_scatter.message()
@@ -377,6 +363,16 @@ def write_projection_uncertainty(folder: Path, cal, projection_range: float | No
                             "monotonic beyond the field the corners cover); do not use the camera there, or add views "
                             "that reach those parts of the image")
     return entry
+
+
+def finished(cal):
+    """The calibration's finished numbers (`calib.finished.FinishedCamera`), which the job computes before any
+    writer runs: this module writes them and computes nothing."""
+    done = getattr(cal, "finished", None)
+    if done is None:
+        raise ValueError("this calibration was not finished: its job calls dstereo.calib.finished.finish_camera "
+                         "before writing it")
+    return done
 
 
 def draw_parameter_figures(figures, plot_dir: Path, filtering, full) -> tuple[str, ...]:
@@ -457,18 +453,15 @@ def _drawn_columns(filtering) -> list[str]:
     return [n for n in filtering.columns if n not in WARP_NAMES]
 
 
-def _solved_board(cal, obj: np.ndarray):
+def _solved_board(cal):
     """({"board_sag": ...} for camera.json or {}, the board the written camera was solved with or None, the
     camera.yml comment): a camera solved with the board's sag fits its corners on THAT board; refitted on the
     flat nominal board it reads 0.1-5 % worse than a flat solve (measured on the real sets), which says nothing
     about the camera."""
-    from dstereo.calib.final_solution import written_camera_solution
-    from dstereo.calib.problem import sagged_board
-
-    sag = getattr(written_camera_solution(cal), "board_sag", None)
+    done = finished(cal)
+    sag, board = done.board_sag, done.solved_board
     if sag is None:
         return {}, None, None
-    board = sagged_board(obj, sag)
     unit = cal.config.unit
     text = (f"solved with the board's sag x {sag[0]:.6g}, y {sag[1]:.6g} {unit} (mrcal's calobject_warp): refit poses on "
             "corners.npz object_points_solved, not the flat object_points")
@@ -476,10 +469,8 @@ def _solved_board(cal, obj: np.ndarray):
                           "object_points": "corners.npz object_points_solved", "note": text}}, board, text
 
 
-def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
-                       early: EarlyFigures | None = None) -> dict:
-    """Everything of the results folder into an existing (temporary) folder; returns the summary.
-    `projection_range`: distance of the projection-uncertainty map (default: the mean board distance); `early`:
+def fill_camera_folder(folder: Path, cal, early: EarlyFigures | None = None) -> dict:
+    """Everything of the results folder into an existing (temporary) folder; returns the summary. `early`:
     parameter figures drawn already (`EarlyFigures`)."""
     from dstereo.io import plots
     from dstereo.runtime.figure_pool import Figures
@@ -491,12 +482,8 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
     names = distortion_names(full.free, len(D))
     section = None
     if full.lens_model == "splined":
-        from dstereo.models import splined
-
-        k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
-        section = (cal.final_coefficients, full.free,
-                   splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free))))
-    sag, solved_board, comment = _solved_board(cal, det.object_points)
+        section = (cal.final_coefficients, full.free, finished(cal).splined_spans)
+    sag, solved_board, comment = _solved_board(cal)
     write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment,
                        unit=cal.config.unit, extra={
         "distortion_names": names, "source": summary["final_source"],
@@ -520,8 +507,7 @@ def fill_camera_folder(folder: Path, cal, projection_range: float | None = None,
                  plot_dir / "residuals.png")
     figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms), plot_dir / "per_image_rms.png")
     # the map next (~10 ms here): its figure, the slowest to draw, is then not the last one the workers start
-    projection = write_projection_uncertainty(folder, cal, projection_range,
-                                              getattr(cal, "projection_method", "pose-compensated"), figures)
+    projection = write_projection_uncertainty(folder, cal, figures)
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
         f = cal.filtering

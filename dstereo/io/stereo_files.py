@@ -247,7 +247,7 @@ STEREO_TITLE = "STEREO PARAMETERS"
 STEREO_UNITS = {"stereo_re": "px", "RVnorm": "rad", "RVx": "rad", "RVy": "rad", "RVz": "rad"}
 
 
-def write_stereo_results(out, job, force: bool = False, projection_range: float | None = None) -> Path:
+def write_stereo_results(out, job, force: bool = False) -> Path:
     """The results folder of a `stereo_pipeline.StereoCalibrationJob`, filled under a temporary name:
         left/, right/            each camera's folder, as `dstereo calibrate` writes for one camera
         stereo.yml, stereo.json  M1 D1 M2 D2 R T E F imageSize (final values) / everything, with std; both
@@ -265,7 +265,7 @@ def write_stereo_results(out, job, force: bool = False, projection_range: float 
         with atomic_folder(out, force) as tmp:
             for side, cal in (("left", job.left), ("right", job.right)):
                 (tmp / side).mkdir()
-                fill_camera_folder(tmp / side, cal, projection_range=projection_range)
+                fill_camera_folder(tmp / side, cal)
             _fill_stereo_folder(tmp, job)
     finally:  # huge runs' per-subset files (now in the CSVs) go
         for filtering in (job.left.filtering, job.right.filtering, job.filtering):
@@ -338,9 +338,10 @@ def _fill_stereo_folder(folder: Path, job) -> None:
     from dstereo.io.results import write_stats_files, write_subsets_csv
 
     s, det = job.full, job.detection
-    from dstereo.uncertainty.rig import rig_covariance
-
-    cov_names, cov, cov_structure = job.calibration_covariance or rig_covariance(job)
+    if job.calibration_covariance is None:
+        raise ValueError("the stereo job was not finished: calib.final_solution.attach_rig_uncertainty sets the "
+                         "calibration covariance stereo.yml carries")
+    cov_names, cov, cov_structure = job.calibration_covariance
     from dstereo.models.distortion import lens_model
 
     write_stereo_yml(folder / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),

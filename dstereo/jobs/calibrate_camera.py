@@ -16,7 +16,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from dstereo.calib.coverage import CORNER_MIN_PERCENT, QUADRANT_MIN_PERCENT, REGIONS, Coverage, corner_coverage  # noqa: F401
+from dstereo.calib.coverage import (  # noqa: F401 - the coverage names, importable from the job
+    CORNER_MIN_PERCENT, QUADRANT_MIN_PERCENT, REGIONS, Coverage, corner_coverage,
+)
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.config.calibration import Config, Step, validate
 from dstereo.errors import DstereoError
@@ -79,6 +81,7 @@ class CameraCalibration:
     model_choice: object | None = None  # dstereo.calib.model_choice.ModelChoice with --model auto
     cross_validation: object | None = None  # dstereo.calib.cross_validation.CrossValidation (--cross-validate N)
     projection_method: str = "pose-compensated"  # of the projection-uncertainty map the results folder draws
+    finished: object | None = None  # calib.finished.FinishedCamera: what the results folder shows
 
     @property
     def unconverged(self) -> list[int]:
@@ -137,6 +140,7 @@ def calibrate_camera(
     in_rig: bool = False,
     cross_validate: int = 0,
     projection_range: float | None = None,
+    projection_method: str = "pose-compensated",
 ) -> CameraCalibration:
     """Detect, solve the full set and (with `config.per_set`) every subset, then run `steps` (default
     `config.steps`). Raises DstereoError for unreadable files, m > N, a step that leaves no subset, or a run
@@ -147,7 +151,9 @@ def calibrate_camera(
     `after_steps(filtering, full)`: called once the subsets' steps are done, before the survivors' solve (the
     command starts drawing their figures then, `io.results.EarlyFigures`). `in_rig`: a camera of a rig, whose
     `--model auto` chooses among the parametric lenses (`reconstruct` rectifies no splined lens).
-    `cross_validate`: that many random halvings of the views (`calib/cross_validation.py`, at `projection_range`)."""
+    `cross_validate`: that many random halvings of the views (`calib/cross_validation.py`, at `projection_range`).
+    The result is finished (`calib.finished`: the +-, the projection-uncertainty map at `projection_range` by
+    `projection_method`, the solved board) for the writers, which compute nothing."""
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.subsets import plan_subsets
     from dstereo.io.corners import detect_folder
@@ -292,13 +298,19 @@ def calibrate_camera(
         if not cv.trusted:
             warnings.append(cv.verdict())
         timings["cross_validation_s"] = time.perf_counter() - t0
-    return CameraCalibration(
+    cal = CameraCalibration(
         config=config, folder=Path(folder), files=list(files), detection=det, used=used, observations=obs,
         full=full, plan=plan, subsets=subsets, filtering=filtering, columns=columns, final=final, spread=spread,
         coverage=coverage, model_advice=advice, warnings=warnings, timings=timings, final_solution=final_solution,
         subset_mean=subset_mean, outliers=outliers, residual_pattern=pattern,
-        residual_pattern_all=pattern_all, model_choice=choice, cross_validation=cv,
+        residual_pattern_all=pattern_all, model_choice=choice, cross_validation=cv, projection_method=projection_method,
     )
+    from dstereo.calib.finished import finish_camera
+
+    t0 = time.perf_counter()
+    cal.finished = finish_camera(cal, projection_range, projection_method)  # what the results folder shows
+    timings["finish_s"] = time.perf_counter() - t0
+    return cal
 
 
 def _reject_outliers(config, det, used, obs, full, warnings, alone: bool = False):

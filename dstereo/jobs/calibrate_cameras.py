@@ -48,19 +48,31 @@ class MultiviewJob:
     subsets: RigSubsets | None = None  # with `per_set`: the rig's frame subsets and stereo steps
     rejected_frames: list = field(default_factory=list)  # (frame, T_f / dof_f) the consistency test removed
     cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
+    pair_files: list = field(default_factory=list)  # calib.rig_pairs.PairCalibration of each stereo file (choose_pairs)
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""
-        if chosen is None:
-            return [(i, i + 1) for i in range(len(self.labels) - 1)]
-        idx = []
-        for name in chosen:
-            if name not in self.labels:
-                raise DstereoError(f"pair: no camera '{name}' under {self.root}; cameras are {', '.join(self.labels)}")
-            idx.append(self.labels.index(name))
-        if idx[0] == idx[1]:
-            raise DstereoError(f"pair: {chosen[0]} twice; name two different cameras")
-        return [tuple(idx)]
+        return pair_indices(self.labels, self.root, chosen)
+
+    def choose_pairs(self, chosen: tuple[str, str] | None = None) -> None:
+        """The stereo files to write (`pairs`), each pair's rig and covariance computed (`calib.rig_pairs`)."""
+        from dstereo.calib.rig_pairs import pair_calibration
+
+        self.pair_files = [pair_calibration(self.solution, a, b) for a, b in self.pairs(chosen)]
+
+
+def pair_indices(labels: tuple[str, ...], root: Path, chosen: tuple[str, str] | None) -> list[tuple[int, int]]:
+    """`MultiviewJob.pairs`, from the camera labels alone (checked before the job runs)."""
+    if chosen is None:
+        return [(i, i + 1) for i in range(len(labels) - 1)]
+    idx = []
+    for name in chosen:
+        if name not in labels:
+            raise DstereoError(f"pair: no camera '{name}' under {root}; cameras are {', '.join(labels)}")
+        idx.append(labels.index(name))
+    if idx[0] == idx[1]:
+        raise DstereoError(f"pair: {chosen[0]} twice; name two different cameras")
+    return [tuple(idx)]
 
 
 def camera_folders(root: Path, config: Config) -> list[Path]:
@@ -105,9 +117,12 @@ def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, n
 
 
 def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
-                              scratch: Path | None = None, cross_validate: int = 0) -> MultiviewJob:
+                              scratch: Path | None = None, cross_validate: int = 0,
+                              projection_range: float | None = None,
+                              pairs: tuple[str, str] | None = None) -> MultiviewJob:
     """Run the job of the module docstring. Raises DstereoError for folders, boards or frames that cannot make
-    one rig. `cross_validate`: that many random halvings of the frames (`calib/rig_cross_validation.py`)."""
+    one rig. `cross_validate`: that many random halvings of the frames (`calib/rig_cross_validation.py`).
+    `pairs`: the two cameras (labels) that get a stereo file, else every adjacent pair (`choose_pairs`)."""
     from dstereo.jobs.calibrate_stereo import _prefixed
 
     t0 = time.perf_counter()
@@ -115,12 +130,13 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
         raise DstereoError("stereo steps need subsets of frames; set images per set (`per_set` m)")
     folders = camera_folders(root, config)
     labels = tuple(p.name for p in folders)
+    pair_indices(labels, Path(root), pairs)  # a wrong --pair is refused before any work
     cams, warnings, timings = [], [], {}
     for label, folder in zip(labels, folders):
         t = time.perf_counter()
         try:
             cal = calibrate_camera(folder, config, progress=_prefixed(progress, label), use_cache=use_cache,
-                                   scratch=scratch, in_rig=True)
+                                   scratch=scratch, in_rig=True, projection_range=projection_range)
         except DstereoError as exc:
             raise DstereoError(f"camera {label} ({folder}): {exc}") from None
         cams.append(cal)
@@ -197,6 +213,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
                        inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets,
                        rejected_frames=rejected)
     _check(job)
+    job.choose_pairs(pairs)
     timings["total_s"] = time.perf_counter() - t0
     return job
 

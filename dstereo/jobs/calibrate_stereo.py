@@ -267,7 +267,7 @@ def _solve_stereo_subsets(obj, obs_l, obs_r, plan, full, scratch, progress):
 
 def calibrate_stereo_project(sources: StereoSources, config: Config, progress: Progress | None = None,
                              use_cache: bool = True, scratch: Path | None = None,
-                             cross_validate: int = 0) -> StereoCalibrationJob:
+                             cross_validate: int = 0, projection_range: float | None = None) -> StereoCalibrationJob:
     """Run the job of the module docstring. Raises DstereoError for bad pairs, sizes, counts or steps, or a
     subset run that cannot fit this machine. `scratch`: folder for huge runs' per-subset tables (as mono).
     `cross_validate`: that many random halvings of the pairs, each solved jointly (`calib/rig_cross_validation.py`;
@@ -302,7 +302,8 @@ def calibrate_stereo_project(sources: StereoSources, config: Config, progress: P
             cfg = validate(cfg)
         try:
             cams[side] = calibrate_camera(files[0].parent, cfg, files=list(files), progress=_prefixed(progress, side),
-                                          use_cache=use_cache, scratch=scratch, in_rig=True)
+                                          use_cache=use_cache, scratch=scratch, in_rig=True,
+                                          projection_range=projection_range)
         except DstereoError as exc:
             raise DstereoError(f"{side} camera: {exc}") from None
         timings[f"{side}_s"] = time.perf_counter() - t0

@@ -385,3 +385,29 @@ def total_dof_curve(config: OpticsConfig, focal, f_number) -> np.ndarray:
     scale = dof_focal_length_mm(config) / config.focal_length
     total = total_depth_of_field(config.focus_distance, scale * np.asarray(focal), f_number, coc_of(config))
     return np.where(np.isfinite(total), total, np.nan)
+
+
+@dataclass(frozen=True)
+class DofCurves:
+    """The curves of the thesis's figures 5.1-5.3 (`io.optics_figures` draws them): total DoF (mm, NaN where
+    infinite) against the lens focal length at the chosen N, against N at the chosen f, over a (f, N) grid, and at
+    the chosen set-up."""
+
+    focal: np.ndarray  # (200,) mm
+    total_vs_focal: np.ndarray
+    f_number: np.ndarray  # (200,)
+    total_vs_f_number: np.ndarray
+    grid_focal: np.ndarray  # (120, 120) mm
+    grid_f_number: np.ndarray
+    grid_total: np.ndarray
+    chosen: float
+
+
+def dof_curves(config: OpticsConfig) -> DofCurves:
+    focal, f_number = focal_axis(config), f_number_axis(config)
+    grid_focal, grid_f_number = np.meshgrid(focal_axis(config, 120), f_number_axis(config, 120))
+    return DofCurves(focal, total_dof_curve(config, focal, config.f_number), f_number,
+                     total_dof_curve(config, config.focal_length, f_number), grid_focal, grid_f_number,
+                     total_dof_curve(config, grid_focal, grid_f_number),
+                     float(total_dof_curve(config, config.focal_length, config.f_number)))
+

@@ -13,12 +13,13 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_fit, rate_map
+from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_band, line_fit, rate_map
 from dstereo.recession.frame import Frame
 from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_points, fit_face, frame_from_axis
 from dstereo.recession.surface import grid_over, valid_points
 
 
+LINE_BAND_POINTS = 200  # times at which the recession figure draws the line's band
 STAGNATION_CELLS_ACROSS = 4  # radius in grid cells: ~50 cells in the disc for the 4-parameter quadratic
 
 
@@ -102,6 +103,7 @@ class RecessionResult:
     random_se: np.ndarray | None = None  # (frames, ny, nx) the cell height's random standard error it implies
     noise_checks: dict = field(default_factory=dict)  # frame index -> summary['disparity_noise'] plane check
     search_ranges: dict[int, dict] = field(default_factory=dict)  # frame index -> summary['search_range']
+    fit_band: tuple | None = None  # (times, half-width) of the fitted line's 95 % band (None: <= 2 frames)
 
     @property
     def times(self) -> np.ndarray:
@@ -460,5 +462,8 @@ def _assemble(results, ref: _Reference, ref_index: int, maps: dict, ses: dict, c
     sig = np.array([r.height.se for r in results])[ok]
     weighted = line_fit(t, stag, sig) if np.all(np.isfinite(sig) & (sig > 0)) and ok.sum() > 2 else None
     rates = rate_map(np.array([r.time_s for r in results]), recession)
+    every_t = np.array([r.time_s for r in results])
+    line_t = np.linspace(every_t.min(), every_t.max(), LINE_BAND_POINTS)  # the figure's band of the line
+    band = line_band(fit, t, stag, line_t)
     return RecessionResult(results, ref.sample, ref.grid, ref_index, heights, height_se, recession, fit, weighted,
-                           rates, config, warnings)
+                           rates, config, warnings, fit_band=None if band is None else (line_t, band))

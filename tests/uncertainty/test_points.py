@@ -234,6 +234,7 @@ def test_projection_uncertainty_map_matches_the_recalibrations(mc):
 
 
 def test_projection_uncertainty_in_the_calibration_folder(mc, tmp_path):
+    from dstereo.calib.finished import projection_of
     from dstereo.io.results import write_projection_uncertainty
 
     left = [i for i, n in enumerate(mc.names) if n.startswith("left.")]
@@ -241,13 +242,15 @@ def test_projection_uncertainty_in_the_calibration_folder(mc, tmp_path):
                            names=tuple(mc.names[i][5:] for i in left), cov=np.mean(mc.covs[:, left][:, :, left], 0))
     cal = SimpleNamespace(full=full, detection=SimpleNamespace(object_points=mc.obj, image_size=SIZE),
                           config=SimpleNamespace(unit="mm"))
+    cal.finished = SimpleNamespace(projection=projection_of(cal))
     (tmp_path / "plots").mkdir()
     entry = write_projection_uncertainty(tmp_path, cal)
     assert (tmp_path / "plots" / "projection_uncertainty.png").stat().st_size > 1000
     saved = np.load(tmp_path / "projection_uncertainty.npz")
     assert saved["std"].shape == (24, 32) and entry["range"] == pytest.approx(mean_board_distance(mc.poses, mc.obj))
     assert entry["std_px"]["max"] == pytest.approx(float(saved["std"].max())) and "intrinsics only" in entry["note"]
-    entry = write_projection_uncertainty(tmp_path, cal, projection_range=2000.0)
+    cal.finished = SimpleNamespace(projection=projection_of(cal, 2000.0))
+    entry = write_projection_uncertainty(tmp_path, cal)
     assert entry["range"] == 2000.0 and entry["range_source"] == "given"
 
 

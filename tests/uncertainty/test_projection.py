@@ -83,16 +83,19 @@ def test_non_invertible_pixels_are_masked_and_counted():
 
 
 def test_files_record_method_and_mask(mc, tmp_path):
+    from dstereo.calib.finished import projection_of
     from dstereo.io.results import write_projection_uncertainty
 
     cal = SimpleNamespace(full=mc.nominal, detection=SimpleNamespace(object_points=mc.obj, image_size=SIZE),
                           config=SimpleNamespace(unit="mm"))
+    cal.finished = SimpleNamespace(projection=projection_of(cal))
     (tmp_path / "plots").mkdir()
     entry = write_projection_uncertainty(tmp_path, cal)
     saved = np.load(tmp_path / "projection_uncertainty.npz")
     assert {"u", "v", "std", "cov", "range", "mask", "method"} <= set(saved.files)
     assert str(saved["method"]) == "pose-compensated" == entry["method"] and saved["mask"].all()
-    entry = write_projection_uncertainty(tmp_path, cal, method="intrinsics-only")
+    cal.finished = SimpleNamespace(projection=projection_of(cal, method="intrinsics-only"))
+    entry = write_projection_uncertainty(tmp_path, cal)
     assert entry["method"] == "intrinsics-only" and str(np.load(tmp_path / "projection_uncertainty.npz")["method"]) \
         == "intrinsics-only"
 

@@ -1,0 +1,66 @@
+"""What a camera's results folder shows beyond the solve itself, computed once when the job ends (the writers in
+`dstereo.io` only write it): the reported +- with the views' effects, the projection-uncertainty map, the board the
+written camera was solved on, the splined lens's valid spans."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+@dataclass(frozen=True)
+class FinishedProjection:
+    map: object  # uncertainty.projection map of the full-set solve
+    range_source: str  # "given" or how the range was chosen
+    fallback: bool  # pose-compensated asked for, but the solve kept no per-view blocks: intrinsics-only
+
+
+@dataclass(frozen=True)
+class FinishedCamera:
+    std: np.ndarray  # the +- every file shows: with the views' effects (the Jacobian's when the views agree)
+    view_scatter: object | None  # uncertainty.view_scatter of the full-set solve
+    view_effects: object | None  # uncertainty.view_effects of the full-set solve
+    projection: FinishedProjection
+    board_sag: np.ndarray | None  # (2,) the sag the written camera was solved with (None: a flat board)
+    solved_board: np.ndarray | None  # (n, 3) that board's points
+    splined_spans: object | None  # models.splined.valid_spans of a splined lens
+
+
+def projection_of(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedProjection:
+    """The full-set solve's projection-uncertainty map at `projection_range` (default: the mean board distance of
+    the full-set solve; board unit) by `method`."""
+    from dstereo.uncertainty.projection import METHODS, mean_board_distance, solution_map
+
+    if method not in METHODS:
+        raise ValueError(f"projection method {method!r}: one of {METHODS}")
+    full, det = cal.full, cal.detection
+    source = "given" if projection_range is not None else "mean board distance of the full-set solve"
+    if projection_range is None:
+        projection_range = mean_board_distance(full.poses, det.object_points)
+    fallback = method == "pose-compensated" and getattr(full, "normal", None) is None
+    pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
+    return FinishedProjection(pmap, source, fallback)
+
+
+def finish_camera(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedCamera:
+    """The finished numbers of a `jobs.calibrate_camera.CameraCalibration` (module docstring); the map as
+    `projection_of`."""
+    from dstereo.calib.final_solution import written_camera_solution
+    from dstereo.calib.problem import sagged_board
+    from dstereo.uncertainty.view_effects import reported_std, solution_effects
+    from dstereo.uncertainty.view_scatter import solution_view_scatter
+
+    full, det = cal.full, cal.detection
+    sag = getattr(written_camera_solution(cal), "board_sag", None)
+    spans = None
+    if full.lens_model == "splined":
+        from dstereo.models import splined
+
+        K = cal.final_camera_matrix
+        k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
+        spans = splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free)))
+    return FinishedCamera(
+        std=np.asarray(reported_std(full)), view_scatter=solution_view_scatter(full),
+        view_effects=solution_effects(full), projection=projection_of(cal, projection_range, method),
+        board_sag=None if sag is None else np.asarray(sag),
+        solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans)
