@@ -40,6 +40,24 @@ def _release_compiled_programs(request):
                 if callable(getattr(value, "cache_clear", None)):
                     value.cache_clear()
     gc.collect()
+    _return_freed_memory()
+
+
+def _return_freed_memory() -> None:
+    """Hand the memory freed above back to the system: glibc keeps freed blocks in its arenas, so after
+    `clear_caches` the process stayed near its peak. Measured after a module, before -> after `malloc_trim(0)`:
+    test_problem 1328 -> 425 MB, test_multiview 1118 -> 505, test_engine 1497 -> 551. Not glibc (musl, macOS):
+    nothing to trim, nothing done."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        trim = None
+    if trim is not None:
+        trim(0)
 
 
 def require_data(sub: str) -> Path:

@@ -177,7 +177,7 @@ def test_csv_lines_are_what_csv_writer_writes(tmp_path):
 
 def test_stereo_blocks_fill_the_step_columns(tmp_path, monkeypatch):
     # The stereo glue (solve per block -> STEP_COLUMNS rows -> table), with a stand-in for the rig solver: the
-    # real one is exercised by tests/test_stereo.py (a real run per data set, under KEEP_SOLUTIONS subsets).
+    # real one is exercised by tests/calib/test_stereo.py (a real run per data set, under KEEP_SOLUTIONS subsets).
     from dstereo.jobs import calibrate_stereo as stereo_pipeline
     from dstereo.calib.stereo import STEP_COLUMNS, StereoSubsetSolutions
 

@@ -17,7 +17,7 @@ from dstereo.jobs.calibrate_camera import corner_coverage, suggest_model
 from dstereo.errors import DstereoError
 from test_robust_steps import reference_removed_at
 
-SEED = Path(__file__).resolve().parents[1].parent / "shared" / "seed"
+SEED = Path(__file__).resolve().parents[2].parent / "shared" / "seed"
 THESIS_FLAGS = ["--pattern", "9x6", "--square", "10", "--model", "k1,k2,k3,p1,p2", "--per-set", "10",
                 "--step", "re=0.5", "--step", "p1=1.5,p2=1.5", "--step", "k1=1.5,k2=1.5,k3=1.5",
                 "--step", "fx=1.0,fy=1.0,cx=1.0,cy=1.0", "--no-board-sag"]  # a flat board: compared with OpenCV
