@@ -43,7 +43,7 @@ def projection_of(cal, projection_range: float | None = None, method: str = "pos
 
 
 def finish_camera(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedCamera:
-    """The finished numbers of a `jobs.calibrate_camera.CameraCalibration` (module docstring); the map as
+    """The finished numbers of a `calib.calibrations.CameraCalibration` (module docstring); the map as
     `projection_of`."""
     from dstereo.calib.final_solution import written_camera_solution
     from dstereo.calib.problem import sagged_board

@@ -1,4 +1,4 @@
-"""The results folder of `dstereo calibrate --cameras DIR` (a finished `jobs.calibrate_cameras.MultiviewJob`):
+"""The results folder of `dstereo calibrate --cameras DIR` (a finished `calib.calibrations.MultiviewJob`):
 
     <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
@@ -22,6 +22,11 @@ import numpy as np
 
 from dstereo.io.results import atomic_folder, distortion_vector, fill_camera_folder, write_json
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the finished result this module writes
+    from dstereo.calib.calibrations import MultiviewJob
+
 
 def _distortion(cam) -> np.ndarray:
     return distortion_vector(np.asarray(cam.dist.coeffs), tuple(cam.dist.free))
@@ -33,7 +38,7 @@ def _lens(cam) -> str:
     return lens_model(tuple(cam.dist.free))
 
 
-def write_cameras_yml(path: Path, job) -> None:
+def write_cameras_yml(path: Path, job: MultiviewJob) -> None:
     import cv2
 
     sol = job.solution
@@ -55,7 +60,7 @@ def write_cameras_yml(path: Path, job) -> None:
         fs.release()
 
 
-def cameras_summary(job) -> dict:
+def cameras_summary(job: MultiviewJob) -> dict:
     sol, held = job.solution, job.held
     cams = []
     for i, (label, cam, R, T) in enumerate(zip(job.labels, sol.cameras, sol.R, sol.T)):
@@ -90,7 +95,7 @@ def cameras_summary(job) -> dict:
     }
 
 
-def _write_pair(folder: Path, job, pair) -> tuple[str | None, str | None]:
+def _write_pair(folder: Path, job: MultiviewJob, pair) -> tuple[str | None, str | None]:
     """(file name, None) written, or (None, why not). `pair`: a `calib.rig_pairs.PairCalibration` (with the
     covariance, so reconstruct's point sigmas carry the calibration's)."""
     from dstereo.io.stereo_files import write_stereo_yml
@@ -107,7 +112,7 @@ def _write_pair(folder: Path, job, pair) -> tuple[str | None, str | None]:
     return name, None
 
 
-def write_frames_csv(path: Path, job) -> None:
+def write_frames_csv(path: Path, job: MultiviewJob) -> None:
     sol = job.solution
     head = "frame," + ",".join(f"{lab}_seen,{lab}_rms_px" for lab in job.labels)
     rows = [head]
@@ -153,7 +158,7 @@ def report_markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _rig_figures(plots: Path, job) -> None:
+def _rig_figures(plots: Path, job: MultiviewJob) -> None:
     """plots/rig.png (the rig in the reference's frame with every frame's board) and plots/rig_consistency.png."""
     from dstereo.io.rig_figures import consistency_figure, rig_view
 
@@ -167,7 +172,7 @@ def _rig_figures(plots: Path, job) -> None:
         consistency_figure(job.consistency, plots / "rig_consistency.png")
 
 
-def write_multiview_results(out, job, force: bool = False) -> Path:
+def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path:
     """Write the folder of the module docstring under a temporary name, renamed into place at the end; the pair
     files are `job.pair_files` (`MultiviewJob.choose_pairs`)."""
     out = Path(out)

@@ -40,6 +40,11 @@ from dstereo.errors import DstereoError
 from dstereo.io.json_files import json_default, write_json  # noqa: F401 - the writers' names, importable here
 from dstereo.io.atomic_files import follow_umask
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the finished result this module writes
+    from dstereo.calib.calibrations import CameraCalibration
+
 UNITS = {"fx": "px", "fy": "px", "cx": "px", "cy": "px", "re": "px", "stereo_re": "px"}
 N_UNDISTORTED = 3
 LIST_SURVIVORS = 100_000  # summary.json lists the surviving subsets' numbers up to this many subsets
@@ -246,7 +251,7 @@ def write_camera_files(folder: Path, K: np.ndarray, D: np.ndarray, image_size: t
                                         "distortion_coefficients": np.asarray(D).ravel().tolist(), **extra})
 
 
-def summary_dict(cal) -> dict:
+def summary_dict(cal: CameraCalibration) -> dict:
     """summary.json of a `CameraCalibration`."""
     full, det, done = cal.full, cal.detection, finished(cal)
     names = list(full.names)
@@ -317,7 +322,7 @@ def summary_dict(cal) -> dict:
     return summary
 
 
-def write_camera_results(out: str | Path, cal, force: bool = False, early: "EarlyFigures | None" = None) -> Path:
+def write_camera_results(out: str | Path, cal: CameraCalibration, force: bool = False, early: "EarlyFigures | None" = None) -> Path:
     """Write the whole results folder of one camera's `CameraCalibration` (see the module docstring); `early`: the
     parameter figures already drawn (`EarlyFigures`), taken in instead of drawn again."""
     out = Path(out)
@@ -330,7 +335,7 @@ def write_camera_results(out: str | Path, cal, force: bool = False, early: "Earl
     return out
 
 
-def write_projection_uncertainty(folder: Path, cal, figures=None) -> dict:
+def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=None) -> dict:
     """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
     the full-set solve's map (`calib.finished`); returns the summary entry. `figures`: a `figure_pool.Figures`
     that draws the PNG (else drawn here)."""
@@ -365,7 +370,7 @@ def write_projection_uncertainty(folder: Path, cal, figures=None) -> dict:
     return entry
 
 
-def finished(cal):
+def finished(cal: CameraCalibration):
     """The calibration's finished numbers (`calib.finished.FinishedCamera`), which the job computes before any
     writer runs: this module writes them and computes nothing."""
     done = getattr(cal, "finished", None)
@@ -453,7 +458,7 @@ def _drawn_columns(filtering) -> list[str]:
     return [n for n in filtering.columns if n not in WARP_NAMES]
 
 
-def _solved_board(cal):
+def _solved_board(cal: CameraCalibration):
     """({"board_sag": ...} for camera.json or {}, the board the written camera was solved with or None, the
     camera.yml comment): a camera solved with the board's sag fits its corners on THAT board; refitted on the
     flat nominal board it reads 0.1-5 % worse than a flat solve (measured on the real sets), which says nothing
@@ -469,7 +474,7 @@ def _solved_board(cal):
                           "object_points": "corners.npz object_points_solved", "note": text}}, board, text
 
 
-def fill_camera_folder(folder: Path, cal, early: EarlyFigures | None = None) -> dict:
+def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures | None = None) -> dict:
     """Everything of the results folder into an existing (temporary) folder; returns the summary. `early`:
     parameter figures drawn already (`EarlyFigures`)."""
     from dstereo.io import plots
@@ -539,7 +544,7 @@ def fill_camera_folder(folder: Path, cal, early: EarlyFigures | None = None) -> 
     return summary
 
 
-def _write_mrcal(folder: Path, cal, K: np.ndarray) -> str:
+def _write_mrcal(folder: Path, cal: CameraCalibration, K: np.ndarray) -> str:
     """camera.cameramodel (mrcal's format, io/cameramodel.py) of what camera.yml holds; what was done, or why not."""
     from dstereo.io.cameramodel import write_cameramodel
 
@@ -547,7 +552,7 @@ def _write_mrcal(folder: Path, cal, K: np.ndarray) -> str:
                              cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate")
 
 
-def write_undistorted(folder: Path, cal, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
+def write_undistorted(folder: Path, cal: CameraCalibration, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:
     """Original | undistorted side by side for the images whose corners reach furthest from the centre."""
     import cv2
 
@@ -613,7 +618,7 @@ def _fmt_px(value) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 
-def report_markdown(cal, summary: dict) -> str:
+def report_markdown(cal: CameraCalibration, summary: dict) -> str:
     """report.md: the run in a page, tying the files of the folder together."""
     from dstereo.models.distortion import model_label
 

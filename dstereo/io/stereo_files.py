@@ -247,7 +247,7 @@ STEREO_TITLE = "STEREO PARAMETERS"
 STEREO_UNITS = {"stereo_re": "px", "RVnorm": "rad", "RVx": "rad", "RVy": "rad", "RVz": "rad"}
 
 
-def write_stereo_results(out, job, force: bool = False) -> Path:
+def write_stereo_results(out, job: StereoCalibrationJob, force: bool = False) -> Path:
     """The results folder of a `stereo_pipeline.StereoCalibrationJob`, filled under a temporary name:
         left/, right/            each camera's folder, as `dstereo calibrate` writes for one camera
         stereo.yml, stereo.json  M1 D1 M2 D2 R T E F imageSize (final values) / everything, with std; both
@@ -274,7 +274,7 @@ def write_stereo_results(out, job, force: bool = False) -> Path:
     return out
 
 
-def stereo_summary(job) -> dict:
+def stereo_summary(job: StereoCalibrationJob) -> dict:
     """summary.json / stereo.json of a stereo job."""
     from dstereo.config.calibration import as_dict
     from dstereo.models.distortion import coeff_slots
@@ -334,7 +334,7 @@ def stereo_summary(job) -> dict:
     return summary
 
 
-def _fill_stereo_folder(folder: Path, job) -> None:
+def _fill_stereo_folder(folder: Path, job: StereoCalibrationJob) -> None:
     from dstereo.io.results import write_stats_files, write_subsets_csv
 
     s, det = job.full, job.detection
@@ -393,6 +393,11 @@ def _fill_stereo_folder(folder: Path, job) -> None:
 
 from dstereo.io.figures import pyplot as _pyplot  # noqa: E402 - the figures below share io/figures' backend
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the finished result this module writes
+    from dstereo.calib.calibrations import StereoCalibrationJob
+
 
 def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
     """Thesis Figures 5.15/5.16: one panel per parameter, box plots of the initial and the optimised subsets."""
@@ -441,7 +446,7 @@ def pair_rms_figure(names: list[str], rms: np.ndarray, left: np.ndarray, right: 
     plt.close(fig)
 
 
-def report_markdown(job, summary: dict) -> str:
+def report_markdown(job: StereoCalibrationJob, summary: dict) -> str:
     """report.md of a stereo run."""
     s, det, unit = job.full, job.detection, job.config.unit
     fmt = lambda v: f"{v:.6g}" if v == v else "-"  # noqa: E731

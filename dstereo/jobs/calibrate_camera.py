@@ -10,16 +10,14 @@ cv2.calibrateCamera returns (the thesis calls it the mean reprojection error).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from dstereo.calib.coverage import (  # noqa: F401 - the coverage names, importable from the job
-    CORNER_MIN_PERCENT, QUADRANT_MIN_PERCENT, REGIONS, Coverage, corner_coverage,
-)
-from dstereo.calib.robust_steps import FilterResult, run_steps
+from dstereo.calib.coverage import corner_coverage
+from dstereo.calib.calibrations import CameraCalibration
+from dstereo.calib.robust_steps import run_steps
 from dstereo.config.calibration import Config, Step, validate
 from dstereo.errors import DstereoError
 
@@ -46,61 +44,6 @@ def suggest_model(free: tuple[str, ...], identifiable: bool, weak: Sequence[str]
     return (f"model {','.join(free)} is not identifiable from these views (weak: {weak_text}); use the simpler "
             f"model --model {choice} ({','.join(PRESETS[choice])}), let held-out views choose (--model auto), or "
             "add views that fill the image corners")
-
-
-@dataclass
-class CameraCalibration:
-    """Everything one camera's run produced. `final` is what the camera file holds: with subsets the solve on
-    the surviving subsets' views (or, with `final = "mean"`, the thesis's mean over surviving subsets, then in
-    `subset_mean` too), else the full-set solve; `full` always holds the full-set solve."""
-
-    config: Config
-    folder: Path
-    files: list[Path]
-    detection: object  # dstereo.io.corners.Detection
-    used: list[str]  # usable image names, in the order of `observations`
-    observations: np.ndarray  # (V, n, 2) px
-    full: object  # dstereo.calib.mono.CameraSolution
-    plan: object | None  # dstereo.calib.subsets.SubsetPlan
-    subsets: object | None  # dstereo.calib.mono.SubsetSolutions; None above KEEP_SOLUTIONS subsets (the
-    # per-subset values and status are then only in `filtering.table`)
-    filtering: FilterResult | None
-    columns: tuple[str, ...]  # ("re", fx, fy, cx, cy, free coefficients...)
-    final: dict[str, float]
-    spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
-    coverage: Coverage
-    model_advice: str | None
-    warnings: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    # With subsets: the survivors' solve, the thesis's subset mean and how they compare (calib/final_solution.py)
-    final_solution: object | None = None
-    subset_mean: dict[str, float] | None = None
-    outliers: object | None = None  # dstereo.calib.outliers.OutlierReport: corners and views rejected
-    residual_pattern: object | None = None  # dstereo.calib.misfit.ResidualPattern of the full-set solve (inliers)
-    residual_pattern_all: object | None = None  # ... of the solve on every corner, before outlier rejection
-    model_choice: object | None = None  # dstereo.calib.model_choice.ModelChoice with --model auto
-    cross_validation: object | None = None  # dstereo.calib.cross_validation.CrossValidation (--cross-validate N)
-    projection_method: str = "pose-compensated"  # of the projection-uncertainty map the results folder draws
-    finished: object | None = None  # calib.finished.FinishedCamera: what the results folder shows
-
-    @property
-    def unconverged(self) -> list[int]:
-        if self.filtering is None:
-            return []
-        return [int(i) for i in np.flatnonzero(~(self.filtering.table.status > 0))]
-
-    @property
-    def final_coefficients(self) -> np.ndarray:
-        """(8,) distortion coefficients of `final`, OpenCV order (fisheye: cv2.fisheye's D in [:4]), zeros where
-        not free."""
-        from dstereo.models.distortion import coeff_slots
-
-        return np.array([self.final.get(n, 0.0) if n else 0.0 for n in coeff_slots(tuple(self.config.model))])
-
-    @property
-    def final_camera_matrix(self) -> np.ndarray:
-        f = self.final
-        return np.array([[f["fx"], 0.0, f["cx"]], [0.0, f["fy"], f["cy"]], [0.0, 0.0, 1.0]])
 
 
 def list_camera_images(folder: Path, config: Config, image_format: str | None = None) -> list[Path]:

@@ -15,64 +15,20 @@ thesis's stereo steps on every adjacent pair come before (`calib/rig_subsets.py`
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from dstereo.calib.multiview import MultiviewSolution, calibrate_views
-from dstereo.jobs.calibrate_camera import CameraCalibration, calibrate_camera, camera_of, list_camera_images
+from dstereo.calib.calibrations import CameraCalibration, MultiviewJob, pair_indices
+from dstereo.jobs.calibrate_camera import calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
-from dstereo.calib.rig_cross_validation import RigCrossValidation, cross_validate_rig
-from dstereo.calib.rig_subsets import RigSubsets, run_rig_subsets
+from dstereo.calib.rig_cross_validation import cross_validate_rig
+from dstereo.calib.rig_subsets import run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 
-
-
-@dataclass
-class MultiviewJob:
-    config: Config
-    root: Path
-    labels: tuple[str, ...]  # subfolder names, the reference first
-    cameras: list[CameraCalibration]
-    frames: list[str]  # frame names (image stems) seen by at least one camera
-    visible: np.ndarray  # (F, K)
-    observations: np.ndarray  # (F, K, n, 2), NaN where not seen
-    held: MultiviewSolution  # every camera held at its own calibration
-    solution: MultiviewSolution  # the joint solve: cameras.yml
-    warnings: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all
-    consistency: RigConsistency | None = None  # calib/rig_consistency.py on the joint solve
-    subsets: RigSubsets | None = None  # with `per_set`: the rig's frame subsets and stereo steps
-    rejected_frames: list = field(default_factory=list)  # (frame, T_f / dof_f) the consistency test removed
-    cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
-    pair_files: list = field(default_factory=list)  # calib.rig_pairs.PairCalibration of each stereo file (choose_pairs)
-
-    def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
-        """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""
-        return pair_indices(self.labels, self.root, chosen)
-
-    def choose_pairs(self, chosen: tuple[str, str] | None = None) -> None:
-        """The stereo files to write (`pairs`), each pair's rig and covariance computed (`calib.rig_pairs`)."""
-        from dstereo.calib.rig_pairs import pair_calibration
-
-        self.pair_files = [pair_calibration(self.solution, a, b) for a, b in self.pairs(chosen)]
-
-
-def pair_indices(labels: tuple[str, ...], root: Path, chosen: tuple[str, str] | None) -> list[tuple[int, int]]:
-    """`MultiviewJob.pairs`, from the camera labels alone (checked before the job runs)."""
-    if chosen is None:
-        return [(i, i + 1) for i in range(len(labels) - 1)]
-    idx = []
-    for name in chosen:
-        if name not in labels:
-            raise DstereoError(f"pair: no camera '{name}' under {root}; cameras are {', '.join(labels)}")
-        idx.append(labels.index(name))
-    if idx[0] == idx[1]:
-        raise DstereoError(f"pair: {chosen[0]} twice; name two different cameras")
-    return [tuple(idx)]
 
 
 def camera_folders(root: Path, config: Config) -> list[Path]:

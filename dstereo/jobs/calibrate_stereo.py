@@ -18,39 +18,24 @@ stereo_re, Tnorm, Tx, Ty, Tz, RVnorm, RVx, RVy, RVz. Nothing here prints or writ
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from dstereo.jobs.calibrate_camera import CameraCalibration, Progress, calibrate_camera, camera_of
-from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, RigConsistency, of_stereo
-from dstereo.calib.robust_steps import FilterResult, run_steps
-from dstereo.calib.stereo import STEP_COLUMNS, StereoSolution, StereoSubsetSolutions, calibrate_stereo, \
+from dstereo.calib.calibrations import FLAT_BOARD_NOTE, RigSag, StereoCalibrationJob, StereoSources
+from dstereo.jobs.calibrate_camera import Progress, calibrate_camera, camera_of
+from dstereo.calib.rig_consistency import RIG_RMS_FACTOR, of_stereo
+from dstereo.calib.robust_steps import run_steps
+from dstereo.calib.stereo import STEP_COLUMNS, StereoSubsetSolutions, calibrate_stereo, \
     solve_stereo_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
 from dstereo.io.corners import list_images
 from dstereo.io.pairing import LEFT_FOLDERS, RIGHT_FOLDERS
-from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs
+from dstereo.io.stereo_files import DroppedPair, detect_pairs
 from dstereo.uncertainty.rig import FIXED_STRUCTURE, JOINT_STRUCTURE
 
 STEREO_FOLDERS = ("images_stereo_left", "images_stereo_right")
-
-
-@dataclass(frozen=True)
-class StereoSources:
-    """Image files of the individual calibrations and of the stereo pairs (same lists when shared)."""
-
-    mono_left: tuple[Path, ...]
-    mono_right: tuple[Path, ...]
-    stereo_left: tuple[Path, ...]
-    stereo_right: tuple[Path, ...]
-    description: str
-
-    @property
-    def shared(self) -> bool:
-        return self.mono_left == self.stereo_left and self.mono_right == self.stereo_right
 
 
 def _files(source: Path, image_format: str | None, flag: str) -> tuple[Path, ...]:
@@ -134,21 +119,7 @@ def flat_board_check(cams: dict, warnings: list[str]) -> str:
     return FLAT_BOARD_NOTE + ". Measured on each camera's own views: " + "; ".join(found)
 
 
-FLAT_BOARD_NOTE = "not solved (--no-board-sag): a flat board for both cameras and the rig, as OpenCV"
 SAG_DISAGREE_Z = 3.0  # the two cameras' sags this many sigmas apart: one board cannot sag two ways
-
-
-@dataclass(frozen=True)
-class RigSag:
-    """The board's sag a rig is solved on (x, y in the board unit) and its sigma, with the summary's text."""
-
-    value: np.ndarray
-    std: np.ndarray
-    note: str
-
-    def as_dict(self) -> dict:
-        return {"x": float(self.value[0]), "y": float(self.value[1]), "std_x": float(self.std[0]),
-                "std_y": float(self.std[1])}
 
 
 def rig_board_sag(det, cams: dict, warnings: list[str]) -> RigSag | None:
@@ -182,44 +153,6 @@ def rig_board_sag(det, cams: dict, warnings: list[str]) -> RigSag | None:
                         "in a way the two-parameter sag does not describe; the rig uses their weighted mean")
     return RigSag(sag, sigma, f"solved: x {sag[0]:+.4g} +- {sigma[0]:.2g}, y {sag[1]:+.4g} +- {sigma[1]:.2g} {unit}, "
                   f"the weighted mean of each camera's own solve ({per}), held in the rig solve and its subsets")
-
-
-@dataclass
-class StereoCalibrationJob:
-    """Everything a stereo run produced. `final` is the thesis's answer (mean over surviving subsets) when
-    subsets were solved, else the full-set solve; `full` always holds the full-set solve with Jacobian std."""
-
-    config: Config
-    sources: StereoSources
-    left: CameraCalibration
-    right: CameraCalibration
-    detection: StereoDetection
-    full: StereoSolution
-    plan: object | None
-    subsets: StereoSubsetSolutions | None  # None above KEEP_SOLUTIONS subsets: then only `filtering.table`
-    filtering: FilterResult | None
-    final: dict[str, float]  # STEP_COLUMNS
-    spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
-    R: np.ndarray
-    T: np.ndarray
-    E: np.ndarray
-    F: np.ndarray
-    warnings: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    # calib/final_solution.py: the rig solve on the surviving pairs beside the thesis's subset mean, and the
-    # rig's honest +- (fixed mode: intrinsics errors carried into the rig)
-    rig_final: object | None = None
-    subset_mean: dict[str, float] | None = None
-    calibration_covariance: tuple | None = None  # rig_covariance(job) of the written calibration
-    full_set_sigma: object | None = None  # final_solution.RigSigma of the full-set solve
-    board_sag: str = FLAT_BOARD_NOTE  # what this rig assumes of the board
-    consistency: RigConsistency | None = None  # calib/rig_consistency.py: does one rig explain the pairs?
-    rig_sag: RigSag | None = None  # the board's sag the rig was solved on (None: flat)
-    cross_validation: object | None = None  # calib/rig_cross_validation.RigCrossValidation (--cross-validate N)
-
-    @property
-    def columns(self) -> tuple[str, ...]:
-        return STEP_COLUMNS
 
 
 class _Prefixed:

@@ -16,6 +16,7 @@ from dstereo.calib.subsets import plan_subsets
 from dstereo.errors import DstereoError
 from dstereo.io.corners import Detection, detect_folder
 from dstereo.io.stereo_files import DroppedPair, StereoDetection, detect_pairs, image_files
+from dstereo.models.camera import Camera
 from dstereo.models.distortion import COEFF_NAMES, PRESETS
 
 

@@ -8,7 +8,7 @@ from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from scipy.stats import gaussian_kde
 
-from dstereo.jobs.calibrate_camera import CORNER_MIN_PERCENT, corner_coverage
+from dstereo.calib.coverage import CORNER_MIN_PERCENT, corner_coverage
 from dstereo.io import plots
 from dstereo.io.figures import colour_limits, log_ticks, tick_label
 from dstereo.io.plots import MAX_FLIERS, binned_kde, box_stats, corner_patches
