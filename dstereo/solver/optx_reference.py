@@ -2,8 +2,8 @@
 
 optimistix is the design's solver library. Its LM sees one flat vector [g, all poses] and factorises the
 dense (2n V) x (G + 6V) Jacobian each step; the structured solver in `lm.py` eliminates the pose blocks
-instead. The benchmark runs both on the same subsets and the README records the ratio; tests check that
-both reach the same optimum.
+instead. The benchmark (`make bench`) runs both on the same subsets and writes the ratio to experiments/results/;
+tests check that both reach the same optimum.
 """
 
 from __future__ import annotations

@@ -54,8 +54,8 @@ def test_stagnation_recession_and_rate_recovered(analysed):
     measured = np.array([float(r["recession_mm"]) for r in rows])
     true = np.array(truth["recession_stagnation_mm"])
     assert true[-1] == pytest.approx(2.0) and true[0] == 0.0
-    # The README's figures for this resolution (320x240; measured over seeds 0, 1, 2: RMS 0.015, 0.028, 0.026 mm,
-    # rate +0.15, -0.77, +0.26 %); this fixture is seed 0.
+    # Measured at this resolution (320x240) over seeds 0, 1, 2: RMS 0.015, 0.028, 0.026 mm,
+    # rate +0.15, -0.77, +0.26 %; this fixture is seed 0.
     assert np.sqrt(np.mean((measured - true) ** 2)) <= 0.03
     rate, true_rate = summary["rate"]["rate"], truth["rate_stagnation_mm_s"]
     assert abs(rate / true_rate - 1) <= 0.008
