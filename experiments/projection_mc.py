@@ -16,46 +16,8 @@ import numpy as np
 
 from dstereo.calib.cross_validation import solve_halves
 from dstereo.calib.mono import calibrate_full
-from dstereo.models.camera import Camera
+from dstereo.synth.board_views import FREE, SIZE, board_fixed_spread, scene
 from dstereo.uncertainty.projection import mean_board_distance, solution_map
-from dstereo.synth import Board, board_pose_set, object_points, true_corners
-from dstereo.synth.poses import compose, invert
-
-SIZE, PATTERN, SQUARE = (640, 480), (9, 6), 25.0
-FREE = ("k1", "k2", "p1", "p2", "k3")
-
-
-def scene(n_views: int = 12, seed: int = 0):
-    cam = Camera.create(800.0, 805.0, 322.0, 238.0, [-0.25, 0.1, 1e-3, -5e-4, -0.02], FREE, SIZE)
-    poses = board_pose_set([cam], [np.zeros(6)], Board(PATTERN, SQUARE, SQUARE), n_views, seed)
-    obj = object_points(PATTERN, SQUARE)
-    corners = np.stack([true_corners(cam, p, PATTERN, SQUARE) for p in poses])
-    return cam, poses, obj, corners
-
-
-def board_fixed_spread(cam, true_poses, draws, q, range_):
-    """(D, N, 2) projections minus q of the board-fixed points through each draw's solution."""
-    import cv2
-
-    k = np.asarray(cam.k)
-    K = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1.0]])
-    rays = np.c_[cv2.undistortPoints(q.reshape(-1, 1, 2), K, np.asarray(cam.coeffs()),
-                                     criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)).reshape(-1, 2),
-                 np.ones(len(q))]
-    p = range_ * rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    from scipy.spatial.transform import Rotation
-
-    def apply(pose, pts):
-        return Rotation.from_rotvec(pose[:3]).apply(pts) + pose[3:]
-
-    p_board = [apply(invert(t), p) for t in true_poses]
-    out = []
-    for d in draws:
-        back = np.mean([apply(pd, pb) for pd, pb in zip(d.poses, p_board)], axis=0)
-        kd = d.params[:4]
-        Kd = np.array([[kd[0], 0, kd[2]], [0, kd[1], kd[3]], [0, 0, 1.0]])
-        out.append(cv2.projectPoints(back, np.zeros(3), np.zeros(3), Kd, d.params[4:])[0].reshape(-1, 2) - q)
-    return np.array(out)
 
 
 def main(n_draws: int = 200, sigma: float = 0.3):
