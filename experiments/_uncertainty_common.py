@@ -1,6 +1,6 @@
-"""Shared pieces of the uncertainty experiments (`uncertainty_mc`, `model_choice`, `real_uncertainty`).
+"""Shared pieces of the uncertainty experiments (`uncertainty_mc`, `model_choice`, `real_uncertainty`, `projection_mc_rendered`).
 
-- the synthetic camera with a known truth, its rendered board views and an end-to-end noise draw (fresh sensor
+- the synthetic camera with a known truth (`dstereo.synth.board_views.webcam`), its rendered board views and an end-to-end noise draw (fresh sensor
   noise on the stored radiance, then the project's own corner detector);
 - the real sets of ../shared/data as (object points, corners, image size, names);
 - the subset-spread scalings (delete-d jackknife), view-bootstrap plans for the engine's batched subset solver,
