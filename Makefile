@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench install lock clean
+.PHONY: demo test bench bench-check install lock clean
 
 LOCK := requirements.lock
 
@@ -32,9 +32,16 @@ test: $(STAMP)
 	rc=$$?; if [ $$rc -eq 5 ]; then echo "make test: no test is marked numerics; the second pass checked nothing" >&2; fi; \
 	exit $$rc
 
-# The solver alone (bench_subsets), then whole runs in new processes against the thesis approach and cv2
-# (bench_end_to_end); both write experiments/results/.
-bench: $(STAMP)
+# Two figures of docs/validation.md recomputed and compared with the file (each prints recomputed / documented;
+# a figure off by more than its last digit fails): the Middlebury table (seconds) and the rig-consistency table
+# (120 exact-corner rig solves, ~2 min on 2 cores).
+bench-check: $(STAMP)
+	$(BIN)/python -m experiments.middlebury --no-refine --check
+	$(BIN)/python -m experiments.rig_consistency_seeds --check
+
+# The spot checks, the solver alone (bench_subsets), then whole runs in new processes against the thesis approach
+# and cv2 (bench_end_to_end); both write experiments/results/.
+bench: bench-check
 	$(BIN)/python -m experiments.bench_subsets
 	$(BIN)/python -m experiments.bench_end_to_end
 

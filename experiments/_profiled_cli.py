@@ -1,7 +1,7 @@
 """`dstereo ...` in this process with a breakdown on stderr (one line `PROFILE {json}` at exit): when JAX finished
 importing, JAX's own compile-pipeline durations (jax.monitoring: tracing, lowering to MLIR, XLA compile, persistent
 cache retrieval) and the time spent loading executables from disk (runtime/aot.py). Used by
-experiments/startup_breakdown.py; run as `python -m experiments._profiled_cli calibrate ...`."""
+experiments/bench_end_to_end.py; run as `python -m experiments._profiled_cli calibrate ...`."""
 
 from __future__ import annotations
 

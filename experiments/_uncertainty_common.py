@@ -1,6 +1,6 @@
-"""Shared pieces of the uncertainty experiments (`uncertainty_mc`, `model_choice`, `real_uncertainty`).
+"""Shared pieces of the uncertainty experiments (`uncertainty_mc`, `model_choice`, `real_uncertainty`, `projection_mc_rendered`).
 
-- the synthetic camera with a known truth, its rendered board views and an end-to-end noise draw (fresh sensor
+- the synthetic camera with a known truth (`dstereo.synth.board_views.webcam`), its rendered board views and an end-to-end noise draw (fresh sensor
   noise on the stored radiance, then the project's own corner detector);
 - the real sets of ../shared/data as (object points, corners, image size, names);
 - the subset-spread scalings (delete-d jackknife), view-bootstrap plans for the engine's batched subset solver,
@@ -25,6 +25,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dstereo.calib.subsets import SubsetPlan  # noqa: E402
+from dstereo.synth.board_views import webcam  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -76,11 +77,7 @@ class SyntheticViews:
         return None if any(q is None for q in out) else np.stack(out)
 
 
-def truth_camera(coeffs=(-0.25, 0.12), free=("k1", "k2")):
-    """The synthetic camera: 640 x 480, f ~ 820 px (a webcam like opencv_stereo's), known distortion."""
-    from dstereo.models.camera import Camera
-
-    return Camera.create(820.0, 818.0, 322.0, 236.0, coeffs, free=free, image_size=(640, 480))
+truth_camera = webcam  # the synthetic camera with a known truth (dstereo.synth.board_views)
 
 
 # Sensor noise: Poisson shot noise (1000 e- at white) plus 2 DN read noise, the usual 1 px lens blur.
@@ -100,15 +97,6 @@ def render_views(camera, n_views: int, seed: int = 0, square: float = 20.0) -> S
     radiance = [np.asarray(board_radiance(rays, jnp.asarray(p), board)) for p in poses]
     truth = np.stack([true_corners(camera, p, PATTERN, square) for p in poses])
     return SyntheticViews(camera, poses, radiance, truth, object_points(PATTERN, square), options)
-
-
-def iid_views(camera, n_views: int, noise_px: float, seed: int = 0, square: float = 20.0):
-    """(obj, obs) with iid Gaussian noise on the true corners: the textbook case, cheap enough for tests."""
-    from dstereo.synth import Board, board_pose_set, object_points, true_corners
-
-    poses = board_pose_set([camera], [np.zeros(6)], Board(PATTERN, square, square), n_views, seed)
-    truth = np.stack([true_corners(camera, p, PATTERN, square) for p in poses])
-    return object_points(PATTERN, square), truth + np.random.default_rng(seed + 1).normal(0, noise_px, truth.shape)
 
 
 # --- real data ----------------------------------------------------------------------------------------------------

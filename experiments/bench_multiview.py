@@ -1,6 +1,6 @@
 """The K = 3 subset case of bench_subsets: many frame subsets of a rendered 3-camera rig, solved batched.
 
-The rig is `synth.multiview_set(3, 60, seed=3)` (experiments/multiview_truth.py's K = 3 case), corners detected
+The rig is `synth.multiview_set(3, 60, seed=3)` (tests/calib/test_multiview.py's K = 3 case), corners detected
 and ordered, float32. dstereo solves every subset with `calib.multiview.solve_view_subsets` from the full solve,
 in joint mode (everything refined) and in fixed mode (OpenCV's intrinsics held); OpenCV solves each subset with
 `calibrateMultiviewExtended`, once its own way (per-camera calibrateCamera, then extrinsics) and once with the
@@ -16,10 +16,20 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.multiview_truth import FIVE, opencv_cameras, render_case
-from experiments.opencv_multiview import calibrate_multiview, float32_corners
+from tests.calib.opencv_reference import FIVE, calibrate_multiview, float32_corners, opencv_cameras
 
 N_CAMERAS, SEED, PER_SET, CAP = 3, 3, 40, 200
+
+
+def render_case(n_cameras: int, seed: int, folder: Path):
+    """The CameraFolders of one rendered rig written to `folder`."""
+    from dstereo.io.camera_folders import read_camera_folders
+    from dstereo.synth import multiview_set, write_multiview_set
+
+    mset = multiview_set(n_cameras, 60, seed)
+    write_multiview_set(folder, mset, force=True)
+    board = mset.truth["board"]
+    return read_camera_folders(folder, tuple(board["pattern"]), board["square"], use_cache=False)
 
 
 def _translations(names, values: np.ndarray, n_cams: int) -> np.ndarray:
@@ -41,7 +51,7 @@ def multiview_subset_case() -> dict:
     from dstereo.calib.subsets import plan_subsets
 
     with tempfile.TemporaryDirectory() as tmp:
-        _, folders = render_case(N_CAMERAS, SEED, Path(tmp) / "rig")
+        folders = render_case(N_CAMERAS, SEED, Path(tmp) / "rig")
     obs = float32_corners(folders.obs)
     args = (folders.object_points, obs, folders.visible, folders.image_sizes)
     cv_full = calibrate_multiview(*args)

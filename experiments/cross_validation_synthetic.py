@@ -3,7 +3,7 @@
 The acceptance band for the real cameras (geometric-mean observed/predicted 0.67-1.5, median Mahalanobis <= 1.8)
 is a statement about a noisy statistic. Here the same `cross_validate` (12 random half splits, the tool's
 covariance with the views' effects) runs on synthetic sets whose errors follow three processes
-(experiments/view_effects_mc.py: independent corner noise, each view seeing its own camera, a board flexing per
+(`dstereo.synth.board_views`: independent corner noise, each view seeing its own camera, a board flexing per
 view), 8 seeds each, at 13 and 25 views (the real sets' sizes). Under independent noise the covariance is right by
 construction (Monte Carlo: predicted / MC std 0.97-1.14), so its row shows where a right prediction lands.
 Run: .venv/bin/python -m experiments.cross_validation_synthetic   (a few minutes)."""
@@ -14,21 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
-import experiments.view_effects_mc as mc
 from dstereo.calib.cross_validation import cross_validate
 from dstereo.calib.mono import calibrate_full
-from dstereo.synth import Board, board_pose_set, object_points
+from dstereo.synth.board_views import FREE, PROCESSES, SIZE, process_views
 
 SEEDS, SPLITS = 8, 12
 
 
 def one(process: str, views: int, seed: int):
-    rng = np.random.default_rng(100 + seed)
-    cam0 = mc._camera(np.r_[mc.TRUE[:4], mc.TRUE[4]])
-    poses = board_pose_set([cam0], [np.zeros(6)], Board(mc.PATTERN, mc.SQUARE, mc.SQUARE), views, 50 + seed)
-    obj = object_points(mc.PATTERN, mc.SQUARE)
-    obs = mc.corners(rng, process, poses, obj)
-    return cross_validate(calibrate_full(obj, obs, mc.SIZE, mc.FREE), obj, obs, mc.SIZE, SPLITS, seed=seed)
+    obj, obs = process_views(process, views, seed=100 + seed, pose_seed=50 + seed)
+    return cross_validate(calibrate_full(obj, obs, SIZE, FREE), obj, obs, SIZE, SPLITS, seed=seed)
 
 
 def main() -> None:
@@ -37,7 +32,7 @@ def main() -> None:
              "band a right prediction reads (5-95 %) | that band's acceptance pass rate: median |",
              "|---|---|---|---|---|---|---|---|---|"]
     for views in (13, 25):
-        for process in ("independent", "camera jitter", "board flex"):
+        for process in PROCESSES:
             xs = [one(process, views, s) for s in range(SEEDS)]
             gm = np.array([x.ratio for x in xs])
             raw = np.array([x.ratio_raw for x in xs])

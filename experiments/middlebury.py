@@ -8,6 +8,7 @@ Acceptance: median relative depth error <= 1 % and density >= 80 % on at least f
 
     python -m experiments.middlebury [--data ../shared/data/middlebury2014q] [--out results/middlebury.md]
         [--no-refine]   (SGBM's disparity as it is, without the sub-pixel refinement of dstereo.stereo.subpixel)
+        [--check]       (with --no-refine: recompute docs/validation.md's table and compare; `make bench-check`)
 """
 
 from __future__ import annotations
@@ -79,16 +80,37 @@ def table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+CHECKED = {"bad-2.0 % (valid)": "bad2_valid_pct", "bad-2.0 % (missing = bad)": "bad2_all_pct",
+           "density %": "density_pct", "median rel. depth err. %": "median_rel_depth_pct",
+           "p90 rel. depth err. %": "p90_rel_depth_pct"}
+
+
+def check(rows: list[dict]) -> bool:
+    """The refinement-off figures against docs/validation.md's Middlebury table."""
+    from experiments._validation import compare, table
+
+    documented = {r["scene"]: r for r in table("### Middlebury 2014, one SGBM parameter set")}
+    ok = [compare(f"middlebury {r['scene']} {col}", r[key], documented[r["scene"]][col])
+          for r in rows for col, key in CHECKED.items()]
+    ok.append(set(documented) == {r["scene"] for r in rows})
+    print(f"middlebury --check: {sum(ok[:-1])} of {len(ok) - 1} figures as documented", flush=True)
+    return all(ok)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--out", type=Path, default=None, help="markdown file for the table (default: print only)")
     parser.add_argument("--no-refine", dest="refine", action="store_false",
                         help="SGBM's disparity without the sub-pixel refinement")
+    parser.add_argument("--check", action="store_true",
+                        help="compare with docs/validation.md's table (with --no-refine); exit 1 where one differs")
     args = parser.parse_args()
     scenes = sorted(p for p in args.data.iterdir() if (p / "calib.txt").is_file())
     config = ReconstructionConfig(sgbm=PARAMS, refine=args.refine, uncertainty=False)
     rows = [evaluate(scene, config) for scene in scenes]
+    if args.check:
+        raise SystemExit(0 if check(rows) else 1)
     passed = sum(r["median_rel_depth_pct"] <= 1.0 and r["density_pct"] >= 80.0 for r in rows)
     text = table(rows) + (
         f"\nOne SGBM parameter set for all scenes: `{json.dumps(PARAMS.as_dict())}`; sub-pixel refinement "

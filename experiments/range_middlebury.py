@@ -18,7 +18,6 @@ At 2x the threshold is 4 px (the same error in the original pixels).
 from __future__ import annotations
 
 import argparse
-import re
 import tempfile
 from pathlib import Path
 

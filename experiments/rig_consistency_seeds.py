@@ -4,7 +4,9 @@ K = 2, 3, 4 ring rigs (`synth/rig_corners.py`), 24 frames, 0.1 px noise; each ca
 views (as `--cameras` does), the rig solved jointly from there, then `calib/rig_consistency.py`. Simultaneous frames
 against a board moved SHIFT mm between the reference's exposure and the others'. Writes results/rig_consistency.json.
 
-    .venv/bin/python experiments/rig_consistency_seeds.py [SEEDS]
+    .venv/bin/python -m experiments.rig_consistency_seeds [SEEDS] [--check]
+
+--check (`make bench-check`): the 20 seeds again, compared with docs/validation.md's table (nothing written).
 """
 
 from __future__ import annotations
@@ -30,7 +32,26 @@ def consistency(case: dict):
     return of_multiview(joint, obj, obs)
 
 
-def main(seeds: int = 20) -> None:
+def check(rows: list[dict]) -> bool:
+    """Flag counts and T/c against docs/validation.md's rig-consistency table (its columns by name)."""
+    from experiments._validation import compare, table
+
+    ok = []
+    for doc in table("| cameras | simultaneous: flagged"):
+        k = int(doc["cameras"])
+        still = [r for r in rows if r["cameras"] == k and r["shift_mm"] == 0.0]
+        moved = [r for r in rows if r["cameras"] == k and r["shift_mm"] == SHIFTS[1]]
+        for col, group in (("simultaneous: flagged", still),
+                           (f"board moved {SHIFTS[1]} mm between exposures: flagged", moved)):
+            flagged, of = (int(v) for v in doc[col].split("/"))
+            ok.append(compare(f"K={k} {col}", sum(r["flagged"] for r in group), str(flagged)) and of == len(group))
+        ok.append(compare(f"K={k} mean T/c", float(np.mean([r["ratio"] for r in still])), doc["mean T/c"]))
+        ok.append(compare(f"K={k} min T/c (moved)", float(np.min([r["ratio"] for r in moved])), doc["min T/c"]))
+    print(f"rig_consistency_seeds --check: {sum(ok)} of {len(ok)} figures as documented", flush=True)
+    return bool(ok) and all(ok)
+
+
+def main(seeds: int = 20, check_only: bool = False) -> None:
     rows = []
     for k in (2, 3, 4):
         for shift in SHIFTS:
@@ -47,10 +68,13 @@ def main(seeds: int = 20) -> None:
                                    "ratio_mean": float(np.mean([r["ratio"] for r in rows
                                                                 if r["cameras"] == k and r["shift_mm"] == s]))}
                for k in (2, 3, 4) for s in SHIFTS}
+    if check_only:
+        raise SystemExit(0 if check(rows) else 1)
     print(json.dumps(summary, indent=1))
     out = Path(__file__).parent / "results" / "rig_consistency.json"
     out.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 20)
+    args = [a for a in sys.argv[1:] if a != "--check"]
+    main(int(args[0]) if args else 20, check_only="--check" in sys.argv[1:])

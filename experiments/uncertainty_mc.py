@@ -74,7 +74,7 @@ def run(n_list=(10, 15, 20), draws=100, subset_draws=20, cap=128, progress=print
                 rec = sub[(n, m)]
                 rec["raw"].append(raw)
                 rec["jack"].append(uc.jackknife_factor(n, m) * raw)
-                # linear-model prediction of the raw spread from the subsets' own Jacobians (stereo_uncertainty.py)
+                # linear-model prediction of the raw spread from the subsets' own Jacobians (as tests/test_stereo.py's)
                 rec["pred"].append(np.sqrt(np.maximum(np.mean(s.std[ok] ** 2, axis=0) - sol.std ** 2, 0.0)))
                 rec["converged"].append(int(ok.sum()))
                 rec["total"] = plan.total

@@ -22,85 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.mono import _residual_weights, _run, _shared, calibrate_full
-from dstereo.calib.problem import sag_basis
-from dstereo.models.camera import Camera
-from dstereo.solver.lm import LMOptions
-from dstereo.synth import Board, board_pose_set, object_points, true_corners
-from dstereo.uncertainty.covariance import covariance
-from dstereo.uncertainty.view_effects import view_effects
-from dstereo.uncertainty.view_scatter import view_scatter
-
-SIZE, PATTERN, SQUARE = (640, 480), (9, 6), 25.0
-VIEWS = 16
-FREE = ("k1", "k2", "p1", "p2", "k3")
-TRUE = (800.0, 805.0, 322.0, 238.0, [-0.25, 0.1, 1e-3, -5e-4, -0.02])
-JITTER = np.array([1.5, 1.5, 1.0, 1.0, 0.004, 0, 0, 0, 0])  # std per view of fx fy cx cy k1 (k2.. none)
-FLEX_MM = 0.4
-
-
-def _camera(params):
-    return Camera.create(*params[:4], list(params[4:]), FREE, SIZE)
-
-
-def corners(rng, process: str, poses, obj):
-    base = np.r_[TRUE[:4], TRUE[4]]
-    out = []
-    for p in poses:
-        params = base + (rng.normal(0, JITTER) if process == "camera jitter" else 0.0)
-        if process == "board flex":
-            import cv2
-            from scipy.spatial.transform import Rotation
-            pts = obj.copy()
-            pts[:, 2] += sag_basis(obj) @ rng.normal(0, FLEX_MM, 2)
-            cam = Rotation.from_rotvec(p[:3]).apply(pts) + p[3:]
-            k = np.array([[base[0], 0, base[2]], [0, base[1], base[3]], [0, 0, 1.0]])
-            out.append(cv2.projectPoints(cam, np.zeros(3), np.zeros(3), k, base[4:])[0].reshape(-1, 2))
-        else:
-            out.append(true_corners(_camera(params), p, PATTERN, SQUARE))
-    sigma = 0.2 if process == "independent" else 0.1
-    return np.array(out) + rng.normal(0, sigma, (len(poses), len(obj), 2))
-
-
-def run(process: str, draws: int, seed: int = 0, views: int = VIEWS):
-    rng = np.random.default_rng(seed)
-    cam0 = _camera(np.r_[TRUE[:4], TRUE[4]])
-    poses = board_pose_set([cam0], [np.zeros(6)], Board(PATTERN, SQUARE, SQUARE), views, seed)
-    obj = object_points(PATTERN, SQUARE)
-    obs = np.stack([corners(rng, process, poses, obj) for _ in range(draws)])
-    nominal = calibrate_full(obj, obs[0], SIZE, FREE)
-    k, g = draws, len(nominal.values)
-    opts = LMOptions()
-    res = _run(nominal.free, opts, np.repeat(nominal.values[None], k, 0), np.repeat(nominal.poses[None], k, 0), obs,
-               np.ones((k, views)), np.full(k, opts.lambda0), _shared(obj),
-               r_weight=np.repeat(_residual_weights(np.ones((views, len(obj)), bool))[None], k, 0))
-    est = np.asarray(res.g)
-    ok = np.asarray(res.status) > 0
-    dev = est[ok] - est[ok].mean(axis=0)
-    mc = dev.T @ dev / (len(dev) - 1)
-    n_res, dof = 2 * views * len(obj), 2 * views * len(obj) - g - 6 * views
-    preds = {"jacobian": [], "view scatter": [], "random effects": []}
-    for i in np.flatnonzero(ok):
-        sse = float(res.sse[i])
-        jac = covariance(np.asarray(res.schur[i]), sse, n_res, g + 6 * views)
-        normal = np.asarray(res.normal[i])
-        preds["jacobian"].append(jac)
-        preds["view scatter"].append(max(1.0, view_scatter(normal, g, sse / dof).kappa) * jac)
-        preds["random effects"].append(view_effects(normal, g, sse / dof, dof).cov)
-    rows = []
-    for name, covs in preds.items():
-        covs = np.array(covs)
-        std_ratio = np.sqrt(np.mean(covs[:, range(g), range(g)], axis=0) / np.diag(mc))
-        m2 = np.mean([d @ np.linalg.solve(c, d) for d, c in zip(dev, covs)]) / g
-        rows.append((process, name, std_ratio, m2))
-    return rows, nominal.names, int(ok.sum())
+from dstereo.synth.board_views import PROCESSES, view_effects_monte_carlo as run
 
 
 def main(draws: int = 200) -> None:
     lines = ["| views | process | covariance | predicted / MC std: fx fy cx cy k1 k2 p1 p2 k3 | mean e'C^-1e / G |",
              "|---|---|---|---|---|"]
     for views in (7, 12, 16):
-        for process in ("independent", "camera jitter", "board flex"):
+        for process in PROCESSES:
             rows, names, n_ok = run(process, draws, views=views)
             for p, name, ratio, m2 in rows:
                 lines.append(f"| {views} | {p} | {name} | {' '.join(f'{r:.2f}' for r in ratio)} | {m2:.2f} |")

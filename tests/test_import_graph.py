@@ -320,3 +320,47 @@ def test_io_takes_finished_results_and_computes_nothing():
             calls.append(f"{io_module} calls {source}.{name}")
     assert not calls, "io computing (compute it in the job and pass the result):\n" + "\n".join(calls)
     assert set(IO_MAY_CALL) <= set(io_imports_from_compute_rooms(PACKAGE)), "IO_MAY_CALL names an import gone"
+
+
+# --- the tests and the package never import experiments/ ------------------------------------------------------
+
+TESTS = Path(__file__).resolve().parent
+_EXPERIMENTS_NAME = re.compile(r"^experiments(\.\w+)*$")
+_EXPERIMENTS_SCRIPT = re.compile(r"^(\./)?experiments/\w+\.py$")
+
+
+def experiment_uses(path: Path) -> list[tuple[int, str]]:
+    """(line, name) where `path` imports `experiments` (import, from-import) or names one to load or run: a string
+    that is a whole module name under it (`import_module("experiments.x")`, `[python, "-m", "experiments.x"]`) or
+    a path to one of its scripts ("experiments/x.py"). Prose that mentions experiments/ is not a use."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            names = [node.module or ""]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names = [node.value] if _EXPERIMENTS_NAME.match(node.value) or _EXPERIMENTS_SCRIPT.match(node.value) else []
+        found += [(node.lineno, n) for n in names if n.split(".")[0].split("/")[0] == "experiments"]
+    return sorted(found)
+
+
+def test_no_test_and_no_module_of_the_package_imports_experiments():
+    """experiments/ regenerates docs/validation.md's figures and `make bench`; what a test needs lives in
+    dstereo/synth/ or a helper module under tests/ (tests/calib/opencv_reference.py)."""
+    uses = [f"{p.relative_to(TESTS.parent)}:{line}: {name}" for root in (TESTS, PACKAGE)
+            for p in sorted(root.rglob("*.py")) if p != Path(__file__).resolve()  # this file names the forms
+            for line, name in experiment_uses(p)]
+    assert not uses, "experiments used:\n" + "\n".join(uses)
+
+
+def test_the_experiments_check_sees_each_form(tmp_path):
+    planted = tmp_path / "planted.py"
+    planted.write_text("import experiments.a\nfrom experiments import b\nfrom experiments.c import d\n"
+                       "importlib.import_module('experiments.e')\nsubprocess.run([sys.executable, '-m', "
+                       "'experiments.f'])\nrun('experiments/g.py')\n# experiments/h.py in a comment\n"
+                       "'''see experiments/results/i.md'''\n")
+    found = [name for _, name in experiment_uses(planted)]
+    assert found == ["experiments.a", "experiments", "experiments.c", "experiments.e", "experiments.f",
+                     "experiments/g.py"]

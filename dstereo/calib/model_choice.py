@@ -43,7 +43,7 @@ POSE_ITERATIONS = 40  # LM iterations of a held-out pose refit, from the full-se
 WEAK_Z = 2.0  # a coefficient whose |value| is below WEAK_Z of its standard deviations is not told from zero
 # Residual structure: corners in STRUCTURE_RINGS rings of equal count around the principal point; a ring whose
 # mean radial residual (per view, then over views) is STRUCTURE_Z standard errors from zero shows a distortion
-# the model does not follow. Measured (experiments/results/model_auto.md's cameras): fisheye640 with k1k2 /
+# the model does not follow. Measured (the cameras of the since-removed experiments/model_auto.py): fisheye640 with k1k2 /
 # 5 coefficients: up to 5.2 / 4.0; models that fit (fisheye640 fisheye and rational, the narrow lenses of
 # opencv_stereo and rig640 with every candidate): at most 2.3.
 STRUCTURE_RINGS, STRUCTURE_Z, STRUCTURE_MIN_VIEWS = 5, 3.5, 6

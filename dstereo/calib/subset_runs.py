@@ -26,7 +26,7 @@ NOTE_ABOVE = 20_000  # runs of more subsets print their memory/disk/time estimat
 BLOCK_TARGET = 4096  # subsets per block: seconds of work, a few MB of solver output
 KEEP_SOLUTIONS = 20_000  # up to this many subsets the solver's per-subset outputs are kept whole (as before)
 # Peak resident memory measured with /usr/bin/time -v on 29 views, m = 20, 10 columns: C = 1e4 0.48 GB,
-# 1e5 0.55 GB (real solves), 1e7 0.84 GB (experiments/huge_run_fake_solve.py: everything but the solves, whose
+# 1e5 0.55 GB (real solves), 1e7 0.84 GB (the since-removed experiments/huge_run_fake_solve.py: everything but the solves, whose
 # blocks held a flat ~0.5 GB over the first 3 minutes of a real 1e7 run): ~30 bytes a subset over ~0.53 GB
 # (plan ranks 8, status/fate/usable 5, a column and its masked and sorted copies while a step, a statistic or
 # a figure works on it). The estimate adds a third for margin.

@@ -38,7 +38,7 @@ DEFAULT_GRID = (10, 8)  # (NX, NY) of the `splined` preset: 7 x 5 spans over the
 # ~20 CURVATURE_WEIGHT^2 of the prior: 0.2 % for one corner, so the prior bends the fit only where no corner is.
 # There a second difference has a standard deviation of sigma / CURVATURE_WEIGHT = 100 sigma per knot, compounding
 # with the distance from the corners: the projection uncertainty grows there, large, as it should. Measured on the
-# rendered odd lens (experiments/splined_odd_lens.py): weight 0.1 left the 10 x 8 fit at 0.22 px RMS on 0.1 px
+# rendered odd lens (the since-removed experiments/splined_odd_lens.py): weight 0.1 left the 10 x 8 fit at 0.22 px RMS on 0.1 px
 # noise (the prior bent a fisheye's ~100 px correction), 0.01 at 0.136 px (the noise).
 CURVATURE_WEIGHT = 0.01
 # The ridge pins what the corners cannot see (the surface's shift, scale and roll, which fx fy cx cy and the board

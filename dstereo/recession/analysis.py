@@ -26,7 +26,7 @@ STAGNATION_CELLS_ACROSS = 4  # radius in grid cells: ~50 cells in the disc for t
 def stagnation_radius_for(grid_mm: float) -> float:
     """Default stagnation disc radius (mm): 2 mm, or 4 grid cells on a coarser grid. A fixed 2 mm disc holds 13
     cells of 1 mm, barely more than the quadratic's 4 parameters: measured on the tilted rendered sample at
-    320x240 (1 mm grid; experiments/results/range_stagnation.md), the stagnation RMS over seeds 0-4 was
+    320x240 (1 mm grid; the since-removed experiments/range_stagnation.py), the stagnation RMS over seeds 0-4 was
     0.020-0.034 mm with 2 mm and 0.021-0.027 mm with 4 mm; at 640x480 (0.5 mm grid) 2 mm is 4 cells already."""
     return max(2.0, STAGNATION_CELLS_ACROSS * float(grid_mm)) if grid_mm > 0 else 2.0
 

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 # Default (`workers=None`): the first task runs here and is timed; a local cluster is started for the rest only
-# when they would take longer serially than PAYOFF_S. Measured (experiments/results/bench_frames*.md, 2 cores):
+# when they would take longer serially than PAYOFF_S. Measured (experiments/bench_frames.py, since removed; 2 cores):
 # starting the cluster plus each worker's first frame costs about 10 s, 2 workers then run 1.57x the serial rate,
 # so parallel wins once the serial remainder exceeds 10 / (1 - 1 / 1.57) = 27.5 s; rounded up. Re-measured after
-# the per-frame work was cut to ~0.37 s CPU (bench_frames_640x21.md, load 9-11): the start still ~10 s, the steady
+# the per-frame work was cut to ~0.37 s CPU (load 9-11): the start still ~10 s, the steady
 # rate 1.04-1.26x by wall time on that load and 1.73x from the CPU times (2 cores to themselves).
 CLUSTER_START_S = 10.0
 PAYOFF_S = 30.0

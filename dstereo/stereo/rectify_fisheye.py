@@ -18,7 +18,7 @@ that (OpenCV's numbers are then far outside the image: its rule is undefined the
 inside the midpoints, so it keeps at most 2 x MAX_HALF_FIELD_DEG across; with balance 1 it reaches past them along
 the less constraining axis (still under 180 degrees, a pinhole's edges being finite). `field_of_view` says what
 the rectified images keep: for the rig of `synth.fisheye_rig` (128 deg across its 640 px) 110 x 94 deg at balance
-0, 129 x 115 deg at balance 1 (experiments/results/fisheye_rig.md).
+0, 129 x 115 deg at balance 1 (measured by the since-removed experiments/fisheye_rig.py).
 Maps (`lens_map`): NaN where a rectified pixel's ray has no source pixel (behind a pinhole camera, or past the angle
 where the fisheye polynomial folds back), never a number.
 Conventions: x_right = R x_left + T (OpenCV), pixel (0, 0) is the centre of the top-left pixel.

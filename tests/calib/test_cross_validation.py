@@ -2,18 +2,14 @@
 the covariance) the prediction holds; a covariance 3x too optimistic is flagged; too few views is refused."""
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
-
-from dstereo.calib import cross_validation as cv  # noqa: E402
-from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.errors import DstereoError  # noqa: E402
+from dstereo.calib import cross_validation as cv
+from dstereo.calib.mono import calibrate_full
+from dstereo.errors import DstereoError
+from dstereo.synth.board_views import FREE, SIZE, scene
 
 
 @pytest.fixture(scope="module")

@@ -186,13 +186,13 @@ def test_fisheye640_auto_is_no_worse_than_opencvs_best(tmp_path):
 
     assert summary["model"] == choice["chosen_model"] and len(choice["candidates"]) == len(CANDIDATES)
     # The held-out error against an independent computation: leave-one-view-out with cv2.fisheye.calibrate and a
-    # scipy pose refit (experiments/fisheye640.py). Both are least-squares optima to tight tolerances: parameters
+    # scipy pose refit (tests/calib/opencv_reference.py). Both are least-squares optima to tight tolerances: parameters
     # within ~2 sqrt(ftol (residuals - parameters)) ~ 1e-4 of their std (conftest.lm_agreement), which moves the
     # held-out RMS by about that fraction at most (measured: 9e-7 relative).
-    from experiments.fisheye640 import _held_out
+    from opencv_reference import held_out_rms
 
     fish = next(c for c in choice["candidates"] if c["preset"] == "fisheye")
-    cv_heldout = _held_out(corners["object_points"], obs, tuple(summary["image_size"]), "fisheye")
+    cv_heldout = held_out_rms(corners["object_points"], obs, tuple(summary["image_size"]), "fisheye")
     assert fish["heldout_rms_px"] == pytest.approx(cv_heldout, rel=1e-4)
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Model choice (--model auto)" in report

@@ -11,10 +11,78 @@ import numpy as np
 import pytest
 from conftest import lm_agreement
 
-from experiments.multiview_truth import (
-    CASES, errors_of, held_differences, opencv_cameras, render_case, solve_case,
-)
-from experiments.opencv_multiview import calibrate_multiview, float32_corners
+from opencv_reference import FIVE, calibrate_multiview, float32_corners, opencv_cameras
+
+CASES = ((3, 3), (4, 4))  # (cameras, seed)
+
+
+def render_case(n_cameras: int, seed: int, folder):
+    """(truth dict, CameraFolders) of one rendered rig written to `folder`."""
+    from dstereo.io.camera_folders import read_camera_folders
+    from dstereo.synth import multiview_set, write_multiview_set
+
+    mset = multiview_set(n_cameras, 60, seed)
+    write_multiview_set(folder, mset, force=True)
+    board = mset.truth["board"]
+    return mset.truth, read_camera_folders(folder, tuple(board["pattern"]), board["square"], use_cache=False)
+
+
+def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """Angle (deg) of the rotation r_a r_b^T, as its rotation vector's norm: exact to rounding near zero, where
+    the trace's arccos cannot resolve angles below ~2e-8 rad."""
+    from scipy.spatial.transform import Rotation
+
+    return float(np.degrees(Rotation.from_matrix(r_a @ r_b.T).magnitude()))
+
+
+def rig_errors(truth: dict, focals: np.ndarray, R: np.ndarray, T: np.ndarray) -> dict[str, np.ndarray]:
+    """Against the truth: focal_pct (K, 2) |f / f_true - 1| for fx, fy; rotation_deg (K-1,) of R_k relative to
+    the reference; baseline_pct (K-1,) |‖T_k‖ / ‖T_k true‖ - 1|."""
+    cams = truth["rig"]["cameras"]
+    f_true = np.array([[c["fx"], c["fy"]] for c in cams])
+    r_true, t_true = np.asarray(truth["rig"]["R"]), np.asarray(truth["rig"]["T"])
+    return {
+        "focal_pct": 100.0 * np.abs(np.asarray(focals) / f_true - 1.0),
+        "rotation_deg": np.array([rotation_angle_deg(R[k], r_true[k]) for k in range(1, len(cams))]),
+        "baseline_pct": 100.0 * np.abs(np.linalg.norm(T[1:], axis=1) / np.linalg.norm(t_true[1:], axis=1) - 1.0),
+    }
+
+
+def solve_case(folders) -> dict:
+    """Four solves of one case on the same float32 corners: cv2.calibrateMultiviewExtended with its own
+    intrinsics, the same holding them (CALIB_USE_INTRINSIC_GUESS), dstereo joint, dstereo fixed at OpenCV's."""
+    from dstereo.calib.multiview import calibrate_views
+
+    obs = float32_corners(folders.obs)
+    args = (folders.object_points, obs, folders.visible, folders.image_sizes)
+    out = {"opencv": calibrate_multiview(*args)}
+    out["opencv_held"] = calibrate_multiview(*args, K0=out["opencv"].K, D0=out["opencv"].D)
+    out["joint"] = calibrate_views(*args, free=FIVE, mode="joint")
+    out["fixed"] = calibrate_views(*args, free=FIVE, mode="fixed",
+                                   cameras=opencv_cameras(out["opencv"], folders.image_sizes))
+    return out
+
+
+def focals_of(cameras) -> np.ndarray:
+    return np.array([[float(c.k[0]), float(c.k[1])] for c in cameras])
+
+
+def errors_of(truth: dict, solved: dict) -> dict[str, dict]:
+    cv, joint = solved["opencv"], solved["joint"]
+    return {
+        "opencv": rig_errors(truth, np.stack([cv.K[:, 0, 0], cv.K[:, 1, 1]], axis=1), cv.R, cv.T),
+        "joint": rig_errors(truth, focals_of(joint.cameras), np.asarray(joint.R), np.asarray(joint.T)),
+    }
+
+
+def held_differences(solved: dict) -> dict[str, float]:
+    """dstereo fixed vs OpenCV held: largest rotation difference (rad), relative translation difference."""
+    cv, fixed = solved["opencv_held"], solved["fixed"]
+    R, T = np.asarray(fixed.R), np.asarray(fixed.T)
+    d_rot = max(np.radians(rotation_angle_deg(R[k], cv.R[k])) for k in range(1, len(R)))
+    d_t = max(np.linalg.norm(T[k] - cv.T[k]) / np.linalg.norm(cv.T[k]) for k in range(1, len(T)))
+    return {"rotation_rad": float(d_rot), "translation_rel": float(d_t)}
+
 
 _CACHE: dict = {}
 
@@ -64,7 +132,7 @@ def test_joint_mode_recovers_the_truth(case):
 def test_joint_mode_beats_opencv_against_the_truth(case):
     """Mean over the rig's cameras of each figure: OpenCV never refines intrinsics jointly, so each camera's own
     calibrateCamera error stays in its focal length and passes into its rotation and baseline. (The worst camera
-    is nearly tied on K = 3's rotation, 0.0214 vs 0.0218 deg; experiments/results/multiview_truth.md.)"""
+    is nearly tied on K = 3's rotation, 0.0214 vs 0.0218 deg, as measured by the since-removed experiments/multiview_truth.py.)"""
     truth, _, solved = case
     errs = errors_of(truth, solved)
     for key in ("focal_pct", "rotation_deg", "baseline_pct"):

@@ -177,7 +177,7 @@ def test_rig640_baseline_std_and_subset_spread():
     cols = sub.columns()
     # Linear model: a subset's estimate minus the full set's is uncorrelated with the latter, so the subsets
     # scatter by sqrt(mean(J_S^2) - J_N^2) (J: Jacobian standard deviations). On iid corner noise the ratio is 1
-    # (experiments/stereo_uncertainty.py, synthetic control); on rig640 it is ~3.5: neighbouring corners'
+    # (the since-removed experiments/stereo_uncertainty.py, synthetic control); on rig640 it is ~3.5: neighbouring corners'
     # residuals correlate (0.38) and per-pair shifts take 17 % of the SSE, so a pair carries less information
     # than its 216 residuals suggest and the Jacobian is optimistic by that factor.
     spread = np.std(cols["Tnorm"], ddof=1)

@@ -1,6 +1,6 @@
 """The rig solve (calib/stereo.py) with fisheye cameras, on exact corners with known noise: a fisheye pair against
 cv2.fisheye.stereoCalibrate on the same corners (the pinhole + fisheye rig is solved against the truth in
-experiments/fisheye_rig.py, from renders; a mixed Problem is tested in tests/calib/test_problem.py)."""
+the since-removed experiments/fisheye_rig.py, from renders; a mixed Problem is tested in tests/calib/test_problem.py)."""
 
 import cv2
 import numpy as np

@@ -48,7 +48,7 @@ def test_reconstruct_writes_the_plane_from_a_fisheye_stereo_file(scene):
     near = np.isfinite(e) & (np.abs(e) < 50.0)  # on the plane (the rest is the background, matched or not)
     assert near.sum() > 0.1 * e.size
     # one pixel of disparity is Z^2 / (f B) mm of depth; SGBM's sub-pixel disparity on speckle is good to ~0.15 px
-    # RMS (experiments/results/fisheye_rig.md: 1.0 mm at 7.5 mm/px); a rectification off by a row or a focal would
+    # RMS (the since-removed experiments/fisheye_rig.py: 1.0 mm at 7.5 mm/px); a rectification off by a row or a focal would
     # cost pixels. Bounds: 0.5 px RMS, 0.1 px median bias (a tilted plane biases block matching a little).
     mm_per_px = PLANE_Z ** 2 / (P1[0, 0] * BASELINE)
     e = e[near]

@@ -277,7 +277,7 @@ def test_converging_rig_of_the_issue_gets_the_whole_face(tmp_path):
     offset = np.array(truth["stagnation_point_mm"]) - np.array(summary["sample"]["stagnation_point_mm"])
     du, dv = e12 @ offset
     face = np.hypot(u - du, v - dv) <= truth["sample"]["head_radius"] - 1.5
-    # Measured 99-100 % (experiments/results/range_converging.md); a cut at the far side loses a third.
+    # Measured 99-100 % (the since-removed experiments/range_converging.py); a cut at the far side loses a third.
     assert np.isfinite(maps["heights_mm"][0][face]).mean() >= 0.95
     assert np.linalg.norm(offset) < 0.6  # measured 0.3-0.5 mm at 320 x 240 (the cut face: 2.7-3.7 mm)
 

@@ -2,20 +2,16 @@
 against a Monte Carlo of re-noised calibrations (a board-fixed point brought back by each draw's poses), the mask
 where the distortion cannot be inverted, and the files (npz keys, method in summary)."""
 
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from experiments.projection_mc import FREE, SIZE, board_fixed_spread, scene  # noqa: E402
-
-from dstereo.calib.cross_validation import solve_halves  # noqa: E402
-from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.uncertainty.covariance import joint_covariance  # noqa: E402
-from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map, solution_map  # noqa: E402
+from dstereo.calib.cross_validation import solve_halves
+from dstereo.calib.mono import calibrate_full
+from dstereo.synth.board_views import FREE, SIZE, board_fixed_spread, scene
+from dstereo.uncertainty.covariance import joint_covariance
+from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map, solution_map
 
 SIGMA = 0.3  # px corner noise
 DRAWS = 120  # the std of a std estimated from D draws is ~1/sqrt(2D) = 6.5 %: the 0.8-1.25 band is > 3 of them

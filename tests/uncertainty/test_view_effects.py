@@ -5,27 +5,22 @@ independent corner noise and for views that each see their own camera (the model
 covariance alone is measurably optimistic; exactly the Jacobian's without excess; the joint covariance's shared
 block is the marginal one; the projection map carries it."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-import experiments.view_effects_mc as mc  # noqa: E402
-
-from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.uncertainty.covariance import joint_covariance, scaled_inverse  # noqa: E402
-from dstereo.uncertainty.projection import projection_uncertainty_map, solution_map  # noqa: E402
-from dstereo.uncertainty.view_effects import reported_std, solution_effects, view_effects  # noqa: E402
-from dstereo.uncertainty.view_scatter import profiled  # noqa: E402
+from dstereo.calib.mono import calibrate_full
+from dstereo.synth import board_views as bv
+from dstereo.uncertainty.covariance import joint_covariance, scaled_inverse
+from dstereo.uncertainty.projection import projection_uncertainty_map, solution_map
+from dstereo.uncertainty.view_effects import reported_std, solution_effects, view_effects
+from dstereo.uncertainty.view_scatter import profiled
 
 DRAWS = 60
 
 
 @pytest.fixture(scope="module")
 def monte_carlo():
-    return {p: mc.run(p, DRAWS, views=12)[0] for p in ("independent", "camera jitter")}
+    return {p: bv.view_effects_monte_carlo(p, DRAWS, views=12)[0] for p in ("independent", "camera jitter")}
 
 
 @pytest.mark.parametrize("process", ["independent", "camera jitter"])
@@ -48,11 +43,8 @@ def test_random_effects_match_the_monte_carlo(monte_carlo, process):
 
 
 def _solve(seed=0, views=12, process="camera jitter"):
-    rng = np.random.default_rng(seed)
-    cam0 = mc._camera(np.r_[mc.TRUE[:4], mc.TRUE[4]])
-    poses = mc.board_pose_set([cam0], [np.zeros(6)], mc.Board(mc.PATTERN, mc.SQUARE, mc.SQUARE), views, seed)
-    obj = mc.object_points(mc.PATTERN, mc.SQUARE)
-    return calibrate_full(obj, mc.corners(rng, process, poses, obj), mc.SIZE, mc.FREE)
+    obj, obs = bv.process_views(process, views, seed)
+    return calibrate_full(obj, obs, bv.SIZE, bv.FREE)
 
 
 def test_independent_noise_is_not_fitted_and_flexing_boards_are():
@@ -89,14 +81,14 @@ def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
     np.testing.assert_allclose(joint[:g, :g], x.cov, rtol=1e-7, atol=1e-12 * np.abs(x.cov).max())
     # the same diagonal square-rooted on both sides: equal to rounding
     np.testing.assert_allclose(reported_std(sol), np.sqrt(np.diag(x.cov)), rtol=1e-12)
-    pmap = solution_map(sol, mc.SIZE, 500.0, grid=(8, 6))
-    direct = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, mc.SIZE, 500.0, (8, 6),
+    pmap = solution_map(sol, bv.SIZE, 500.0, grid=(8, 6))
+    direct = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, bv.SIZE, 500.0, (8, 6),
                                         poses=sol.poses)
     # the same covariance through the same compiled map: equal to rounding
     np.testing.assert_allclose(pmap.std, direct.std, rtol=1e-10)
     plain = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names,
                                        joint_covariance(sol.normal, g, float(np.sum(sol.residuals ** 2)),
-                                                        sol.residuals.size), mc.SIZE, 500.0, (8, 6), poses=sol.poses)
+                                                        sol.residuals.size), bv.SIZE, 500.0, (8, 6), poses=sol.poses)
     assert np.nanmedian(pmap.std / plain.std) > 1.05  # the views' effects show in the map
 
 

@@ -3,20 +3,16 @@ rings; with errors that move together within each view (a per-view radial term n
 the views scatter the solve more than the corners' noise says, kappa is large and the alarm rings (the covariance
 the tool then reports is `view_effects`', tested there). Outliers' residuals are not corner noise."""
 
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-from experiments.projection_mc import FREE, SIZE, scene  # noqa: E402
-
-from dstereo.calib.mono import calibrate_full  # noqa: E402
-from dstereo.uncertainty.projection import solution_map  # noqa: E402
-from dstereo.uncertainty.view_effects import reported_std  # noqa: E402
-from dstereo.uncertainty.view_scatter import solution_view_scatter, sse_of  # noqa: E402
+from dstereo.calib.mono import calibrate_full
+from dstereo.synth.board_views import FREE, SIZE, scene
+from dstereo.uncertainty.projection import solution_map
+from dstereo.uncertainty.view_effects import reported_std
+from dstereo.uncertainty.view_scatter import solution_view_scatter, sse_of
 
 VIEWS = 16
 

@@ -1,4 +1,4 @@
-"""The uncertainty page's by-construction claim (experiments/results/uncertainty.md, section (a)).
+"""The subset spread's by-construction claim (docs/validation.md, uncertainty; experiments/results/uncertainty.md (a)).
 
 With independent Gaussian corner noise and the right model, the spread of the estimates over subsets of m of the N
 views estimates the full-set standard deviation only after the delete-d jackknife rescaling sqrt(m / (N - m));
@@ -15,7 +15,7 @@ spread (0.42) lies far outside them.
 import numpy as np
 import pytest
 
-from experiments import _uncertainty_common as uc
+from dstereo.synth.board_views import iid_views, webcam
 
 N, M, DRAWS = 20, 17, 4
 
@@ -25,17 +25,17 @@ def ratios():
     from dstereo.calib import mono
     from dstereo.calib.subsets import plan_subsets
 
-    cam = uc.truth_camera()
+    cam = webcam()
     plan = plan_subsets(N, M, cap=96, seed=0)
     jack2, raw2, jac2 = [], [], []
     for seed in range(DRAWS):
-        obj, obs = uc.iid_views(cam, N, noise_px=0.05, seed=seed)
+        obj, obs = iid_views(cam, N, noise_px=0.05, seed=seed)
         full = mono.calibrate_full(obj, obs, cam.image_size, ("k1", "k2"))
-        sub = uc.solve_subsets_safe(mono.solve_subsets, obj, obs, plan, full)
+        sub = mono.solve_subsets(obj, obs, plan, full)
         assert full.converged and sub.converged.all()
-        raw = uc.spread(sub.values)
+        raw = np.std(sub.values, axis=0, ddof=1)  # the thesis's subset spread
         raw2.append(raw ** 2)
-        jack2.append((uc.jackknife_factor(N, M) * raw) ** 2)
+        jack2.append(M / (N - M) * raw ** 2)  # delete-d jackknife: Var(theta_N) ~ m / (N - m) Var_S(theta_S)
         jac2.append(full.std ** 2)
     pooled = lambda v: np.sqrt(np.mean(v, axis=0) / np.mean(jac2, axis=0))  # noqa: E731
     return pooled(jack2), pooled(raw2)

@@ -1,6 +1,11 @@
-"""OpenCV 5's `cv2.calibrateMultiviewExtended`, called correctly, for cross-checks (never inside dstereo/).
+"""OpenCV reference computations the tests (and `make bench`'s K = 3 case) compare dstereo with; never inside dstereo/.
 
-What it needs, each found by calling it (issue 17):
+- `calibrate_multiview`: OpenCV 5's `cv2.calibrateMultiviewExtended`, called correctly (below), with `opencv_cameras`
+  (dstereo Cameras holding its K and D) and `float32_corners`;
+- `held_out_rms`: leave-one-view-out held-out RMS with cv2.fisheye.calibrate / cv2.calibrateCamera and a scipy pose
+  refit of the left-out view (the independent twin of `--model auto`'s held-out error).
+
+What calibrateMultiviewExtended needs, each found by calling it (issue 17):
 - object points in metres, float32, one (n, 3) array per frame: it divides them by their largest squared
   pairwise distance, so in mm the board shrinks below its collinearity test's 1e-6 and it reports collinear
   points; its translations come back in the input unit (converted back to mm here);
@@ -20,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 MM_PER_M = 1000.0
+FIVE = ("k1", "k2", "p1", "p2", "k3")
 
 
 @dataclass
@@ -82,3 +88,70 @@ def calibrate_multiview(obj_mm, obs, visible, image_sizes, K0=None, D0=None, n_c
         rvecs0=np.stack([np.asarray(r, float).reshape(3) for r in rvecs0]),
         tvecs0=np.stack([np.asarray(t, float).reshape(3) for t in tvecs0]) * MM_PER_M,
         rms=float(rms), per_view_rms=np.where(per < 0, np.nan, per), pairs=np.asarray(pairs))
+
+
+def opencv_cameras(cv: OpenCVMultiview, image_sizes):
+    """dstereo Cameras holding OpenCV's K and D (k1, k2, p1, p2, k3)."""
+    from dstereo.models.camera import Camera
+
+    return [Camera.create(k[0, 0], k[1, 1], k[0, 2], k[1, 2], d[:5], free=FIVE, image_size=tuple(size))
+            for k, d, size in zip(cv.K, cv.D, image_sizes)]
+
+
+def _cv_fisheye(obj, obs, size, check_cond=False):
+    import cv2
+
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW | (cv2.CALIB_CHECK_COND if check_cond else 0)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    try:
+        rms, k, d, _, _ = cv2.fisheye.calibrate([obj[None]] * len(obs), [o[None] for o in obs], size, None, None,
+                                                flags=flags, criteria=crit)
+    except cv2.error as exc:
+        return {"ok": False, "error": " ".join(str(exc).split())[-160:]}
+    return {"ok": True, "rms": float(rms), "k": [k[0, 0], k[1, 1], k[0, 2], k[1, 2]], "d": d.ravel().tolist()}
+
+
+def _cv_pinhole(obj, obs, size, rational):
+    import cv2
+
+    flags = cv2.CALIB_RATIONAL_MODEL if rational else 0
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 1000, 1e-15)
+    rms, k, d, _, _ = cv2.calibrateCamera([obj.astype(np.float32)] * len(obs), [o.astype(np.float32) for o in obs],
+                                          size, None, None, flags=flags, criteria=crit)
+    return {"ok": True, "rms": float(rms), "K": k, "d": d.ravel()}
+
+
+def _pose_refine(project, obj, q, rvec, tvec):
+    """Held-out view's pose with the intrinsics fixed: least squares in pixels from a PnP start."""
+    from scipy.optimize import least_squares
+
+    fit = least_squares(lambda x: (project(x[:3], x[3:]) - q).ravel(), np.concatenate([rvec.ravel(), tvec.ravel()]),
+                        method="lm", xtol=1e-14, ftol=1e-14)
+    return project(fit.x[:3], fit.x[3:])
+
+
+def held_out_rms(obj, obs, size, kind):
+    """Leave-one-view-out held-out RMS (px per corner) with OpenCV's calibrations (dstereo's equal them)."""
+    import cv2
+
+    errs = []
+    for v in range(len(obs)):
+        train = np.delete(obs, v, axis=0)
+        if kind == "fisheye":
+            fit = _cv_fisheye(obj, train, size)
+            if not fit["ok"]:
+                return None
+            k, d = fit["k"], np.array(fit["d"])
+            kmat = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1.0]])
+            # start: PnP on the undistorted normalised corners (a pinhole with K = I)
+            und = cv2.fisheye.undistortPoints(obs[v][None], kmat, d)[0]
+            _, rvec, tvec = cv2.solvePnP(obj, und, np.eye(3), np.zeros(5))
+            project = lambda r, t: cv2.fisheye.projectPoints(obj[None], r, t, kmat, d)[0][0]  # noqa: E731
+        else:
+            fit = _cv_pinhole(obj, train, size, rational=kind == "rational")
+            kmat, d = fit["K"], fit["d"]
+            _, rvec, tvec = cv2.solvePnP(obj, obs[v], kmat, d)
+            project = lambda r, t: cv2.projectPoints(obj, r, t, kmat, d)[0][:, 0]  # noqa: E731
+        q = _pose_refine(project, obj, obs[v], rvec, tvec)
+        errs.append(np.sum((q - obs[v]) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(errs))))
