@@ -1,7 +1,7 @@
 """Behaviour of jaxlib's CPU runtime that the code works around, in one place, with the version it was measured on.
 
 Each entry below was measured on the version in `MEASURED_ON` (the one `requirements.lock` pins). After an
-upgrade (`make lock`), re-measure each: `tests/test_jax_workarounds.py` fails until `MEASURED_ON` names the
+upgrade (`make lock`), re-measure each: `tests/runtime/test_jax_workarounds.py` fails until `MEASURED_ON` names the
 installed jaxlib, so an upgrade cannot pass silently.
 
 Settings (used by the code through the names below):

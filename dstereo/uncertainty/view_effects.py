@@ -4,7 +4,7 @@ The Jacobian covariance sigma^2 S^-1 assumes independent corner errors. Real vie
 a hand-held board flexes differently in every view, an autofocus breathes, blur and perspective bias a view's
 detections together. `view_scatter` measures by how much the views scatter the shared parameters more than
 sigma^2 S^-1 says (kappa, one number). One number cannot follow a direction: scaling every direction by kappa
-made half of the real cameras' cross-validations 1.5-3x pessimistic (experiments/results/view_scatter_real.md).
+made half of the real cameras' cross-validations 1.5-3x pessimistic (the since-removed experiments/results/view_scatter_real.md; git keeps it).
 
 Model: view v's corner errors are e_v = n_v + J_gv delta_v + c_v, with n_v white (sigma^2), delta_v ~ N(0, Omega)
 the view seeing its own shared parameters (Omega = diag(omega) in the solver's parameters: focal lengths,
@@ -30,7 +30,7 @@ significant against simulated independent-noise scores (`_null_p_value`, p < 0.0
 
 Measured against a Monte Carlo of synthetic calibrations (experiments/results/view_effects_mc.md): independent
 noise, each view seeing its own camera, and a board flexing per view; and against cross-validation on the real
-cameras (experiments/results/view_scatter_real.md).
+cameras (the since-removed experiments/results/view_scatter_real.md; git keeps it).
 """
 
 from __future__ import annotations

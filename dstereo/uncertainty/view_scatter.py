@@ -5,7 +5,7 @@ out) assumes every corner's error is independent of every other's. Real corner d
 perspective and the lens's departure from its model give each view errors that move together, so views scatter
 the intrinsics more than that assumes. Measured on the real cameras of ../shared/data, half-split
 cross-validation and a delete-one-view jackknife both show the views scattering the intrinsics 1.3-3.7x (std)
-more than sigma^2 S^-1 (experiments/results/view_scatter_real.md).
+more than sigma^2 S^-1 (the since-removed experiments/results/view_scatter_real.md; git keeps it).
 
 The view is then the independent unit, and the cluster-robust ("sandwich") estimator uses only that: view v's
 profiled score s_v = J_g' r - H_gp H_pp^-1 J_p' r (its gradient on the shared parameters with its pose refitted),
@@ -22,7 +22,7 @@ formula). Everything comes from the solver's per-view normal blocks [J r]'[J r]:
 
 What the tool does with it: kappa above 1 + 3 standard errors is a warning with the figures. The uncertainty it
 reports is not kappa times the Jacobian's: a scalar cannot follow the direction of the excess, and on the real sets
-it left half the cross-validations 1.5-3x pessimistic (experiments/results/view_scatter_real.md). Every +- and map
+it left half the cross-validations 1.5-3x pessimistic (the since-removed experiments/results/view_scatter_real.md; git keeps it). Every +- and map
 carries the per-view random effects of `view_effects` instead, fitted to the same scores direction by direction.
 """
 

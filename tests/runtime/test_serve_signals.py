@@ -170,7 +170,7 @@ def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_
     experiments/signal_stages.py: the server's exit there went through the os._exit a served command runs with
     (a stand-in that raises), and the server lived on, deadlocked on the client's stream, holding its socket's
     lock. A cold cache (its own JAX cache folder, no executables) makes the first solve a compile. Which way it
-    goes depends on the machine; the exit itself is tested deterministically in tests/test_signals.py."""
+    goes depends on the machine; the exit itself is tested deterministically in tests/runtime/test_signals.py."""
     views = render_views(tmp_path / "images", 16)
     env = _env(tmp_path / "run", DSTEREO_JAX_CACHE=str(tmp_path / "jax"), DSTEREO_AOT="0")
     server = subprocess.Popen([sys.executable, "-c", ENTRY, "serve"], env=env, stdout=subprocess.DEVNULL,
