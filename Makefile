@@ -23,12 +23,15 @@ demo: $(STAMP)
 # Then the numerically sensitive tests (marker `numerics`) again on a second CPU code path: XLA limited to
 # SSE4.2 vector code, the farthest from AVX-512/AVX2 machines, so no tolerance depends on one processor.
 # Exit 5 (no test collected) fails: the second pass must check something.
+# Two worker processes (pytest-xdist; tests/conftest.py schedules by module and keeps the memory-heavy modules in
+# one worker, so that the two stay under 3 GB together); TEST_WORKERS=0 runs one process.
 SECOND_ISA := SSE4_2
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 	@echo "--- numerics tests again with XLA_FLAGS=--xla_cpu_max_isa=$(SECOND_ISA)"
 	@[ "$$(uname -m)" = x86_64 ] || echo "make test: $$(uname -m) is not x86-64; the flag names an x86 ISA and changes nothing here" >&2
-	@XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(SECOND_ISA)" $(BIN)/python -m pytest -q -m numerics -p no:cacheprovider; \
+	@XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(SECOND_ISA)" $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m numerics -p no:cacheprovider; \
 	rc=$$?; if [ $$rc -eq 5 ]; then echo "make test: no test is marked numerics; the second pass checked nothing" >&2; fi; \
 	exit $$rc
 

@@ -13,7 +13,68 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
+# Figures drawn in the test process, not in figure workers (dstereo.runtime.figure_pool; the files are the same
+# either way, its docstring): each test process that ran a command in process kept two ~100 MB workers (the
+# suite's two xdist workers, four) and paid their start. tests/runtime, which tests the workers, has the default
+# for its tests and the processes they start (`_figure_workers_by_default_in_runtime_tests`).
+# The setting as the suite found it ("" = unset), kept in the environment: xdist's workers inherit the "0" below.
+os.environ.setdefault("DSTEREO_SUITE_FIGURE_WORKERS", os.environ.get("DSTEREO_FIGURE_WORKERS", ""))
+os.environ["DSTEREO_FIGURE_WORKERS"] = "0"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _figure_workers_by_default_in_runtime_tests(request):
+    """Module scope, autouse: in place before the module's other fixtures (a served command, a started server)."""
+    if Path(str(request.node.path)).parent.name != "runtime":
+        yield
+        return
+    with pytest.MonkeyPatch.context() as patch:
+        default = os.environ["DSTEREO_SUITE_FIGURE_WORKERS"]
+        if default:
+            patch.setenv("DSTEREO_FIGURE_WORKERS", default)
+        else:
+            patch.delenv("DSTEREO_FIGURE_WORKERS")
+        yield
+
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+# The suite runs in two worker processes (`make test`: pytest-xdist, -n 2) whose sum, with the CLI processes some
+# tests start, must stay under 3 GB. A worker's RSS grows test by test with the programs it compiles (380 ->
+# 1434 MB over tests/calib/test_engine.py alone); outside MEMORY_HEAVY, above this, the worker drops them after the
+# test (the next test that needs one traces it again and loads its compiled code from the on-disk cache). Not in
+# MEMORY_HEAVY: its modules reuse their programs test after test, and releasing there after every test that ends
+# above 900 MB made them several times slower (re-tracing dominates); they run one at a time instead.
+RELEASE_ABOVE_MB = 1000
+
+# Modules that each reach 1.2-1.5 GB in one test (measured per module, VmHWM), and those that start processes
+# which import JAX (a calibration of ~1.3 GB, a server and its client 0.3-0.4 GB each, two frame workers 0.5 GB
+# each): one unit of work, so that xdist runs them one after the other in the same worker and two of them never
+# add up (two workers with one of each side by side measured 3.1 GB). Everything else is distributed a module at a
+# time (module fixtures built once).
+MEMORY_HEAVY = frozenset({
+    "tests/calib/test_problem.py", "tests/calib/test_engine.py", "tests/calib/test_multiview.py",
+    "tests/calib/test_rig_consistency.py", "tests/calib/test_calibrate_cameras.py",
+    "tests/calib/test_final_solution.py", "tests/demo/test_run.py",
+    "tests/jobs/test_frame_tasks.py", "tests/runtime/test_serve.py", "tests/runtime/test_serve_signals.py",
+    "tests/runtime/test_serve_autostart.py", "tests/runtime/test_signals.py", "tests/runtime/test_aot.py",
+    "tests/solver/test_concurrent_solves.py", "tests/commands/test_hostile_reconstruct.py",
+})
+
+
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook (`make test` runs two workers)
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's per-module scheduling (`--dist loadfile`: a module's fixtures built once), with MEMORY_HEAVY's
+    modules as one unit. (Not `--dist loadgroup` with marks: under pytest 9 xdist 3.8 cannot attach the group to
+    a test's id, and every test was then scheduled on its own.)"""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class MemoryAwareScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "memory-heavy" if module in MEMORY_HEAVY else module
+
+    return MemoryAwareScheduling(config, log)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -25,14 +86,41 @@ def _release_compiled_programs(request):
     cleared; the whole suite cleared 2.3 GB peak, no abort. The next module that needs a program fetches it from
     the on-disk cache (milliseconds), as a new command does."""
     yield
-    import gc
-
     log = os.environ.get("DSTEREO_RSS_LOG")  # a file: each module's peak RSS so far (where the suite's peak grows)
     if log:
         import resource
 
         with open(log, "a") as f:
             f.write(f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss} {request.module.__name__}\n")
+    release_compiled_programs()
+
+
+@pytest.fixture(autouse=True)
+def _release_above_the_limit(request):
+    """After a test outside MEMORY_HEAVY that leaves the process above RELEASE_ABOVE_MB: the module fixture's
+    release, now."""
+    yield
+    if request.node.nodeid.split("::")[0] not in MEMORY_HEAVY and resident_mb() > RELEASE_ABOVE_MB:
+        release_compiled_programs()
+
+
+def resident_mb() -> float:
+    """This process's resident memory (MB) from /proc (Linux); 0 elsewhere (no release between tests there)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def release_compiled_programs() -> None:
+    """Drop JAX's compiled programs and dstereo's function caches, collect, and return the memory to the system.
+    Also called by tests before they start a heavy CLI child process, so the two never hold their peaks at once."""
+    import gc
+
     jax.clear_caches()
     for name, module in list(sys.modules.items()):
         if name.startswith("dstereo"):

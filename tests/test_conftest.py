@@ -1,5 +1,7 @@
 """The suite's own rules: real-data tests skip with the reason on a machine without the data, and fail under CI."""
 
+from pathlib import Path
+
 import pytest
 
 import conftest
@@ -18,3 +20,10 @@ def test_present_real_data_is_returned(monkeypatch, tmp_path):
     monkeypatch.setattr(conftest, "DATA", tmp_path)
     monkeypatch.setenv("CI", "true")
     assert conftest.require_data("opencv_stereo") == tmp_path / "opencv_stereo"
+
+
+def test_every_memory_heavy_module_exists():
+    """A renamed module would silently leave the group that keeps the two workers' peaks apart."""
+    root = Path(__file__).resolve().parents[1]
+    missing = [m for m in conftest.MEMORY_HEAVY if not (root / m).is_file()]
+    assert not missing, missing
