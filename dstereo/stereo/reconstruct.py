@@ -61,7 +61,7 @@ def rectifying_maps(calib: StereoCalibration, size: tuple[int, int],
         outside.flags.writeable = False
         return RectifyingMaps(rect, None, None, outside)
     rect = rectify_any(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
-                       undistort=config.undistort)  # a pair with a fisheye: rectify_fisheye's rule
+                       undistort=config.undistort, projection=config.rectification)  # fisheye: rectify_fisheye's
     if rect.vertical:
         raise DstereoError(
             f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
@@ -109,13 +109,17 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                                                                calib=calib)
     timings["disparity_s"] = time.perf_counter() - t0
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
+    matrices["projection"] = np.array(rect.projection)  # how P1, P2 map a ray (`rectify.Rectification`)
     # calibration_unit: the unit the calibration file was in (converted to mm here), or that mm was assumed
     summary = {"mode": "calibrated", "calibration": calib.source, "calibration_unit": calib.unit_note,
                "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
-               "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
-    if not calib.rectified and has_fisheye(calib):
+               "zero_disparity": config.zero_disparity, "refine": {"enabled": False},
+               "rectification": {"projection": rect.projection, "why": rect.why or (
+                   "already rectified: the calibration's P1, P2" if calib.rectified else
+                   "a pinhole pair: Bouguet's rectification (cv2.stereoRectify)")}}
+    if not calib.rectified and (has_fisheye(calib) or rect.projection != "pinhole"):
         from dstereo.stereo.rectify_fisheye import field_of_view
 
         summary |= {"lenses": list(calib.models), "rectified_field_of_view_deg": field_of_view(rect),
@@ -128,7 +132,10 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     result.exact_rect = exact
     if unchecked:
         result.warnings.append(unchecked)
-    if config.uncertainty and not calib.rectified and has_fisheye(calib):
+    if config.uncertainty and not calib.rectified and rect.projection != "pinhole":
+        result.warnings.append(f"{name}: point uncertainties are not computed for a spherical rectification yet "
+                               "(they propagate through a pinhole one); the points are written without")
+    elif config.uncertainty and not calib.rectified and has_fisheye(calib):
         result.warnings.append(f"{name}: point uncertainties are not computed for a rig with a fisheye camera yet "
                                "(they propagate through the pinhole rectification); the points are written without")
     elif config.uncertainty:

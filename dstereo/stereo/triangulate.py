@@ -63,6 +63,21 @@ def reproject_spherical(disparity: Float[Array, "h w"], P1: Float[Array, "3 4"],
     return jnp.where(ok[..., None], r_l[..., None] * ray, jnp.nan)
 
 
+@jax.jit
+def spherical_range_rate(disparity: Float[Array, "h w"], P1: Float[Array, "3 4"],
+                         P2: Float[Array, "3 4"]) -> Float[Array, "h w"]:
+    """|d r_L / d d| (length per px of disparity) of `reproject_spherical`'s range along the left ray: with
+    Delta = psi_L - psi_R and d psi_R / d d = -1 / fx, d r_L / d d = -c cos(psi_L) / (fx sin^2 Delta) =
+    -r_R / (fx sin Delta) (r_R the range from the right camera)."""
+    h, w = disparity.shape
+    u = jnp.broadcast_to(jnp.arange(w, dtype=float), (h, w))
+    psi_l = (u - P1[0, 2]) / P1[0, 0]
+    psi_r = (u - disparity - P2[0, 2]) / P2[0, 0]
+    s = jnp.sin(psi_l - psi_r)
+    c = -P2[0, 3] / P2[0, 0]
+    return jnp.abs(c * jnp.cos(psi_l) / (P2[0, 0] * s * s))
+
+
 def reproject(disparity, rect_matrices: dict) -> Float[Array, "h w 3"]:
     """Points (rectified left frame) of a disparity map on the rectified grid of `rect_matrices` (Q, P1, P2 and
     `projection`, as a result's `matrices`): through Q for a pinhole rectification, through the ray angles for a

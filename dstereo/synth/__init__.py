@@ -11,7 +11,7 @@ from dstereo.synth.poses import board_pose_set, compose, corner_coverage, invert
 from dstereo.synth.rays import camera_rays
 from dstereo.synth.recession import RecessionProfile, profile_for_total, receded
 from dstereo.synth.render import render_board, render_object
-from dstereo.synth.rig import StereoRig, fisheye_rig, plasmatron_rig, sample_pose, stereo_rig
+from dstereo.synth.rig import StereoRig, fisheye_rig, plasmatron_rig, sample_pose, stereo_rig, wide_fisheye_rig
 from dstereo.synth.scenes import (
     CALIBRATION_OPTIONS, OBJECT_OPTIONS, CalibrationSet, StereoRender, calibration_set, object_pair,
     recession_sequence, sample_pair,
@@ -28,6 +28,6 @@ __all__ = [
     "look_at",
     "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
     "pose_matrix", "profile_for_total", "read_truth", "receded", "recession_sequence", "render_board",
-    "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners",
+    "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners", "wide_fisheye_rig",
     "write_calibration_set", "write_multiview_set", "write_render", "write_stereo_renders",
 ]

@@ -71,7 +71,8 @@ def calibration_set(
     poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
     images, views = [], []
     for c, (cam, t_cam_left) in enumerate(zip(cameras, rig)):
-        rays, centre = camera_rays(cam, options.supersample), camera_rays(cam, 1)
+        blank = options.blank_beyond_field
+        rays, centre = camera_rays(cam, options.supersample, blank), camera_rays(cam, 1, blank)
         rendered = [render_board(cam, compose(t_cam_left, p), board, options, seed=[seed, c, i], rays=rays,
                                  centre_rays=centre) for i, p in enumerate(poses)]
         images.append([img for img, _ in rendered])
@@ -121,7 +122,8 @@ def _object_pair(rig: StereoRig, surface, texture: Speckle, T_world_object, ligh
 
 def _rays_for(rig: StereoRig, options: RenderOptions) -> dict:
     cams = (rig.left, rig.right)
-    return {c: (camera_rays(cam, options.supersample), camera_rays(cam, 1)) for c, cam in enumerate(cams)}
+    blank = options.blank_beyond_field
+    return {c: (camera_rays(cam, options.supersample, blank), camera_rays(cam, 1, blank)) for c, cam in enumerate(cams)}
 
 
 def object_pair(rig: StereoRig, surface, T_world_object, seed: int = 0, speckle_mm: float = 0.6,
