@@ -57,18 +57,22 @@ def calibration_set(
     options: RenderOptions = CALIBRATION_OPTIONS,
     max_tilt_deg: float = 45.0,
     fill: tuple[float, float] = (0.35, 0.6),
+    poses: np.ndarray | None = None,
 ) -> CalibrationSet:
     """Render `n_views` good board poses (`poses.board_pose_set`) in one camera or both cameras of a rig.
 
     `square` and `border` in mm (border defaults to one square; 3.75 mm squares as in the thesis); for a rig,
-    `T_right_left` is (rvec, tvec) with x_right = R x_left + T.
+    `T_right_left` is (rvec, tvec) with x_right = R x_left + T. `poses` (n, 6) T_left_board: these views instead
+    (e.g. `poses.wide_board_poses` for a lens whose pinhole-minded pose set would not fit).
     """
     if (cam_right is None) != (T_right_left is None):
         raise DstereoError("calibration_set: give both cam_right and T_right_left for a rig, or neither")
     board = Board(tuple(pattern), float(square), float(square if border is None else border))
     cameras = [cam_left] + ([cam_right] if cam_right is not None else [])
     rig = [np.zeros(6)] + ([np.asarray(T_right_left, float).reshape(6)] if cam_right is not None else [])
-    poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
+    if poses is None:
+        poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
+    poses = np.asarray(poses, float).reshape(-1, 6)
     images, views = [], []
     for c, (cam, t_cam_left) in enumerate(zip(cameras, rig)):
         blank = options.blank_beyond_field
