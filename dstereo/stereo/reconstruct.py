@@ -110,6 +110,7 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     timings["disparity_s"] = time.perf_counter() - t0
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
     matrices["projection"] = np.array(rect.projection)  # how P1, P2 map a ray (`rectify.Rectification`)
+    matrices["size"] = np.array(rect.size)
     # calibration_unit: the unit the calibration file was in (converted to mm here), or that mm was assumed
     summary = {"mode": "calibrated", "calibration": calib.source, "calibration_unit": calib.unit_note,
                "units": "mm", "scaled": True,

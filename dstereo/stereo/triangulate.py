@@ -68,14 +68,15 @@ def spherical_range_rate(disparity: Float[Array, "h w"], P1: Float[Array, "3 4"]
                          P2: Float[Array, "3 4"]) -> Float[Array, "h w"]:
     """|d r_L / d d| (length per px of disparity) of `reproject_spherical`'s range along the left ray: with
     Delta = psi_L - psi_R and d psi_R / d d = -1 / fx, d r_L / d d = -c cos(psi_L) / (fx sin^2 Delta) =
-    -r_R / (fx sin Delta) (r_R the range from the right camera)."""
+    -r_R / (fx sin Delta) (r_R the range from the right camera). NaN where `reproject_spherical` has no point."""
     h, w = disparity.shape
     u = jnp.broadcast_to(jnp.arange(w, dtype=float), (h, w))
     psi_l = (u - P1[0, 2]) / P1[0, 0]
     psi_r = (u - disparity - P2[0, 2]) / P2[0, 0]
     s = jnp.sin(psi_l - psi_r)
     c = -P2[0, 3] / P2[0, 0]
-    return jnp.abs(c * jnp.cos(psi_l) / (P2[0, 0] * s * s))
+    rate = jnp.abs(c * jnp.cos(psi_l) / (P2[0, 0] * s * s))
+    return jnp.where(jnp.isfinite(reproject_spherical(disparity, P1, P2)[..., 0]), rate, jnp.nan)
 
 
 def reproject(disparity, rect_matrices: dict) -> Float[Array, "h w 3"]:
