@@ -218,8 +218,10 @@ def corner_angle_range(solution, object_points: np.ndarray) -> dict:
     obj = np.asarray(object_points, float).reshape(-1, 3)
     left = np.concatenate([obj @ np.asarray(rotation_matrix(p[:3])).T + p[3:6] for p in np.asarray(solution.poses)])
     right = left @ np.asarray(solution.R, float).T + np.asarray(solution.T, float).reshape(3)
-    angle = lambda p: float(np.degrees(np.arccos(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1, 1))).max())  # noqa: E731
-    return {"corner_angle_max1": angle(left), "corner_angle_max2": angle(right)}
+    def widest(p):
+        return float(np.degrees(np.arccos(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1.0, 1.0))).max())
+
+    return {"corner_angle_max1": widest(left), "corner_angle_max2": widest(right)}
 
 
 def append_board_depths(path: Path, depths: dict) -> None:

@@ -1,5 +1,6 @@
 """Rectification of a stereo pair with a fisheye camera (either or both), as cv2.fisheye.stereoRectify and
-cv2.fisheye.initUndistortRectifyMap: each camera's rays through its own lens model, to one rectified pinhole pair.
+cv2.fisheye.initUndistortRectifyMap: each camera's rays through its own lens model, to one rectified pinhole pair
+(or, for a field wider than a pinhole image holds, to the spherical pair of `rectify_wide`).
 
 Rotations: Bouguet's (`rectify.rectifying_rotations`, the same R1, R2 as cv2.fisheye.stereoRectify).
 Focal length and principal points, per camera, cv2.fisheye.estimateNewCameraMatrixForUndistortRectify's rule:
@@ -12,13 +13,25 @@ and the smallest (1: all four edge midpoints inside); `fov_scale` > 0 divides it
 the smaller of the two cameras' focal lengths (the wider field of the two) and principal points as
 cv2.fisheye.stereoRectify (zero_disparity: both at their mean; else each its own column, the rows' mean).
 
-A pinhole image cannot hold 180 degrees: an edge midpoint whose ray lies more than MAX_HALF_FIELD_DEG from the
-rectified axis is pulled in to that angle (its azimuth kept), which only changes the result for lenses wider than
-that (OpenCV's numbers are then far outside the image: its rule is undefined there). With balance 0 the image lies
-inside the midpoints, so it keeps at most 2 x MAX_HALF_FIELD_DEG across; with balance 1 it reaches past them along
-the less constraining axis (still under 180 degrees, a pinhole's edges being finite). `field_of_view` says what
-the rectified images keep: for the rig of `synth.fisheye_rig` (128 deg across its 640 px) 110 x 94 deg at balance
-0, 129 x 115 deg at balance 1 (measured by the since-removed experiments/fisheye_rig.py).
+The field is the one the lenses see (`field_rays`): a fisheye edge midpoint without a ray of its own (past the
+angle where its polynomial folds back, `fold_angle`; the real rig of issue 30: f 227 px on 960 px) is replaced by
+the ray where its field ends on the way to it, at the fold or, when the calibration recorded it
+(`corner_reach`), where its corners reached; a pinhole lens whose distortion cannot be inverted there is refused.
+Where every edge midpoint has its own ray, the rule is cv2's, unchanged.
+
+Which rectification (`choose_projection`): where every field ray of both cameras lies within MAX_HALF_FIELD_DEG of
+the rectified axis, the pinhole one above; where any lies beyond, the spherical one of `rectify_wide` (rows:
+planes through the baseline, columns: the angle within them), whose disparity is an angle difference and whose
+points come from the two ray angles; `projection` forces either. The `Rectification` says which and why.
+
+Forced to a pinhole, a field wider than that is clamped: an edge midpoint whose ray lies more than
+MAX_HALF_FIELD_DEG from the rectified axis is pulled in to that angle (its azimuth kept), which only changes the
+result for lenses wider than that (OpenCV's numbers are then far outside the image: its rule is undefined there).
+With balance 0 the image lies inside the midpoints, so it keeps at most 2 x MAX_HALF_FIELD_DEG across; with
+balance 1 it reaches past them along the less constraining axis (still under 180 degrees, a pinhole's edges being
+finite). `field_of_view` says what the rectified images keep: for the rig of `synth.fisheye_rig` (128 deg across
+its 640 px) 110 x 94 deg at balance 0, 129 x 115 deg at balance 1 (measured by the since-removed
+experiments/fisheye_rig.py).
 Maps (`lens_map`): NaN where a rectified pixel's ray has no source pixel (behind a pinhole camera, or past the angle
 where the fisheye polynomial folds back), never a number.
 Conventions: x_right = R x_left + T (OpenCV), pixel (0, 0) is the centre of the top-left pixel.
@@ -183,9 +196,9 @@ def choose_projection(cameras, R_pair, size, limits, projection: str, where: str
         raise DstereoError(f"{where}: rectification {projection!r}: use auto, pinhole or spherical")
     widest, notes = [], []
     for side, cam, R, (limit, edge) in zip(("left", "right"), cameras, R_pair, limits):
-        rays, own, ok = (np.asarray(a) for a in field_rays(jnp.asarray(cam.k, float), jnp.asarray(cam.dist.coeffs, float),
-                                                           cam.lens, edge_midpoints(size), jnp.asarray(limit),
-                                                           jnp.asarray(edge)))
+        k, coeffs = jnp.asarray(cam.k, float), jnp.asarray(cam.dist.coeffs, float)
+        rays, own, ok = (np.asarray(a) for a in field_rays(k, coeffs, cam.lens, edge_midpoints(size),
+                                                           jnp.asarray(limit), jnp.asarray(edge)))
         if not ok.all():
             raise DstereoError(f"{where}: the {side} lens model has no ray for an image edge midpoint (its distortion "
                                "is not invertible there); check or recalibrate its distortion")
@@ -216,7 +229,8 @@ def stereo_rectify_lenses(left: Camera, right: Camera, rig: Rig, image_size: tup
     rays within MAX_HALF_FIELD_DEG). Rig: x_right = R x_left + T. `projection`: "auto" (`choose_projection`),
     "pinhole" or "spherical" (`rectify_wide`). `reach`: per camera, the widest angle (rad) off its axis that the
     calibration's corners reached, or None; a fisheye's field is not taken past it where its edge midpoints have
-    no ray of their own.
+    no ray of their own, nor, in a spherical rectification, anywhere. A spherical rectification shares one
+    principal point (zero disparity at infinity) whatever `zero_disparity`, and has no use for `fov_scale`.
 
     Raises DstereoError (naming `where`) for a pair whose optical axes are more than 90 degrees apart, an edge
     midpoint a pinhole lens cannot invert, or a rectified field that sees neither image."""
@@ -244,7 +258,7 @@ def stereo_rectify_lenses(left: Camera, right: Camera, rig: Rig, image_size: tup
     if kind == SPHERICAL:
         return _spherical(cameras, (R1, R2), float(t_idx), limits, balance, (w, h), new, idx, where, why)
     lenses = (left.lens, right.lens)
-    R1, R2, P1, P2, Q, ok = _rectify_lenses(
+    R1, R2, P1, P2, Q, _ = _rectify_lenses(  # every edge midpoint has a ray: `choose_projection` refused the rest
         jnp.asarray(left.k, float), jnp.asarray(left.dist.coeffs, float), jnp.asarray(right.k, float),
         jnp.asarray(right.dist.coeffs, float), jnp.asarray(rvec), jnp.asarray(T), jnp.asarray(float(balance)),
         jnp.asarray(float(fov_scale)), jnp.asarray(bool(zero_disparity)), jnp.asarray(np.radians(MAX_HALF_FIELD_DEG)),
