@@ -133,30 +133,37 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     result.exact_rect = exact
     if unchecked:
         result.warnings.append(unchecked)
-    if config.uncertainty and not calib.rectified and rect.projection != "pinhole":
-        result.warnings.append(f"{name}: point uncertainties are not computed for a spherical rectification yet "
-                               "(they propagate through a pinhole one); the points are written without")
-    elif config.uncertainty and not calib.rectified and has_fisheye(calib):
-        result.warnings.append(f"{name}: point uncertainties are not computed for a rig with a fisheye camera yet "
-                               "(they propagate through the pinhole rectification); the points are written without")
-    elif config.uncertainty:
-        add_uncertainty(result, calib, config, params, originals=(left, right))
+    if config.uncertainty:
+        add_uncertainty(result, calib, config, params, originals=(left, right),
+                        disparity_only=not calib.rectified and (has_fisheye(calib) or rect.projection != "pinhole"))
     return result
 
 
+# Why a rig with a fisheye (or a spherical rectification) gets the disparity noise's sigmas alone.
+FISHEYE_NOTE = ("calibration uncertainty not propagated through a fisheye lens's rectification yet (the "
+                "propagation re-rectifies a pinhole pair): disparity noise only")
+
+
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
-                    params: SGBMParams | None = None, originals=None) -> PairResult:
+                    params: SGBMParams | None = None, originals=None, disparity_only: bool = False) -> PairResult:
     """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.uncertainty.points`) with the
-    per-pixel disparity noise of `disparity_sigma_hook`."""
-    from dstereo.uncertainty.points import point_covariances
+    per-pixel disparity noise of `disparity_sigma_hook`; `disparity_only` (a rig with a fisheye): that noise's
+    part alone (`disparity_covariances`, through the rectification's own projection), with a warning."""
+    from dstereo.uncertainty.points import disparity_covariances, point_covariances
 
     t0 = time.perf_counter()
     sigma_d, source = disparity_sigma_hook(result, config, params, originals)
-    result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
-                                           sigma_d_source=source)
+    if disparity_only:
+        result.uncertainty = disparity_covariances(result, sigma_d, FISHEYE_NOTE, full=config.full_covariance,
+                                                   sigma_d_source=source)
+    else:
+        result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
+                                               sigma_d_source=source)
     result.summary["uncertainty"] = result.uncertainty.summary()
     result.summary.setdefault("timings_s", {})["uncertainty_s"] = time.perf_counter() - t0
-    if not result.uncertainty.calibration_included:
+    if disparity_only:
+        result.warnings.append(f"{result.name}: {FISHEYE_NOTE}; the point sigmas cover the disparity noise")
+    elif not result.uncertainty.calibration_included:
         result.warnings.append(f"{result.name}: calibration uncertainty not included ({calib.source} has no "
                                "covariance); the point sigmas cover disparity noise only")
     return result
