@@ -16,6 +16,7 @@ from dstereo.io.camera_file import read_camera_file
 from dstereo.io.reconstruction_files import read_rectification
 from dstereo.models.pose import rotation_matrix, rotation_vector
 from dstereo.models.stereo_calibration import StereoCalibration
+from dstereo.stereo.rectify_fisheye import rectify_any
 from dstereo.stereo.triangulate import reproject_disparity, spherical_range_rate, to_original_left
 from dstereo.synth import (Board, Plane, calibration_set, object_pair, wide_board_poses, wide_fisheye_rig,
                            write_calibration_set)
@@ -123,6 +124,11 @@ def test_the_wide_rig_reconstructs_its_board_within_one_percent(wide, yaw):
     assert summary["rectification"]["projection"] == "spherical"
     assert "more than a pinhole image holds" in summary["rectification"]["why"]
     rel, px, rect, disparity = _board_errors(out, pose)
+    # matrices.npz read back (io) is the rectification of the calibration file, projection and all
+    direct = rectify_any(read_opencv_stereo(folder / "calib" / "stereo.yml"), (960, 600), zero_disparity=False)
+    assert rect.projection == direct.projection == "spherical" and rect.size == direct.size
+    for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2"):
+        assert np.array_equal(np.asarray(getattr(rect, k)), np.asarray(getattr(direct, k))), k
     # the board is matched: a spherical image keeps about the board's pixels (its own resampling); half is plenty
     # to show it was not lost, SGBM's borders and the plane's rim excluded
     assert rel.size > 0.5 * board_px, (rel.size, board_px)
