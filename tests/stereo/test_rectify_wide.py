@@ -140,6 +140,20 @@ def test_forcing_either_projection_and_the_refusals(rect):
     assert "\n" not in str(err.value) and "rig.yml" in str(err.value)
 
 
+def test_two_views_that_share_no_field_are_refused_in_one_line():
+    """Two 18-degree pinhole cameras looking 80 degrees apart (within MAX_AXES_DEG, so not refused as apart), forced
+    spherical: the columns each sees (psi about -40 and +40 deg, +-9 wide) do not overlap."""
+    from dstereo.models.pose import rodrigues
+
+    K = np.array([[2000.0, 0, 320], [0, 2000, 240], [0, 0, 1]])
+    R = np.asarray(rodrigues(np.array([0.0, np.radians(80.0), 0.0])))
+    c = StereoCalibration(K, np.zeros(8), K, np.zeros(8), R, -R @ np.array([100.0, 0, 0]), (640, 480),
+                          source="rig.yml")
+    with pytest.raises(DstereoError, match="see no common field in front of the rig") as err:
+        rectify_any(c, projection="spherical")
+    assert "\n" not in str(err.value) and "rig.yml" in str(err.value)
+
+
 def test_the_corners_reach_bounds_the_field_where_a_lens_has_no_ray_of_its_own():
     """stereo.yml's corner_angle_max1/2 (degrees): the spherical field stops there; the why names it. The cone of
     70 deg about the left axis (the rectified axis to within the rig's 0.7 deg half-rotation) spans at most
