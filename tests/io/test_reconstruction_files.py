@@ -1,6 +1,6 @@
 """`read_rectification`: a results folder's matrices.npz read back as the `Rectification` it was written from,
-its projection included (pinhole and spherical), a file written before projections were recorded taken as a
-pinhole one, and a file that is not a reconstruction's refused in one line."""
+its projection included (pinhole and spherical), a folder written before projections and sizes were recorded taken
+as pinhole at its disparity map's size, and a file that is not a reconstruction's refused in one line."""
 
 import numpy as np
 import pytest
@@ -40,10 +40,12 @@ def test_a_rectification_round_trips_with_its_projection(tmp_path, rig, projecti
 
 def test_an_older_file_is_pinhole_and_a_foreign_one_is_refused(tmp_path):
     rect = rectify_any(_calib(fisheye_rig()))
-    older = _written(tmp_path, rect, keep=("R1", "R2", "P1", "P2", "Q", "roi1", "roi2", "size"))
-    assert read_rectification(older).projection == "pinhole"
+    older = _written(tmp_path, rect, keep=("R1", "R2", "P1", "P2", "Q", "roi1", "roi2"))  # neither projection nor size
+    np.save(tmp_path / "disparity.npy", np.zeros(rect.size[::-1], np.float32))
+    back = read_rectification(older)
+    assert back.projection == "pinhole" and back.size == rect.size  # the size of the disparity map beside it
     np.savez(tmp_path / "other.npz", H1=np.eye(3))
-    with pytest.raises(DstereoError, match="other.npz: no R1, R2, P1, P2, Q, roi1, roi2, size") as err:
+    with pytest.raises(DstereoError, match="other.npz: no R1, R2, P1, P2, Q, roi1, roi2: not a calibrated") as err:
         read_rectification(tmp_path / "other.npz")
     assert "\n" not in str(err.value)
     np.savez(tmp_path / "bad.npz", **{k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1",
