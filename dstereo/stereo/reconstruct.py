@@ -61,7 +61,7 @@ def rectifying_maps(calib: StereoCalibration, size: tuple[int, int],
         outside.flags.writeable = False
         return RectifyingMaps(rect, None, None, outside)
     rect = rectify_any(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
-                       undistort=config.undistort, projection=config.rectification)  # fisheye: rectify_fisheye's
+                       undistort=config.undistort, projection=config.rectification)  # rectify_fisheye's rule
     if rect.vertical:
         raise DstereoError(
             f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
@@ -140,8 +140,9 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
 
 
 # Why a rig with a fisheye (or a spherical rectification) gets the disparity noise's sigmas alone.
-FISHEYE_NOTE = ("calibration uncertainty not propagated through a fisheye lens's rectification yet (the "
-                "propagation re-rectifies a pinhole pair): disparity noise only")
+FISHEYE_NOTE = ("calibration uncertainty not propagated through a fisheye lens or a spherical rectification yet (the "
+                "propagation re-rectifies pinhole lenses to a pinhole pair): the point sigmas cover the disparity "
+                "noise only")
 
 
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
@@ -162,7 +163,7 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
     result.summary["uncertainty"] = result.uncertainty.summary()
     result.summary.setdefault("timings_s", {})["uncertainty_s"] = time.perf_counter() - t0
     if disparity_only:
-        result.warnings.append(f"{result.name}: {FISHEYE_NOTE}; the point sigmas cover the disparity noise")
+        result.warnings.append(f"{result.name}: {FISHEYE_NOTE}")
     elif not result.uncertainty.calibration_included:
         result.warnings.append(f"{result.name}: calibration uncertainty not included ({calib.source} has no "
                                "covariance); the point sigmas cover disparity noise only")
