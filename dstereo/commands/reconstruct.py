@@ -22,6 +22,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     z_min: Optional[float] = RECONSTRUCT.option("z_min"),
     z_max: Optional[float] = RECONSTRUCT.option("z_max"),
     alpha: Optional[float] = RECONSTRUCT.option("alpha"),
+    rectification: Optional[str] = RECONSTRUCT.option("rectification"),
     zero_disparity: Optional[bool] = RECONSTRUCT.option("zero_disparity"),
     lr_check: Optional[float] = RECONSTRUCT.option("sgbm.lr_check"),
     roi: Optional[str] = RECONSTRUCT.option("roi"),
@@ -75,7 +76,7 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         layers.append(settings.file_layer(config))
     layers.append(settings.flag_layer({  # parameter -> flag value (dstereo.config.options.RECONSTRUCT)
         "preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max, "roi": roi, "sgbm.lr_check": lr_check,
-        "alpha": alpha, "zero_disparity": zero_disparity, "refine": refine, "outlier_neighbours": outliers,
+        "alpha": alpha, "rectification": rectification, "zero_disparity": zero_disparity, "refine": refine, "outlier_neighbours": outliers,
         "outlier_std": outlier_std, "max_jump": max_jump, "focal_mm": focal_mm, "pixel_size_mm": pixel_size_mm,
         "crop_factor": crop_factor, "focal_px": focal_px, "baseline_mm": baseline_mm, "uncertainty": no_uncertainty,
         "full_covariance": full_covariance, "disparity_sigma": disparity_sigma}))
@@ -92,6 +93,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         depth = s.get("depth_mm") or {}
         typer.echo(f"{r.name}: {100 * s['valid_fraction']:.1f}% valid, depth {depth.get('min', float('nan')):.1f}.."
                    f"{depth.get('max', float('nan')):.1f} {s['units']}")
+        if s.get("rectification"):
+            typer.echo(f"  rectification: {s['rectification']['projection']} ({s['rectification']['why']})")
         typer.echo(f"  {search_range_line(s.get('search_range'))}")
         for line in search_range_tries(s.get("search_range")):
             typer.echo(f"    {line}")

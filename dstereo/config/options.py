@@ -120,7 +120,12 @@ RECONSTRUCT = OptionTable("reconstruct", (
          in_config=False),  # z_min and z_max set depth_range
     _opt("z_max", "reconstruct.z_max", "--z-max", "Farthest depth of the scene, mm.", float, in_config=False),
     _opt("alpha", "reconstruct.alpha", "--alpha", "Rectification free scaling: -1 default, 0..1 (a rig with a "
-         "fisheye: cv2.fisheye's balance, 0 by default).", float),
+         "fisheye: cv2.fisheye's balance, 0 by default; a spherical rectification: 0 the field both cameras see, "
+         "1 the field either sees).", float),
+    _opt("rectification", "reconstruct.rectification", "--rectification",
+         "Rectified images: auto (pinhole where the field fits one, within 75 deg of the axis; else spherical), "
+         "pinhole, or spherical (rows: planes through the baseline, columns: the angle within them; for fields "
+         "wider than a pinhole image holds).", str),
     _opt("zero_disparity", "reconstruct.zero_disparity", "--zero-disparity/--own-centres",
          "Share one principal point (OpenCV's default) or centre each view.", bool),
     _opt("sgbm.lr_check", "sgbm.lr_check", "--lr-check", "Left-right consistency tolerance, px.", float,

@@ -191,6 +191,8 @@ def check(cfg, image_size: tuple[int, int] | None = None) -> None:
     if not (cfg.alpha == -1 or 0 <= cfg.alpha <= 1):
         raise DstereoError(f"{given_as(cfg, 'alpha', cfg.alpha)}: rectification's free scaling is -1 (OpenCV's "
                            "default) or 0..1")
+    if cfg.rectification not in ("auto", "pinhole", "spherical"):
+        raise DstereoError(f"{given_as(cfg, 'rectification', cfg.rectification)}: use auto, pinhole or spherical")
     lr = cfg.sgbm.lr_check
     if lr is not None and not (math.isfinite(lr) and lr >= 0):
         raise DstereoError(f"{given_as(cfg, 'sgbm.lr_check', lr)}: the left-right tolerance is a distance in px, >= 0")

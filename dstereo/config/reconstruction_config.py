@@ -29,6 +29,7 @@ class ReconstructionConfig:
     depth_range: tuple[float, float] | None = None
     search_range: tuple[int, int] | None = None  # (min, num) chosen by a caller (a sequence's first frame), not a user
     alpha: float = -1.0
+    rectification: str = "auto"  # auto | pinhole | spherical (`dstereo.stereo.rectify_fisheye.choose_projection`)
     zero_disparity: bool = False
     undistort: str = "opencv"
     color_matching: bool = False

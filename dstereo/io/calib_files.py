@@ -170,7 +170,8 @@ def read_opencv_stereo(path: str | Path, unscaled: bool = False) -> StereoCalibr
     models = _lens_models(data, path)
     mm, unit_note = _unit_scale(data, path, unscaled)
     return StereoCalibration(
-        extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm), unit_note=unit_note,
+        extras=_in_mm(_covariance_extras(data, path) | _board_depth_extras(data), mm) | _corner_angle_extras(data),
+        unit_note=unit_note,
         K1=_check_matrix(_pick(data, "K1"), f"{path}: M1"),
         D1=_lens_coeffs(_pick(data, "D1"), models[0], f"{path}: D1"),
         K2=_check_matrix(_pick(data, "K2"), f"{path}: M2"),
@@ -261,6 +262,12 @@ def _board_depth_extras(data: dict) -> dict:
     both are there as numbers, else {}."""
     values = {k: data.get(k) for k in ("board_depth_min", "board_depth_max")}
     return {k: float(v) for k, v in values.items()} if all(isinstance(v, float) for v in values.values()) else {}
+
+
+def _corner_angle_extras(data: dict) -> dict:
+    """{'corner_angle_max1', 'corner_angle_max2'} (degrees: the widest angle off each camera's axis its calibration
+    corners reached, dstereo's stereo.yml) where they are numbers; reconstruct's fisheye field stops there."""
+    return {k: float(data[k]) for k in ("corner_angle_max1", "corner_angle_max2") if isinstance(data.get(k), float)}
 
 
 # Official calib.txt files round cx0, cx1 and doffs to 3 decimals each: cx1 - cx0 may differ from doffs by up to

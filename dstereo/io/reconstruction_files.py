@@ -101,3 +101,30 @@ def write_atomically(out: str | Path, force: bool, fill) -> Path:
     with atomic_folder(out, force) as tmp:
         fill(tmp)
     return Path(out)
+
+
+def read_rectification(path: str | Path):
+    """The `dstereo.stereo.rectify.Rectification` a results folder's `matrices.npz` (or that file) holds: R1 R2 P1
+    P2 Q roi1 roi2, its size and `projection` (a file written before these were recorded: pinhole, and the size of
+    the `disparity.npy` beside it)."""
+    import jax.numpy as jnp
+
+    from dstereo.errors import DstereoError
+    from dstereo.stereo.rectify import PINHOLE, PROJECTIONS, Rectification
+
+    path = Path(path)
+    path = path / "matrices.npz" if path.is_dir() else path
+    with np.load(path) as z:
+        size = tuple(int(v) for v in z["size"]) if "size" in z.files else None
+        if size is None and (path.parent / "disparity.npy").is_file():
+            size = tuple(int(v) for v in np.load(path.parent / "disparity.npy", mmap_mode="r").shape[1::-1])
+        missing = [k for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2") if k not in z.files]
+        missing += ["size"] if size is None else []
+        if missing:
+            raise DstereoError(f"{path}: no {', '.join(missing)}: not a calibrated reconstruction's matrices.npz")
+        projection = str(z["projection"]) if "projection" in z.files else PINHOLE
+        if projection not in PROJECTIONS:
+            raise DstereoError(f"{path}: projection {projection!r} is not one of {list(PROJECTIONS)}")
+        arrays = [jnp.asarray(z[k], float) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")]
+    vertical = bool(abs(float(arrays[3][1, 3])) > abs(float(arrays[3][0, 3])))
+    return Rectification(*arrays, size=size, vertical=vertical, projection=projection)

@@ -209,6 +209,21 @@ def board_depth_range(solution, object_points: np.ndarray) -> dict:
     return {"board_depth_min": float(z.min()), "board_depth_max": float(z.max())}
 
 
+def corner_angle_range(solution, object_points: np.ndarray) -> dict:
+    """{'corner_angle_max1', 'corner_angle_max2'}: the widest angle (degrees) off each camera's optical axis of the
+    board corners at the solution's poses (x_right = R x_left + T): where each lens model was measured, written to
+    stereo.yml so that `reconstruct` takes a fisheye's field no farther."""
+    from dstereo.models.pose import rotation_matrix
+
+    obj = np.asarray(object_points, float).reshape(-1, 3)
+    left = np.concatenate([obj @ np.asarray(rotation_matrix(p[:3])).T + p[3:6] for p in np.asarray(solution.poses)])
+    right = left @ np.asarray(solution.R, float).T + np.asarray(solution.T, float).reshape(3)
+    def widest(p):
+        return float(np.degrees(np.arccos(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1.0, 1.0))).max())
+
+    return {"corner_angle_max1": widest(left), "corner_angle_max2": widest(right)}
+
+
 def append_board_depths(path: Path, depths: dict) -> None:
     """Add `board_depth_range`'s two scalars to a written stereo.yml (top-level OpenCV YAML nodes, optional:
     readers that do not know them ignore them)."""
@@ -355,6 +370,8 @@ def _fill_stereo_folder(folder: Path, job: StereoCalibrationJob) -> None:
                                                               for c in (s.left, s.right)], job.R, job.T)
     summary["board_depth_range"] = board_depth_range(s, det.object_points)
     append_board_depths(folder / "stereo.yml", summary["board_depth_range"])
+    summary["corner_angle_max_deg"] = corner_angle_range(s, det.object_points)
+    append_board_depths(folder / "stereo.yml", summary["corner_angle_max_deg"])
     summary["calibration_covariance"] = {"names": list(cov_names), "cov": cov, "structure": cov_structure,
                                          "std": dict(zip(cov_names, np.sqrt(np.maximum(np.diag(cov), 0.0))))}
     write_json(folder / "stereo.json", summary)

@@ -72,7 +72,7 @@ class FrameReconstructor:
                                        maps=self._maps((left.shape[1], left.shape[0])))
             # the originals' own noise is only reported by `dstereo reconstruct`; a recession does not use it
             sigma_d, _ = disparity_sigma_hook(r, self.config, originals=(left, right), report_image_noise=False)
-            vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d)
+            vectors = point_sigma_vectors(r.points, r.disparity, r.matrices["Q"], sigma_d, r.matrices)
         except DstereoError:
             raise
         except Exception as exc:  # noqa: BLE001 - an OpenCV failure on one frame skips that frame only

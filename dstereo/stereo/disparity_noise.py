@@ -447,9 +447,20 @@ def disparity_sigma_map(originals, rectified, disparity: np.ndarray, refined: bo
     return sigma, info, warnings
 
 
-def point_sigma_vectors(points: np.ndarray, disparity: np.ndarray, Q: np.ndarray, sigma_d: np.ndarray) -> np.ndarray:
+def point_sigma_vectors(points: np.ndarray, disparity: np.ndarray, Q: np.ndarray, sigma_d: np.ndarray,
+                        matrices: dict | None = None) -> np.ndarray:
     """(h, w, 3) the random displacement (1 sigma, mm) of every point along its ray, original left frame: the
     Q reprojection scales a point by 1 / W, W = Q[3,2] d + Q[3,3], so dp/dd = -p Q[3,2] / W. Its component
-    along any direction a is that direction's random std (a recession height: a = the sample axis)."""
+    along any direction a is that direction's random std (a recession height: a = the sample axis). A spherical
+    rectification's `matrices` (`projection`, P1, P2): the range along the left ray moves by
+    |d r_L / d d| = r_R / (fx |sin(psi_L - psi_R)|) per px (`triangulate.spherical_range_rate`), not through Q."""
+    if matrices is not None and str(matrices.get("projection", "pinhole")) == "spherical":
+        from dstereo.stereo.triangulate import spherical_range_rate
+
+        p = np.asarray(points, float)
+        rate = np.asarray(spherical_range_rate(np.asarray(disparity, float), np.asarray(matrices["P1"]),
+                                               np.asarray(matrices["P2"])))
+        unit = p / np.linalg.norm(p, axis=-1, keepdims=True)
+        return unit * (rate * np.asarray(sigma_d, float))[..., None]
     w = Q[3, 2] * np.asarray(disparity, float) + Q[3, 3]
     return np.asarray(points, float) * (np.abs(Q[3, 2] / w) * np.asarray(sigma_d, float))[..., None]

@@ -19,12 +19,13 @@ LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 def points_and_summary(name, left_rect, right_rect, disparity, Q, R1, config: ReconstructionConfig, matrices, summary,
             timings, warnings) -> PairResult:
     """Disparity -> points in the left frame, ROI, outliers, density checks and the summary."""
-    from dstereo.stereo.triangulate import reproject_disparity, to_original_left
+    from dstereo.stereo.triangulate import reproject, to_original_left
 
     t0 = time.perf_counter()
     if not summary["refine"]["enabled"]:  # refined: checked on SGBM's map before the refinement
         require_disparity(name, disparity, summary)
-    points = np.array(to_original_left(reproject_disparity(disparity.astype(np.float64), Q), R1))  # writable
+    rect = {"Q": Q, **matrices}  # a spherical rectification's matrices say so (`projection`); else through Q
+    points = np.array(to_original_left(reproject(disparity.astype(np.float64), rect), R1))  # writable
     if config.roi is not None:
         x, y, w, h = config.roi
         keep = np.zeros(disparity.shape, bool)

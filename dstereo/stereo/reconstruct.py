@@ -61,7 +61,7 @@ def rectifying_maps(calib: StereoCalibration, size: tuple[int, int],
         outside.flags.writeable = False
         return RectifyingMaps(rect, None, None, outside)
     rect = rectify_any(calib, size, alpha=config.alpha, zero_disparity=config.zero_disparity,
-                       undistort=config.undistort)  # a pair with a fisheye: rectify_fisheye's rule
+                       undistort=config.undistort, projection=config.rectification)  # rectify_fisheye's rule
     if rect.vertical:
         raise DstereoError(
             f"calibration {calib.source}: the baseline is vertical; SGBM matches along rows, so rotate both "
@@ -109,13 +109,18 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
                                                                calib=calib)
     timings["disparity_s"] = time.perf_counter() - t0
     matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q", "roi1", "roi2")}
+    matrices["projection"] = np.array(rect.projection)  # how P1, P2 map a ray (`rectify.Rectification`)
+    matrices["size"] = np.array(rect.size)
     # calibration_unit: the unit the calibration file was in (converted to mm here), or that mm was assumed
     summary = {"mode": "calibrated", "calibration": calib.source, "calibration_unit": calib.unit_note,
                "units": "mm", "scaled": True,
                "frame": "original left camera (x right, y down, z forward); pixel grid of the rectified left image",
                "sgbm": params.as_dict(), "search_range": search_range, "alpha": config.alpha,
-               "zero_disparity": config.zero_disparity, "refine": {"enabled": False}}
-    if not calib.rectified and has_fisheye(calib):
+               "zero_disparity": config.zero_disparity, "refine": {"enabled": False},
+               "rectification": {"projection": rect.projection, "why": rect.why or (
+                   "already rectified: the calibration's P1, P2" if calib.rectified else
+                   "a pinhole pair: Bouguet's rectification (cv2.stereoRectify)")}}
+    if not calib.rectified and (has_fisheye(calib) or rect.projection != "pinhole"):
         from dstereo.stereo.rectify_fisheye import field_of_view
 
         summary |= {"lenses": list(calib.models), "rectified_field_of_view_deg": field_of_view(rect),
@@ -128,27 +133,38 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     result.exact_rect = exact
     if unchecked:
         result.warnings.append(unchecked)
-    if config.uncertainty and not calib.rectified and has_fisheye(calib):
-        result.warnings.append(f"{name}: point uncertainties are not computed for a rig with a fisheye camera yet "
-                               "(they propagate through the pinhole rectification); the points are written without")
-    elif config.uncertainty:
-        add_uncertainty(result, calib, config, params, originals=(left, right))
+    if config.uncertainty:
+        add_uncertainty(result, calib, config, params, originals=(left, right),
+                        disparity_only=not calib.rectified and (has_fisheye(calib) or rect.projection != "pinhole"))
     return result
 
 
+# Why a rig with a fisheye (or a spherical rectification) gets the disparity noise's sigmas alone.
+FISHEYE_NOTE = ("calibration uncertainty not propagated through a fisheye lens or a spherical rectification yet (the "
+                "propagation re-rectifies pinhole lenses to a pinhole pair): the point sigmas cover the disparity "
+                "noise only")
+
+
 def add_uncertainty(result: PairResult, calib: StereoCalibration, config: ReconstructionConfig,
-                    params: SGBMParams | None = None, originals=None) -> PairResult:
+                    params: SGBMParams | None = None, originals=None, disparity_only: bool = False) -> PairResult:
     """Fill `result.uncertainty` and summary['uncertainty'] (see `dstereo.uncertainty.points`) with the
-    per-pixel disparity noise of `disparity_sigma_hook`."""
-    from dstereo.uncertainty.points import point_covariances
+    per-pixel disparity noise of `disparity_sigma_hook`; `disparity_only` (a rig with a fisheye): that noise's
+    part alone (`disparity_covariances`, through the rectification's own projection), with a warning."""
+    from dstereo.uncertainty.points import disparity_covariances, point_covariances
 
     t0 = time.perf_counter()
     sigma_d, source = disparity_sigma_hook(result, config, params, originals)
-    result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
-                                           sigma_d_source=source)
+    if disparity_only:
+        result.uncertainty = disparity_covariances(result, sigma_d, FISHEYE_NOTE, full=config.full_covariance,
+                                                   sigma_d_source=source)
+    else:
+        result.uncertainty = point_covariances(calib, result, sigma_d, full=config.full_covariance,
+                                               sigma_d_source=source)
     result.summary["uncertainty"] = result.uncertainty.summary()
     result.summary.setdefault("timings_s", {})["uncertainty_s"] = time.perf_counter() - t0
-    if not result.uncertainty.calibration_included:
+    if disparity_only:
+        result.warnings.append(f"{result.name}: {FISHEYE_NOTE}")
+    elif not result.uncertainty.calibration_included:
         result.warnings.append(f"{result.name}: calibration uncertainty not included ({calib.source} has no "
                                "covariance); the point sigmas cover disparity noise only")
     return result

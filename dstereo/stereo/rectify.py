@@ -34,10 +34,19 @@ from dstereo.models.rig import Rig
 GRID = 9  # border sampling of OpenCV's getUndistortRectangles: a 9 x 9 grid of pixels
 
 
+PINHOLE = "pinhole"  # rectified images are pinhole images: u = cx + f x / z (OpenCV's)
+SPHERICAL = "spherical"  # epipolar-rectified spherical (`rectify_wide`): rows are planes through the baseline
+PROJECTIONS = (PINHOLE, SPHERICAL)
+
+
 class Rectification(eqx.Module):
     """Rectifying rotations R1, R2 (original -> rectified camera), projections P1, P2, disparity-to-depth Q.
 
     `roi1`, `roi2` are OpenCV's valid-pixel rectangles (x, y, w, h) in the rectified images of size `size`.
+    `projection` says what a rectified pixel is: PINHOLE (P maps a point, Q maps a disparity to it exactly) or
+    SPHERICAL (`dstereo.stereo.rectify_wide`: P holds px per radian and the pixel of the angles' zero, P2[0, 3]
+    the baseline; Q is then only the paraxial equivalent, f B / d, and points come from
+    `triangulate.reproject_spherical`). `why` says why this projection was chosen ("" when not chosen).
     """
 
     R1: Float[Array, "3 3"]
@@ -49,6 +58,8 @@ class Rectification(eqx.Module):
     roi2: Float[Array, "4"]
     size: tuple[int, int] = eqx.field(static=True)
     vertical: bool = eqx.field(static=True, default=False)
+    projection: str = eqx.field(static=True, default=PINHOLE)
+    why: str = eqx.field(static=True, default="")
 
 
 def undistort_fixed_point(coeffs: Float[Array, "8"], xy_d: Float[Array, "2"], iterations: int = 5) -> Float[Array, "2"]:

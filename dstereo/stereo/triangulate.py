@@ -1,4 +1,5 @@
-"""Triangulation in JAX: dense (disparity through Q) and sparse (two rays per matched pixel pair).
+"""Triangulation in JAX: dense (disparity through Q; a spherical rectification's through its two ray angles) and
+sparse (two rays per matched pixel pair).
 
 Units follow the calibration (T in mm gives mm). Dense points are in the rectified left camera frame; rotate them
 by R1^T (`to_original_left`) for the original left camera's frame.
@@ -32,6 +33,59 @@ def reproject_disparity(disparity: Float[Array, "h w"], Q: Float[Array, "4 4"]) 
 def depth_from_disparity(disparity: Float[Array, "h w"], Q: Float[Array, "4 4"]) -> Float[Array, "h w"]:
     """Z of every pixel (NaN where invalid): Z = f / (Q[3,2] d + Q[3,3])."""
     return reproject_disparity(disparity, Q)[..., 2]
+
+
+@jax.jit
+def reproject_spherical(disparity: Float[Array, "h w"], P1: Float[Array, "3 4"],
+                        P2: Float[Array, "3 4"]) -> Float[Array, "h w 3"]:
+    """Points (rectified left frame) of a spherical rectification's disparity (`dstereo.stereo.rectify_wide`).
+
+    A pixel (u, v) of image k sees psi = (u - P[0,2]) / P[0,0] (the angle from the plane normal to the
+    baseline, within the plane through the baseline of tilt phi = (v - P[1,2]) / P[1,1]), so its ray is
+    (sin psi, cos psi sin phi, cos psi cos phi). The right camera's centre lies at c = -P2[0,3] / P2[0,0] on the
+    baseline (x). In the plane, left ray r_L (sin psi_L, cos psi_L) = (c, 0) + r_R (sin psi_R, cos psi_R); the
+    cross product with each ray gives r_L = c cos psi_R / sin(psi_L - psi_R) and r_R = c cos psi_L / sin(...):
+    depth from the two ray angles and the baseline, exact at any angle (no small-angle step). NaN where the
+    disparity is not finite or either range is not positive and finite (at or beyond infinity, a ray along the
+    baseline)."""
+    h, w = disparity.shape
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=float), jnp.arange(w, dtype=float), indexing="ij")
+    d = disparity.astype(float)
+    psi_l = (u - P1[0, 2]) / P1[0, 0]
+    psi_r = (u - d - P2[0, 2]) / P2[0, 0]
+    phi = (v - P1[1, 2]) / P1[1, 1]
+    c = -P2[0, 3] / P2[0, 0]
+    s = jnp.sin(psi_l - psi_r)
+    s_safe = jnp.where(s != 0, s, 1.0)
+    r_l, r_r = c * jnp.cos(psi_r) / s_safe, c * jnp.cos(psi_l) / s_safe
+    ray = jnp.stack([jnp.sin(psi_l), jnp.cos(psi_l) * jnp.sin(phi), jnp.cos(psi_l) * jnp.cos(phi)], axis=-1)
+    ok = jnp.isfinite(d) & (s != 0) & (r_l > 0) & (r_r > 0) & jnp.isfinite(r_l) & jnp.isfinite(r_r)
+    return jnp.where(ok[..., None], r_l[..., None] * ray, jnp.nan)
+
+
+@jax.jit
+def spherical_range_rate(disparity: Float[Array, "h w"], P1: Float[Array, "3 4"],
+                         P2: Float[Array, "3 4"]) -> Float[Array, "h w"]:
+    """|d r_L / d d| (length per px of disparity) of `reproject_spherical`'s range along the left ray: with
+    Delta = psi_L - psi_R and d psi_R / d d = -1 / fx, d r_L / d d = -c cos(psi_L) / (fx sin^2 Delta) =
+    -r_R / (fx sin Delta) (r_R the range from the right camera). NaN where `reproject_spherical` has no point."""
+    h, w = disparity.shape
+    u = jnp.broadcast_to(jnp.arange(w, dtype=float), (h, w))
+    psi_l = (u - P1[0, 2]) / P1[0, 0]
+    psi_r = (u - disparity - P2[0, 2]) / P2[0, 0]
+    s = jnp.sin(psi_l - psi_r)
+    c = -P2[0, 3] / P2[0, 0]
+    rate = jnp.abs(c * jnp.cos(psi_l) / (P2[0, 0] * s * s))
+    return jnp.where(jnp.isfinite(reproject_spherical(disparity, P1, P2)[..., 0]), rate, jnp.nan)
+
+
+def reproject(disparity, rect_matrices: dict) -> Float[Array, "h w 3"]:
+    """Points (rectified left frame) of a disparity map on the rectified grid of `rect_matrices` (Q, P1, P2 and
+    `projection`, as a result's `matrices`): through Q for a pinhole rectification, through the ray angles for a
+    spherical one."""
+    if str(rect_matrices.get("projection", "pinhole")) == "spherical":
+        return reproject_spherical(disparity, jnp.asarray(rect_matrices["P1"]), jnp.asarray(rect_matrices["P2"]))
+    return reproject_disparity(disparity, jnp.asarray(rect_matrices["Q"]))
 
 
 def to_original_left(points: Float[Array, "... 3"], R1: Float[Array, "3 3"]) -> Float[Array, "... 3"]:

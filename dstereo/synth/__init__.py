@@ -7,11 +7,12 @@ cork Plasmatron sample), a surface-recession sequence, and the truth of every re
 from dstereo.synth.board import Board, object_points, true_corners
 from dstereo.synth.multiview import MultiviewRig, MultiviewSet, multiview_poses, multiview_set, ring_rig
 from dstereo.synth.objects import Plane, Sample, Sphere
-from dstereo.synth.poses import board_pose_set, compose, corner_coverage, invert, look_at, pose_from_rt, pose_matrix
+from dstereo.synth.poses import (board_pose_set, compose, corner_coverage, invert, look_at, pose_from_rt, pose_matrix,
+                                 wide_board_poses)
 from dstereo.synth.rays import camera_rays
 from dstereo.synth.recession import RecessionProfile, profile_for_total, receded
 from dstereo.synth.render import render_board, render_object
-from dstereo.synth.rig import StereoRig, fisheye_rig, plasmatron_rig, sample_pose, stereo_rig
+from dstereo.synth.rig import StereoRig, fisheye_rig, plasmatron_rig, sample_pose, stereo_rig, wide_fisheye_rig
 from dstereo.synth.scenes import (
     CALIBRATION_OPTIONS, OBJECT_OPTIONS, CalibrationSet, StereoRender, calibration_set, object_pair,
     recession_sequence, sample_pair,
@@ -28,6 +29,6 @@ __all__ = [
     "look_at",
     "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
     "pose_matrix", "profile_for_total", "read_truth", "receded", "recession_sequence", "render_board",
-    "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners",
-    "write_calibration_set", "write_multiview_set", "write_render", "write_stereo_renders",
+    "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners", "wide_fisheye_rig",
+    "write_calibration_set", "write_multiview_set", "write_render", "write_stereo_renders", "wide_board_poses",
 ]

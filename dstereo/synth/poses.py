@@ -10,6 +10,7 @@ from typing import Sequence
 
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dstereo.errors import DstereoError
 from dstereo.models.camera import Camera
@@ -190,3 +191,45 @@ def corner_coverage(points: np.ndarray, image_size: tuple[int, int]) -> dict[str
         "lower_right": 100.0 * np.sum((u >= 0.5) & (v >= 0.5)) / n,
         "centre": 100.0 * np.sum((np.abs(u - 0.5) < 0.25) & (np.abs(v - 0.5) < 0.25)) / n,
     }
+
+
+def wide_board_poses(board: Board, n_views: int, seed: int, max_off_axis_deg: float = 65.0,
+                     distance_mm: tuple[float, float] = (300.0, 450.0), max_tilt_deg: float = 30.0,
+                     max_corner_deg: float = 80.0) -> np.ndarray:
+    """(n_views, 6) T_cam_board for a wide lens: the board's centre `distance_mm` away, up to `max_off_axis_deg`
+    off the optical axis (the first view on it, the others in a spiral of azimuths), facing the camera, then
+    tilted up to `max_tilt_deg` about a random in-plane axis, drawn again until every corner lies within
+    `max_corner_deg` of the axis; deterministic from `seed`. (`board_pose_set` aims through image pixels with a
+    pinhole's sense of size and puts the boards of a 180-degree lens at its rim.)"""
+    rng = np.random.default_rng(seed)
+    x0, y0, x1, y1 = board.squares_extent()
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
+    corners = board.geometry.object_points()
+    out = []
+    for i in range(n_views):
+        for _ in range(100):
+            pose = _wide_pose(rng, i, n_views, max_off_axis_deg, distance_mm, max_tilt_deg, centre)
+            p = corners @ rotation_matrix(pose[:3]).T + pose[3:]
+            if np.degrees(np.arccos(p[:, 2] / np.linalg.norm(p, axis=1))).max() <= max_corner_deg:
+                break
+        else:
+            raise DstereoError(f"wide_board_poses: view {i}: no tilt keeps the board within {max_corner_deg} deg of "
+                               "the axis; lower max_off_axis_deg or the board's size")
+        out.append(pose)
+    return np.array(out)
+
+
+def _wide_pose(rng, i, n_views, max_off_axis_deg, distance_mm, max_tilt_deg, centre) -> np.ndarray:
+    """One draw of `wide_board_poses`'s view i."""
+    off = 0.0 if i == 0 else np.radians(max_off_axis_deg) * np.sqrt(i / max(n_views - 1, 1))
+    az = 2.399963 * i  # the golden angle: azimuths that never repeat
+    z = np.array([np.sin(off) * np.cos(az), np.sin(off) * np.sin(az), np.cos(off)])
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    r_face = np.stack([x, np.cross(z, x), z], axis=1)  # board axes in the camera frame, its normal along the ray
+    axis = rng.normal(size=2)
+    tilt = Rotation.from_rotvec(np.radians(rng.uniform(-max_tilt_deg, max_tilt_deg))
+                                * np.r_[axis / np.linalg.norm(axis), 0.0]).as_matrix()
+    r = r_face @ tilt
+    t = rng.uniform(*distance_mm) * z - r @ centre
+    return np.concatenate([np.asarray(rotation_vector(r)), t])

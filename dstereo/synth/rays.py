@@ -95,12 +95,13 @@ def _rays(k, coeffs, image_size: tuple[int, int], supersample: int, lens: str = 
     return xy.reshape(h, w, supersample * supersample, 2)
 
 
-def camera_rays(camera: Camera, supersample: int = 1) -> Float[Array, "h w s2 2"]:
+def camera_rays(camera: Camera, supersample: int = 1, blank: bool = False) -> Float[Array, "h w s2 2"]:
     """Normalised ray directions (x, y) for every sample of every pixel, shape (height, width, s*s, 2).
 
     Raises `DstereoError` where the distortion is not invertible over the image (the Newton inverse would not
     reproduce the pixel), because the render would then disagree with the model it is meant to test; for a
-    fisheye also where a pixel sees 90 degrees or more off the axis (a ray (x, y, 1) cannot hold it).
+    fisheye also where a pixel sees 90 degrees or more off the axis (a ray (x, y, 1) cannot hold it), unless
+    `blank`: those samples are then NaN (the renderers draw them as background) and the rest are checked.
     """
     w, h = camera.image_size
     if w <= 0 or h <= 0:
@@ -108,16 +109,17 @@ def camera_rays(camera: Camera, supersample: int = 1) -> Float[Array, "h w s2 2"
     if supersample < 1:
         raise DstereoError(f"supersample={supersample}: need an integer >= 1")
     xy = _rays(camera.k, camera.dist.coeffs, (int(w), int(h)), int(supersample), camera.lens)
-    if camera.lens == "fisheye" and not bool(jnp.all(jnp.isfinite(xy))):
+    if camera.lens == "fisheye" and not blank and not bool(jnp.all(jnp.isfinite(xy))):
         raise DstereoError(f"fisheye camera f = {np.asarray(camera.k[:2]).round(2).tolist()} px: some of its {w}x{h} "
                            "pixels see 90 degrees or more off the axis (or the lens model folds back there); the "
                            "renderer needs every ray in front of the camera: lengthen the focal or shrink the image")
-    check_invertible(camera, xy)
+    check_invertible(camera, xy, blank and camera.lens == "fisheye")
     return xy
 
 
-def check_invertible(camera: Camera, xy: Float[Array, "h w s2 2"]) -> None:
-    """Re-project a sparse subset of the rays and demand the pixel comes back (to 1e-6 px)."""
+def check_invertible(camera: Camera, xy: Float[Array, "h w s2 2"], blank: bool = False) -> None:
+    """Re-project a sparse subset of the rays and demand the pixel comes back (to 1e-6 px); `blank`: only the
+    rays that are there (not NaN)."""
     h, w, s2, _ = xy.shape
     s = int(round(np.sqrt(s2)))
     rows = np.linspace(0, h - 1, 9).astype(int)
@@ -127,7 +129,10 @@ def check_invertible(camera: Camera, xy: Float[Array, "h w s2 2"]) -> None:
     q_expected = np.stack([cc.ravel(), rr.ravel()], axis=1)[:, None, :] + subpixel_offsets(s)[None]
     p = np.concatenate([sub, np.ones(sub.shape[:2] + (1,))], axis=-1).reshape(-1, 3)
     q = np.asarray(project_points(camera.k, camera.dist.coeffs, jnp.asarray(p), camera.lens)).reshape(q_expected.shape)
-    err = np.max(np.abs(q - q_expected)) if np.all(np.isfinite(q)) else np.inf
+    if blank:
+        there = np.isfinite(sub).all(axis=-1).reshape(q_expected.shape[:2])
+        q, q_expected = q[there], q_expected[there]
+    err = np.max(np.abs(q - q_expected)) if q.size and np.all(np.isfinite(q)) else np.inf
     if not err <= 1e-6:
         raise DstereoError(
             f"camera distortion {np.asarray(camera.dist.coeffs).round(4).tolist()} is not invertible over the "

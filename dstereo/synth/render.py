@@ -38,6 +38,8 @@ def board_radiance(rays: Float[Array, "h w s2 2"], pose: Float[Array, "6"], boar
     h, w, s2, _ = rays.shape
     s = int(round(s2**0.5))
     o, r_t = _ray_frame(pose)
+    seen = jnp.all(jnp.isfinite(rays), axis=-1)  # NaN: a sample with no ray in front (`camera_rays(blank=True)`)
+    rays = jnp.where(seen[..., None], rays, 0.0)
     d = jnp.einsum("ij,hwsj->hwsi", r_t, jnp.concatenate([rays, jnp.ones(rays.shape[:-1] + (1,))], axis=-1))
     dz = jnp.where(jnp.abs(d[..., 2]) > 1e-15, d[..., 2], 1e-15)
     t = -o[2] / dz
@@ -49,7 +51,7 @@ def board_radiance(rays: Float[Array, "h w s2 2"], pose: Float[Array, "6"], boar
     width = jnp.clip((jnp.abs(d_du) + jnp.abs(d_dv)) / s, 0.0, 10.0 * board.square)
     width = jnp.broadcast_to(width[:, :, None, :], xy.shape)
     refl = jax.vmap(board_reflectance, in_axes=(None, 0, 0))(board, xy.reshape(-1, 2), width.reshape(-1, 2))
-    refl = jnp.where(t.reshape(-1) > 0, refl, board.background)
+    refl = jnp.where((t > 0).reshape(-1) & seen.reshape(-1), refl, board.background)
     return jnp.mean(refl.reshape(h, w, s2), axis=2)
 
 
@@ -79,9 +81,10 @@ def render_board(
     `rays` / `centre_rays`: `camera_rays(camera, options.supersample)` / `camera_rays(camera, 1)` if already
     computed; `seed` (an int or a list of ints) feeds the sensor noise.
     """
-    rays = camera_rays(camera, options.supersample) if rays is None else rays
+    blank = options.blank_beyond_field
+    rays = camera_rays(camera, options.supersample, blank) if rays is None else rays
     if centre_rays is None:
-        centre_rays = rays if options.supersample == 1 else camera_rays(camera, 1)
+        centre_rays = rays if options.supersample == 1 else camera_rays(camera, 1, blank)
     pose = np.asarray(pose, float).reshape(6)
     radiance = np.asarray(board_radiance(rays, jnp.asarray(pose), board))
     image = expose(radiance, np.asarray(camera.k[2:4]), options, np.random.default_rng(seed))
@@ -103,9 +106,11 @@ def render_board(
 
 # --- analytic objects -------------------------------------------------------------------------------------
 def _trace(surface, o, r_t, xy):
+    seen = jnp.all(jnp.isfinite(xy))  # NaN: a sample with no ray in front (`camera_rays(blank=True)`): a miss
+    xy = jnp.where(seen, xy, 0.0)
     d = r_t @ jnp.array([xy[0], xy[1], 1.0])
     t, part = surface.hit(o, d)
-    return t, part, d
+    return t, jnp.where(seen, part, MISS), d
 
 
 def _shade(surface, texture, light, ambient, background, o, r_t, xy):
@@ -143,8 +148,8 @@ def render_object(
     the camera (a head lamp: the direction from the object-frame origin to the camera centre). `rays` /
     `centre_rays`: `camera_rays(camera, options.supersample)` / `camera_rays(camera, 1)` if already computed.
     """
-    rays = camera_rays(camera, options.supersample) if rays is None else rays
-    centre_rays = camera_rays(camera, 1) if centre_rays is None else centre_rays
+    rays = camera_rays(camera, options.supersample, options.blank_beyond_field) if rays is None else rays
+    centre_rays = camera_rays(camera, 1, options.blank_beyond_field) if centre_rays is None else centre_rays
     pose = np.asarray(pose, float).reshape(6)
     if light is None:
         light = np.asarray(_ray_frame(jnp.asarray(pose))[0])

@@ -121,3 +121,32 @@ def fisheye_rig(mixed: bool = False, scale: float = 1.0) -> StereoRig:
 
     left = camera(PINHOLE_LEFT, "pinhole") if mixed else camera(FISHEYE_LEFT, "fisheye")
     return stereo_rig(left, camera(FISHEYE_RIGHT, "fisheye"), np.array(FISHEYE_RIG))
+
+
+# A rig whose lenses see more than 180 degrees across the sensor (issue 30: a real one of 960 x 600 px, f ~ 227 px):
+# equidistant-like cv2.fisheye lenses whose polynomials fold back at 144 / 141 degrees off the axis, 470 / 468 px
+# from the centre, inside the 480 px half-width (the image's edge midpoints left and right have no ray; the
+# top and bottom ones lie 76 / 75 degrees off the axis, at or past what a pinhole rectification holds). 100 mm
+# apart, nearly parallel. Rendered with RenderOptions(blank_beyond_field=True): pixels past 90 degrees see nothing.
+WIDE_FISHEYE_LEFT = ((227.0, 226.7, 481.3, 298.2), (0.01, -0.006, 0.0, 0.0))
+WIDE_FISHEYE_RIGHT = ((229.1, 229.4, 478.6, 301.5), (0.012, -0.0066, 0.0, 0.0))
+WIDE_FISHEYE_RIG = (0.004, -0.012, 0.003, -100.0, 0.8, 0.5)  # T_right_left: rvec (rad), tvec (mm)
+
+
+def wide_fisheye_rig(scale: float = 1.0, lens=None) -> StereoRig:
+    """Two fisheye cameras seeing more than 180 degrees across 960 x 600 px times `scale` (module constants), in the
+    WIDE_FISHEYE_RIG pose; world = left camera. `lens`: one ((fx, fy, cx, cy), (k1..k4), (w, h)) for both cameras
+    instead (e.g. a real camera's calibration paired with itself)."""
+    from dstereo.models.distortion import PRESETS
+
+    def camera(spec, size):
+        (fx, fy, cx, cy), coeffs = spec
+        c = lambda v: (v + 0.5) * scale - 0.5  # noqa: E731  (pixel centres scale about the image's corner)
+        return Camera.create(fx * scale, fy * scale, c(cx), c(cy), coeffs, PRESETS["fisheye"],
+                             (int(round(size[0] * scale)), int(round(size[1] * scale))))
+
+    if lens is not None:
+        (k, d, size) = lens
+        return stereo_rig(camera((k, d), size), camera((k, d), size), np.array(WIDE_FISHEYE_RIG))
+    size = (960, 600)
+    return stereo_rig(camera(WIDE_FISHEYE_LEFT, size), camera(WIDE_FISHEYE_RIGHT, size), np.array(WIDE_FISHEYE_RIG))

@@ -57,21 +57,26 @@ def calibration_set(
     options: RenderOptions = CALIBRATION_OPTIONS,
     max_tilt_deg: float = 45.0,
     fill: tuple[float, float] = (0.35, 0.6),
+    poses: np.ndarray | None = None,
 ) -> CalibrationSet:
     """Render `n_views` good board poses (`poses.board_pose_set`) in one camera or both cameras of a rig.
 
     `square` and `border` in mm (border defaults to one square; 3.75 mm squares as in the thesis); for a rig,
-    `T_right_left` is (rvec, tvec) with x_right = R x_left + T.
+    `T_right_left` is (rvec, tvec) with x_right = R x_left + T. `poses` (n, 6) T_left_board: these views instead
+    (e.g. `poses.wide_board_poses` for a lens whose pinhole-minded pose set would not fit).
     """
     if (cam_right is None) != (T_right_left is None):
         raise DstereoError("calibration_set: give both cam_right and T_right_left for a rig, or neither")
     board = Board(tuple(pattern), float(square), float(square if border is None else border))
     cameras = [cam_left] + ([cam_right] if cam_right is not None else [])
     rig = [np.zeros(6)] + ([np.asarray(T_right_left, float).reshape(6)] if cam_right is not None else [])
-    poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
+    if poses is None:
+        poses = board_pose_set(cameras, rig, board, n_views, seed, max_tilt_deg=max_tilt_deg, fill=fill)
+    poses = np.asarray(poses, float).reshape(-1, 6)
     images, views = [], []
     for c, (cam, t_cam_left) in enumerate(zip(cameras, rig)):
-        rays, centre = camera_rays(cam, options.supersample), camera_rays(cam, 1)
+        blank = options.blank_beyond_field
+        rays, centre = camera_rays(cam, options.supersample, blank), camera_rays(cam, 1, blank)
         rendered = [render_board(cam, compose(t_cam_left, p), board, options, seed=[seed, c, i], rays=rays,
                                  centre_rays=centre) for i, p in enumerate(poses)]
         images.append([img for img, _ in rendered])
@@ -121,7 +126,8 @@ def _object_pair(rig: StereoRig, surface, texture: Speckle, T_world_object, ligh
 
 def _rays_for(rig: StereoRig, options: RenderOptions) -> dict:
     cams = (rig.left, rig.right)
-    return {c: (camera_rays(cam, options.supersample), camera_rays(cam, 1)) for c, cam in enumerate(cams)}
+    blank = options.blank_beyond_field
+    return {c: (camera_rays(cam, options.supersample, blank), camera_rays(cam, 1, blank)) for c, cam in enumerate(cams)}
 
 
 def object_pair(rig: StereoRig, surface, T_world_object, seed: int = 0, speckle_mm: float = 0.6,

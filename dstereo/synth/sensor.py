@@ -18,6 +18,9 @@ class RenderOptions:
     defocus; vignetting: relative fall-off at the farthest image corner, gain = 1 - v (r / r_corner)^2 about the
     principal point; full_well: electrons at radiance 1 for Poisson shot noise (0: none); read_noise_dn: Gaussian
     read noise in 8-bit digital numbers; exposure: digital numbers at radiance 1 are 255 * exposure.
+    blank_beyond_field: a fisheye pixel with no ray in front of the camera (90 degrees or more off its axis, or
+    past the fold of its polynomial) sees nothing (the background) instead of refusing the render: for lenses
+    that see 180 degrees or more across the sensor (nothing of the scene lies behind the camera's plane).
     """
 
     supersample: int = 4
@@ -26,6 +29,7 @@ class RenderOptions:
     full_well: float = 0.0
     read_noise_dn: float = 0.0
     exposure: float = 1.0
+    blank_beyond_field: bool = False
 
     def __post_init__(self):
         if self.supersample < 1:

@@ -114,6 +114,21 @@ def disparity_jacobian(uvd, rect: RectGeometry) -> Float[Array, "3"]:
     return rect.R1.T @ ((rect.Q[:3, 2] - x * rect.Q[3, 2]) / hom[3])
 
 
+def spherical_disparity_jacobian(uvd, rect: RectGeometry) -> Float[Array, "3"]:
+    """d p / d d of a spherical rectification's point (`dstereo.stereo.triangulate.reproject_spherical`: the range
+    r_L = c cos(psi_R) / sin(psi_L - psi_R) along the left pixel's ray, psi_R = (u - d - cx2) / fx), in the
+    original left frame: the ray times d r_L / d d = -c cos(psi_L) / (fx sin^2(psi_L - psi_R))."""
+    u, v, d = uvd[0], uvd[1], uvd[2]
+    P1, P2 = rect.P1, rect.P2
+    psi_l = (u - P1[0, 2]) / P1[0, 0]
+    psi_r = (u - d - P2[0, 2]) / P2[0, 0]
+    phi = (v - P1[1, 2]) / P1[1, 1]
+    s = jnp.sin(psi_l - psi_r)
+    rate = (P2[0, 3] / P2[0, 0]) * jnp.cos(psi_l) / (P2[0, 0] * s * s)  # -c cos(psi_L) / (fx s^2), c = -P2[0,3]/fx
+    ray = jnp.array([jnp.sin(psi_l), jnp.cos(psi_l) * jnp.sin(phi), jnp.cos(psi_l) * jnp.cos(phi)])
+    return rect.R1.T @ (rate * ray)
+
+
 def point_covariance(params, index: tuple[int, ...], cov_theta, sigma_d, uvd, rect: RectGeometry):
     """(3x3 calibration part, 3x3 disparity part) of the covariance of one rectified pixel (u, v, d)'s point.
 

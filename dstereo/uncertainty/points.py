@@ -24,12 +24,14 @@ from dstereo.uncertainty.point_jacobians import (  # re-exported: the public nam
     point_covariance,
     point_from_pixels,
     rays_of_rectified,
+    spherical_disparity_jacobian,
     theta_index,
 )
 
 __all__ = ["PARAMETER_NAMES", "RIG_NAMES", "RectGeometry", "PointUncertainty", "calibration_covariance",
            "disparity_jacobian", "disparity_noise_from_lr", "newton_step", "parameter_vector", "point_covariance",
-           "point_covariances", "point_from_pixels", "rays_of_rectified", "rect_geometry", "theta_index"]
+           "point_covariances", "disparity_covariances", "point_from_pixels", "rays_of_rectified", "rect_geometry",
+           "spherical_disparity_jacobian", "theta_index"]
 
 NOT_INCLUDED = "calibration uncertainty not included (the calibration file has no covariance): disparity noise only"
 MAD_TO_STD = 1.4826  # std of a normal distribution / its median absolute deviation
@@ -165,6 +167,43 @@ def point_covariances(calib, result_or_disparity, sigma_d, full: bool = False, *
     smap[v, u] = sig
     return PointUncertainty(sigma, sz_cal, sz_dis, median_d, sigma_d_source, found is not None, note, full_cov,
                             {"calibration_parameters": list(names), "covariance_structure": structure}, smap)
+
+
+@functools.lru_cache(maxsize=None)
+def _disparity_jacobians(projection: str):
+    one = spherical_disparity_jacobian if projection == "spherical" else disparity_jacobian
+    return jax.jit(jax.vmap(one, in_axes=(0, None)))
+
+
+def disparity_covariances(result, sigma_d, note: str, full: bool = False,
+                          sigma_d_source: str = "given") -> PointUncertainty:
+    """The disparity noise's part alone of every point's covariance, sigma_d^2 (dp/dd)(dp/dd)^T: for a rectification
+    the calibration covariance is not propagated through (a fisheye lens's; `note` says why). dp/dd through Q for a
+    pinhole rectification (`disparity_jacobian`), through the two ray angles for a spherical one
+    (`spherical_disparity_jacobian`; `result.matrices['projection']`)."""
+    disparity = np.asarray(result.disparity, float)
+    sigma_map = np.broadcast_to(np.asarray(sigma_d, float), disparity.shape)
+    valid = np.isfinite(disparity) & np.all(np.isfinite(result.points), axis=2) & np.isfinite(sigma_map)
+    v, u = np.nonzero(valid)
+    uvd = np.stack([u, v, disparity[v, u]], axis=1).astype(float)
+    sig = sigma_map[v, u].astype(float)
+    projection = str(result.matrices.get("projection", "pinhole"))
+    jac = np.asarray(_disparity_jacobians(projection)(jnp.asarray(uvd), rect_geometry(result.matrices))) if len(uvd) \
+        else np.zeros((0, 3))
+    dis = sig[:, None, None] ** 2 * jac[:, :, None] * jac[:, None, :]
+    h, w = disparity.shape
+    sigma, sz_dis, smap = np.full((h, w, 3), np.nan), np.full((h, w), np.nan), np.full((h, w), np.nan)
+    sigma[v, u] = np.sqrt(np.maximum(np.diagonal(dis, axis1=1, axis2=2), 0.0))
+    sz_dis[v, u] = sigma[v, u, 2]
+    smap[v, u] = sig
+    sz_cal = np.where(np.isfinite(sz_dis), 0.0, np.nan)
+    full_cov = None
+    if full:
+        full_cov = np.full((h, w, 3, 3), np.nan)
+        full_cov[v, u] = dis
+    median_d = float(np.median(sig)) if len(sig) else float("nan")
+    return PointUncertainty(sigma, sz_cal, sz_dis, median_d, sigma_d_source, False, note, full_cov,
+                            {"calibration_parameters": [], "covariance_structure": ""}, smap)
 
 
 # --- disparity noise from the left-right check ----------------------------------------------------------------

@@ -379,6 +379,8 @@ RECONSTRUCT_CASES = {
     "z_max": ("[reconstruct]\nz_min = 500\nz_max = 750\n", ["--z-min", "500", "--z-max", "750"], "depth_range",
               (500.0, 750.0)),
     "alpha": ("[reconstruct]\nalpha = 0.5\n", ["--alpha", "0.5"], "alpha", 0.5),
+    "rectification": ("[reconstruct]\nrectification = \"spherical\"\n", ["--rectification", "spherical"],
+                      "rectification", "spherical"),
     "zero_disparity": ("[reconstruct]\nzero_disparity = true\n", ["--zero-disparity"], "zero_disparity", True),
     "sgbm.lr_check": ("[sgbm]\nlr_check = 1.5\n", ["--lr-check", "1.5"], "sgbm.lr_check", 1.5),
     "roi": ("[reconstruct]\nroi = [1, 2, 30, 40]\n", ["--roi", "1,2,30,40"], "roi", (1, 2, 30, 40)),

@@ -157,6 +157,28 @@ def test_point_sigma_vectors_and_the_recession_cells_random_sigma():
     assert np.nanmedian(cells) == pytest.approx(np.median(expect), rel=0.05)
 
 
+def test_point_sigma_vectors_of_a_spherical_rectification_follow_its_ray_angles():
+    """A spherical rectification's points (the recession's random sigma): dp/dd sigma_d along the ray, against a
+    central difference of `reproject_spherical` (where the pinhole Q would say otherwise)."""
+    from dstereo.stereo.triangulate import reproject_spherical
+
+    fx, fy = 320.0 / np.pi, 200.0 / np.pi  # 180 x 180 deg over a 320 x 200 image
+    P1 = np.array([[fx, 0, 159.5, 0], [0, fy, 99.5, 0], [0, 0, 1.0, 0]])
+    P2 = P1.copy()
+    P2[0, 3] = -60.0 * fx  # the right camera 60 mm along +x
+    disparity = np.full((200, 320), 12.0)
+    sigma_d = np.full((200, 320), 0.05)
+    points = np.asarray(reproject_spherical(disparity, P1, P2), float)
+    matrices = {"projection": np.array("spherical"), "P1": P1, "P2": P2, "Q": np.eye(4)}
+    vec = dn.point_sigma_vectors(points, disparity, np.eye(4), sigma_d, matrices)
+    step = 1e-4
+    dp = (np.asarray(reproject_spherical(disparity + step, P1, P2))
+          - np.asarray(reproject_spherical(disparity - step, P1, P2))) / (2 * step)
+    ok = np.isfinite(dp).all(axis=-1) & np.isfinite(points).all(axis=-1)
+    assert ok.mean() > 0.8
+    np.testing.assert_allclose(np.abs(vec[ok]), np.abs(dp[ok]) * 0.05, rtol=1e-6)
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 8, 1001, 1024])
 def test_fast_median_is_numpy_median(n):
     """The plane check's median (`_median`, numpy's partition without its generic-axis overhead) gives numpy's

@@ -39,7 +39,7 @@ def test_reconstruct_writes_the_plane_from_a_fisheye_stereo_file(scene):
     folder, pose, _ = scene
     (result,) = run_reconstruction([(folder / "left.png", folder / "right.png")], folder / "out",
                                    folder / "stereo.yml", ReconstructionConfig(depth_range=(250.0, 900.0)))
-    assert any("point uncertainties are not computed for a rig with a fisheye camera" in w for w in result.warnings)
+    assert any("calibration uncertainty not propagated through a fisheye lens" in w for w in result.warnings)
     assert (folder / "out" / "points.ply").is_file()
     points = np.load(folder / "out" / "points.npy")
     P1 = np.load(folder / "out" / "matrices.npz")["P1"]

@@ -110,15 +110,16 @@ def test_pinhole_pairs_keep_the_bouguet_path_bit_for_bit():
 
 def test_field_of_view_and_the_wide_lens_clamp():
     """balance 1 keeps a wider field than 0; a lens seeing more than 2 x MAX_HALF_FIELD_DEG across its edge
-    midpoints is pulled in to that field at balance 0 (OpenCV's rule is undefined there), and stays under 180
-    degrees at balance 1."""
+    midpoints, forced to a pinhole rectification, is pulled in to that field at balance 0 (OpenCV's rule is
+    undefined there), and stays under 180 degrees at balance 1; left to choose, it gets the spherical one."""
     narrow = field_of_view(rectify_any(FISHEYE, SIZE, alpha=0.0))
     wide = field_of_view(rectify_any(FISHEYE, SIZE, alpha=1.0))
     assert 90.0 < narrow["horizontal_deg"] < wide["horizontal_deg"] < 2 * MAX_HALF_FIELD_DEG
     left, right = FISHEYE.cameras()
     wider = type(left)(left.k * np.array([0.55, 0.55, 1, 1]), left.dist, left.image_size)  # ~230 deg across
     for balance, limit in ((0.0, 2 * MAX_HALF_FIELD_DEG), (1.0, 180.0)):
-        rect = stereo_rectify_lenses(wider, wider, FISHEYE.rig, SIZE, balance=balance)
+        assert stereo_rectify_lenses(wider, wider, FISHEYE.rig, SIZE, balance=balance).projection == "spherical"
+        rect = stereo_rectify_lenses(wider, wider, FISHEYE.rig, SIZE, balance=balance, projection="pinhole")
         fov = field_of_view(rect)
         assert np.isfinite(np.asarray(rect.P1)).all() and 120.0 < fov["horizontal_deg"] <= limit + 1e-9
         mx, _ = lens_map(wider.k, wider.dist.coeffs, rect.R1, rect.P1, "fisheye", rect.size)
@@ -142,13 +143,27 @@ _NARROW = dict(K2=np.array([[2000.0, 0, 320], [0, 2000, 240], [0, 0, 1]]), D2=np
 @pytest.mark.parametrize("change, message", [
     (_NARROW, "the rectified field would be empty: no rectified pixel of the right camera sees its image"),
     (dict(R=np.asarray(rodrigues(np.array([0.0, np.radians(120.0), 0.0])))), "optical axes are 120.0 deg apart"),
-    (dict(D2=np.array([-0.5, 0, 0, 0, 0, 0, 0, 0])), "right lens model has no ray for an image edge midpoint"),
+    (dict(K1=MIXED.K1, D1=np.array([-0.6, 0, 0, 0, 0, 0, 0, 0]), models=("pinhole", "fisheye")),
+     "left lens model has no ray for an image edge midpoint .its distortion is not invertible"),
     (dict(T=np.zeros(3)), "baseline T is zero"),
 ])
 def test_bad_fisheye_rigs_are_one_line_errors(change, message):
     with pytest.raises(DstereoError, match=message) as err:
         rectify_any(_with(FISHEYE, source="rig.yml", **change), SIZE, zero_disparity=False)
     assert "\n" not in str(err.value) and "rig.yml" in str(err.value)
+
+
+def test_a_fisheye_folding_inside_its_image_is_rectified_from_its_field():
+    """k1 = -0.5 folds at theta = sqrt(2/3) rad (47 deg, theta_d' = 1 - 1.5 theta^2 = 0), 158 px from the centre:
+    no image edge midpoint has a ray. The field is taken to the fold (where the lens's rays end), not refused."""
+    c = _with(FISHEYE, D2=np.array([-0.5, 0, 0, 0, 0, 0, 0, 0]))
+    rect = rectify_any(c, SIZE)
+    assert rect.projection == "pinhole" and "right lens has no ray at 4 of its image edge midpoints" in rect.why
+    assert f"{np.degrees(np.sqrt(2 / 3)):.0f} deg off its axis (its polynomial's fold)" in rect.why
+    (lx, ly), (rx, ry) = rectification_maps(c, rect)
+    x, y, w, h = (int(v) for v in np.asarray(rect.roi2))
+    inside = np.isfinite(rx) & (rx >= 0) & (rx <= SIZE[0] - 1) & (ry >= 0) & (ry <= SIZE[1] - 1)
+    assert inside.any() and inside[y + h // 2, x + w // 2]  # the right camera's field lies in its rectified image
 
 
 def test_the_pinhole_rectification_refuses_a_fisheye_camera():

@@ -70,3 +70,44 @@ def test_a_fisheye_seeing_past_90_degrees_is_refused():
     with pytest.raises(DstereoError, match="90 degrees or more off the axis") as err:
         camera_rays(wide, 1)
     assert "\n" not in str(err.value)
+
+
+def test_a_fisheye_seeing_past_90_degrees_renders_blank_there_when_asked():
+    """RenderOptions(blank_beyond_field=True): the samples at or past 90 deg (or past the fold) are NaN, drawn as
+    background; the rest are the lens's own rays (reprojected to their pixels) and the board is drawn there."""
+    import dataclasses
+
+    from dstereo.synth import wide_board_poses, wide_fisheye_rig
+
+    cam = wide_fisheye_rig(scale=0.5).left  # 480 x 300, > 180 deg across, folding inside the image
+    rays = np.asarray(camera_rays(cam, 1, blank=True))[:, :, 0]
+    theta_d = np.hypot((np.arange(480) - float(cam.k[2])) / float(cam.k[0]),
+                       ((np.arange(300) - float(cam.k[3])) / float(cam.k[1]))[:, None])
+    # equidistant-like: 90 deg lies near theta_d = pi/2 (k1, k2 move it by < 1 %): well inside NaN, well outside not
+    assert np.isnan(rays[theta_d > 1.05 * np.pi / 2]).all() and np.isfinite(rays[theta_d < 0.95 * np.pi / 2]).all()
+    board = Board(PATTERN, 15.0, 15.0)
+    pose = wide_board_poses(board, 1, seed=0, distance_mm=(150.0, 150.0))[0]
+    options = dataclasses.replace(CALIBRATION_OPTIONS, blank_beyond_field=True)
+    image, truth = render_board(cam, pose, board, options)
+    assert np.isfinite(image.astype(float)).all() and truth["corners_in_image"].all()
+    beyond = theta_d > 1.05 * np.pi / 2
+    assert np.ptp(image[beyond]) <= 2  # background only (sensor rounding), not a folded copy of the board
+    found, corners = cv2.findChessboardCorners(image, PATTERN)
+    assert found and np.abs(corners.reshape(-1, 2) - truth["corners"]).max() < 1.0
+
+
+def test_wide_board_poses_keep_every_corner_within_the_limit():
+    from dstereo.models.pose import rotation_matrix
+    from dstereo.synth import wide_board_poses
+
+    board = Board(PATTERN, 30.0, 30.0)
+    poses = wide_board_poses(board, 12, seed=3, max_off_axis_deg=60.0, max_corner_deg=80.0)
+    assert np.array_equal(poses, wide_board_poses(board, 12, seed=3, max_off_axis_deg=60.0, max_corner_deg=80.0))
+    obj = board.geometry.object_points()
+    worst = []
+    for p in poses:
+        x = obj @ np.asarray(rotation_matrix(p[:3])).T + p[3:]
+        worst.append(np.degrees(np.arccos(x[:, 2] / np.linalg.norm(x, axis=1))).max())
+    assert max(worst) <= 80.0 and max(worst) > 55.0  # the limit kept, and the views do reach off the axis
+    with pytest.raises(DstereoError, match="no tilt keeps the board within 20"):
+        wide_board_poses(board, 4, seed=3, max_off_axis_deg=60.0, max_corner_deg=20.0)

@@ -463,3 +463,54 @@ def test_calibration_without_covariance_propagates_disparity_noise_only(tmp_path
     error = disparity[valid] - SHIFT
     print(f"\nshifted plane: sigma_d median {summary['sigma_d_px']:.4f} px; disparity error against "
           f"the true shift: mean {error.mean():.4f} px, std {error.std():.4f} px")
+
+
+def test_the_spherical_disparity_jacobian_is_the_derivative_of_its_points():
+    """`spherical_disparity_jacobian` (the point's motion per px of disparity, original left frame) against central
+    differences of `triangulate.reproject_spherical` on the rendered wide fisheye rig's spherical rectification."""
+    from dstereo.stereo.rectify_fisheye import rectify_any
+    from dstereo.stereo.triangulate import reproject_spherical, to_original_left
+    from dstereo.synth import wide_fisheye_rig
+    from dstereo.uncertainty.points import RectGeometry, spherical_disparity_jacobian
+
+    rig = wide_fisheye_rig()
+    R, T = rig.rotation_translation()
+    calib = StereoCalibration(rig.left.matrix(), rig.left.coeffs(), rig.right.matrix(), rig.right.coeffs(), R, T,
+                              rig.left.image_size, models=("fisheye", "fisheye"))
+    rect = rectify_any(calib)
+    assert rect.projection == "spherical"
+    geometry = RectGeometry(rect.R1, rect.R2, rect.P1, rect.P2, rect.Q)
+    h = 1e-5
+    for u, v, d in ((480.0, 300.0, 40.0), (150.0, 120.0, 25.0), (800.0, 500.0, 10.0)):
+        shift = np.array([[1.0, 0, -u], [0, 1.0, -v], [0, 0, 1.0]])  # the pixel as (0, 0) of a 1 x 1 map
+
+        def point(dd):
+            p = reproject_spherical(np.array([[dd]]), shift @ np.asarray(rect.P1), shift @ np.asarray(rect.P2))
+            return np.asarray(to_original_left(p, rect.R1))[0, 0]
+
+        numeric = (point(d + h) - point(d - h)) / (2 * h)
+        # central differences at 1e-5 px: truncation ~h^2 |p'''| and rounding ~eps |p| / h, both < 1e-8 relative
+        np.testing.assert_allclose(np.asarray(spherical_disparity_jacobian(jnp.array([u, v, d]), geometry)), numeric,
+                                   rtol=1e-7)
+
+
+def test_disparity_covariances_of_a_pinhole_pair_equal_the_full_propagation_without_a_covariance():
+    """The disparity-only path (what a rig with a fisheye gets) and `point_covariances` of a calibration without a
+    covariance compute the same thing through Q: equal to rounding."""
+    from types import SimpleNamespace
+
+    from dstereo.stereo.rectify import rectify_calibration
+    from dstereo.stereo.triangulate import reproject_disparity, to_original_left
+    from dstereo.uncertainty.points import disparity_covariances, point_covariances
+
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    calib = StereoCalibration(K, np.zeros(8), K, np.zeros(8), np.eye(3), np.array([-100.0, 0, 0]), (640, 480))
+    rect = rectify_calibration(calib)
+    matrices = {k: np.asarray(getattr(rect, k)) for k in ("R1", "R2", "P1", "P2", "Q")}
+    disparity = np.full((6, 8), 80.0)
+    points = np.asarray(to_original_left(reproject_disparity(disparity, rect.Q), rect.R1))
+    result = SimpleNamespace(disparity=disparity, points=points, matrices=matrices)
+    ours = disparity_covariances(result, 0.3, "test")
+    theirs = point_covariances(calib, result, 0.3)
+    assert not ours.calibration_included
+    np.testing.assert_allclose(ours.sigma_xyz, theirs.sigma_xyz, rtol=1e-12)
