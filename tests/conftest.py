@@ -7,8 +7,15 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-import pytest
+# One OpenBLAS thread per test process, as a `dstereo` command has (dstereo/cli.py; set before numpy loads it):
+# the two xdist workers share two cores, and OpenBLAS's threads spin while they wait for one
+# (dstereo/runtime/blas_threads.py measured a 3 x 3 product 6-20x slower so). A setting given wins. The workers
+# start after this line has run in the controller, so their numpy and scipy load with it; one process without
+# workers may have loaded numpy already (through a plugin) and keeps its count: no second worker competes there.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402 - after the thread count above
+import pytest  # noqa: E402
 
 
 def pytest_configure(config):
