@@ -166,6 +166,36 @@ def test_a_fisheye_folding_inside_its_image_is_rectified_from_its_field():
     assert inside.any() and inside[y + h // 2, x + w // 2]  # the right camera's field lies in its rectified image
 
 
+def test_the_corners_reach_sets_a_folding_lens_field_in_a_pinhole_rectification():
+    """With stereo.yml's corner_angle_max2 = 35 deg (inside the fold at 47), the right camera's four edge-midpoint
+    rays are taken at 35 deg off its axis in their azimuths, and its rectified column follows the module's rule
+    (cv2.fisheye.estimateNewCameraMatrixForUndistortRectify's, balance 0), recomputed here from those rays alone:
+    the mean of the four on z = 1 after R2, and the largest of the four focal lengths that put each on its image
+    edge: cx = w/2 - mean_x f. Closed form on O(100) px values, so 1e-6 px; the fold's field puts the column
+    2.4 px elsewhere (the field must not ignore the reach)."""
+    from dataclasses import replace
+
+    c = _with(FISHEYE, D2=np.array([-0.5, 0, 0, 0, 0, 0, 0, 0]))
+    reached = rectify_any(replace(c, extras={"corner_angle_max2": 35.0}), SIZE, zero_disparity=False)
+    folded = rectify_any(c, SIZE, zero_disparity=False)
+    assert "35 deg off its axis (the corners' reach)" in reached.why
+    w, h = SIZE
+    K = np.asarray(c.K2, float)
+    q = np.array([[w // 2, 0], [w, h // 2], [w // 2, h], [0, h // 2]], float)
+    xy = (q - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+    cs = xy / np.linalg.norm(xy, axis=1, keepdims=True)
+    e = np.radians(35.0)
+    rays = np.column_stack([np.sin(e) * cs, np.full(4, np.cos(e))]) @ np.asarray(reached.R2).T
+    aspect = K[0, 0] / K[1, 1]
+    pts = rays[:, :2] / rays[:, 2:] * [1.0, aspect]
+    cn, lo, hi = pts.mean(axis=0), pts.min(axis=0), pts.max(axis=0)
+    f = max(w / 2 / (cn[0] - lo[0]), w / 2 / (hi[0] - cn[0]), h / 2 * aspect / (cn[1] - lo[1]),
+            h / 2 * aspect / (hi[1] - cn[1]))
+    cx = float(np.asarray(reached.P2)[0, 2])
+    assert abs(cx - (w / 2 - cn[0] * f)) < 1e-6, (cx, w / 2 - cn[0] * f)
+    assert abs(cx - float(np.asarray(folded.P2)[0, 2])) > 1.0
+
+
 def test_the_pinhole_rectification_refuses_a_fisheye_camera():
     from dstereo.stereo.rectify import stereo_rectify
 
