@@ -170,6 +170,7 @@ class Server:
             done.set()
             if code is not None and code > 128:  # stopped by the client's signal: end what the command started
                 _end_command_children(before)
+            self._count(request, code, t0)  # before the client hears the end: a status asked right after shows it
             try:
                 send_code = json.dumps(code).encode()
                 with lock:
@@ -178,11 +179,7 @@ class Server:
                 pass
         finally:
             done.set()
-            with self.lock:  # counted before the client hears the end: a status asked right after shows it
-                self.served += 1
-                self.history = [*self.history, {"command": (request.get("argv") or ["?"])[0], "code": code,
-                                                "seconds": round(time.monotonic() - t0, 2), "at": time.time()}][
-                    -HISTORY:]
+            self._count(request, code, t0)  # a request that raised: counted here (once: `_count` checks)
             try:
                 conn.shutdown(socket.SHUT_RDWR)  # wakes the watcher's read (a close alone does not)
             except OSError:
@@ -192,6 +189,18 @@ class Server:
             with self.lock:
                 self.busy = False
                 self.last = time.monotonic()
+
+    def _count(self, request: dict, code, t0: float) -> None:
+        """The command in `served` and `history`, once per request (the exit code's send and the end both call it:
+        counted before the client hears the code, which once came after it and a status asked right then missed
+        the command, seen under two test workers)."""
+        with self.lock:
+            if request.get("_counted"):
+                return
+            request["_counted"] = True
+            self.served += 1
+            self.history = [*self.history, {"command": (request.get("argv") or ["?"])[0], "code": code,
+                                            "seconds": round(time.monotonic() - t0, 2), "at": time.time()}][-HISTORY:]
 
     def _idle_expired(self) -> bool:
         """The idle timeout has passed without a command: from now on every client runs its own (`busy`)."""
