@@ -27,6 +27,31 @@ def pytest_configure(config):
 
         jax.config.update("jax_enable_x64", True)
 
+def pytest_collection_modifyitems(config, items):
+    """`make test`'s second pass collects only the test files that contain the word "numerics" (Makefile,
+    NUMERICS_FILES: collecting every module costs each worker ~3.5 s of imports): a numerics test marked from
+    elsewhere (a mark imported from another module) would silently leave that pass. Refused here instead."""
+    outside = marked_outside_their_file(items)
+    if outside:
+        raise pytest.UsageError(f"{len(outside)} test(s) marked numerics in files without the word 'numerics' "
+                                f"(make test's second pass would miss them): {', '.join(outside[:3])}; write "
+                                "the mark in the test file (@pytest.mark.numerics)")
+
+
+def marked_outside_their_file(items) -> list[str]:
+    """Node ids of the `items` marked numerics whose file's text does not contain "numerics"."""
+    texts, out = {}, []
+    for item in items:
+        if item.get_closest_marker("numerics") is None:
+            continue
+        path = Path(str(item.path))
+        if path not in texts:
+            texts[path] = "numerics" in path.read_text(errors="replace")
+        if not texts[path]:
+            out.append(item.nodeid)
+    return out
+
+
 # Figures drawn in the test process, not in figure workers (dstereo.runtime.figure_pool; the files are the same
 # either way, its docstring): each test process that ran a command in process kept two ~100 MB workers (the
 # suite's two xdist workers, four) and paid their start. tests/runtime, which tests the workers, has the default

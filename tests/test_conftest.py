@@ -27,3 +27,20 @@ def test_every_memory_heavy_module_exists():
     root = Path(__file__).resolve().parents[1]
     missing = [m for m in conftest.MEMORY_HEAVY if not (root / m).is_file()]
     assert not missing, missing
+
+
+def test_a_numerics_mark_outside_its_file_is_found(tmp_path):
+    """make test's second pass collects only the files with the word "numerics"; a test marked otherwise is named."""
+    plain, marked = tmp_path / "test_plain.py", tmp_path / "test_marked.py"
+    plain.write_text("def test_x(): pass\n")
+    marked.write_text("import pytest\n@pytest.mark.numerics\ndef test_y(): pass\n")
+
+    class Item:
+        def __init__(self, path, mark):
+            self.path, self.nodeid, self._mark = path, f"{path.name}::t", mark
+
+        def get_closest_marker(self, name):
+            return self._mark if name == "numerics" else None
+
+    items = [Item(plain, object()), Item(marked, object()), Item(plain, None)]
+    assert conftest.marked_outside_their_file(items) == ["test_plain.py::t"]
