@@ -13,6 +13,11 @@ mrcal-lensmodel-genericparams.h, read 2026-12), none of them Kannala-Brandt. No 
 `lensmodel_for` says why, and the report carries that sentence.
 
 Numbers are written with repr (17 significant digits), so a file reads back bit for bit (mrcal writes 10).
+
+A one-camera results folder's file also holds the optimization inputs of the solve that produced it
+(`optimization_inputs`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; the
+rig files do not yet (a stereo or N-camera rig's joint solve in mrcal's layout is still to be written), and the
+file's comment says which it holds.
 """
 
 from __future__ import annotations
@@ -69,8 +74,81 @@ def lensmodel_for(free: Sequence[str]) -> tuple[str | None, str]:
     raise AssertionError("unreachable: OPENCV8 holds every OpenCV coefficient")
 
 
-def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref=np.zeros(6), note: str = "") -> str:
-    """The .cameramodel text of one camera (k (4,), coeffs (8,) OpenCV order, (width, height))."""
+# mrcal has no per-coefficient mask: its solve frees every coefficient of the lens model (or none), so a dstereo
+# solve with some of them held at 0 (free = k1 only, in OPENCV4) is not the solve mrcal would re-run.
+EXACT_FREE_SETS = {"LENSMODEL_PINHOLE": (), "LENSMODEL_OPENCV4": ("k1", "k2", "p1", "p2"),
+                   "LENSMODEL_OPENCV5": ("k1", "k2", "p1", "p2", "k3"),
+                   "LENSMODEL_OPENCV8": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+
+
+@dataclass(frozen=True)
+class BoardSolve:
+    """One camera's board solve as mrcal's optimization inputs hold it: the solve that produced the file."""
+
+    free: tuple[str, ...]  # dstereo's free coefficients
+    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the solve
+    coeffs8: np.ndarray  # (8,) OpenCV order
+    image_size: tuple[int, int]
+    poses: np.ndarray  # (V, 6) board -> camera (Rodrigues, translation), OpenCV's rvec, tvec
+    observations: np.ndarray  # (V, n, 2) px, n = cols * rows in OpenCV's order (column fastest)
+    inliers: np.ndarray | None  # (V, n) the corners the solve used (None: all)
+    pattern: tuple[int, int]  # (cols, rows) inner corners
+    square: float
+    sag: np.ndarray | None  # (2,) the board's sag solved (dstereo's sag is mrcal's calobject_warp), None: flat
+
+
+def optimization_inputs(solve: BoardSolve) -> tuple[dict | None, str]:
+    """(mrcal's optimization_inputs of `solve`, what was done or why not). The layout of mrcal's
+    `mrcal.optimize()` arguments (mrcal 2.2's documentation): one camera at the reference, so frames_rt_toref are
+    the board -> camera poses and there are no extrinsics; observations_board (V, rows, cols, 3) = x, y, weight,
+    weight -1 marking a corner the solve rejected (mrcal's outlier mark); the board a grid of the square's spacing
+    with point [i, j] = (j, i, 0) * square, the corner order of `Board.object_points`, and its warp the sag (both
+    z = a (1 - u^2) + b (1 - v^2), u, v in [-1, 1] over the outer corners). Regularization off: dstereo's solve
+    has none, so mrcal's optimum is dstereo's. do_optimize_extrinsics is on with no extrinsics to optimize: mrcal 2.2's
+    projection_uncertainty refuses a solve with it off."""
+    lensmodel, _ = lensmodel_for(solve.free)
+    if lensmodel is None or tuple(solve.free) != EXACT_FREE_SETS[lensmodel]:
+        return None, ("no optimization inputs: mrcal frees every coefficient of a lens model, and this solve held "
+                      f"some of {lensmodel}'s at 0 (free: {', '.join(solve.free) or 'none'})")
+    cols, rows = solve.pattern
+    obs = np.asarray(solve.observations, float)
+    v = obs.shape[0]
+    weight = np.ones(obs.shape[:2]) if solve.inliers is None else np.where(solve.inliers, 1.0, -1.0)
+    board = np.concatenate([obs, weight[..., None]], axis=-1).reshape(v, rows, cols, 3)
+    n = OPENCV_MODELS[lensmodel]
+    intr = np.concatenate([np.asarray(solve.intrinsics, float), np.asarray(solve.coeffs8, float)[:n]])
+    sag = None if solve.sag is None else np.asarray(solve.sag, float)
+    inputs = {
+        "intrinsics": intr[None, :], "extrinsics_rt_fromref": np.zeros((0, 6)),
+        "frames_rt_toref": np.asarray(solve.poses, float).reshape(v, 6), "points": None,
+        "observations_board": board,
+        "indices_frame_camintrinsics_camextrinsics": np.column_stack(
+            [np.arange(v), np.zeros(v), -np.ones(v)]).astype(np.int32),
+        "observations_point": None, "indices_point_camintrinsics_camextrinsics": None,
+        "lensmodel": lensmodel, "imagersizes": np.array([solve.image_size], np.int32),
+        "calobject_warp": sag, "do_optimize_intrinsics_core": True,
+        "do_optimize_intrinsics_distortions": n > 0, "do_optimize_extrinsics": True, "do_optimize_frames": True,
+        "do_optimize_calobject_warp": sag is not None, "calibration_object_spacing": float(solve.square),
+        "do_apply_outlier_rejection": False, "do_apply_regularization": False}
+    return inputs, (f"with the optimization inputs of the solve ({v} views, "
+                    f"{int((weight > 0).sum())} corners, {int((weight < 0).sum())} rejected)")
+
+
+def serialized_inputs(inputs: dict) -> bytes:
+    """mrcal's on-file form of optimization inputs: an .npz (None stored as '') compressed, then base-85 text
+    (mrcal's cameramodel.py documents it so; written here from that description)."""
+    import base64
+    import io
+
+    data = io.BytesIO()
+    np.savez_compressed(data, **{k: ("" if v is None else v) for k, v in inputs.items()})
+    return base64.b85encode(data.getvalue())
+
+
+def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref=np.zeros(6), note: str = "",
+                     inputs: dict | None = None) -> str:
+    """The .cameramodel text of one camera (k (4,), coeffs (8,) OpenCV order, (width, height)); `inputs`: the
+    optimization inputs of the solve that produced it (`optimization_inputs`), this camera intrinsics 0."""
     if lensmodel not in OPENCV_MODELS:
         raise DstereoError(f"cameramodel: lens model {lensmodel!r} is not one dstereo writes; use one of "
                            f"{list(OPENCV_MODELS)}")
@@ -86,18 +164,27 @@ def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref
         "    # intrinsics are fx,fy,cx,cy,distortion0,distortion1,.... (OpenCV's order)",
         f"    'intrinsics': {nums(np.concatenate([np.asarray(intrinsics, float), coeffs8[:n]]))},", "",
         f"    'rt_cam_ref': {nums(rt)},", f"    'extrinsics': {nums(rt)},  # for mrcal < 2.5", "",
-        f"    'imagersize': [{int(image_size[0])}, {int(image_size[1])}],", "}", ""]
-    return "\n".join(lines)
+        f"    'imagersize': [{int(image_size[0])}, {int(image_size[1])}],"]
+    if inputs is not None:
+        lines += ["", "    # the solve that produced this camera, in mrcal's layout (mrcal.cameramodel.optimization_inputs())",
+                  "    'icam_intrinsics': 0,", f"    'optimization_inputs': {serialized_inputs(inputs)!r},"]
+    return "\n".join(lines + ["}", ""])
 
 
 def write_cameramodel(path: Path, free: Sequence[str], intrinsics, coeffs8, image_size,
-                      rt_cam_ref=np.zeros(6), note: str = "") -> str:
-    """Write `path` for a camera of free set `free`; returns what was done (the fisheye: nothing, and why)."""
+                      rt_cam_ref=np.zeros(6), note: str = "", solve: BoardSolve | None = None,
+                      no_solve_why: str = "") -> str:
+    """Write `path` for a camera of free set `free`; returns what was done (the fisheye: nothing, and why).
+    `solve`: the solve that produced these values, written as mrcal's optimization inputs where mrcal can re-run
+    it (`optimization_inputs`); else `no_solve_why` (or the reason found) goes into the file's comment."""
     lensmodel, why = lensmodel_for(free)
     if lensmodel is None:
         return why
-    Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note))
-    return f"{Path(path).name}: {why} (mrcal's .cameramodel)"
+    inputs, inputs_why = (None, no_solve_why or "no optimization inputs") if solve is None else \
+        optimization_inputs(solve)
+    note = note + ("\n" if note else "") + inputs_why
+    Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note, inputs))
+    return f"{Path(path).name}: {why} (mrcal's .cameramodel), {inputs_why}"
 
 
 def read_cameramodel(path: Path) -> CameraModelFile:

@@ -548,8 +548,29 @@ def _write_mrcal(folder: Path, cal: CameraCalibration, K: np.ndarray) -> str:
     """camera.cameramodel (mrcal's format, io/cameramodel.py) of what camera.yml holds; what was done, or why not."""
     from dstereo.io.cameramodel import write_cameramodel
 
+    solve, why = _board_solve(cal)
     return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
-                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate")
+                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate",
+                             solve=solve, no_solve_why=why)
+
+
+def _board_solve(cal: CameraCalibration):
+    """(the solve camera.yml holds, as io.cameramodel.BoardSolve, or None and why): the full set's, or the
+    survivors' on their views; none for the thesis's subset mean, which no one solve produced."""
+    from dstereo.io.cameramodel import BoardSolve
+
+    fs = getattr(cal, "final_solution", None)
+    if fs is not None and fs.choice == "mean":
+        return None, "no optimization inputs: the file holds the mean over subsets (--final mean), not one solve"
+    sol = cal.full if fs is None else fs.solution
+    views = np.ones(len(cal.observations), bool) if fs is None else np.asarray(fs.views, bool)
+    if sol.poses.shape[0] != int(views.sum()):
+        return None, "no optimization inputs: the solve's views could not be matched to the corners"
+    board = cal.detection.board  # one square side: mrcal's calibration_object_spacing
+    return BoardSolve(free=tuple(sol.free), intrinsics=np.asarray(sol.values[:4], float), coeffs8=sol.coeffs,
+                      image_size=tuple(sol.image_size), poses=np.asarray(sol.poses, float),
+                      observations=np.asarray(cal.observations)[views], inliers=sol.inliers,
+                      pattern=(board.cols, board.rows), square=float(board.square), sag=sol.board_sag), ""
 
 
 def write_undistorted(folder: Path, cal: CameraCalibration, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:

@@ -93,13 +93,20 @@ def test_bad_files_are_one_line_errors(tmp_path, text, message):
     assert str(path) in str(err.value) and "\n" not in str(err.value)
 
 
-def test_results_folder_holds_the_camera_of_camera_yml(tmp_path):
-    """OpenCV's left sample images, full set, 5 coefficients: camera.cameramodel holds camera.yml's numbers."""
+@pytest.fixture(scope="module")
+def left_results(tmp_path_factory):
+    """OpenCV's left sample images calibrated by the CLI: full set, 5 coefficients, the board's sag solved."""
     images = require_data("opencv_stereo")
-    out = tmp_path / "out"
+    out = tmp_path_factory.mktemp("left") / "out"
     code, _, err = run_cli("calibrate", "--images", images, "--glob", "left*.jpg", "--pattern", "9x6", "--model",
                            "default", "--out", out, "-q")
     assert code == 0, err
+    return out
+
+
+def test_results_folder_holds_the_camera_of_camera_yml(left_results):
+    """camera.cameramodel holds camera.yml's numbers."""
+    out = left_results
     fs = cv2.FileStorage(str(out / "camera.yml"), cv2.FILE_STORAGE_READ)
     kmat, d = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
     fs.release()
@@ -126,3 +133,88 @@ def test_rig_files_put_the_right_camera_at_opencvs_r_t(tmp_path):
     # mrcal: x_cam = R(r) x_ref + t with the left camera as reference; OpenCV: x_right = R x_left + T
     p_right = cv2.Rodrigues(right.rt_cam_ref[:3])[0] @ p_left + right.rt_cam_ref[3:]
     np.testing.assert_allclose(p_right, R @ p_left + t, rtol=0, atol=1e-9)  # Rodrigues round trip, float64
+
+
+# Run by Debian's python3 (mrcal is a system package, never a dependency): mrcal reads the file, evaluates the
+# stored solve, re-solves it from a start moved off the optimum, and gives its projection uncertainty.
+MRCAL_CHECK = """
+import copy, json, sys
+import mrcal, numpy as np
+m = mrcal.cameramodel(sys.argv[1])
+oi = m.optimization_inputs()
+x = mrcal.optimizer_callback(**oi, no_jacobian=True, no_factorization=True)[1]
+obs = oi['observations_board']
+nv, H, W = obs.shape[:3]
+r = x[:nv * H * W * 2].reshape(nv, H * W, 2)
+ok = obs[..., 2].reshape(nv, H * W) > 0
+start = copy.deepcopy(oi)
+start['intrinsics'][0, :4] += [4.0, -4.0, 2.0, -2.0]
+start['frames_rt_toref'][:, 3:] *= 1.002
+start['calobject_warp'] = start['calobject_warp'] * 0.5
+mrcal.optimize(**start)
+print(json.dumps({'n_measurements': int(x.size), 'n_board': nv * H * W * 2, 'rejected': int((~ok).sum()),
+                  'rms': float(np.sqrt(np.mean(np.sum(r[ok] ** 2, -1)))),
+                  'intrinsics': start['intrinsics'][0].tolist(), 'warp': start['calobject_warp'].tolist(),
+                  'uncertainty_px': float(mrcal.projection_uncertainty(np.array([0.0, 0.0, 1000.0]), m,
+                                                                       what='worstdirection-stdev'))}))
+"""
+SYSTEM_PYTHON = "/usr/bin/python3"
+
+
+def _mrcal_or_skip() -> None:
+    import subprocess
+
+    try:
+        found = subprocess.run([SYSTEM_PYTHON, "-c", "import mrcal"], capture_output=True, timeout=60).returncode == 0
+    except (OSError, subprocess.TimeoutExpired):
+        found = False
+    if not found:
+        pytest.skip(f"mrcal is not installed for {SYSTEM_PYTHON} (Debian's python3-mrcal): it is a reference for "
+                    "checks, never a dependency of dstereo")
+
+
+def test_mrcal_reevaluates_and_resolves_the_solve_the_file_holds(left_results):
+    """Issue 35: the file's optimization inputs are dstereo's solve in mrcal's layout: mrcal evaluates them to
+    dstereo's RMS over the same corners (the rejected ones marked as mrcal's outliers), its own solver comes back
+    from a start moved off to dstereo's intrinsics and sag, and its projection_uncertainty runs on the file."""
+    import json
+    import subprocess
+
+    _mrcal_or_skip()
+    out = left_results
+    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_CHECK, str(out / "camera.cameramodel")], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = json.loads(done.stdout)
+    summary = json.loads((out / "summary.json").read_text())
+    full = summary["full_set"]
+    # regularization off: the measurements are the board corners' residuals only
+    assert got["n_measurements"] == got["n_board"]
+    assert got["rejected"] == len(summary["outliers"]["corners"]) > 0 and not summary["outliers"]["views"]
+    # the same residuals at the same parameters, summed in another order: float64 rounding (1e-15 relative per
+    # residual) is all that separates the two RMS values
+    assert abs(got["rms"] / full["rms"] - 1) < 1e-12, (got["rms"], full["rms"])
+    # two solvers of one problem: each stops where its step is tiny against the optimum (mrcal came back within
+    # 4e-8 sigma, measured); 1e-4 sigma is far above that and far below anything a user reads
+    cam = read_cameramodel(out / "camera.cameramodel")
+    values = np.concatenate([cam.intrinsics, cam.coeffs[:5]])
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    sigma = np.array([full["std"][n] for n in names])
+    assert np.all(np.abs(np.array(got["intrinsics"]) - values) < 1e-4 * sigma), (got["intrinsics"], values)
+    sag = np.array([full["board_sag_x"], full["board_sag_y"]])
+    sag_sigma = np.array([full["std"]["board_sag_x"], full["std"]["board_sag_y"]])
+    assert np.all(np.abs(np.array(got["warp"]) - sag) < 1e-4 * sag_sigma), (got["warp"], sag)
+    assert np.isfinite(got["uncertainty_px"]) and got["uncertainty_px"] > 0
+
+
+def test_a_free_set_mrcal_cannot_hold_fixed_is_said_in_the_file(tmp_path):
+    """k1 alone lives in OPENCV4 with k2, p1, p2 held at 0, which mrcal's solve would free: no optimization
+    inputs, and the file's comment says why."""
+    from dstereo.io.cameramodel import BoardSolve
+
+    solve = BoardSolve(free=("k1",), intrinsics=K, coeffs8=np.zeros(8), image_size=(640, 480), poses=np.zeros((3, 6)),
+                       observations=np.zeros((3, 54, 2)), inliers=None, pattern=(9, 6), square=1.0, sag=None)
+    done = write_cameramodel(tmp_path / "c.cameramodel", ("k1",), K, np.zeros(8), (640, 480), solve=solve)
+    text = (tmp_path / "c.cameramodel").read_text()
+    assert "optimization_inputs" not in text and "mrcal frees every coefficient" in text and "held" in done
+    read_cameramodel(tmp_path / "c.cameramodel")  # still a plain camera file
