@@ -24,6 +24,7 @@ class FinishedCamera:
     board_sag: np.ndarray | None  # (2,) the sag the written camera was solved with (None: a flat board)
     solved_board: np.ndarray | None  # (n, 3) that board's points
     splined_spans: object | None  # models.splined.valid_spans of a splined lens
+    valid_region: object | None = None  # calib.valid_region.ValidRegion: invertible and reached by the corners
 
 
 def projection_of(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedProjection:
@@ -59,8 +60,13 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
         K = cal.final_camera_matrix
         k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
         spans = splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free)))
+    from dstereo.calib.valid_region import valid_region
+
+    projection = projection_of(cal, projection_range, method)
+    pmap = projection.map
     return FinishedCamera(
         std=np.asarray(reported_std(full)), view_scatter=solution_view_scatter(full),
-        view_effects=solution_effects(full), projection=projection_of(cal, projection_range, method),
+        view_effects=solution_effects(full), projection=projection,
         board_sag=None if sag is None else np.asarray(sag),
-        solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans)
+        solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans,
+        valid_region=valid_region(pmap.u, pmap.v, pmap.mask, cal.observations) if pmap.mask is not None else None)

@@ -15,7 +15,7 @@ mrcal-lensmodel-genericparams.h, read 2026-12), none of them Kannala-Brandt. No 
 Numbers are written with repr (17 significant digits), so a file reads back bit for bit (mrcal writes 10).
 
 A one-camera results folder's file also holds the optimization inputs of the solve that produced it
-(`optimization_inputs`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; the
+(`optimization_inputs`) and the valid-intrinsics region (`calib.valid_region`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; the
 rig files do not yet (a stereo or N-camera rig's joint solve in mrcal's layout is still to be written), and the
 file's comment says which it holds.
 """
@@ -146,9 +146,10 @@ def serialized_inputs(inputs: dict) -> bytes:
 
 
 def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref=np.zeros(6), note: str = "",
-                     inputs: dict | None = None) -> str:
+                     inputs: dict | None = None, region=None) -> str:
     """The .cameramodel text of one camera (k (4,), coeffs (8,) OpenCV order, (width, height)); `inputs`: the
-    optimization inputs of the solve that produced it (`optimization_inputs`), this camera intrinsics 0."""
+    optimization inputs of the solve that produced it (`optimization_inputs`), this camera intrinsics 0;
+    `region`: the valid-intrinsics region (N, 2) px, a closed polygon (`calib.valid_region`)."""
     if lensmodel not in OPENCV_MODELS:
         raise DstereoError(f"cameramodel: lens model {lensmodel!r} is not one dstereo writes; use one of "
                            f"{list(OPENCV_MODELS)}")
@@ -165,6 +166,10 @@ def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref
         f"    'intrinsics': {nums(np.concatenate([np.asarray(intrinsics, float), coeffs8[:n]]))},", "",
         f"    'rt_cam_ref': {nums(rt)},", f"    'extrinsics': {nums(rt)},  # for mrcal < 2.5", "",
         f"    'imagersize': [{int(image_size[0])}, {int(image_size[1])}],"]
+    if region is not None:
+        lines += ["", "    # where the model can be used: invertible and reached by the corners (dstereo's mask)",
+                  "    'valid_intrinsics_region': [" + ", ".join(f"[{float(x)!r}, {float(y)!r}]" for x, y in
+                                                                  np.asarray(region, float)) + "],"]
     if inputs is not None:
         lines += ["", "    # the solve that produced this camera, in mrcal's layout (mrcal.cameramodel.optimization_inputs())",
                   "    'icam_intrinsics': 0,", f"    'optimization_inputs': {serialized_inputs(inputs)!r},"]
@@ -173,17 +178,19 @@ def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref
 
 def write_cameramodel(path: Path, free: Sequence[str], intrinsics, coeffs8, image_size,
                       rt_cam_ref=np.zeros(6), note: str = "", solve: BoardSolve | None = None,
-                      no_solve_why: str = "") -> str:
+                      no_solve_why: str = "", region=None) -> str:
     """Write `path` for a camera of free set `free`; returns what was done (the fisheye: nothing, and why).
     `solve`: the solve that produced these values, written as mrcal's optimization inputs where mrcal can re-run
-    it (`optimization_inputs`); else `no_solve_why` (or the reason found) goes into the file's comment."""
+    it (`optimization_inputs`); else `no_solve_why` (or the reason found) goes into the file's comment. `region`:
+    the valid-intrinsics region (N, 2) px."""
     lensmodel, why = lensmodel_for(free)
     if lensmodel is None:
         return why
     inputs, inputs_why = (None, no_solve_why or "no optimization inputs") if solve is None else \
         optimization_inputs(solve)
     note = note + ("\n" if note else "") + inputs_why
-    Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note, inputs))
+    Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note, inputs,
+                                           region))
     return f"{Path(path).name}: {why} (mrcal's .cameramodel), {inputs_why}"
 
 

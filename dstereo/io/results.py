@@ -551,7 +551,12 @@ def _write_mrcal(folder: Path, cal: CameraCalibration, K: np.ndarray) -> str:
     solve, why = _board_solve(cal)
     return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
                              cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate",
-                             solve=solve, no_solve_why=why)
+                             solve=solve, no_solve_why=why, region=_region(cal))
+
+
+def _region(cal: CameraCalibration):
+    region = getattr(finished(cal), "valid_region", None)
+    return None if region is None else region.polygon
 
 
 def _board_solve(cal: CameraCalibration):

@@ -155,6 +155,7 @@ mrcal.optimize(**start)
 print(json.dumps({'n_measurements': int(x.size), 'n_board': nv * H * W * 2, 'rejected': int((~ok).sum()),
                   'rms': float(np.sqrt(np.mean(np.sum(r[ok] ** 2, -1)))),
                   'intrinsics': start['intrinsics'][0].tolist(), 'warp': start['calobject_warp'].tolist(),
+                  'region': m.valid_intrinsics_region().tolist(),
                   'uncertainty_px': float(mrcal.projection_uncertainty(np.array([0.0, 0.0, 1000.0]), m,
                                                                        what='worstdirection-stdev'))}))
 """
@@ -205,6 +206,10 @@ def test_mrcal_reevaluates_and_resolves_the_solve_the_file_holds(left_results):
     sag_sigma = np.array([full["std"]["board_sag_x"], full["std"]["board_sag_y"]])
     assert np.all(np.abs(np.array(got["warp"]) - sag) < 1e-4 * sag_sigma), (got["warp"], sag)
     assert np.isfinite(got["uncertainty_px"]) and got["uncertainty_px"] > 0
+    # the valid-intrinsics region mrcal reads is the one dstereo wrote: a closed outline inside the image
+    region = np.array(got["region"])
+    assert region.shape[0] >= 4 and np.array_equal(region[0], region[-1])
+    assert np.all((region >= 0) & (region <= np.array([639.0, 479.0])))
 
 
 def test_a_free_set_mrcal_cannot_hold_fixed_is_said_in_the_file(tmp_path):
