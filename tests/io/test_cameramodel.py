@@ -282,3 +282,37 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
     # both at one optimum (the re-solve stops within ~1e-6 px of the file's): the linearisation moves the ratio by
     # ~1e-7; 1e-4 holds that and fails any change of the propagation far below the 3.4 % convention it tests
     np.testing.assert_allclose(np.asarray(ours.std).ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-4, atol=0)
+
+
+def test_mrcal_show_projection_diff_runs_on_two_halves_with_their_uncertainties(tmp_path):
+    """mrcal's own comparison tool on two dstereo calibrations of one camera (alternate views of OpenCV's left
+    samples): it fits the implied transform and weighs it by both files' uncertainties (their optimization
+    inputs), and draws both valid-intrinsics regions."""
+    import shutil
+    import subprocess
+
+    _mrcal_or_skip()
+    tool = shutil.which("mrcal-show-projection-diff")
+    if tool is None:
+        pytest.skip("mrcal-show-projection-diff (Debian's mrcal package) is not installed")
+    images = sorted(require_data("opencv_stereo").glob("left*.jpg"))
+    models = []
+    for half in (0, 1):
+        folder = tmp_path / f"half{half}"
+        folder.mkdir()
+        for image in images[half::2]:
+            (folder / image.name).symlink_to(image)  # the shared data are read in place, never copied
+        code, _, err = run_cli("calibrate", "--images", folder, "--pattern", "9x6", "--model", "default", "--out",
+                               tmp_path / f"out{half}", "-q")
+        assert code == 0, err
+        models.append(str(tmp_path / f"out{half}" / "camera.cameramodel"))
+    figure = tmp_path / "diff.png"
+    done = subprocess.run([tool, "--distance", "300", "--valid-intrinsics-region", "--hardcopy", str(figure), *models],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    said = done.stdout + done.stderr
+    assert "Transformation cam1 <-- cam0" in said
+    # the fit used both files' uncertainties: without optimization inputs mrcal warns and falls back on its
+    # region-only fit ("... asked to use uncertainties, but they aren't available")
+    assert "uncertainties, but they aren't available" not in said and "Uncertainty cannot be computed" not in said
+    assert figure.stat().st_size > 10_000
