@@ -15,9 +15,10 @@ mrcal-lensmodel-genericparams.h, read 2026-12), none of them Kannala-Brandt. No 
 Numbers are written with repr (17 significant digits), so a file reads back bit for bit (mrcal writes 10).
 
 A one-camera results folder's file also holds the optimization inputs of the solve that produced it
-(`optimization_inputs`) and the valid-intrinsics region (`calib.valid_region`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; the
-rig files do not yet (a stereo or N-camera rig's joint solve in mrcal's layout is still to be written), and the
-file's comment says which it holds.
+(`optimization_inputs`) and the valid-intrinsics region (`calib.valid_region`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; so does every
+rig_<camera>.cameramodel of `calibrate --cameras` (the joint solve, as mrcal writes a rig: the same inputs in each
+file, that camera its intrinsics k). A `--left/--right` rig's left/right.cameramodel does not yet (its stereo.yml
+holds a solve with the intrinsics held); each file's comment says which it holds.
 """
 
 from __future__ import annotations
@@ -83,54 +84,67 @@ EXACT_FREE_SETS = {"LENSMODEL_PINHOLE": (), "LENSMODEL_OPENCV4": ("k1", "k2", "p
 
 @dataclass(frozen=True)
 class BoardSolve:
-    """One camera's board solve as mrcal's optimization inputs hold it: the solve that produced the file."""
+    """A board solve of K cameras over F frames as mrcal's optimization inputs hold it: the solve that produced the
+    files. One camera: K = 1, every frame seen, no extrinsics."""
 
-    free: tuple[str, ...]  # dstereo's free coefficients
-    intrinsics: np.ndarray  # (4,) fx, fy, cx, cy of the solve
-    coeffs8: np.ndarray  # (8,) OpenCV order
-    image_size: tuple[int, int]
-    poses: np.ndarray  # (V, 6) board -> camera (Rodrigues, translation), OpenCV's rvec, tvec
-    observations: np.ndarray  # (V, n, 2) px, n = cols * rows in OpenCV's order (column fastest)
-    inliers: np.ndarray | None  # (V, n) the corners the solve used (None: all)
+    free: tuple[str, ...]  # dstereo's free coefficients, the same for every camera (mrcal has one lens model)
+    intrinsics: np.ndarray  # (K, 4) fx, fy, cx, cy of the solve
+    coeffs8: np.ndarray  # (K, 8) OpenCV order
+    image_sizes: tuple[tuple[int, int], ...]  # (K,) (width, height)
+    extrinsics: np.ndarray  # (K - 1, 6) camera k >= 1 from the reference (camera 0): x_k = R x_ref + t, (rvec, t)
+    poses: np.ndarray  # (F, 6) board -> reference camera (Rodrigues, translation), OpenCV's rvec, tvec
+    observations: np.ndarray  # (F, K, n, 2) px, n = cols * rows in OpenCV's order (column fastest)
+    visible: np.ndarray  # (F, K) bool: camera k saw frame f
+    inliers: np.ndarray | None  # (F, K, n) the corners the solve used (None: every corner seen)
     pattern: tuple[int, int]  # (cols, rows) inner corners
     square: float
     sag: np.ndarray | None  # (2,) the board's sag solved (dstereo's sag is mrcal's calobject_warp), None: flat
 
+    @classmethod
+    def one_camera(cls, free, intrinsics, coeffs8, image_size, poses, observations, inliers, pattern, square, sag):
+        """A one-camera solve: poses (V, 6), observations (V, n, 2), inliers (V, n) or None."""
+        obs = np.asarray(observations, float)[:, None]
+        return cls(tuple(free), np.asarray(intrinsics, float)[None], np.asarray(coeffs8, float)[None],
+                   (tuple(image_size),), np.zeros((0, 6)), np.asarray(poses, float), obs,
+                   np.ones(obs.shape[:2], bool), None if inliers is None else np.asarray(inliers, bool)[:, None],
+                   tuple(pattern), float(square), sag)
+
 
 def optimization_inputs(solve: BoardSolve) -> tuple[dict | None, str]:
     """(mrcal's optimization_inputs of `solve`, what was done or why not). The layout of mrcal's
-    `mrcal.optimize()` arguments (mrcal 2.2's documentation): one camera at the reference, so frames_rt_toref are
-    the board -> camera poses and there are no extrinsics; observations_board (V, rows, cols, 3) = x, y, weight,
-    weight -1 marking a corner the solve rejected (mrcal's outlier mark); the board a grid of the square's spacing
-    with point [i, j] = (j, i, 0) * square, the corner order of `Board.object_points`, and its warp the sag (both
-    z = a (1 - u^2) + b (1 - v^2), u, v in [-1, 1] over the outer corners). Regularization off: dstereo's solve
-    has none, so mrcal's optimum is dstereo's. do_optimize_extrinsics is on with no extrinsics to optimize: mrcal 2.2's
-    projection_uncertainty refuses a solve with it off."""
+    `mrcal.optimize()` arguments (mrcal 2.2's documentation): camera 0 is the reference, so frames_rt_toref are
+    the board -> camera 0 poses and extrinsics_rt_fromref those of the other cameras; one board observation per
+    (frame, camera) seen, in frame then camera order (mrcal wants them monotonic), each (rows, cols, 3) = x, y,
+    weight, weight -1 marking a corner the solve rejected (mrcal's outlier mark); the board a grid of the square's
+    spacing with point [i, j] = (j, i, 0) * square, the corner order of `Board.object_points`, and its warp the
+    sag (both z = a (1 - u^2) + b (1 - v^2), u, v in [-1, 1] over the outer corners). Regularization off:
+    dstereo's solve has none, so mrcal's optimum is dstereo's. do_optimize_extrinsics is on even with no
+    extrinsics to optimize: mrcal 2.2's projection_uncertainty refuses a solve with it off."""
     lensmodel, _ = lensmodel_for(solve.free)
     if lensmodel is None or tuple(solve.free) != EXACT_FREE_SETS[lensmodel]:
         return None, ("no optimization inputs: mrcal frees every coefficient of a lens model, and this solve held "
                       f"some of {lensmodel}'s at 0 (free: {', '.join(solve.free) or 'none'})")
     cols, rows = solve.pattern
     obs = np.asarray(solve.observations, float)
-    v = obs.shape[0]
-    weight = np.ones(obs.shape[:2]) if solve.inliers is None else np.where(solve.inliers, 1.0, -1.0)
-    board = np.concatenate([obs, weight[..., None]], axis=-1).reshape(v, rows, cols, 3)
+    frames, cams = np.nonzero(np.asarray(solve.visible, bool))  # row-major: frame, then camera
+    weight = (np.ones(obs.shape[:3]) if solve.inliers is None else np.where(solve.inliers, 1.0, -1.0))[frames, cams]
+    board = np.concatenate([obs[frames, cams], weight[..., None]], axis=-1).reshape(len(frames), rows, cols, 3)
     n = OPENCV_MODELS[lensmodel]
-    intr = np.concatenate([np.asarray(solve.intrinsics, float), np.asarray(solve.coeffs8, float)[:n]])
+    intr = np.concatenate([np.asarray(solve.intrinsics, float), np.asarray(solve.coeffs8, float)[:, :n]], axis=1)
     sag = None if solve.sag is None else np.asarray(solve.sag, float)
     inputs = {
-        "intrinsics": intr[None, :], "extrinsics_rt_fromref": np.zeros((0, 6)),
-        "frames_rt_toref": np.asarray(solve.poses, float).reshape(v, 6), "points": None,
+        "intrinsics": intr, "extrinsics_rt_fromref": np.asarray(solve.extrinsics, float).reshape(-1, 6),
+        "frames_rt_toref": np.asarray(solve.poses, float).reshape(-1, 6), "points": None,
         "observations_board": board,
-        "indices_frame_camintrinsics_camextrinsics": np.column_stack(
-            [np.arange(v), np.zeros(v), -np.ones(v)]).astype(np.int32),
+        "indices_frame_camintrinsics_camextrinsics": np.column_stack([frames, cams, cams - 1]).astype(np.int32),
         "observations_point": None, "indices_point_camintrinsics_camextrinsics": None,
-        "lensmodel": lensmodel, "imagersizes": np.array([solve.image_size], np.int32),
+        "lensmodel": lensmodel, "imagersizes": np.array(solve.image_sizes, np.int32).reshape(-1, 2),
         "calobject_warp": sag, "do_optimize_intrinsics_core": True,
         "do_optimize_intrinsics_distortions": n > 0, "do_optimize_extrinsics": True, "do_optimize_frames": True,
         "do_optimize_calobject_warp": sag is not None, "calibration_object_spacing": float(solve.square),
         "do_apply_outlier_rejection": False, "do_apply_regularization": False}
-    return inputs, (f"with the optimization inputs of the solve ({v} views, "
+    what = f"{len(solve.image_sizes)} cameras, " if len(solve.image_sizes) > 1 else ""
+    return inputs, (f"with the optimization inputs of the solve ({what}{obs.shape[0]} frames, "
                     f"{int((weight > 0).sum())} corners, {int((weight < 0).sum())} rejected)")
 
 
@@ -146,9 +160,9 @@ def serialized_inputs(inputs: dict) -> bytes:
 
 
 def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref=np.zeros(6), note: str = "",
-                     inputs: dict | None = None, region=None) -> str:
+                     inputs: dict | None = None, region=None, icam: int = 0) -> str:
     """The .cameramodel text of one camera (k (4,), coeffs (8,) OpenCV order, (width, height)); `inputs`: the
-    optimization inputs of the solve that produced it (`optimization_inputs`), this camera intrinsics 0;
+    optimization inputs of the solve that produced it (`optimization_inputs`), this camera its intrinsics `icam`;
     `region`: the valid-intrinsics region (N, 2) px, a closed polygon (`calib.valid_region`)."""
     if lensmodel not in OPENCV_MODELS:
         raise DstereoError(f"cameramodel: lens model {lensmodel!r} is not one dstereo writes; use one of "
@@ -172,17 +186,17 @@ def cameramodel_text(lensmodel: str, intrinsics, coeffs8, image_size, rt_cam_ref
                                                                   np.asarray(region, float)) + "],"]
     if inputs is not None:
         lines += ["", "    # the solve that produced this camera, in mrcal's layout (mrcal.cameramodel.optimization_inputs())",
-                  "    'icam_intrinsics': 0,", f"    'optimization_inputs': {serialized_inputs(inputs)!r},"]
+                  f"    'icam_intrinsics': {int(icam)},", f"    'optimization_inputs': {serialized_inputs(inputs)!r},"]
     return "\n".join(lines + ["}", ""])
 
 
 def write_cameramodel(path: Path, free: Sequence[str], intrinsics, coeffs8, image_size,
                       rt_cam_ref=np.zeros(6), note: str = "", solve: BoardSolve | None = None,
-                      no_solve_why: str = "", region=None) -> str:
+                      no_solve_why: str = "", region=None, icam: int = 0) -> str:
     """Write `path` for a camera of free set `free`; returns what was done (the fisheye: nothing, and why).
     `solve`: the solve that produced these values, written as mrcal's optimization inputs where mrcal can re-run
     it (`optimization_inputs`); else `no_solve_why` (or the reason found) goes into the file's comment. `region`:
-    the valid-intrinsics region (N, 2) px."""
+    the valid-intrinsics region (N, 2) px; `icam`: this camera's index in `solve`."""
     lensmodel, why = lensmodel_for(free)
     if lensmodel is None:
         return why
@@ -190,7 +204,7 @@ def write_cameramodel(path: Path, free: Sequence[str], intrinsics, coeffs8, imag
         optimization_inputs(solve)
     note = note + ("\n" if note else "") + inputs_why
     Path(path).write_text(cameramodel_text(lensmodel, intrinsics, coeffs8, image_size, rt_cam_ref, note, inputs,
-                                           region))
+                                           region, icam))
     return f"{Path(path).name}: {why} (mrcal's .cameramodel), {inputs_why}"
 
 
@@ -243,15 +257,17 @@ def write_rig_cameramodels(folder: Path, cameras, R, T) -> list[str]:
     return write_cameramodels_of_rig(folder, cameras, ("left", "right"), (np.zeros(6), rt_right))
 
 
-def write_cameramodels_of_rig(folder: Path, cameras, names, rts) -> list[str]:
+def write_cameramodels_of_rig(folder: Path, cameras, names, rts, solve: BoardSolve | None = None,
+                              no_solve_why: str = "") -> list[str]:
     """<name>.cameramodel for each camera of a rig of any size, camera names[0] mrcal's reference: camera k's
     rt_cam_ref = rts[k] (rvec, T of x_cam_k = R_k x_ref + T_k; zeros for the reference). `cameras` as in
-    `write_rig_cameramodels`. Returns what was done per camera."""
+    `write_rig_cameramodels`. `solve`: the rig's solve, the same optimization inputs in every file (camera k its
+    intrinsics k), as mrcal writes a rig. Returns what was done per camera."""
     done = []
-    for name, (k, coeffs, free, size), rt in zip(names, cameras, rts):
+    for icam, (name, (k, coeffs, free, size), rt) in enumerate(zip(names, cameras, rts)):
         k = np.asarray(k, float)
         done.append(write_cameramodel(Path(folder) / f"{name}.cameramodel", free, k[[0, 1, 0, 1], [0, 1, 2, 2]],
                                       coeffs, size, np.asarray(rt, float),
                                       note=f"written by dstereo calibrate: the rig's camera {name} (reference: "
-                                      f"camera {names[0]})"))
+                                      f"camera {names[0]})", solve=solve, no_solve_why=no_solve_why, icam=icam))
     return done

@@ -572,10 +572,9 @@ def _board_solve(cal: CameraCalibration):
     if sol.poses.shape[0] != int(views.sum()):
         return None, "no optimization inputs: the solve's views could not be matched to the corners"
     board = cal.detection.board  # one square side: mrcal's calibration_object_spacing
-    return BoardSolve(free=tuple(sol.free), intrinsics=np.asarray(sol.values[:4], float), coeffs8=sol.coeffs,
-                      image_size=tuple(sol.image_size), poses=np.asarray(sol.poses, float),
-                      observations=np.asarray(cal.observations)[views], inliers=sol.inliers,
-                      pattern=(board.cols, board.rows), square=float(board.square), sag=sol.board_sag), ""
+    return BoardSolve.one_camera(sol.free, sol.values[:4], sol.coeffs, sol.image_size, sol.poses,
+                                 np.asarray(cal.observations)[views], sol.inliers, (board.cols, board.rows),
+                                 board.square, sol.board_sag), ""
 
 
 def write_undistorted(folder: Path, cal: CameraCalibration, K: np.ndarray, coeffs8: np.ndarray) -> list[str]:

@@ -224,8 +224,8 @@ def test_a_free_set_mrcal_cannot_hold_fixed_is_said_in_the_file(tmp_path):
     inputs, and the file's comment says why."""
     from dstereo.io.cameramodel import BoardSolve
 
-    solve = BoardSolve(free=("k1",), intrinsics=K, coeffs8=np.zeros(8), image_size=(640, 480), poses=np.zeros((3, 6)),
-                       observations=np.zeros((3, 54, 2)), inliers=None, pattern=(9, 6), square=1.0, sag=None)
+    solve = BoardSolve.one_camera(("k1",), K, np.zeros(8), (640, 480), np.zeros((3, 6)), np.zeros((3, 54, 2)), None,
+                                  (9, 6), 1.0, None)
     done = write_cameramodel(tmp_path / "c.cameramodel", ("k1",), K, np.zeros(8), (640, 480), solve=solve)
     text = (tmp_path / "c.cameramodel").read_text()
     assert "optimization_inputs" not in text and "mrcal frees every coefficient" in text and "held" in done
@@ -323,3 +323,93 @@ def test_mrcal_show_projection_diff_runs_on_two_halves_with_their_uncertainties(
     # region-only fit ("... asked to use uncertainties, but they aren't available")
     assert "uncertainties, but they aren't available" not in said and "Uncertainty cannot be computed" not in said
     assert figure.stat().st_size > 10_000
+
+
+MRCAL_RIG_CHECK = """
+import copy, json, sys
+import mrcal, numpy as np
+out = []
+for path in sys.argv[1:]:
+    m = mrcal.cameramodel(path)
+    oi = m.optimization_inputs()
+    x = mrcal.optimizer_callback(**oi, no_jacobian=True, no_factorization=True)[1]
+    again = copy.deepcopy(oi)
+    mrcal.optimize(**again)
+    out.append({'icam': m.icam_intrinsics(), 'cameras': int(oi['intrinsics'].shape[0]),
+                'observations': int(oi['observations_board'].shape[0]), 'n_measurements': int(x.size),
+                'rms': float(np.sqrt(np.sum(x ** 2) / np.sum(oi['observations_board'][..., 2] > 0))),
+                'intrinsics': again['intrinsics'].tolist(), 'extrinsics': again['extrinsics_rt_fromref'].tolist(),
+                'warp': again['calobject_warp'].tolist(), 'file_intrinsics': m.intrinsics()[1].tolist(),
+                'file_extrinsics': m.extrinsics_rt_fromref().tolist()})
+print(json.dumps(out))
+"""
+
+
+def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevaluates(tmp_path):
+    """A ring rig of three cameras (synth.ring_rig) over 14 frames, 0.1 px corner noise, a sagging board, one
+    camera's view read in reversed corner order: the rig files of `calibrate --cameras`
+    (io.cameras_files) each hold the joint solve as mrcal's optimization inputs, that camera its intrinsics k;
+    mrcal evaluates them to dstereo's RMS and, re-solving from them, moves no parameter by 1e-6 of its sigma."""
+    import json
+    import subprocess
+    from types import SimpleNamespace
+
+    from dstereo.calib.multiview import calibrate_views
+    from dstereo.calib.multiview import EXTRINSIC_NAMES
+    from dstereo.io.cameramodel import write_cameramodels_of_rig
+    from dstereo.io.cameras_files import _rig_solve
+    from dstereo.models.board import Board, sagged
+    from dstereo.synth import multiview_poses, ring_rig
+    from dstereo.synth.multiview import MULTIVIEW_BOARD
+    from dstereo.synth.poses import compose
+    from dstereo.models.camera import project_view
+    import jax
+    import jax.numpy as jnp
+
+    _mrcal_or_skip()
+    rig = ring_rig(3)
+    poses, visible, _ = multiview_poses(rig, MULTIVIEW_BOARD, 14, 5)
+    board = Board(*MULTIVIEW_BOARD.pattern, MULTIVIEW_BOARD.square)
+    obj = board.object_points()
+    bent = sagged(obj, np.array([0.3, -0.2]))
+    rng = np.random.default_rng(5)
+    obs = np.full((len(poses), 3, len(obj), 2), np.nan)
+    for f, pose in enumerate(poses):
+        for k, (cam, t_cam_ref) in enumerate(zip(rig.cameras, rig.T_cam_ref)):
+            if visible[f, k]:
+                q = np.asarray(jax.vmap(lambda p: project_view(cam.k, cam.dist.coeffs, compose(t_cam_ref, pose), p))(
+                    jnp.asarray(bent)))
+                obs[f, k] = q + rng.normal(0.0, 0.1, q.shape)
+    seen = np.flatnonzero(visible[:, 2])[0]
+    obs[seen, 2] = obs[seen, 2][::-1]  # a detection that numbered the corners from the other end
+    sizes = [c.image_size for c in rig.cameras]
+    sol = calibrate_views(obj, obs, visible, sizes, mode="joint", board_warp=True)
+    assert (seen, 2) in sol.flipped
+    job = SimpleNamespace(solution=sol, observations=obs, inliers=None,
+                          cameras=[SimpleNamespace(detection=SimpleNamespace(board=board))])
+    solve, why = _rig_solve(job)
+    assert solve is not None, why
+    names = ["rig_a", "rig_b", "rig_c"]
+    write_cameramodels_of_rig(tmp_path, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
+                              names, np.concatenate([sol.rvecs, sol.T], axis=1), solve)
+    files = [str(tmp_path / f"{n}.cameramodel") for n in names]
+    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_RIG_CHECK, *files], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = json.loads(done.stdout)
+    assert [g["icam"] for g in got] == [0, 1, 2] and all(g["cameras"] == 3 for g in got)
+    assert all(g["observations"] == int(visible.sum()) for g in got)
+    # the same residuals at the same parameters: float64 rounding apart (sum of squares over every inlier corner)
+    assert abs(got[0]["rms"] / sol.rms - 1) < 1e-12, (got[0]["rms"], sol.rms)
+    sigma = dict(zip(sol.names, sol.std_jacobian if sol.std_jacobian is not None else sol.std))
+    for k, cam in enumerate(sol.cameras):
+        values = np.concatenate([np.asarray(cam.k), cam.coeffs()[:5]])
+        np.testing.assert_array_equal(got[k]["file_intrinsics"], values)  # the file's camera is the solve's
+        s = np.array([sigma[f"{sol.labels[k]}.{n}"] for n in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")])
+        assert np.all(np.abs(np.array(got[0]["intrinsics"][k]) - values) < 1e-6 * s), k
+    ext = np.concatenate([sol.rvecs, sol.T], axis=1)[1:]
+    assert np.allclose(got[1]["file_extrinsics"], ext[0], rtol=0, atol=1e-12)
+    sag_sigma = np.array([sigma["board_sag_x"], sigma["board_sag_y"]])
+    assert np.all(np.abs(np.array(got[0]["warp"]) - sol.board_sag) < 1e-6 * sag_sigma)
+    ext_sigma = np.array([[sigma[f"{sol.labels[k]}.{n}"] for n in EXTRINSIC_NAMES] for k in (1, 2)])
+    moved = np.abs(np.array(got[0]["extrinsics"]) - ext) / ext_sigma
+    assert moved.max() < 1e-6, moved.max()
