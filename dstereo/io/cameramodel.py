@@ -15,8 +15,8 @@ mrcal-lensmodel-genericparams.h, read 2026-12), none of them Kannala-Brandt. No 
 Numbers are written with repr (17 significant digits), so a file reads back bit for bit (mrcal writes 10).
 
 A one-camera results folder's file also holds the optimization inputs of the solve that produced it
-(`optimization_inputs`) and the valid-intrinsics region (`calib.valid_region`), so that mrcal's own tools (projection uncertainty, residuals, re-solving) run on it; so does every
-rig_<camera>.cameramodel of `calibrate --cameras` (the joint solve, as mrcal writes a rig: the same inputs in each
+(`optimization_inputs`) and the valid-intrinsics region (`calib.valid_region`), so that mrcal's own tools
+(projection uncertainty, residuals, re-solving) run on it; so does every rig_<camera>.cameramodel of `calibrate --cameras` (the joint solve, as mrcal writes a rig: the same inputs in each
 file, that camera its intrinsics k). A `--left/--right` rig's left/right.cameramodel does not yet (its stereo.yml
 holds a solve with the intrinsics held); each file's comment says which it holds.
 """
