@@ -25,6 +25,7 @@ class FinishedCamera:
     solved_board: np.ndarray | None  # (n, 3) that board's points
     splined_spans: object | None  # models.splined.valid_spans of a splined lens
     valid_region: object | None = None  # calib.valid_region.ValidRegion: invertible and reached by the corners
+    mrcal_conversion: object | None = None  # calib.mrcal_convert.Conversion (--mrcal-convert, a lens with no twin)
 
 
 def projection_of(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedProjection:
@@ -64,9 +65,24 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
 
     projection = projection_of(cal, projection_range, method)
     pmap = projection.map
+    region = valid_region(pmap.u, pmap.v, pmap.mask, cal.observations) if pmap.mask is not None else None
     return FinishedCamera(
         std=np.asarray(reported_std(full)), view_scatter=solution_view_scatter(full),
         view_effects=solution_effects(full), projection=projection,
         board_sag=None if sag is None else np.asarray(sag),
         solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans,
-        valid_region=valid_region(pmap.u, pmap.v, pmap.mask, cal.observations) if pmap.mask is not None else None)
+        valid_region=region, mrcal_conversion=_conversion(cal, region, pmap))
+
+
+def _conversion(cal, region, pmap):
+    """The nearest mrcal model of a lens mrcal has no twin for, when asked (`mrcal_convert`); else None."""
+    from dstereo.calib.mrcal_convert import nearest_opencv8
+    from dstereo.uncertainty.projection import model_key
+
+    full = cal.full
+    if not getattr(cal.config, "mrcal_convert", False) or full.lens_model not in ("fisheye", "splined") or \
+            region is None:
+        return None
+    K = cal.final_camera_matrix
+    return nearest_opencv8(K[[0, 1, 0, 1], [0, 1, 2, 2]], cal.final_coefficients, model_key(full.names),
+                           np.asarray(pmap.u), np.asarray(pmap.v), region.pixels, cal.observations)

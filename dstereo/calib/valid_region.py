@@ -19,6 +19,7 @@ class ValidRegion:
     polygon: np.ndarray  # (N, 2) px, closed (last point = first)
     share: float  # of the image's grid pixels inside it
     pieces: int  # parts the valid pixels form (1: one region)
+    pixels: np.ndarray  # (gh, gw) bool: the grid pixels inside (invertible and reached)
 
 
 def valid_region(u: np.ndarray, v: np.ndarray, invertible: np.ndarray, corners: np.ndarray) -> ValidRegion | None:
@@ -55,7 +56,7 @@ def valid_region(u: np.ndarray, v: np.ndarray, invertible: np.ndarray, corners: 
     polygon[:, 1] = np.clip(polygon[:, 1], v[0], v[-1])
     if not np.array_equal(polygon[0], polygon[-1]):
         polygon = np.vstack([polygon, polygon[:1]])
-    return ValidRegion(polygon, float(good.mean()), len(lines))
+    return ValidRegion(polygon, float(good.mean()), len(lines), good)
 
 
 def _area(line: np.ndarray) -> float:

@@ -9,6 +9,8 @@ from typing import Optional
 
 import typer
 
+from dstereo.config.options import CALIBRATE  # the standard library only: the flags' table
+
 
 def calibrate(
     project: Optional[Path] = typer.Argument(
@@ -51,6 +53,7 @@ def calibrate(
         None, "--board-sag/--no-board-sag", help="Solve the board's sag (two parameters, x and y, in the board "
         "unit, as mrcal) with the rest, reported with its sigma (default on, for one camera and every rig). "
         "--no-board-sag: a flat board, as OpenCV."),
+    mrcal_convert: bool = CALIBRATE.option("mrcal_convert", False),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder (default PROJECT/results)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing results folder."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (warnings still on stderr)."),
@@ -98,7 +101,8 @@ def calibrate(
     flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
         pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
         model_right=model_right, per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets,
-        final=final, outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step))
+        final=final, outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step,
+        mrcal_convert=mrcal_convert))
     cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
     stereo_steps = flags.get("stereo_steps")
     cfg = validate(cfg)

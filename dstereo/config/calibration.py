@@ -71,6 +71,9 @@ class Config:
     # measured sags 3-22 sigma and fits 4-22 % better (experiments/results/board_sag_real.md); a --left/--right
     # rig does not solve it yet and runs flat (jobs/calibrate_stereo.py says so)
     board_sag: bool = True
+    # a lens mrcal has no twin for (fisheye, splined): also write the nearest mrcal model, with its fit error
+    # (calib/mrcal_convert.py)
+    mrcal_convert: bool = False
     source: str = field(default="", compare=False)  # the file it was read from, "" for defaults and flags
     warnings: tuple[str, ...] = field(default=(), compare=False)
     # parameter -> where its value came from ("--square", "dstereo.toml [pattern] square"); absent: the default.

@@ -12,7 +12,10 @@ def flag_layer(values: dict) -> dict:
     `outlier_rejection`: True when --no-outlier-rejection was given). Returns the parameters they set."""
     raw = given(values)
     layer = {k: v for k, v in raw.items()
-             if k not in ("pattern", "model", "model_right", "steps", "outlier_rejection", "images", "board_sag")}
+             if k not in ("pattern", "model", "model_right", "steps", "outlier_rejection", "images", "board_sag",
+                          "mrcal_convert")}
+    if raw.get("mrcal_convert"):  # --mrcal-convert (False: not given)
+        layer["mrcal_convert"] = True
     if "board_sag" in raw:  # --board-sag / --no-board-sag (None: not given)
         layer["board_sag"] = bool(raw["board_sag"])
     if "pattern" in raw:

@@ -70,6 +70,8 @@ def toml_layer(data: dict, where: str) -> dict:
         layer["outlier_rejection"] = flag(cal["outlier_rejection"], f"{where}: [calibration] outlier_rejection")
     if "board_sag" in cal:
         layer["board_sag"] = flag(cal["board_sag"], f"{where}: [calibration] board_sag")
+    if "mrcal_convert" in cal:
+        layer["mrcal_convert"] = flag(cal["mrcal_convert"], f"{where}: [calibration] mrcal_convert")
     if "steps" in data:
         layer["steps"] = _toml_steps(data["steps"], f"{where}: steps", stereo=False)
     if "steps" in table(data, "stereo", where):

@@ -54,6 +54,8 @@ def to_toml(cfg, comments: bool = True) -> str:
         out.append("outlier_rejection = false" + c("keep every corner (default true: k-sigma rejection)"))
     if not cfg.board_sag:
         out.append("board_sag = false" + c("a flat board (default true: the board's sag x, y is solved)"))
+    if cfg.mrcal_convert:
+        out.append("mrcal_convert = true" + c("a lens mrcal has no twin for: also the nearest mrcal model"))
     if cfg.final != "survivors":
         out.append(f"final = {_toml_str(cfg.final)}" + c("camera file: the thesis's subset mean, not the "
                                                          "survivors' solve"))

@@ -96,6 +96,9 @@ CALIBRATE = OptionTable("calibrate", (
     _opt("final", "calibration.final", "--final"),
     _opt("outlier_rejection", "calibration.outlier_rejection", "--no-outlier-rejection", type=bool),
     _opt("board_sag", "calibration.board_sag", "--board-sag/--no-board-sag", type=bool),
+    _opt("mrcal_convert", "calibration.mrcal_convert", "--mrcal-convert",
+         "A lens mrcal has no twin for (fisheye, splined): also write the nearest mrcal model "
+         "(camera.mrcal-opencv8.cameramodel), with its fit error.", bool),
     _opt("steps", "steps", "--step", type=list),
     _opt("stereo_steps", "stereo.steps", "--step", type=list),
     # run settings: flags of the command, not fields of Config

@@ -37,6 +37,8 @@ OPENCV_MODELS = {"LENSMODEL_PINHOLE": 0, "LENSMODEL_OPENCV4": 4, "LENSMODEL_OPEN
 NO_TWIN = ("the fisheye model (Kannala-Brandt, cv2.fisheye) has no mrcal twin (mrcal's models: PINHOLE, "
            "STEREOGRAPHIC, LONLAT, LATLON, OPENCV4/5/8/12, CAHVOR, CAHVORE, SPLINED_STEREOGRAPHIC): no "
            "camera.cameramodel written")
+NO_MODEL_CONVERSION = ("--mrcal-convert: fewer than 20 grid pixels of the valid region lie where a pinhole model "
+                       "holds rays: no nearest mrcal model written")
 NO_SPLINED_TWIN = ("dstereo's splined lens has no mrcal twin: mrcal's LENSMODEL_SPLINED_STEREOGRAPHIC scales its "
                    "surface by the focal length, spans the grid by a field of view and lays its knots otherwise, so "
                    "the two models differ: no camera.cameramodel written")

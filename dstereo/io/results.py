@@ -496,6 +496,9 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
                      "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
                      "rms": float(full.rms), "std": summary["full_set"]["std"]}, **sag})
     summary["cameramodel"] = _write_mrcal(folder, cal, K)
+    converted = _write_mrcal_conversion(folder, cal)
+    if converted is not None:
+        summary["cameramodel_converted"] = converted
     np.savez(folder / "corners.npz", object_points=det.object_points,
              **({} if solved_board is None else {"object_points_solved": solved_board}),
              **{name: det.corners[name] for name in cal.used})
@@ -552,6 +555,22 @@ def _write_mrcal(folder: Path, cal: CameraCalibration, K: np.ndarray) -> str:
     return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
                              cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate",
                              solve=solve, no_solve_why=why, region=_region(cal))
+
+
+def _write_mrcal_conversion(folder: Path, cal: CameraCalibration) -> str | None:
+    """camera.mrcal-opencv8.cameramodel: the nearest mrcal model of a lens with no twin (--mrcal-convert); what was
+    done, or None when not asked."""
+    from dstereo.io.cameramodel import cameramodel_text, NO_MODEL_CONVERSION
+
+    conv = getattr(finished(cal), "mrcal_conversion", None)
+    if not getattr(cal.config, "mrcal_convert", False) or cal.full.lens_model not in ("fisheye", "splined"):
+        return None
+    if conv is None:
+        return NO_MODEL_CONVERSION
+    (folder / "camera.mrcal-opencv8.cameramodel").write_text(cameramodel_text(
+        "LENSMODEL_OPENCV8", conv.intrinsics, conv.coeffs8, cal.detection.image_size,
+        note=f"written by dstereo calibrate --mrcal-convert\n{conv.text()}"))
+    return f"camera.mrcal-opencv8.cameramodel: {conv.text()}"
 
 
 def _region(cal: CameraCalibration):
@@ -710,7 +729,12 @@ def report_markdown(cal: CameraCalibration, summary: dict) -> str:
                   f"({check['ratio']:.3f}x): the mean {verdict}."]
     lines += ["", "Camera for OpenCV: [camera.yml](camera.yml) (also [camera.json](camera.json)); corners: "
               "[corners.npz](corners.npz); the configuration as run: [config.toml](config.toml).",
-              f"For mrcal's tools: {summary.get('cameramodel', '-')}.", ""]
+              f"For mrcal's tools: {summary.get('cameramodel', '-')}."]
+    if "cameramodel_converted" in summary:
+        lines += [f"Converted for mrcal (--mrcal-convert): {summary['cameramodel_converted']}."]
+    elif cal.full.lens_model in ("fisheye", "splined"):
+        lines += ["`--mrcal-convert` writes the nearest mrcal model (OpenCV8) beside it, with its fit error."]
+    lines += [""]
     cov = cal.coverage
     lines += ["## Distortion coverage (thesis section 5.2.1.2)", "", "| image area | % of corners |", "|---|---|"]
     lines += [f"| {name.replace('_', ' ')} | {cov.percent[name]:.1f} |" for name in cov.percent]

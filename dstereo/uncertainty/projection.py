@@ -114,6 +114,11 @@ def _point(k, coeffs, q, range_, model: str = "pinhole"):
     return range_ * ray / jnp.linalg.norm(ray), _invertible(k, coeffs, q, x)
 
 
+def pixel_ray(k, coeffs, q, model: str = "pinhole"):
+    """(unit ray of pixel `q` through the lens `model`, whether it was found): `_point` at range 1."""
+    return _point(k, coeffs, q, 1.0, model)
+
+
 def _project(k, coeffs, p, model: str = "pinhole"):
     if model.startswith("splined"):
         return splined.project(k, coeffs, p, *_splined_grid(model))

@@ -364,6 +364,7 @@ CALIBRATE_CASES = {
     "outlier_rejection": ("[calibration]\noutlier_rejection = false\n", ["--no-outlier-rejection"],
                           "outlier_rejection", False),
     "board_sag": ("[calibration]\nboard_sag = false\n", ["--no-board-sag"], "board_sag", False),
+    "mrcal_convert": ("[calibration]\nmrcal_convert = true\n", ["--mrcal-convert"], "mrcal_convert", True),
     "steps": ('[[steps]]\nparameters = ["re"]\nmax_error = [0.5]\n', ["--step", "re=0.5"], "steps",
               (Step(("re",), (0.5,)),)),
     "stereo_steps": ('[[stereo.steps]]\nparameters = ["Tnorm"]\nmax_error = [0.75]\n', ["--step", "Tnorm=0.75"],
