@@ -9,8 +9,8 @@ as configured, `--model auto` among the parametric lenses), then all cameras and
 camera kept: the rig with every camera held at its own calibration, then everything jointly (`calib/multiview.py`). The
 joint solve is what cameras.yml holds; the held one is reported beside it, and the joint one is tested against
 each camera alone (`calib/rig_consistency.py`: do the frames show one board at one moment for every camera?);
-a frame the rig cannot explain while the other frames can is named in its warning (`reject_inconsistent_frames`
-can remove it; off, see there). With images per set m, the rig's frame subsets and the
+a frame the rig cannot explain while the other frames can leaves the rig solve when the rig fails the test
+(`reject_inconsistent_frames`, with outlier rejection). With images per set m, the rig's frame subsets and the
 thesis's stereo steps on every adjacent pair come before (`calib/rig_subsets.py`).
 """
 
@@ -194,12 +194,10 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
             rig_inliers = None if rig_inliers is None else rig_inliers[keep]
             held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels,
                                    board_warp=sag, inliers=rig_inliers)
-    # Frame rejection by the consistency test is off: on exact-corner renders it finds the one bad frame and
-    # spares simultaneous ones (reject_inconsistent_frames), but on the rendered K = 3 rig of
-    # tests/calib/test_calibrate_cameras.py (OpenCV-detected corners, simultaneous) it removed 1-2 frames: a
-    # view's own detection bias reads as inconsistency there. The warning names the frames instead.
+    # Frame rejection by the consistency test, with outlier rejection: only from a rig that fails the test
+    # (`RigConsistency.outlying_frames`; a passing rig's highest frame is a view's own detection error)
     rig = reject_inconsistent_frames(obj, obs, visible, sizes, start, labels, sag, inliers, rig_inliers, frames,
-                                     False, progress)
+                                     config.outlier_rejection, progress)
     joint, consistency, rejected = rig.joint, rig.consistency, rig.rejected
     frames, visible, obs, inliers, rig_inliers = rig.frames, rig.visible, rig.obs, rig.inliers, rig.rig_inliers
     if rejected:
@@ -249,19 +247,30 @@ def reject_inconsistent_frames(obj, obs, visible, sizes, start, labels, sag, inl
     """The joint solve and its consistency test; with `reject`, the worst frame the rig cannot explain and the
     others can (`RigConsistency.outlying_frames`) leaves and the rig is solved again, one frame a round (one bad
     frame pulls the rig and raises the others' statistics with it), until none is left, MAX_FRAME_ROUNDS, or four
-    frames seen by two cameras remain. On renders (24 frames, one exposed 1 mm away by every camera but the
-    reference): that frame removed and the rest consistent on 17 of 18 seeds of K = 2, 3, 4 (the 18th: nothing
-    removed, consistent); simultaneous: nothing removed on 18 of 18."""
-    rejected = []
+    frames seen by two cameras remain. A rig still inconsistent after its removals keeps every frame (the first
+    solve, with a note): its cause is not a frame, and removing some would only lose data (rendered K = 3 rigs with
+    the board moved 0.5 mm between exposures lost 0-5 frames each and stayed inconsistent).
+    On exact-corner renders (24 frames, one exposed 1 mm away by every camera but the reference): that frame
+    removed and the rest consistent on 17 of 18 seeds of K = 2, 3, 4 (the 18th: nothing removed, consistent);
+    simultaneous: nothing removed on 18 of 18. Rendered images, OpenCV-detected corners:
+    `experiments/rig_frame_rejection_rendered.py`."""
+    rejected, first = [], None
     while True:
         joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels,
                                 board_warp=sag, inliers=rig_inliers)
         if progress is not None:
             progress("rig solve", 2, 3)
         consistency = of_multiview(joint, obj, obs, rig_inliers, frames)
+        now = RigFrames(joint, consistency, frames, visible, obs, inliers, rig_inliers, list(rejected))
+        first = now if first is None else first
         bad = consistency.outlying_frames() if reject else []
         if not bad or len(rejected) == MAX_FRAME_ROUNDS or int((visible.sum(axis=1) >= 2).sum()) <= 4:
-            return RigFrames(joint, consistency, frames, visible, obs, inliers, rig_inliers, rejected)
+            if rejected and not consistency.consistent:
+                first.consistency.notes.append(
+                    f"removing the frame(s) the rig could not explain ({', '.join(n for n, _ in rejected)}) in turn "
+                    "did not make it consistent: every frame is kept (the cause is not one frame)")
+                return first
+            return now
         f = bad[0]
         rejected.append((frames[f], float(consistency.frame_statistic[f] / consistency.frame_dof[f])))
         keep = np.arange(len(frames)) != f
