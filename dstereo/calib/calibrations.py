@@ -178,7 +178,8 @@ class MultiviewJob:
         """The stereo files to write (`pairs`), each pair's rig and covariance computed (`calib.rig_pairs`)."""
         from dstereo.calib.rig_pairs import pair_calibration
 
-        self.pair_files = [pair_calibration(self.solution, a, b) for a, b in self.pairs(chosen)]
+        obj = self.cameras[0].detection.object_points
+        self.pair_files = [pair_calibration(self.solution, a, b, obj) for a, b in self.pairs(chosen)]
 
 
 def pair_indices(labels: tuple[str, ...], root: Path, chosen: tuple[str, str] | None) -> list[tuple[int, int]]:

@@ -1,6 +1,7 @@
-"""The camera pairs of a K-camera joint solve that get a stereo file: each pair's rig (R, T, E, F) and the
+"""The camera pairs of a K-camera joint solve that get a stereo file: each pair's rig (R, T, E, F), the
 covariance that file carries (`uncertainty.rig.pair_covariance`), so a reconstruction from it has the
-calibration's share of the point sigmas."""
+calibration's share of the point sigmas, and the boards the pair saw in its left camera (the writer's board depths
+and corner angles, which `reconstruct` reads from a stereo file: its search-range prior and a fisheye's field)."""
 
 from __future__ import annotations
 
@@ -20,11 +21,17 @@ class PairCalibration:
     cov_names: tuple[str, ...]  # stereo.yml's names (left.fx.., right.., RVx..Tz)
     cov: np.ndarray
     structure: str
+    poses: np.ndarray  # (V, 6) T_a_board of the frames both cameras saw (the stereo job's pairs)
+    board: np.ndarray  # (n, 3) the board the solve fitted (sagged when it solved the sag)
 
 
-def pair_calibration(solution, a: int, b: int) -> PairCalibration:
-    """Cameras a (left) and b (right) of a `calib.multiview.MultiviewSolution` (mode "joint") as one stereo rig."""
-    from dstereo.models.pose import rotation_vector
+def pair_calibration(solution, a: int, b: int, obj: np.ndarray) -> PairCalibration:
+    """Cameras a (left) and b (right) of a `calib.multiview.MultiviewSolution` (mode "joint") as one stereo rig;
+    `obj` (n, 3) the flat board."""
+    from scipy.spatial.transform import Rotation
+
+    from dstereo.calib.problem import sagged_board
+    from dstereo.models.pose import rotation_vector, rotation_vectors
     from dstereo.models.rig import essential_matrix, fundamental_matrix
     from dstereo.uncertainty.rig import pair_covariance
 
@@ -33,4 +40,11 @@ def pair_calibration(solution, a: int, b: int) -> PairCalibration:
     E = np.asarray(essential_matrix(rotation_vector(R), T))
     F = np.asarray(fundamental_matrix(np.asarray(ca.k), np.asarray(cb.k), E))
     names, cov, structure = pair_covariance(solution, a, b)
-    return PairCalibration(a, b, np.asarray(R), np.asarray(T), E, F, tuple(names), np.asarray(cov), structure)
+    both = np.asarray(solution.visible[:, a] & solution.visible[:, b], bool)
+    r_a, ref = Rotation.from_rotvec(solution.rvecs[a]), np.asarray(solution.poses, float)[both]  # T_ref_board
+    poses = np.zeros((0, 6))  # two cameras placed through a third may share no frame
+    if len(ref):
+        rot = r_a * Rotation.from_rotvec(ref[:, :3])
+        poses = np.concatenate([rotation_vectors(rot.as_matrix()), r_a.apply(ref[:, 3:]) + solution.T[a]], axis=1)
+    return PairCalibration(a, b, np.asarray(R), np.asarray(T), E, F, tuple(names), np.asarray(cov), structure,
+                           poses, sagged_board(np.asarray(obj, float), solution.board_sag))

@@ -46,9 +46,8 @@ CAPABILITIES: dict[str, tuple] = {
     "mrcal `.cameramodel` (each camera; a rig's in its frame)": (True, True, True),
     "rig consistency test, rig figures": ("-", True, True),
     "a frame the rig cannot explain (the other frames can) leaves the rig": (
-        "-", "not yet: the consistency warning names the frames; remove them from the folders",
-        "not yet: the rule finds one bad frame on exact-corner renders but removed 1-2 simultaneous frames of a "
-        "rendered rig with detected corners; the consistency warning names the frames; remove them from the folders"),
+        "-", "not yet: the consistency warning names the frames; remove them from the folders, or give them "
+        "as --cameras DIR (a rig that fails the test loses them there)", True),
     "stereo files with the calibration covariance (`reconstruct`'s point sigmas)": ("-", True, True),
 }
 

@@ -7,7 +7,9 @@
     rig_<camera>.cameramodel     mrcal's file of each camera in the rig's frame (the reference first), where mrcal
                                  has the lens model
     stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B),
-                                 with the pair's calibration covariance (`uncertainty.rig.pair_covariance`)
+                                 with the pair's calibration covariance (`uncertainty.rig.pair_covariance`) and,
+                                 as a stereo job's stereo.yml, the board depths and corner angles of the frames
+                                 both cameras saw
     frames.csv                   which camera saw which frame, each view's RMS (joint solve)
     plots/                       rig.png (the rig and every frame's board), rig_consistency.png (each frame's
                                  share of the consistency statistic)
@@ -98,7 +100,7 @@ def cameras_summary(job: MultiviewJob) -> dict:
 def _write_pair(folder: Path, job: MultiviewJob, pair) -> tuple[str | None, str | None]:
     """(file name, None) written, or (None, why not). `pair`: a `calib.rig_pairs.PairCalibration` (with the
     covariance, so reconstruct's point sigmas carry the calibration's)."""
-    from dstereo.io.stereo_files import write_stereo_yml
+    from dstereo.io.stereo_files import append_board_depths, board_depth_range, corner_angle_range, write_stereo_yml
 
     sol, a, b = job.solution, pair.a, pair.b
     ca, cb = sol.cameras[a], sol.cameras[b]
@@ -106,6 +108,8 @@ def _write_pair(folder: Path, job: MultiviewJob, pair) -> tuple[str | None, str 
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), pair.R, pair.T,
                      pair.E, pair.F, ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
                      unit=job.config.unit, cov=pair.cov, cov_names=pair.cov_names, cov_structure=pair.structure)
+    if len(pair.poses):  # the nearest and farthest board, the widest corner angles: as a stereo job's stereo.yml
+        append_board_depths(folder / name, board_depth_range(pair, pair.board) | corner_angle_range(pair, pair.board))
     if tuple(ca.image_size) != tuple(cb.image_size):
         return name, (f"{name}: the cameras' images differ in size ({ca.image_size} / {cb.image_size}); dstereo "
                       "reconstruct rectifies both to the first camera's size (imageSize; imageSize2 holds the second's)")

@@ -1,14 +1,16 @@
-"""`dstereo calibrate --cameras DIR`: N cameras, one subfolder each, frames matched by file name.
+"""The K-camera calibration job (`calibrate_rig`), and `dstereo calibrate --cameras DIR` through it.
 
-DIR's subfolders (sorted by name; the first is the reference) each hold one camera's images; an image of the
-same name (stem) in two subfolders is one frame, seen by both; a camera may miss any frame. Each camera is first
-calibrated alone by the one-camera pipeline (its own results: corners, outliers, subsets and steps as configured,
-`--model auto` among the parametric lenses), then all cameras and frames together on the corners each camera
-kept: the rig with every camera held at its own calibration, then everything jointly (`calib/multiview.py`). The
+The cameras come as sources (`jobs.rig_sources`): each camera's own images and its image of each rig frame. For
+`--cameras DIR`, DIR's subfolders (sorted by name; the first is the reference) each hold one camera's images; an
+image of the same name (stem) in two subfolders is one frame, seen by both; a camera may miss any frame. A stereo
+rig's sources are its two cameras' individual images and the pairs (`rig_sources.stereo_pair_sources`). Each
+camera is first calibrated alone by the one-camera pipeline (its own results: corners, outliers, subsets and steps
+as configured, `--model auto` among the parametric lenses), then all cameras and frames together on the corners each
+camera kept: the rig with every camera held at its own calibration, then everything jointly (`calib/multiview.py`). The
 joint solve is what cameras.yml holds; the held one is reported beside it, and the joint one is tested against
 each camera alone (`calib/rig_consistency.py`: do the frames show one board at one moment for every camera?);
-a frame the rig cannot explain while the other frames can is named in its warning (`reject_inconsistent_frames`
-can remove it; off, see there). With images per set m, the rig's frame subsets and the
+a frame the rig cannot explain while the other frames can leaves the rig solve when the rig fails the test
+(`reject_inconsistent_frames`, with outlier rejection). With images per set m, the rig's frame subsets and the
 thesis's stereo steps on every adjacent pair come before (`calib/rig_subsets.py`).
 """
 
@@ -28,7 +30,7 @@ from dstereo.calib.rig_cross_validation import cross_validate_rig
 from dstereo.calib.rig_subsets import run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
-
+from dstereo.jobs.rig_sources import CameraSource, folder_sources
 
 
 def camera_folders(root: Path, config: Config) -> list[Path]:
@@ -52,49 +54,102 @@ def _images(folder: Path, config: Config) -> list[Path]:
         return []
 
 
-def frame_table(cams: list[CameraCalibration]) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
-    """(frame names, visible (F, K), observations (F, K, n, 2), inliers (F, K, n)) from each camera's used views,
-    by image stem. A view its camera's outlier rejection rejected whole is not seen; a rejected corner is no inlier
-    of the rig either: the rig is solved on the corners each camera kept."""
-    rejected = [{v for v, _ in cal.outliers.views} if cal.outliers is not None else set() for cal in cams]
-    stems = [{Path(name).stem: name for name in cal.used if name not in gone} for cal, gone in zip(cams, rejected)]
-    frames = sorted(set().union(*stems))
+def frame_table(cams: list[CameraCalibration], sources: list[CameraSource],
+                others: list) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """(frame names, visible (F, K), observations (F, K, n, 2), inliers (F, K, n)) of the sources' frames. A frame
+    image among its camera's own images gives the corners that camera's calibration used, and its outlier mask (a
+    rejected corner is no inlier of the rig either: the rig is solved on the corners each camera kept); one its
+    calibration did not use (no board, or rejected whole by outlier rejection) is not seen. Another image (a stereo
+    pair beside the individual images) gives its own detection (`others[k]`, `frame_detections`), every corner."""
     n = cams[0].observations.shape[1]
+    seen: list[dict[str, tuple[np.ndarray, np.ndarray]]] = []
+    for cal, source, other in zip(cams, sources, others):
+        row = {name: i for i, name in enumerate(cal.used)}
+        own = {Path(f).resolve(): Path(f).name for f in cal.files}
+        views = {}
+        for frame, path in source.frames:
+            name = own.get(Path(path).resolve())
+            if name is not None:
+                if name in row:
+                    i = row[name]
+                    views[frame] = (cal.observations[i], np.ones(n, bool) if cal.full.inliers is None
+                                    else cal.full.inliers[i])
+            elif other is not None and Path(path).name in other.corners:
+                views[frame] = (other.corners[Path(path).name], np.ones(n, bool))
+        seen.append(views)
+    frames = sorted(set().union(*seen))
     obs = np.full((len(frames), len(cams), n, 2), np.nan)
     inliers = np.zeros((len(frames), len(cams), n), bool)
-    for k, (cal, by_stem) in enumerate(zip(cams, stems)):
-        row = {name: i for i, name in enumerate(cal.used)}
-        for f, stem in enumerate(frames):
-            if stem in by_stem:
-                i = row[by_stem[stem]]
-                obs[f, k] = cal.observations[i]
-                inliers[f, k] = True if cal.full.inliers is None else cal.full.inliers[i]
+    for k, views in enumerate(seen):
+        for f, frame in enumerate(frames):
+            if frame in views:
+                obs[f, k], inliers[f, k] = views[frame]
     return frames, np.isfinite(obs[..., 0, 0]), obs, inliers
+
+
+def frame_detections(cams: list[CameraCalibration], sources: list[CameraSource], config: Config,
+                     use_cache: bool = True) -> list:
+    """Per camera, the detection of its frame images that are not among its own images (None when all are): the
+    stereo pairs of a thesis layout with separate individual and stereo folders. One camera has one image size."""
+    from dstereo.io.corners import detect_folder
+
+    out = []
+    for cal, source in zip(cams, sources):
+        own = {Path(f).resolve() for f in cal.files}
+        files = [Path(p) for _, p in source.frames if Path(p).resolve() not in own]
+        if not files:
+            out.append(None)
+            continue
+        det = detect_folder(files[0].parent, config.pattern, config.square, files=files, use_cache=use_cache)
+        if det.corners and det.image_size != cal.detection.image_size:
+            raise DstereoError(f"camera {source.label}: its own images are {cal.detection.image_size} px but its "
+                               f"frame images ({files[0].parent}) are {det.image_size} px; one camera has one image "
+                               "size")
+        out.append(det)
+    return out
 
 
 def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
                               scratch: Path | None = None, cross_validate: int = 0,
                               projection_range: float | None = None,
                               pairs: tuple[str, str] | None = None) -> MultiviewJob:
-    """Run the job of the module docstring. Raises DstereoError for folders, boards or frames that cannot make
-    one rig. `cross_validate`: that many random halvings of the frames (`calib/rig_cross_validation.py`).
-    `pairs`: the two cameras (labels) that get a stereo file, else every adjacent pair (`choose_pairs`)."""
+    """`--cameras DIR`: the rig of DIR's camera subfolders (module docstring, `calibrate_rig`)."""
+    _check_steps(config)
+    folders = camera_folders(root, config)
+    sources = folder_sources(folders, lambda folder: list_camera_images(folder, config))
+    return calibrate_rig(sources, config, Path(root), progress, use_cache, scratch, cross_validate,
+                         projection_range, pairs)
+
+
+def _check_steps(config: Config) -> None:
+    if config.stereo_steps and config.per_set is None:
+        raise DstereoError("stereo steps need subsets of frames; set images per set (`per_set` m)")
+
+
+def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, progress=None, use_cache: bool = True,
+                  scratch: Path | None = None, cross_validate: int = 0, projection_range: float | None = None,
+                  pairs: tuple[str, str] | None = None, warnings: list[str] | None = None) -> MultiviewJob:
+    """Run the job of the module docstring on K camera sources (`jobs.rig_sources`; `where`: the rig's folder, for
+    messages). Raises DstereoError for folders, boards or frames that cannot make one rig. `cross_validate`: that
+    many random halvings of the frames (`calib/rig_cross_validation.py`). `pairs`: the two cameras (labels) that
+    get a stereo file, else every adjacent pair (`choose_pairs`). `warnings`: the sources' own, reported first."""
     from dstereo.jobs.calibrate_stereo import _prefixed
 
     t0 = time.perf_counter()
-    if config.stereo_steps and config.per_set is None:
-        raise DstereoError("stereo steps need subsets of frames; set images per set (`per_set` m)")
-    folders = camera_folders(root, config)
-    labels = tuple(p.name for p in folders)
-    pair_indices(labels, Path(root), pairs)  # a wrong --pair is refused before any work
-    cams, warnings, timings = [], [], {}
-    for label, folder in zip(labels, folders):
+    _check_steps(config)
+    labels = tuple(s.label for s in sources)
+    pair_indices(labels, Path(where), pairs)  # a wrong --pair is refused before any work
+    cams, warnings, timings = [], list(warnings or []), {}
+    for source in sources:
         t = time.perf_counter()
+        label, cfg = source.label, source.config if source.config is not None else config
         try:
-            cal = calibrate_camera(folder, config, progress=_prefixed(progress, label), use_cache=use_cache,
-                                   scratch=scratch, in_rig=True, projection_range=projection_range)
+            cal = calibrate_camera(Path(source.images[0]).parent if source.images else Path(source.where), cfg,
+                                   files=list(source.images), progress=_prefixed(progress, label),
+                                   use_cache=use_cache, scratch=scratch, in_rig=True,
+                                   projection_range=projection_range)
         except DstereoError as exc:
-            raise DstereoError(f"camera {label} ({folder}): {exc}") from None
+            raise DstereoError(f"camera {label} ({source.where}): {exc}") from None
         cams.append(cal)
         warnings += [f"camera {label}: {w}" for w in cal.warnings if w not in config.warnings]
         timings[f"{label}_s"] = time.perf_counter() - t
@@ -102,11 +157,12 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
     if len(shapes) != 1 or any(not np.allclose(c.detection.object_points, cams[0].detection.object_points)
                                for c in cams):
         raise DstereoError("cameras: the cameras' boards differ (pattern or square); one rig calibrates from one board")
-    frames, visible, obs, inliers = frame_table(cams)
+    frames, visible, obs, inliers = frame_table(cams, sources, frame_detections(cams, sources, config,
+                                                                             use_cache))
     shared = visible.sum(axis=1)
     lonely = [frames[f] for f in np.flatnonzero(shared < 2)]
     if len(lonely) == len(frames):
-        raise DstereoError(f"cameras: no image name occurs in two camera folders under {root}; frames are matched by "
+        raise DstereoError(f"cameras: no image name occurs in two camera folders under {where}; frames are matched by "
                            "file name (cam0/0001.png with cam1/0001.png)")
     if lonely:
         warnings.append(f"{len(lonely)} of {len(frames)} frames are seen by one camera only ({', '.join(lonely[:5])}"
@@ -138,12 +194,10 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
             rig_inliers = None if rig_inliers is None else rig_inliers[keep]
             held = calibrate_views(obj, obs, visible, sizes, mode="fixed", cameras=start, labels=labels,
                                    board_warp=sag, inliers=rig_inliers)
-    # Frame rejection by the consistency test is off: on exact-corner renders it finds the one bad frame and
-    # spares simultaneous ones (reject_inconsistent_frames), but on the rendered K = 3 rig of
-    # tests/calib/test_calibrate_cameras.py (OpenCV-detected corners, simultaneous) it removed 1-2 frames: a
-    # view's own detection bias reads as inconsistency there. The warning names the frames instead.
+    # Frame rejection by the consistency test, with outlier rejection: only from a rig that fails the test
+    # (`RigConsistency.outlying_frames`; a passing rig's highest frame is a view's own detection error)
     rig = reject_inconsistent_frames(obj, obs, visible, sizes, start, labels, sag, inliers, rig_inliers, frames,
-                                     False, progress)
+                                     config.outlier_rejection, progress)
     joint, consistency, rejected = rig.joint, rig.consistency, rig.rejected
     frames, visible, obs, inliers, rig_inliers = rig.frames, rig.visible, rig.obs, rig.inliers, rig.rig_inliers
     if rejected:
@@ -165,7 +219,7 @@ def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cac
         if progress is not None:
             progress("rig cross-validation", 1, 1)
         timings["rig_cross_validation_s"] = time.perf_counter() - t
-    job = MultiviewJob(config, Path(root), labels, cams, frames, visible, obs, held, joint, warnings, timings,
+    job = MultiviewJob(config, Path(where), labels, cams, frames, visible, obs, held, joint, warnings, timings,
                        inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets,
                        rejected_frames=rejected)
     _check(job)
@@ -193,19 +247,30 @@ def reject_inconsistent_frames(obj, obs, visible, sizes, start, labels, sag, inl
     """The joint solve and its consistency test; with `reject`, the worst frame the rig cannot explain and the
     others can (`RigConsistency.outlying_frames`) leaves and the rig is solved again, one frame a round (one bad
     frame pulls the rig and raises the others' statistics with it), until none is left, MAX_FRAME_ROUNDS, or four
-    frames seen by two cameras remain. On renders (24 frames, one exposed 1 mm away by every camera but the
-    reference): that frame removed and the rest consistent on 17 of 18 seeds of K = 2, 3, 4 (the 18th: nothing
-    removed, consistent); simultaneous: nothing removed on 18 of 18."""
-    rejected = []
+    frames seen by two cameras remain. A rig still inconsistent after its removals keeps every frame (the first
+    solve, with a note): its cause is not a frame, and removing some would only lose data (rendered K = 3 rigs with
+    the board moved 0.5 mm between exposures lost 0-5 frames each and stayed inconsistent).
+    On exact-corner renders (24 frames, one exposed 1 mm away by every camera but the reference): that frame
+    removed and the rest consistent on 17 of 18 seeds of K = 2, 3, 4 (the 18th: nothing removed, consistent);
+    simultaneous: nothing removed on 18 of 18. Rendered images, OpenCV-detected corners:
+    `experiments/rig_frame_rejection_rendered.py`."""
+    rejected, first = [], None
     while True:
         joint = calibrate_views(obj, obs, visible, sizes, mode="joint", cameras=start, labels=labels,
                                 board_warp=sag, inliers=rig_inliers)
         if progress is not None:
             progress("rig solve", 2, 3)
         consistency = of_multiview(joint, obj, obs, rig_inliers, frames)
+        now = RigFrames(joint, consistency, frames, visible, obs, inliers, rig_inliers, list(rejected))
+        first = now if first is None else first
         bad = consistency.outlying_frames() if reject else []
         if not bad or len(rejected) == MAX_FRAME_ROUNDS or int((visible.sum(axis=1) >= 2).sum()) <= 4:
-            return RigFrames(joint, consistency, frames, visible, obs, inliers, rig_inliers, rejected)
+            if rejected and not consistency.consistent:
+                first.consistency.notes.append(
+                    f"removing the frame(s) the rig could not explain ({', '.join(n for n, _ in rejected)}) in turn "
+                    "did not make it consistent: every frame is kept (the cause is not one frame)")
+                return first
+            return now
         f = bad[0]
         rejected.append((frames[f], float(consistency.frame_statistic[f] / consistency.frame_dof[f])))
         keep = np.arange(len(frames)) != f

@@ -102,7 +102,35 @@ def test_pair_files_carry_the_calibration_covariance_and_the_rig_its_consistency
     for n in ("RVy", "Tx"):
         assert std[list(extras["cov_names"]).index(n)] == pytest.approx(summary["joint"]["std"][f"cam1.{n}"], rel=1e-9)
     assert summary["rig_consistency"]["consistent"] and "## Rig consistency" in (out / "report.md").read_text()
+    # simultaneous renders: frame rejection (on with outlier rejection) removes nothing from a rig that passes the
+    # test, though one frame's detected corners read 5.3x its constraints (the per-frame rule alone removed it)
+    assert summary["rejected_frames"] == [] and not any("cannot explain" in w for w in summary["warnings"])
     assert "std" not in summary["held"]  # the held solve's std omitted the intrinsics' uncertainty
+
+
+def test_pair_files_carry_the_board_depths_and_corner_angles_a_stereo_file_has(rig_run):
+    """reconstruct reads a stereo file's nearest and farthest board (its search-range prior) and each camera's widest
+    corner angle (a fisheye's field): a pair file carries them as a --left/--right stereo.yml does, from the frames
+    both cameras saw. Against the renders' true board poses: the solved rig and poses are within ~0.1 % of the
+    truth here (the focal lengths and baselines above), so 0.5 % of a depth and 0.1 deg of an angle are far outside
+    the solve's error and far inside what another frame set would give (the frames span 650-900 mm)."""
+    from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.synth.board import object_points
+
+    out, vis = rig_run
+    _, _, _, poses = rig._rig_frames(n_frames=20)
+    obj = object_points(rig.PATTERN, rig.SQUARE)
+    for a, b in ((0, 1), (1, 2)):
+        extras = read_stereo_calibration(out / f"stereo_cam{a}_cam{b}.yml").extras
+        both = np.flatnonzero(vis[:, a] & vis[:, b])
+        points = [np.stack([obj @ cv2.Rodrigues(p[:3])[0].T + p[3:] for p in
+                            (compose(rig.EXT[c], poses[f]) for f in both)]).reshape(-1, 3) for c in (a, b)]
+        z = points[0][:, 2]
+        assert extras["board_depth_min"] == pytest.approx(z.min(), rel=5e-3)
+        assert extras["board_depth_max"] == pytest.approx(z.max(), rel=5e-3)
+        for i, p in enumerate(points, start=1):
+            widest = np.degrees(np.arccos(p[:, 2] / np.linalg.norm(p, axis=1))).max()
+            assert extras[f"corner_angle_max{i}"] == pytest.approx(widest, abs=0.1)
 
 
 def test_every_rig_camera_gets_an_mrcal_file_in_the_rigs_frame(rig_run):
