@@ -10,6 +10,7 @@ left camera frame.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -102,7 +103,7 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
 # and the sensor noise vary with the seed (as the texture does), so that seeds differ in more than the speckle.
 TILT_DEG = (10.0, 18.0)  # off the rig axis, mostly as yaw (the side wall beside the face, across the baseline)
 PITCH_DEG = 5.0  # at most, either way
-NOISY_OPTIONS = dict(supersample=2, defocus_sigma_px=0.5, full_well=2000.0, read_noise_dn=1.5)
+SENSOR_NOISE = (10000.0, 1.0)  # full well (electrons at full scale) and read noise (DN): a machine-vision sensor
 
 
 def tilted_pose(seed: int) -> tuple[float, float]:
@@ -112,12 +113,14 @@ def tilted_pose(seed: int) -> tuple[float, float]:
     return float(yaw), float(rng.uniform(-PITCH_DEG, PITCH_DEG))
 
 
-def write_tilted_sequence(folder, seed: int, n_frames: int = 6, image_size: tuple[int, int] = (640, 480),
-                          force: bool = False, **kwargs) -> dict:
+def write_tilted_sequence(folder, seed: int, n_frames: int = 11, image_size: tuple[int, int] = (640, 480),
+                          noise: tuple[float, float] = SENSOR_NOISE, force: bool = False, **kwargs) -> dict:
     """`write_synthetic_sequence` of the domed sample tilted by `tilted_pose(seed)` (its side wall in view), with
-    shot noise (2000 electrons at full scale) and 1.5 DN read noise on every image; `kwargs` go on to it."""
-    from dstereo.synth.sensor import RenderOptions
+    shot noise and read noise on every image (`noise`: full well in electrons at full scale, read noise in DN;
+    the objects' default blur and supersampling); `kwargs` go on to it."""
+    from dstereo.synth.scenes import OBJECT_OPTIONS
 
     yaw, pitch = tilted_pose(seed)
+    options = replace(OBJECT_OPTIONS, full_well=float(noise[0]), read_noise_dn=float(noise[1]))
     return write_synthetic_sequence(folder, n_frames=n_frames, image_size=image_size, seed=seed, yaw_deg=yaw,
-                                    pitch_deg=pitch, options=RenderOptions(**NOISY_OPTIONS), force=force, **kwargs)
+                                    pitch_deg=pitch, options=options, force=force, **kwargs)

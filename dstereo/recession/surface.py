@@ -150,7 +150,20 @@ def face_points(uvh: np.ndarray, grid_mm: float, k: float = 4.0,
     side wall or background does not widen the tolerance that is to reject them) and in the largest connected
     region of grid cells."""
     keep, coef = _trim(uvh, k, start)
-    return largest_region(uvh[:, :2], keep, grid_mm), coef
+    keep = largest_region(uvh[:, :2], keep, grid_mm)
+    return within_outline(uvh[:, :2], keep, grid_mm), coef
+
+
+def within_outline(uv: np.ndarray, keep: np.ndarray, grid_mm: float) -> np.ndarray:
+    """`keep` restricted to the points within OUTLINE_TOLERANCE_CELLS of the face's `outline_circle`: what joins
+    the face beyond its rim and survived the opening (SGBM carrying the face's disparity along the rows into the
+    untextured background beside it: a field 15 mm wide beside a render tilted 10.5 deg, seed 14 of
+    experiments/recession_coverage.py, that took the axis 2 deg off). A prismatic face loses its corners here."""
+    if keep.sum() < 3:
+        return keep
+    cells = np.unique(np.round(uv[keep] / grid_mm).astype(np.int64), axis=0) * grid_mm
+    centre, radius = outline_circle(cells, grid_mm)
+    return keep & (np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]) <= radius + OUTLINE_TOLERANCE_CELLS * grid_mm)
 
 
 JACKKNIFE_BLOCKS = 6  # blocks across the face's larger extent (~28 over a round face)
@@ -262,7 +275,12 @@ OUTLINE_TOLERANCE_CELLS = 1.0  # outline cells this far outside the fitted circl
 
 
 def face_centre(cells: np.ndarray, grid_mm: float) -> np.ndarray:
-    """(u, v) mm: the centre of the circle through the face's outline (`cells` (n, 2), the face's grid cells'
+    """(u, v) mm: the centre of `outline_circle`."""
+    return outline_circle(cells, grid_mm)[0]
+
+
+def outline_circle(cells: np.ndarray, grid_mm: float) -> tuple[np.ndarray, float]:
+    """(centre (u, v), radius) mm of the circle through the face's outline (`cells` (n, 2), the face's grid cells'
     centres, holes filled), fitted by least squares (Kasa's algebraic fit) and refitted without the outline cells
     more than OUTLINE_TOLERANCE_CELLS outside it until the kept cells stop changing.
 
@@ -286,18 +304,19 @@ def face_centre(cells: np.ndarray, grid_mm: float) -> np.ndarray:
     x, y = (ix + lo[0]) * grid_mm, (iy + lo[1]) * grid_mm
     keep = np.ones(len(x), bool)
     centre = np.array([x.mean(), y.mean()])
+    radius = float(np.hypot(x - centre[0], y - centre[1]).max())  # too few outline cells for a fit: all of them
     for _ in range(10):
         if keep.sum() < 3:
             break
         a = np.stack([2 * x[keep], 2 * y[keep], np.ones(int(keep.sum()))], axis=1)
         sol = np.linalg.lstsq(a, (x * x + y * y)[keep], rcond=None)[0]
         centre = sol[:2]
-        radius = np.sqrt(max(sol[2] + centre @ centre, 0.0))
+        radius = float(np.sqrt(max(sol[2] + centre @ centre, 0.0)))
         new = np.hypot(x - centre[0], y - centre[1]) - radius <= OUTLINE_TOLERANCE_CELLS * grid_mm
         if np.array_equal(new, keep):
             break
         keep = new
-    return centre
+    return centre, radius
 
 
 @dataclass(frozen=True)

@@ -54,8 +54,10 @@ def test_a_cell_error_common_to_all_frames_is_in_the_interval():
     """120 draws of maps whose cells carry a 3 % rate error of their own (fixed over the frames) beside 3 um
     of noise per frame. The frames' scatter about the line alone covers the truth in ~8 % of draws (measured;
     asserted < 30 %); with the common part, 95 % (binomial: 120 draws at 0.95 scatter by 2 %, so 0.88-1.0).
-    The interval does not simply balloon: the RMS of error / (half-width / t) is within 0.75-1.35 of 1 (1 for
-    an interval of the right width; measured 1.02 over 300 draws)."""
+    The interval does not simply balloon, nor shrink: the RMS of error / standard error is 1 for an interval of
+    the right width (the common part dominates here, so the Welch dof are ~40 and the t spread is ~1.03); measured
+    0.97 over 200 draws, so 0.8-1.2 (120 draws scatter it by ~0.065). Without the correction for what the fit
+    absorbs (`cell_scatter._covariance_terms`: the residuals' raw products instead) it was 1.34, coverage 0.86."""
     frames_in, total_in, z = 0, 0, []
     n = 120
     for seed in range(n):
@@ -65,7 +67,7 @@ def test_a_cell_error_common_to_all_frames_is_in_the_interval():
         z.append((total.rate - TRUE_RATE) / total.rate_se)
     assert frames_in / n < 0.3
     assert 0.88 <= total_in / n <= 1.0
-    assert 0.75 <= np.sqrt(np.mean(np.square(z))) <= 1.35
+    assert 0.8 <= np.sqrt(np.mean(np.square(z))) <= 1.2
 
 
 def test_no_common_part_when_the_cells_scatter_is_their_frames_noise():
@@ -94,8 +96,9 @@ def test_with_common_part_adds_variances_and_takes_welch_satterthwaite_dof():
 
 def test_face_centre_ignores_stray_cells_beyond_the_rim():
     """A round face of 20 mm radius with a crescent of stray cells 3 mm wide beyond its rim on one side (the
-    background that took the face's disparity): the cells' centroid moves towards the crescent by ~0.8 mm, the
-    largest inscribed disc's centre stays within a quarter cell of the face's."""
+    background that took the face's disparity): the cells' centroid moves towards the crescent by 1.7 mm, the
+    circle through the outline (without the crescent's cells, outside it) stays within a quarter cell (measured
+    0.03 mm)."""
     from dstereo.recession.surface import face_centre
 
     g = np.arange(-25.0, 25.01, SPACING)
@@ -104,5 +107,28 @@ def test_face_centre_ignores_stray_cells_beyond_the_rim():
     face = rho <= 20.0
     stray = (rho > 20.0) & (rho <= 23.0) & (np.abs(phi) < np.pi / 3)
     cells = np.c_[u[face | stray], v[face | stray]]
-    assert np.linalg.norm(cells.mean(axis=0)) > 0.5  # what the centroid did
+    assert np.linalg.norm(cells.mean(axis=0)) > 1.0  # what the centroid did
     assert np.linalg.norm(face_centre(cells, SPACING)) < 0.25 * SPACING
+
+
+def test_a_ragged_field_beside_the_face_is_cut_off():
+    """The face's cells (a solid disc) joined by a ragged field beside it, half its cells empty (a side wall at a
+    grazing angle, every other match on the quadric by chance): the largest region is the disc alone. Without
+    the opening the field is 8-connected to the face and kept (what put seed 11 of the coverage run 2.8 deg off)."""
+    from dstereo.recession import surface
+
+    rng = np.random.default_rng(2)
+    g = np.arange(-30.0, 30.01, SPACING)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    face = np.hypot(u, v) <= 20.0
+    field = (u > 19.0) & (u < 29.0) & (np.abs(v) < 15.0) & ~face & (rng.uniform(size=u.size) < 0.5)
+    uv, keep = np.c_[u, v], face | field
+    kept = surface.largest_region(uv, keep, SPACING)
+    assert kept[face].mean() > 0.98 and not kept[field & (u > 21.0)].any()
+    # the raw cells: one 8-connected region, so without the opening the field would stay with the face
+    from scipy import ndimage
+
+    grid = np.zeros((g.size, g.size), bool)
+    grid.ravel()[keep] = True
+    labels, _ = ndimage.label(grid, structure=np.ones((3, 3)))
+    assert len(np.unique(labels.ravel()[keep])) == 1
