@@ -158,3 +158,37 @@ def test_a_solid_field_beside_the_face_is_cut_at_its_outline(width, half_height)
     assert not mask[pts[:, 0] > 21.5].any() and mask[np.hypot(pts[:, 0], pts[:, 1]) < 19.5].mean() > 0.99
     centre, radius = surface.outline_circle(uv[region], SPACING)
     assert np.hypot(*centre) < 0.1 and abs(radius - 20.0) < 2 * SPACING
+
+
+def test_the_reported_interval_carries_the_common_part():
+    """measure_recession end to end on point clouds of a flat face tilted 12 deg whose cells recede at their own
+    rate (3 % of 0.05 mm/s, fixed over the five frames) with 2 um of noise: summary.json's interval is the frames'
+    one with the common part added, and holds the true rate where the frames' one does not (this seed: measured
+    rate error -2.5 %, frames' half-width 0.02 %, reported 3.5 %; the common share 1.00)."""
+    from pathlib import Path
+
+    from dstereo.recession import RecessionConfig, measure_recession
+    from dstereo.recession.frame import Frame
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(-16.0, 16.0, (60000, 2))
+    xy = xy[np.hypot(xy[:, 0], xy[:, 1]) <= 15.0]
+    lattice = gaussian_filter(rng.normal(size=(33, 33)), 0.8)
+    own = 0.03 * 0.05 * (lattice / lattice.std())[np.round(xy[:, 1] + 16).astype(int), np.round(xy[:, 0] + 16).astype(int)]
+    rot = Rotation.from_euler("y", 12.0, degrees=True).as_matrix()
+    times = np.linspace(0.0, 40.0, 5)
+
+    def cloud(t):
+        h = (0.05 + own) * t + rng.normal(0.0, 0.002, len(xy))
+        return (np.c_[xy, h] @ rot.T + [0.0, 0.0, 600.0])[:, None, :]
+
+    clouds = {f"{i}": cloud(t) for i, t in enumerate(times)}
+    frames = [Frame(f"{i}", Path(f"l{i}.png"), Path(f"r{i}.png"), float(t)) for i, t in enumerate(times)]
+    result = measure_recession(frames, lambda f: clouds[f.key], RecessionConfig(grid_mm=1.0))
+    fit, summary = result.fit, result.summary()
+    assert tuple(summary["rate"]["ci95"]) == fit.ci95 and tuple(summary["rate"]["ci95_frames"]) == fit.ci95_frames
+    assert summary["rate_common_part"]["share"] > 0.5
+    assert fit.rate_se == pytest.approx(np.hypot(fit.rate_se_frames, fit.rate_se_common), rel=1e-12)
+    assert fit.ci95[0] <= 0.05 <= fit.ci95[1]
+    assert not fit.ci95_frames[0] <= 0.05 <= fit.ci95_frames[1]
