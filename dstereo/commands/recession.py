@@ -139,7 +139,10 @@ def recession(
     typer.echo(f"recession at the stagnation point after {last.time_s - result.frames[result.reference].time_s:g} s: "
                f"{last.recession.value:.3f} +- {last.recession.se:.3f} mm")
     typer.echo(f"rate: {1000 * fit.rate:.4g} um/s, 95 % interval [{1000 * fit.ci95[0]:.4g}, {1000 * fit.ci95[1]:.4g}] "
-               f"um/s (residual RMS {fit.residual_rms:.3g} mm, {fit.n} frames)")
+               f"um/s (residual RMS {fit.residual_rms:.3g} mm, {fit.n} frames"
+               + (f"; standard error {1000 * fit.rate_se_frames:.2g} from the frames' scatter, "
+                  f"{1000 * fit.rate_se_common:.2g} common to all frames" if fit.rate_se_common is not None else "")
+               + ")")
     typer.echo(f"wrote {out}")
 
 

@@ -87,8 +87,12 @@ def report_markdown(result, summary: dict) -> str:
              f"value: {result.config.stagnation_model} fit within {result.config.stagnation_radius_mm:g} mm", "",
              "## Rate at the stagnation point", "",
              f"**{_rate(result.fit)}**", "",
-             "Least-squares line through (time, stagnation-point recession); the interval is Student's t on the "
-             "fit residuals (n - 2 degrees of freedom), the thesis's HSC analysis (3.2.1) in 3D."]
+             "Least-squares line through (time, stagnation-point recession), the thesis's HSC analysis (3.2.1) in "
+             "3D. The interval holds the frames' scatter about the line (Student's t, n - 2 degrees of freedom) "
+             "and the part of the error common to all frames that no frame's scatter shows: the stagnation "
+             "disc's cells' own rate errors beyond their frames' noise (summary.json rate_common_part)"
+             + (f"; standard errors {1000 * result.fit.rate_se_frames:.2g} and {1000 * result.fit.rate_se_common:.2g} "
+                "um/s, added in quadrature" if result.fit.rate_se_common is not None else "") + "."]
     if result.weighted_fit is not None:
         lines += ["", f"Weighted by each frame's standard error: {_rate(result.weighted_fit)}."]
     lines += ["", "![recession vs time](plots/recession_vs_time.png)", "",
@@ -103,7 +107,7 @@ def report_markdown(result, summary: dict) -> str:
                       f"{rnd['per_point_height_sigma_mm_median']:.3g} mm; per cell in recession_maps.npz "
                       "(random_sigma_mm)."]
     lines += ["", "Standard errors treat grid cells as independent (neighbours share the matching window), so "
-              "they are lower bounds; the rate's interval comes from the scatter about the line.", "",
+              "they are lower bounds; the rate's interval does not rely on them.", "",
               "## Maps", "", "![maps](plots/recession_maps.png)", "", "![rate map](plots/rate_map.png)", "",
               "![profiles](plots/radial_profiles.png)", "",
               "Data: [recession.csv](recession.csv), [recession_maps.npz](recession_maps.npz), "

@@ -10,6 +10,7 @@ left camera frame.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -96,3 +97,30 @@ def write_synthetic_sequence(folder, n_frames: int = 11, duration_s: float = 40.
              **sample_truth(rig, sample, pose)}
     (folder / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth
+
+
+# A tilted sample with its side wall in view, as issue 32 measured the rate's interval on: the tilt, its direction
+# and the sensor noise vary with the seed (as the texture does), so that seeds differ in more than the speckle.
+TILT_DEG = (10.0, 18.0)  # off the rig axis, mostly as yaw (the side wall beside the face, across the baseline)
+PITCH_DEG = 5.0  # at most, either way
+SENSOR_NOISE = (10000.0, 1.0)  # full well (electrons at full scale) and read noise (DN): a machine-vision sensor
+
+
+def tilted_pose(seed: int) -> tuple[float, float]:
+    """(yaw, pitch) in degrees for `seed`: yaw of TILT_DEG either way, pitch within PITCH_DEG."""
+    rng = np.random.default_rng([32, seed])
+    yaw = rng.uniform(*TILT_DEG) * rng.choice([-1.0, 1.0])
+    return float(yaw), float(rng.uniform(-PITCH_DEG, PITCH_DEG))
+
+
+def write_tilted_sequence(folder, seed: int, n_frames: int = 11, image_size: tuple[int, int] = (640, 480),
+                          noise: tuple[float, float] = SENSOR_NOISE, force: bool = False, **kwargs) -> dict:
+    """`write_synthetic_sequence` of the domed sample tilted by `tilted_pose(seed)` (its side wall in view), with
+    shot noise and read noise on every image (`noise`: full well in electrons at full scale, read noise in DN;
+    the objects' default blur and supersampling); `kwargs` go on to it."""
+    from dstereo.synth.scenes import OBJECT_OPTIONS
+
+    yaw, pitch = tilted_pose(seed)
+    options = replace(OBJECT_OPTIONS, full_well=float(noise[0]), read_noise_dn=float(noise[1]))
+    return write_synthetic_sequence(folder, n_frames=n_frames, image_size=image_size, seed=seed, yaw_deg=yaw,
+                                    pitch_deg=pitch, options=options, force=force, **kwargs)

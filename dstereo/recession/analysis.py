@@ -13,7 +13,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_band, line_fit, rate_map
+from dstereo.recession.cell_scatter import CellScatter, cell_scatter
+from dstereo.recession.fits import LineFit, PointValue, at_stagnation, line_band, line_fit, rate_map, with_common_part
 from dstereo.recession.frame import Frame
 from dstereo.recession.surface import Grid, SampleFrame, cell_heights, face_points, fit_face, frame_from_axis
 from dstereo.recession.surface import grid_over, valid_points
@@ -104,6 +105,7 @@ class RecessionResult:
     noise_checks: dict = field(default_factory=dict)  # frame index -> summary['disparity_noise'] plane check
     search_ranges: dict[int, dict] = field(default_factory=dict)  # frame index -> summary['search_range']
     fit_band: tuple | None = None  # (times, half-width) of the fitted line's 95 % band (None: <= 2 frames)
+    common_part: CellScatter | None = None  # the rate's error common to all frames (`cell_scatter`), in fit's interval
 
     @property
     def times(self) -> np.ndarray:
@@ -136,7 +138,10 @@ class RecessionResult:
                       "(robust, MAD-trimmed); recession = height - reference height; stagnation value: "
                       f"{self.config.stagnation_model} fit over the cells within "
                       f"{self.config.stagnation_radius_mm:g} mm; rate: least-squares line over time, 95 % "
-                      "interval from Student's t on the fit residuals (n - 2 dof)",
+                      "interval from the fit residuals (the frames' scatter, n - 2 dof) and the part common to all "
+                      "frames (the disc cells' own rate errors, rate_common_part), in quadrature, Student's t on "
+                      "their Welch-Satterthwaite dof",
+            "rate_common_part": self.common_part.as_dict() if self.common_part is not None else None,
             "search_range": _range_summary(self.search_ranges, self.reference),
             "warnings": list(self.warnings),
             "random_uncertainty": _random_summary(self),
@@ -458,12 +463,17 @@ def _assemble(results, ref: _Reference, ref_index: int, maps: dict, ses: dict, c
                            + "; ".join(f"{r.name}: {r.reason}" for r in results if not r.ok))
     if ok.sum() < 3:
         warnings.append("only 2 frames gave a recession: the rate has no confidence interval (needs >= 3)")
+    rates = rate_map(np.array([r.time_s for r in results]), recession)
+    # the frames' scatter about the line, and the cells' own rate errors that no frame shows (`cell_scatter`)
+    common = cell_scatter(rates["rate"], rates["rate_se"], u, v, radius, ref.grid.spacing, model)
     fit = line_fit(t, stag)
+    if common is not None:
+        fit = with_common_part(fit, common.se, common.dof)
     sig = np.array([r.height.se for r in results])[ok]
     weighted = line_fit(t, stag, sig) if np.all(np.isfinite(sig) & (sig > 0)) and ok.sum() > 2 else None
-    rates = rate_map(np.array([r.time_s for r in results]), recession)
     every_t = np.array([r.time_s for r in results])
     line_t = np.linspace(every_t.min(), every_t.max(), LINE_BAND_POINTS)  # the figure's band of the line
     band = line_band(fit, t, stag, line_t)
     return RecessionResult(results, ref.sample, ref.grid, ref_index, heights, height_se, recession, fit, weighted,
-                           rates, config, warnings, fit_band=None if band is None else (line_t, band))
+                           rates, config, warnings, fit_band=None if band is None else (line_t, band),
+                           common_part=common)

@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -59,7 +59,10 @@ def at_stagnation(values: np.ndarray, u: np.ndarray, v: np.ndarray, radius: floa
 
 @dataclass(frozen=True)
 class LineFit:
-    """r = intercept + rate t by least squares; `ci95` the 95 % interval of the rate (Student t, n - 2 dof)."""
+    """r = intercept + rate t by least squares; `ci95` the 95 % interval of the rate (Student t, n - 2 dof).
+    With a part common to all frames (`with_common_part`): `rate_se` and `ci95` hold both parts, `dof` their
+    Welch-Satterthwaite degrees of freedom, `rate_se_frames` / `ci95_frames` the frames' scatter alone and
+    `rate_se_common` the common part."""
 
     rate: float
     rate_se: float
@@ -69,6 +72,10 @@ class LineFit:
     residual_rms: float
     n: int
     weighted: bool = False
+    rate_se_frames: float | None = None
+    ci95_frames: tuple[float, float] | None = None
+    rate_se_common: float | None = None
+    dof: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -128,3 +135,18 @@ def line_band(fit: LineFit, t: np.ndarray, r: np.ndarray, at: np.ndarray) -> np.
     s = np.sqrt(resid @ resid / (fit.n - 2))
     sxx = ((t - t.mean()) ** 2).sum()
     return _t_quantile(0.975, fit.n - 2) * s * np.sqrt(1 / fit.n + (at - t.mean()) ** 2 / sxx)
+
+
+def with_common_part(fit: LineFit, common_se: float, common_dof: float) -> LineFit:
+    """`fit` with an error common to all frames added to its rate's interval: the two are independent (one is the
+    frames' scatter about the line, the other fixed over the frames), so their variances add, and the interval's
+    t quantile takes the Welch-Satterthwaite degrees of freedom of the sum,
+    (s_f^2 + s_c^2)^2 / (s_f^4 / (n - 2) + s_c^4 / dof_c). Without an interval (two frames) `fit` is returned."""
+    if not np.isfinite(fit.rate_se) or fit.n <= 2:
+        return fit
+    total = float(np.hypot(fit.rate_se, common_se))
+    parts = fit.rate_se**4 / (fit.n - 2) + (common_se**4 / common_dof if common_se > 0 else 0.0)
+    dof = total**4 / parts if parts > 0 else float(fit.n - 2)
+    half = float(_t_quantile(0.975, dof)) * total
+    return replace(fit, rate_se=total, ci95=(fit.rate - half, fit.rate + half), rate_se_frames=fit.rate_se,
+                   ci95_frames=fit.ci95, rate_se_common=float(common_se), dof=float(dof))

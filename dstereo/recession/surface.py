@@ -9,14 +9,17 @@ in their largest connected region); then, until the axis settles (moves by less 
 passes with the same face points; MAX_PASSES at most, else an error), fit a least-squares plane to the face
 points and keep the points within k robust sigma of a quadric h(u, v) in that plane's coordinates, fitted to the
 face found so far (a domed face is not trimmed at its top or rim; a side wall does not widen the tolerance that
-is to reject it), that form the largest connected region of grid cells in (u, v) (background and stray matches
-apart from the face are cut off). After FREE_PASSES passes a dropped point stays dropped (points at the threshold
+is to reject it), that form the largest connected region of grid cells in (u, v) once the cells are opened by
+OPENING_CELLS (background and stray matches apart from the face, and ragged fields joined to it, are cut off), and
+that lie within the circle through that region's outline (`within_outline`: a solid field joined beside it is
+cut at the rim). After FREE_PASSES passes a dropped point stays dropped (points at the threshold
 could otherwise make the fit cycle). The plane's normal is the axis; `axis_sigma_deg` is the RMS angle error it
 expects, the quadrature sum of `axis_sigma_parts`: noise by a block jackknife (neighbouring points'
 errors are correlated), the apex's consistency, the axis's dependence on the face's support, and a matching bias
 of one pixel's footprint across the face (the largest part; measured against rendered truth in
 experiments/results/range_axis_sigma.md: z = error / sigma 0.1-1.0 over 18 cases). The stagnation point is
-the centre of the face: the centroid of the face's grid cells, moved onto the quadric. This assumes the face is
+the centre of the face: the centre of the largest disc inside the face's grid cells (`face_centre`), moved onto
+the quadric. This assumes the face is
 seen whole and the axis is roughly normal to the face's outline (true for the flat and the domed samples of the
 thesis, also turned 10-15 deg off the rig axis with the side wall in view); give the axis and the point otherwise.
 """
@@ -109,21 +112,32 @@ MAX_PASSES = 30
 FREE_PASSES = 5  # passes that may also take points back (measured: 320 x 240 renders settle in 4-6, or cycle)
 
 
+OPENING_CELLS = 2  # the face's region is opened by this many cells before its largest part is taken
+
+
 def largest_region(uv: np.ndarray, keep: np.ndarray, grid_mm: float) -> np.ndarray:
-    """`keep` restricted to the points in the largest 8-connected region of occupied grid cells (grid_mm)."""
+    """`keep` restricted to the points in the largest 8-connected region of occupied grid cells (grid_mm), the
+    occupied cells first opened (eroded, then dilated back) by OPENING_CELLS cells.
+
+    The opening cuts what is thinner than 2 OPENING_CELLS + 1 cells: a side wall or background seen at a grazing
+    angle leaves a ragged field of cells, every other one on the face's quadric by chance, that joins the face and
+    passes as part of it. Measured on a render tilted 11.8 deg (640 x 480, experiments/recession_coverage.py seed
+    11): such a field 15 mm wide beside the face took the axis 2.8 deg and the face centre 9 mm off, the rate 29 %;
+    a solid face (even one with a few empty cells) comes back from the opening whole but for its outline's corners."""
     from scipy import ndimage
 
     if not keep.any():
         return keep
     cells = np.round(uv / grid_mm).astype(np.int64)
-    lo = cells[keep].min(axis=0)
+    lo = cells[keep].min(axis=0) - OPENING_CELLS  # a margin: the erosion sees empty cells beyond the outermost
     idx = cells - lo
-    shape = idx[keep].max(axis=0) + 1
+    shape = idx[keep].max(axis=0) + 1 + OPENING_CELLS
     occupied = np.zeros(shape[::-1], bool)
     occupied[idx[keep, 1], idx[keep, 0]] = True
+    solid = ndimage.binary_opening(occupied, structure=np.ones((3, 3)), iterations=OPENING_CELLS)
+    if solid.any():  # a region too thin for the opening (a test's strip of points) is kept as it is
+        occupied = solid
     labels, n = ndimage.label(occupied, structure=np.ones((3, 3)))
-    if n <= 1:
-        return keep
     biggest = 1 + int(np.argmax(ndimage.sum(occupied, labels, range(1, n + 1))))
     inside = np.all((idx >= 0) & (idx < shape), axis=1)
     out = np.zeros_like(keep)
@@ -138,7 +152,20 @@ def face_points(uvh: np.ndarray, grid_mm: float, k: float = 4.0,
     side wall or background does not widen the tolerance that is to reject them) and in the largest connected
     region of grid cells."""
     keep, coef = _trim(uvh, k, start)
-    return largest_region(uvh[:, :2], keep, grid_mm), coef
+    keep = largest_region(uvh[:, :2], keep, grid_mm)
+    return within_outline(uvh[:, :2], keep, grid_mm), coef
+
+
+def within_outline(uv: np.ndarray, keep: np.ndarray, grid_mm: float) -> np.ndarray:
+    """`keep` restricted to the points within OUTLINE_TOLERANCE_CELLS of the face's `outline_circle`: what joins
+    the face beyond its rim and survived the opening (SGBM carrying the face's disparity along the rows into the
+    untextured background beside it: a field 15 mm wide beside a render tilted 10.5 deg, seed 14 of
+    experiments/recession_coverage.py, that took the axis 2 deg off). A prismatic face loses its corners here."""
+    if keep.sum() < 3:
+        return keep
+    cells = np.unique(np.round(uv[keep] / grid_mm).astype(np.int64), axis=0) * grid_mm
+    centre, radius = outline_circle(cells, grid_mm)
+    return keep & (np.hypot(uv[:, 0] - centre[0], uv[:, 1] - centre[1]) <= radius + OUTLINE_TOLERANCE_CELLS * grid_mm)
 
 
 JACKKNIFE_BLOCKS = 6  # blocks across the face's larger extent (~28 over a round face)
@@ -246,6 +273,55 @@ def _plane_frame(p: np.ndarray) -> "SampleFrame":
     return frame_from_axis(vt[2], centre)
 
 
+OUTLINE_TOLERANCE_CELLS = 1.0  # outline cells this far outside the fitted circle are not the rim
+
+
+def face_centre(cells: np.ndarray, grid_mm: float) -> np.ndarray:
+    """(u, v) mm: the centre of `outline_circle`."""
+    return outline_circle(cells, grid_mm)[0]
+
+
+def outline_circle(cells: np.ndarray, grid_mm: float) -> tuple[np.ndarray, float]:
+    """(centre (u, v), radius) mm of the circle through the face's outline (`cells` (n, 2), the face's grid cells'
+    centres, holes filled), fitted by least squares (Kasa's algebraic fit) and refitted without the outline cells
+    more than OUTLINE_TOLERANCE_CELLS outside it until the kept cells stop changing.
+
+    Not the cells' centroid: stray matches beyond the rim that join the face (the background next to the face's
+    far edge taking its disparity, the first millimetres of a side wall in view) sit on one side of a tilted face
+    and pull a centroid towards it; outside the rim's circle, they leave its fit. Measured on renders tilted
+    10-18 deg with the side wall in view (640 x 480; experiments/recession_coverage.py's seeds 0-10): the face's
+    cells reached 26-29 mm from the true axis on some sides (rim 24.5 mm); the centroid was 0.71 mm RMS off the true
+    stagnation point (a rate 0.1-0.5 % low on the rendered profile, the same in every frame). This centre, with the
+    face's region opened and cut at this circle (`largest_region`, `within_outline`): 0.23 mm RMS, 0.30 mm at most,
+    over the 20 seeds of experiments/results/recession_coverage.md (11 frames, 10000 electrons). A prismatic
+    face's outline gives its centre too (the fit is symmetric); a face seen in part does not (give the point)."""
+    from scipy import ndimage
+
+    idx = np.round(cells / grid_mm).astype(np.int64)
+    lo = idx.min(axis=0) - 1  # a cell of margin: the outline is where the erosion sees the empty cells beyond
+    shape = idx.max(axis=0) - lo + 2
+    mask = np.zeros(shape[::-1], bool)
+    mask[idx[:, 1] - lo[1], idx[:, 0] - lo[0]] = True
+    mask = ndimage.binary_fill_holes(mask)
+    iy, ix = np.nonzero(mask & ~ndimage.binary_erosion(mask))
+    x, y = (ix + lo[0]) * grid_mm, (iy + lo[1]) * grid_mm
+    keep = np.ones(len(x), bool)
+    centre = np.array([x.mean(), y.mean()])
+    radius = float(np.hypot(x - centre[0], y - centre[1]).max())  # too few outline cells for a fit: all of them
+    for _ in range(10):
+        if keep.sum() < 3:
+            break
+        a = np.stack([2 * x[keep], 2 * y[keep], np.ones(int(keep.sum()))], axis=1)
+        sol = np.linalg.lstsq(a, (x * x + y * y)[keep], rcond=None)[0]
+        centre = sol[:2]
+        radius = float(np.sqrt(max(sol[2] + centre @ centre, 0.0)))
+        new = np.hypot(x - centre[0], y - centre[1]) - radius <= OUTLINE_TOLERANCE_CELLS * grid_mm
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return centre, radius
+
+
 @dataclass(frozen=True)
 class FaceFit:
     """The auto axis's frame and the first frame's face points (mask over the valid points)."""
@@ -283,7 +359,7 @@ def fit_face(points: np.ndarray, grid_mm: float, min_points: int = 500, k: float
     uvh = frame.coordinates(p[new_keep])
     _, coef = _trim(uvh, k, np.ones(len(uvh), bool))
     cells = np.unique(np.round(uvh[:, :2] / grid_mm).astype(np.int64), axis=0) * grid_mm
-    u0, v0 = cells.mean(axis=0)
+    u0, v0 = face_centre(cells, grid_mm)
     h0 = float((_quadric_design(np.array([u0]), np.array([v0])) @ coef)[0])
     centre = frame.to_camera(np.array([u0, v0, h0]))
     parts = axis_sigma_parts(p[new_keep], frame, coef, (u0, v0), len(cells) * grid_mm**2)
