@@ -239,6 +239,18 @@ def _g0(problem: Problem, ext: np.ndarray, cameras, sag=None) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def as_solved(obs, inliers, flips):
+    """(obs, inliers) with each view of `flips` ((frame, camera) pairs) re-read in reversed corner order, as the
+    solve reads it: a corner's inlier flag goes with the corner (the flags are indexed like the detection)."""
+    obs = np.array(obs, float)
+    inliers = None if inliers is None else np.array(inliers, bool)
+    for f, c in flips:
+        obs[f, c] = obs[f, c][::-1]
+        if inliers is not None:
+            inliers[f, c] = inliers[f, c][::-1]
+    return obs, inliers
+
+
 def _data(obs, visible, inliers):
     """(obs with NaN where unseen, residual weights (F, K 2n))."""
     data = np.where(visible[:, :, None, None], obs, np.nan)
@@ -307,6 +319,7 @@ def calibrate_views(
             raise DstereoError("multiview fixed mode holds given intrinsics: pass the cameras")
         cameras, own = cameras_alone(obj, obs, visible, image_sizes, frees, inliers, labels)
     ext, poses0, obs, flips = initial_state(obj, obs, visible, cameras, own)
+    _, inliers = as_solved(obs, inliers, flips)  # obs comes re-read already; its inlier flags follow it
     data, r_w = _data(obs, visible, inliers)
     shared = _shared(obj, cameras)
     held = Problem.of([tuple(c.dist.free) for c in cameras], refined=False, board_warp=board_warp)
@@ -390,9 +403,7 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
 
     t0 = time.perf_counter()
     obj, obs, visible, index = np.asarray(obj, float), np.asarray(obs, float), np.asarray(visible, bool), np.asarray(index)
-    obs = obs.copy()
-    for f, c in start.flipped:
-        obs[f, c] = obs[f, c][::-1]
+    obs, inliers = as_solved(obs, inliers, start.flipped)
     values = np.asarray(start.values, float)
     sag = values[-WARP_SIZE:] if start.names[-1] == WARP_NAMES[-1] else None
     if sag is not None:

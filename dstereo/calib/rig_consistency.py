@@ -213,9 +213,9 @@ def rig_consistency(obj, obs, mask, cameras: list[Camera], rig_sse: np.ndarray, 
 
 def of_multiview(joint, obj, obs, inliers=None, frames=None) -> RigConsistency:
     """The test on a `multiview.MultiviewSolution` solved in "joint" mode (obs as given to it, (F, K, n, 2))."""
-    obs = np.array(obs, float)
-    for f, c in joint.flipped:  # as the solve read them
-        obs[f, c] = obs[f, c][::-1]
+    from dstereo.calib.multiview import as_solved
+
+    obs, inliers = as_solved(obs, inliers, joint.flipped)  # as the solve read them
     mask = joint.visible[:, :, None] & np.isfinite(obs[..., 0])
     if inliers is not None:
         mask &= np.asarray(inliers, bool)

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.calib.final_solution import surviving_views
-from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, solve_view_subsets
+from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, as_solved, solve_view_subsets
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS
@@ -87,9 +87,8 @@ def subset_table(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, 
                  pairs) -> np.ndarray:
     """(C, 9 P) the stereo columns of every pair in `column_names` order."""
     k = visible.shape[1]
+    obs, inliers = as_solved(obs, inliers, start.flipped)  # the full solve re-read these views reversed; so do these
     data = np.where(visible[:, :, None, None], obs, np.nan)
-    for f, c in start.flipped:  # the full solve re-read these views reversed; so do its subsets
-        data[f, c] = data[f, c][::-1]
     mask = visible[:, :, None] if inliers is None else visible[:, :, None] & inliers
     weights = residual_weights(np.broadcast_to(mask, obs.shape[:3]))
     re = _pair_rms(subs, start, obj, data, weights, pairs)

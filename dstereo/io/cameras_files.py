@@ -218,19 +218,18 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
 def _rig_solve(job: MultiviewJob):
     """(the joint rig solve cameras.yml holds as io.cameramodel.BoardSolve, or None and why): the frames, corners
     and inliers it was solved on, each view re-read reversed where the solve re-read it (`flipped`)."""
+    from dstereo.calib.multiview import as_solved
     from dstereo.io.cameramodel import BoardSolve
 
     sol = job.solution
     frees = {tuple(c.dist.free) for c in sol.cameras}
     if len(frees) != 1:
         return None, "no optimization inputs: the cameras have different lens models, and mrcal's solve has one"
-    obs = np.array(job.observations, float)
-    for f, c in sol.flipped:
-        obs[f, c] = obs[f, c][::-1]
+    obs, inliers = as_solved(job.observations, job.inliers, sol.flipped)
     board = job.cameras[0].detection.board
     return BoardSolve(frees.pop(), np.array([np.asarray(c.k, float) for c in sol.cameras]),
                       np.array([np.asarray(c.coeffs(), float) for c in sol.cameras]),
                       tuple(tuple(c.image_size) for c in sol.cameras),
                       np.concatenate([sol.rvecs, sol.T], axis=1)[1:], np.asarray(sol.poses, float), obs,
-                      np.asarray(sol.visible, bool), job.inliers, (board.cols, board.rows), float(board.square),
+                      np.asarray(sol.visible, bool), inliers, (board.cols, board.rows), float(board.square),
                       sol.board_sag), ""

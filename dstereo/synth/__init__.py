@@ -5,7 +5,8 @@ cork Plasmatron sample), a surface-recession sequence, and the truth of every re
 """
 
 from dstereo.synth.board import Board, object_points, true_corners
-from dstereo.synth.multiview import MultiviewRig, MultiviewSet, multiview_poses, multiview_set, ring_rig
+from dstereo.synth.multiview import (MultiviewRig, MultiviewSet, multiview_corners, multiview_poses, multiview_set,
+                                     ring_rig)
 from dstereo.synth.objects import Plane, Sample, Sphere
 from dstereo.synth.poses import (board_pose_set, compose, corner_coverage, invert, look_at, pose_from_rt, pose_matrix,
                                  wide_board_poses)
@@ -27,7 +28,7 @@ __all__ = [
     "RecessionProfile", "RenderOptions", "Sample", "Speckle", "Sphere", "StereoRender", "StereoRig",
     "board_pose_set", "calibration_set", "camera_rays", "compose", "corner_coverage", "fisheye_rig", "invert",
     "look_at",
-    "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
+    "multiview_corners", "multiview_poses", "multiview_set", "object_pair", "object_points", "plasmatron_rig", "pose_from_rt",
     "pose_matrix", "profile_for_total", "read_truth", "receded", "recession_sequence", "render_board",
     "render_object", "ring_rig", "sample_pair", "sample_pose", "stereo_rig", "true_corners", "wide_fisheye_rig",
     "write_calibration_set", "write_multiview_set", "write_render", "write_stereo_renders", "wide_board_poses",

@@ -75,14 +75,17 @@ def object_points(pattern: tuple[int, int], square: float) -> np.ndarray:
     return BoardGeometry.from_pattern(pattern, square).object_points()
 
 
-def true_corners(camera: Camera, pose, pattern: tuple[int, int], square: float) -> np.ndarray:
-    """(n, 2) pixel positions of the inner corners seen by `camera` at `pose` (T_cam_board as (rvec, tvec)).
+def true_corners(camera: Camera, pose, pattern: tuple[int, int], square: float, sag=None) -> np.ndarray:
+    """(n, 2) pixel positions of the inner corners seen by `camera` at `pose` (T_cam_board as (rvec, tvec)), the
+    board sagged by `sag` (x, y; `models.board.sagged`) when given.
 
     Uses `dstereo.models.project_view` (a fisheye camera: `models.fisheye.project`), i.e. exactly the model the
     calibration engine fits.
     """
+    from dstereo.models.board import sagged
+
     pose = jnp.asarray(np.asarray(pose, float).reshape(6))
-    pts = jnp.asarray(object_points(pattern, square))
+    pts = jnp.asarray(sagged(object_points(pattern, square), sag))
     view = _project_view_points_fisheye if camera.lens == "fisheye" else _project_view_points
     return np.asarray(view(camera.k, camera.dist.coeffs, pose, pts))
 

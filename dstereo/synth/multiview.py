@@ -210,3 +210,21 @@ def multiview_set(n_cameras: int = 3, n_frames: int = 60, seed: int = 0, board: 
         "object_points": object_points(board.pattern, board.square), "corners": corners,
     }
     return MultiviewSet(rig, names, images, truth)
+
+
+def multiview_corners(rig: MultiviewRig, board: Board, poses: np.ndarray, visible: np.ndarray, sag=None,
+                      noise_px: float = 0.0, seed: int = 0) -> np.ndarray:
+    """(F, K, n, 2) the board's true corners in every camera that sees each frame (NaN elsewhere), without
+    rendering: `true_corners` through each camera's pose, the board sagged by `sag`, plus Gaussian noise of
+    `noise_px` per coordinate."""
+    from dstereo.synth.board import true_corners
+
+    rng = np.random.default_rng(seed)
+    n = board.pattern[0] * board.pattern[1]
+    out = np.full((len(poses), len(rig.cameras), n, 2), np.nan)
+    for f, pose in enumerate(poses):
+        for k, (cam, t_cam_ref) in enumerate(zip(rig.cameras, rig.T_cam_ref)):
+            if visible[f, k]:
+                q = true_corners(cam, compose(t_cam_ref, pose), board.pattern, board.square, sag)
+                out[f, k] = q + rng.normal(0.0, noise_px, q.shape)
+    return out

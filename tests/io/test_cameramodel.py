@@ -354,32 +354,19 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     import subprocess
     from types import SimpleNamespace
 
-    from dstereo.calib.multiview import calibrate_views
-    from dstereo.calib.multiview import EXTRINSIC_NAMES
+    from dstereo.calib.multiview import EXTRINSIC_NAMES, calibrate_views
     from dstereo.io.cameramodel import write_cameramodels_of_rig
     from dstereo.io.cameras_files import _rig_solve
-    from dstereo.models.board import Board, sagged
-    from dstereo.synth import multiview_poses, ring_rig
+    from dstereo.models.board import Board
+    from dstereo.synth import multiview_corners, multiview_poses, ring_rig
     from dstereo.synth.multiview import MULTIVIEW_BOARD
-    from dstereo.synth.poses import compose
-    from dstereo.models.camera import project_view
-    import jax
-    import jax.numpy as jnp
 
     _mrcal_or_skip()
     rig = ring_rig(3)
     poses, visible, _ = multiview_poses(rig, MULTIVIEW_BOARD, 14, 5)
     board = Board(*MULTIVIEW_BOARD.pattern, MULTIVIEW_BOARD.square)
     obj = board.object_points()
-    bent = sagged(obj, np.array([0.3, -0.2]))
-    rng = np.random.default_rng(5)
-    obs = np.full((len(poses), 3, len(obj), 2), np.nan)
-    for f, pose in enumerate(poses):
-        for k, (cam, t_cam_ref) in enumerate(zip(rig.cameras, rig.T_cam_ref)):
-            if visible[f, k]:
-                q = np.asarray(jax.vmap(lambda p: project_view(cam.k, cam.dist.coeffs, compose(t_cam_ref, pose), p))(
-                    jnp.asarray(bent)))
-                obs[f, k] = q + rng.normal(0.0, 0.1, q.shape)
+    obs = multiview_corners(rig, MULTIVIEW_BOARD, poses, visible, sag=(0.3, -0.2), noise_px=0.1, seed=5)
     seen = np.flatnonzero(visible[:, 2])[0]
     obs[seen, 2] = obs[seen, 2][::-1]  # a detection that numbered the corners from the other end
     sizes = [c.image_size for c in rig.cameras]
