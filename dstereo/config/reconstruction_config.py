@@ -38,7 +38,7 @@ class ReconstructionConfig:
     color_matching: bool = False
     matching_cost: str = "rank"  # rank | intensity (`dstereo.stereo.matching.matched_images`)
     fill: bool = True  # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged
-    fill_max_sigma: float = 1.0  # px: a pixel whose fill sigma would exceed this stays unmatched
+    fill_max_sigma: float = 1.5  # px: a pixel whose fill sigma would exceed this stays unmatched
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0
     outlier_std: float = 2.0
