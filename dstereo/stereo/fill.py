@@ -54,13 +54,12 @@ class Fill:
     scale: float = 1.0  # `sigma_scale`'s k, applied to every fill's raw sigma
     scale_pixels: int = 0  # the hold-out fills k was measured on
 
-    def summary(self, max_sigma: float, seconds: float) -> dict:
+    def summary(self, max_sigma: float) -> dict:
         matched = int(np.isfinite(self.disparity).sum() - self.filled.sum())
         s = self.sigma[self.filled]
         return {"enabled": True, "filled_pixels": int(self.filled.sum()), "matched_pixels": matched,
                 "max_sigma_px": max_sigma,
                 "sigma_px": {"median": float(np.median(s)), "p90": float(np.percentile(s, 90))} if s.size else None,
-                "seconds": seconds,
                 "method": "edge-aware local plane fit on matched pixels (dstereo.stereo.fill); a filled pixel "
                           "carries its own sigma (the fit's prediction error) and the flag `filled`"}
 
@@ -195,7 +194,7 @@ def fill_unmatched(name: str, left_rect: np.ndarray, disparity: np.ndarray, outs
     t0 = time.perf_counter()
     done = fill_disparity(disparity, left_rect, outside, config.fill_max_sigma)
     timings["fill_s"] = time.perf_counter() - t0
-    summary["fill"] = done.summary(config.fill_max_sigma, timings["fill_s"]) | {
+    summary["fill"] = done.summary(config.fill_max_sigma) | {  # its time: timings_s.fill_s
         "sigma_scale": done.scale, "sigma_scale_pixels": done.scale_pixels,
         "sigma_scale_how": f"hold-out: matched pixels of a {HOLDOUT_BAND} px band around the holes hidden and "
                            "filled; the robust std of their errors / raw sigma (at least 1)"}
