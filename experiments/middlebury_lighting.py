@@ -79,7 +79,8 @@ def passes(row: dict) -> bool:
 
 def table(rows: list[tuple[str, str, dict, dict]]) -> str:
     text = ("| scene | variant | median % today / new | p90 % today / new | density % today / new | filled % | "
-            "filled obs / pred | filled z | s today / new | pass today / new |\n|---|---|---|---|---|---|---|---|---|---|\n")
+            "filled obs / pred | filled z | s today / new | pass today / new |\n"
+            "|---|---|---|---|---|---|---|---|---|---|\n")
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     for scene, variant, old, new in rows:
         text += (f"| {scene} | {variant} | {old['median_pct']:.2f} / {new['median_pct']:.2f} | {old['p90_pct']:.2f} / "

@@ -106,8 +106,9 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
             typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
         fill_done = s.get("fill") or {}
         if fill_done.get("filled_points"):
-            typer.echo(f"  fill: {fill_done['filled_points']} of {fill_done['filled_points'] + fill_done['matched_points']}"
-                       f" points filled (flag `filled`), sigma_d median {fill_done['sigma_px']['median']:.3g} px")
+            total = fill_done["filled_points"] + fill_done["matched_points"]
+            typer.echo(f"  fill: {fill_done['filled_points']} of {total} points filled (flag `filled`), sigma_d "
+                       f"median {fill_done['sigma_px']['median']:.3g} px")
         unc = s.get("uncertainty") or {}
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]

@@ -20,7 +20,9 @@ NaN. The fill uses matched pixels only (a fill never feeds another). The raw sig
 k, measured on the image itself by filling matched pixels hidden around the holes. Limitation: the window's
 scatter is taken as the pixel's own, so where it is mostly matching noise (smooth, well-textured surfaces, which
 the fit averages) the sigma overstates the error against the true surface (0.24 x on a noisy synthetic sphere
-cap); on Middlebury, where surface shape and mixed surfaces dominate, observed / predicted (robust std of the errors / RMS sigma) is 0.45-0.86, the per-pixel robust std of error / sigma 0.55-1.20 (still conservative on Adirondack and Teddy). Checked against ground truth in
+cap); on Middlebury, where surface shape and mixed surfaces dominate, observed / predicted (robust std of the
+errors / RMS sigma) is 0.45-0.86, the per-pixel robust std of error / sigma 0.55-1.20 (still conservative on
+Adirondack and Teddy). Checked against ground truth in
 experiments/middlebury_lighting.py and on renders in tests/stereo/test_fill.py.
 """
 

@@ -129,7 +129,8 @@ def test_fill_reproduces_a_curved_surface_and_never_understates_its_error():
     over a speckle image: the fill reaches most of the holes within a small fraction of a px, and the robust std of
     its errors against the true surface is at most 1.5 x its predicted sigmas (RMS). Here the window's scatter is
     matching noise, which the fit averages away, so the sigma overstates (measured 0.24 x); where the scatter is
-    surface shape and mixed surfaces (Middlebury) it is closer (0.45..0.86; per pixel 0.55..1.20, experiments/middlebury_lighting.py)."""
+    surface shape and mixed surfaces (Middlebury) it is closer (0.45..0.86; per pixel 0.55..1.20,
+    experiments/middlebury_lighting.py)."""
     rng = np.random.default_rng(0)
     h, w = 160, 200
     v, u = np.mgrid[0:h, 0:w]
