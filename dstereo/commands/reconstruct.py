@@ -30,6 +30,9 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     outlier_std: Optional[float] = RECONSTRUCT.option("outlier_std"),
     max_jump: Optional[float] = RECONSTRUCT.option("max_jump"),
     refine: Optional[bool] = RECONSTRUCT.option("refine"),
+    cost: Optional[str] = RECONSTRUCT.option("matching_cost"),
+    fill: Optional[bool] = RECONSTRUCT.option("fill"),
+    fill_max_sigma: Optional[float] = RECONSTRUCT.option("fill_max_sigma"),
     focal_mm: Optional[float] = RECONSTRUCT.option("focal_mm"),
     pixel_size_mm: Optional[float] = RECONSTRUCT.option("pixel_size_mm"),
     crop_factor: Optional[float] = RECONSTRUCT.option("crop_factor"),
@@ -76,7 +79,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         layers.append(settings.file_layer(config))
     layers.append(settings.flag_layer({  # parameter -> flag value (dstereo.config.options.RECONSTRUCT)
         "preset": preset, "sgbm": sgbm, "z_min": z_min, "z_max": z_max, "roi": roi, "sgbm.lr_check": lr_check,
-        "alpha": alpha, "rectification": rectification, "zero_disparity": zero_disparity, "refine": refine, "outlier_neighbours": outliers,
+        "alpha": alpha, "rectification": rectification, "zero_disparity": zero_disparity, "refine": refine,
+        "matching_cost": cost, "fill": fill, "fill_max_sigma": fill_max_sigma, "outlier_neighbours": outliers,
         "outlier_std": outlier_std, "max_jump": max_jump, "focal_mm": focal_mm, "pixel_size_mm": pixel_size_mm,
         "crop_factor": crop_factor, "focal_px": focal_px, "baseline_mm": baseline_mm, "uncertainty": no_uncertainty,
         "full_covariance": full_covariance, "disparity_sigma": disparity_sigma}))
@@ -100,6 +104,11 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
             typer.echo(f"    {line}")
         if s.get("refine", {}).get("enabled"):
             typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
+        fill_done = s.get("fill") or {}
+        if fill_done.get("filled_points"):
+            total = fill_done["filled_points"] + fill_done["matched_points"]
+            typer.echo(f"  fill: {fill_done['filled_points']} of {total} points filled (flag `filled`), sigma_d "
+                       f"median {fill_done['sigma_px']['median']:.3g} px")
         unc = s.get("uncertainty") or {}
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]

@@ -144,6 +144,15 @@ RECONSTRUCT = OptionTable("reconstruct", (
          "with many slanted or occluding edges.", bool),
     _opt("undistort", "reconstruct.undistort"),
     _opt("color_matching", "reconstruct.color_matching", type=bool),
+    _opt("matching_cost", "reconstruct.matching_cost", "--cost",
+         "SGBM's cost: rank (default; SGBM on each view's 7x7 rank transform, which survives a brightness or "
+         "contrast change between the views) or intensity (the grey levels, the matching before issue 30)."),
+    _opt("fill", "reconstruct.fill", "--fill/--no-fill",
+         "Fill unmatched pixels by an edge-aware plane fit where confident (default on): filled points carry "
+         "their own, larger sigma and the flag `filled` (filled.npy, points.ply); --no-fill leaves them empty.",
+         bool),
+    _opt("fill_max_sigma", "reconstruct.fill_max_sigma", "--fill-max-sigma",
+         "Largest fill sigma, px, for a pixel to be filled [1.5].", float),
     _opt("focal_mm", "reconstruct.focal_mm", "--focal-mm", "Uncalibrated: lens focal length, mm.", float),
     _opt("pixel_size_mm", "reconstruct.pixel_size_mm", "--pixel-size-mm", "Uncalibrated: pixel pitch, mm.", float),
     _opt("crop_factor", "reconstruct.crop_factor", "--crop-factor", "Uncalibrated: crop factor (36 mm).", float),

@@ -21,7 +21,10 @@ class ReconstructionConfig:
     pixel-locked sub-pixel disparity is refined (`dstereo.stereo.subpixel`); a pixel the refinement cannot refine
     is dropped (NaN), not kept at SGBM's value. Off by default: on rendered speckle it cuts the surface error
     2.6x, but on Middlebury 2014 (slanted, occluding, real images) it drops 4-10 % of the pixels and does not
-    improve the good ones (experiments/results/middlebury.md).
+    improve the good ones (experiments/results/middlebury.md). matching_cost: 'rank' (SGBM on the rank transform:
+    survives a lighting change between the views) or 'intensity' (on the grey levels, as before issue 30). fill:
+    unmatched pixels filled by an edge-aware plane fit where its sigma is at most fill_max_sigma px, each
+    carrying its own sigma and the flag `filled` (`dstereo.stereo.fill`); fill=False leaves them empty.
     """
 
     sgbm: SGBMParams = PRESETS["default"]
@@ -33,6 +36,9 @@ class ReconstructionConfig:
     zero_disparity: bool = False
     undistort: str = "opencv"
     color_matching: bool = False
+    matching_cost: str = "rank"  # rank | intensity (`dstereo.stereo.matching.matched_images`)
+    fill: bool = True  # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged
+    fill_max_sigma: float = 1.5  # px: a pixel whose fill sigma would exceed this stays unmatched
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0
     outlier_std: float = 2.0

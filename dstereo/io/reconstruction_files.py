@@ -85,6 +85,10 @@ def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | 
                     f"{unc.sigma_d:.3g} px" + ("" if unc.calibration_included else
                                                 ", calibration uncertainty not included") + ")")
         scalars = {f"sigma_{a}": unc.sigma_xyz[..., i] for i, a in enumerate("xyz")}
+    if result.filled is not None:  # filled, not matched: flagged in the arrays and the cloud (`dstereo.stereo.fill`)
+        np.save(folder / "filled.npy", result.filled)
+        np.save(folder / "fill_sigma_d.npy", result.fill_sigma.astype(np.float32))
+        scalars = (scalars or {}) | {"filled": result.filled.astype(np.float32)}
     n_points = write_ply_points(folder / "points.ply", result.points, result.colors, scalars=scalars)
     n_vertices, n_faces = write_mesh_ply(folder / "mesh.ply", result.points, result.colors, config.max_jump)
     np.savez(folder / "matrices.npz", **result.matrices)

@@ -37,8 +37,10 @@ class FrameReconstructor:
         from dataclasses import replace
 
         # The points and their random (disparity-noise) sigmas: the calibration's share is common to all frames
-        # and cancels in a recession, so its propagation is skipped.
-        self.calib, self.config, self.log = calib, replace(recon_config, refine=refine, uncertainty=False), {}
+        # and cancels in a recession, so its propagation is skipped. No fill (`dstereo.stereo.fill`): the grids
+        # average every point of a cell alike and would take filled points as measured ones.
+        self.calib, self.config, self.log = calib, replace(recon_config, refine=refine, uncertainty=False,
+                                                           fill=False), {}
 
     def _maps(self, size: tuple[int, int]):
         """The rectifying maps of this calibration and configuration at `size`, made once per process (a worker

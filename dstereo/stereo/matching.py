@@ -77,8 +77,9 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
         bounds = geometric_bounds(Q, left_rect.shape[1], calib.extras if calib is not None else None)
     if not rng.user:
         rng = sr.within(rng, bounds)
-    matcher = Matcher(lambda p: sgbm_disparity(left_rect, right_rect, p, Q, config.color_matching),
-                      lambda p: sgbm_right_disparity(left_rect, right_rect, p, Q, config.color_matching),
+    a, b = matched_images(left_rect, right_rect, config)  # transformed once for every try
+    matcher = Matcher(lambda p: sgbm_disparity(a, b, p, Q, True),
+                      lambda p: sgbm_right_disparity(a, b, p, Q, True),
                       ~outside, 1.0 if Q[3, 2] >= 0 else -1.0, bounds, sized_sgbm(config.sgbm, user, left_rect.shape))
     warnings = []
     if rng.source == "default":
@@ -116,6 +117,22 @@ def _sparse_check(name: str, rng, left_rect, right_rect, sign: float, Q: np.ndar
                         f"below, {100 * above:.0f}% above; they put the scene at {lo:.0f}..{hi:.0f} px (depth "
                         f"{near:.0f}..{far:.0f} mm); widen the range to that, or drop the flags to let dstereo choose")
     return {"matches": int(len(d_s)), "below_share": below, "above_share": above}
+
+
+MATCHING_COSTS = ("rank", "intensity")
+
+
+def matched_images(left, right, config: ReconstructionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The pair SGBM matches: `matching_cost` 'rank' (default): the rank transform of each grey image
+    (`dstereo.stereo.rank_transform`: survives a brightness or contrast change between the views); 'intensity':
+    the grey images, or the colour ones with `color_matching` (the matching before issue 30)."""
+    if config.matching_cost == "rank":
+        from dstereo.stereo.rank_transform import rank_transform
+
+        return rank_transform(grey(left)), rank_transform(grey(right))
+    if config.matching_cost != "intensity":
+        raise DstereoError(f"`matching_cost` {config.matching_cost!r}: use one of {list(MATCHING_COSTS)}")
+    return (left, right) if config.color_matching else (grey(left), grey(right))
 
 
 def sgbm_disparity(left, right, params: SGBMParams, Q: np.ndarray, color: bool) -> np.ndarray:

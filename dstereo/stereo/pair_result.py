@@ -26,6 +26,8 @@ class PairResult:
     warnings: list[str] = field(default_factory=list)
     uncertainty: object | None = None  # point_uncertainty.PointUncertainty (calibrated path)
     exact_rect: tuple[np.ndarray, np.ndarray] | None = None  # grey float64 rectified pair the refinement used
+    filled: np.ndarray | None = None  # (h, w) bool: the point's disparity was filled, not matched (None: no fill)
+    fill_sigma: np.ndarray | None = None  # (h, w) px: a filled pixel's disparity sigma (`dstereo.stereo.fill`)
 
 
 def check_pair(left: np.ndarray, right: np.ndarray, calib: StereoCalibration | None, names=("left", "right")):

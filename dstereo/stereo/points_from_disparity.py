@@ -17,13 +17,14 @@ LOW_DENSITY = 0.10  # below this valid fraction the result carries a warning
 
 
 def points_and_summary(name, left_rect, right_rect, disparity, Q, R1, config: ReconstructionConfig, matrices, summary,
-            timings, warnings) -> PairResult:
-    """Disparity -> points in the left frame, ROI, outliers, density checks and the summary."""
+                       timings, warnings, filled=None, fill_sigma=None) -> PairResult:
+    """Disparity -> points in the left frame, ROI, outliers, density checks and the summary. `filled` (h, w) bool:
+    the pixels whose disparity a fill gave (`dstereo.stereo.fill`, with `fill_sigma` px), counted apart."""
     from dstereo.stereo.triangulate import reproject, to_original_left
 
     t0 = time.perf_counter()
     if not summary["refine"]["enabled"]:  # refined: checked on SGBM's map before the refinement
-        require_disparity(name, disparity, summary)
+        require_disparity(name, disparity if filled is None else np.where(filled, np.nan, disparity), summary)
     rect = {"Q": Q, **matrices}  # a spherical rectification's matrices say so (`projection`); else through Q
     points = np.array(to_original_left(reproject(disparity.astype(np.float64), rect), R1))  # writable
     if config.roi is not None:
@@ -39,6 +40,11 @@ def points_and_summary(name, left_rect, right_rect, disparity, Q, R1, config: Re
     valid = np.all(np.isfinite(points), axis=2)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
     depth = np.where(valid, points[..., 2], np.nan)
+    if filled is not None:
+        filled = filled & valid
+        fill_sigma = np.where(filled, fill_sigma, np.nan)
+        summary["fill"] |= {"filled_points": int(filled.sum()), "matched_points": int((valid & ~filled).sum()),
+                            "filled_share": float(filled.sum() / max(valid.sum(), 1))}
     timings["triangulate_s"] = time.perf_counter() - t0
     fraction = float(valid.mean())
     if fraction == 0:  # the results folder is still written whole: points.ply and mesh.ply valid and empty
@@ -64,4 +70,4 @@ def points_and_summary(name, left_rect, right_rect, disparity, Q, R1, config: Re
     })
     colors = left_rect[..., ::-1] if left_rect.ndim == 3 else np.repeat(left_rect[..., None], 3, axis=2)
     return PairResult(name, left_rect, right_rect, disparity, depth, points, np.ascontiguousarray(colors),
-                      matrices, summary, warnings)
+                      matrices, summary, warnings, filled=filled, fill_sigma=fill_sigma)

@@ -20,6 +20,7 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.stereo.disparity import SGBMParams
+from dstereo.stereo.fill import fill_unmatched
 from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
 from dstereo.stereo.pair_result import PairResult, calibration_size_check, check_pair, check_rig, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
@@ -128,8 +129,9 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     exact = None
     if config.refine:
         disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
+    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, disparity, outside, config, summary, timings)
     result = points_and_summary(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
-                     timings, warnings)
+                                timings, warnings, filled, fill_sigma)
     result.exact_rect = exact
     if unchecked:
         result.warnings.append(unchecked)
@@ -154,6 +156,9 @@ def add_uncertainty(result: PairResult, calib: StereoCalibration, config: Recons
 
     t0 = time.perf_counter()
     sigma_d, source = disparity_sigma_hook(result, config, params, originals)
+    if result.filled is not None and result.filled.any():  # a filled pixel's sigma is its fit's (`stereo.fill`)
+        sigma_d = np.where(result.filled, result.fill_sigma, np.broadcast_to(sigma_d, result.filled.shape))
+        source += "; filled pixels: the fill's own sigma (dstereo.stereo.fill)"
     if disparity_only:
         result.uncertainty = disparity_covariances(result, sigma_d, FISHEYE_NOTE, full=config.full_covariance,
                                                    sigma_d_source=source)
@@ -183,7 +188,8 @@ def disparity_sigma_hook(result: PairResult, config: ReconstructionConfig, param
                                                         (result.left_rect, result.right_rect))
     originals = originals if originals is not None else (result.left_rect, result.right_rect)
     block = (params or config.sgbm).block_size
-    sigma, info, warnings = disparity_sigma_map(originals, rectified, result.disparity, refined, block,
+    matched = result.disparity if result.filled is None else np.where(result.filled, np.nan, result.disparity)
+    sigma, info, warnings = disparity_sigma_map(originals, rectified, matched, refined, block,
                                                 config.disparity_sigma, result.name,
                                                 report_image_noise=report_image_noise)
     result.summary["disparity_noise"] = info

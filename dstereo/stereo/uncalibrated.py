@@ -96,5 +96,9 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                                "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
     if config.refine:
         disparity, _ = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
+    from dstereo.stereo.fill import fill_unmatched
+
+    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, disparity, np.zeros(disparity.shape, bool), config,
+                                                   summary, timings)
     return points_and_summary(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
-                   warnings)
+                              warnings, filled, fill_sigma)
