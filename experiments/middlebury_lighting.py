@@ -32,7 +32,7 @@ from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibra
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"
 GAIN, GAMMA = 0.7, 1.3
-NEW = ReconstructionConfig(uncertainty=False)
+NEW = ReconstructionConfig(uncertainty=False, fill=True)  # the cost's default (auto) with the fill asked for
 TODAY = replace(NEW, matching_cost="intensity", fill=False)
 MAD_TO_STD = 1.4826
 

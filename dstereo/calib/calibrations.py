@@ -167,6 +167,10 @@ class MultiviewJob:
     consistency: RigConsistency | None = None  # calib/rig_consistency.py on the joint solve
     subsets: RigSubsets | None = None  # with `per_set`: the rig's frame subsets and stereo steps
     rejected_frames: list = field(default_factory=list)  # (frame, T_f / dof_f) the consistency test removed
+    # the corners and inlier flags as the joint solve read them (views it re-read reversed: `multiview.as_solved`),
+    # for writers that hand the solve on (mrcal's optimization inputs); None: `observations`, `inliers` as they are
+    solved_observations: np.ndarray | None = None
+    solved_inliers: np.ndarray | None = None
     cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
     pair_files: list = field(default_factory=list)  # calib.rig_pairs.PairCalibration of each stereo file (choose_pairs)
 

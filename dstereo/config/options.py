@@ -145,10 +145,12 @@ RECONSTRUCT = OptionTable("reconstruct", (
     _opt("undistort", "reconstruct.undistort"),
     _opt("color_matching", "reconstruct.color_matching", type=bool),
     _opt("matching_cost", "reconstruct.matching_cost", "--cost",
-         "SGBM's cost: rank (default; SGBM on each view's 7x7 rank transform, which survives a brightness or "
-         "contrast change between the views) or intensity (the grey levels, the matching before issue 30)."),
+         "SGBM's cost: auto (default: rank where the two views' grey levels differ, as lit or exposed "
+         "differently, else intensity; said in summary.json search_range.matching_cost), rank (SGBM on each "
+         "view's 7x7 rank transform, which survives a brightness or contrast change) or intensity (the grey "
+         "levels, the matching before issue 30)."),
     _opt("fill", "reconstruct.fill", "--fill/--no-fill",
-         "Fill unmatched pixels by an edge-aware plane fit where confident (default on): filled points carry "
+         "Fill unmatched pixels by an edge-aware plane fit where confident (default off): filled points carry "
          "their own, larger sigma and the flag `filled` (filled.npy, points.ply); --no-fill leaves them empty.",
          bool),
     _opt("fill_max_sigma", "reconstruct.fill_max_sigma", "--fill-max-sigma",

@@ -191,8 +191,8 @@ def check(cfg, image_size: tuple[int, int] | None = None) -> None:
     if not (cfg.alpha == -1 or 0 <= cfg.alpha <= 1):
         raise DstereoError(f"{given_as(cfg, 'alpha', cfg.alpha)}: rectification's free scaling is -1 (OpenCV's "
                            "default) or 0..1")
-    if cfg.matching_cost not in ("rank", "intensity"):
-        raise DstereoError(f"{given_as(cfg, 'matching_cost', cfg.matching_cost)}: use rank or intensity")
+    if cfg.matching_cost not in ("auto", "rank", "intensity"):
+        raise DstereoError(f"{given_as(cfg, 'matching_cost', cfg.matching_cost)}: use auto, rank or intensity")
     if cfg.rectification not in ("auto", "pinhole", "spherical"):
         raise DstereoError(f"{given_as(cfg, 'rectification', cfg.rectification)}: use auto, pinhole or spherical")
     lr = cfg.sgbm.lr_check
@@ -204,7 +204,7 @@ def check(cfg, image_size: tuple[int, int] | None = None) -> None:
 
     image_width = image_size[0]
     # colour matching gives SGBM three channels (judged by the setting: a grey image is then checked as colour)
-    cfg.sgbm.check_image(image_size, 3 if cfg.color_matching and cfg.matching_cost == "intensity" else 1,
+    cfg.sgbm.check_image(image_size, 3 if cfg.color_matching and cfg.matching_cost != "rank" else 1,
                          user_sgbm_names(cfg))
     lo, n = cfg.sgbm.min_disparity, cfg.sgbm.num_disparities
     if lo <= -image_width or lo + n > 2 * image_width:

@@ -22,7 +22,8 @@ class ReconstructionConfig:
     is dropped (NaN), not kept at SGBM's value. Off by default: on rendered speckle it cuts the surface error
     2.6x, but on Middlebury 2014 (slanted, occluding, real images) it drops 4-10 % of the pixels and does not
     improve the good ones (experiments/results/middlebury.md). matching_cost: 'rank' (SGBM on the rank transform:
-    survives a lighting change between the views) or 'intensity' (on the grey levels, as before issue 30). fill:
+    survives a lighting change between the views), 'intensity' (on the grey levels, as before issue 30) or 'auto'
+    (default: rank where the views' grey levels differ, `stereo.matching.LIGHTING_MISMATCH`). fill:
     unmatched pixels filled by an edge-aware plane fit where its sigma is at most fill_max_sigma px, each
     carrying its own sigma and the flag `filled` (`dstereo.stereo.fill`); fill=False leaves them empty.
     """
@@ -36,8 +37,11 @@ class ReconstructionConfig:
     zero_disparity: bool = False
     undistort: str = "opencv"
     color_matching: bool = False
-    matching_cost: str = "rank"  # rank | intensity (`dstereo.stereo.matching.matched_images`)
-    fill: bool = True  # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged
+    matching_cost: str = "auto"  # auto | rank | intensity (`dstereo.stereo.matching.chosen_cost`)
+    # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged. Off by default: its sigma
+    # reads 0.45-0.86x the errors on Middlebury (outside the 0.67-1.5 asked), and on the demo's and the sphere
+    # reference's renders it adds 10-14 % of points beyond the sample, where nothing was matched
+    fill: bool = False
     fill_max_sigma: float = 1.5  # px: a pixel whose fill sigma would exceed this stays unmatched
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0

@@ -217,15 +217,16 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
 
 def _rig_solve(job: MultiviewJob):
     """(the joint rig solve cameras.yml holds as io.cameramodel.BoardSolve, or None and why): the frames, corners
-    and inliers it was solved on, each view re-read reversed where the solve re-read it (`flipped`)."""
-    from dstereo.calib.multiview import as_solved
+    and inliers it was solved on, as it read them (the job's `solved_observations`, `solved_inliers`)."""
     from dstereo.io.cameramodel import BoardSolve
 
     sol = job.solution
     frees = {tuple(c.dist.free) for c in sol.cameras}
     if len(frees) != 1:
         return None, "no optimization inputs: the cameras have different lens models, and mrcal's solve has one"
-    obs, inliers = as_solved(job.observations, job.inliers, sol.flipped)
+    if job.solved_observations is None:
+        return None, "no optimization inputs: the job kept no corners as its solve read them"
+    obs, inliers = job.solved_observations, job.solved_inliers
     board = job.cameras[0].detection.board
     return BoardSolve(frees.pop(), np.array([np.asarray(c.k, float) for c in sol.cameras]),
                       np.array([np.asarray(c.coeffs(), float) for c in sol.cameras]),

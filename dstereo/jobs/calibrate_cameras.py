@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.multiview import MultiviewSolution, calibrate_views
+from dstereo.calib.multiview import MultiviewSolution, as_solved, calibrate_views
 from dstereo.calib.calibrations import CameraCalibration, MultiviewJob, pair_indices
 from dstereo.jobs.calibrate_camera import calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
@@ -219,9 +219,10 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
         if progress is not None:
             progress("rig cross-validation", 1, 1)
         timings["rig_cross_validation_s"] = time.perf_counter() - t
+    solved_obs, solved_inliers = as_solved(obs, rig_inliers, joint.flipped)
     job = MultiviewJob(config, Path(where), labels, cams, frames, visible, obs, held, joint, warnings, timings,
                        inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets,
-                       rejected_frames=rejected)
+                       rejected_frames=rejected, solved_observations=solved_obs, solved_inliers=solved_inliers)
     _check(job)
     job.choose_pairs(pairs)
     timings["total_s"] = time.perf_counter() - t0

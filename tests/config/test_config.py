@@ -393,7 +393,7 @@ RECONSTRUCT_CASES = {
     "color_matching": ("[reconstruct]\ncolor_matching = true\n", None, "color_matching", True),
     "matching_cost": ('[reconstruct]\nmatching_cost = "intensity"\n', ["--cost", "intensity"], "matching_cost",
                       "intensity"),
-    "fill": ("[reconstruct]\nfill = false\n", ["--no-fill"], "fill", False),
+    "fill": ("[reconstruct]\nfill = true\n", ["--fill"], "fill", True),
     "fill_max_sigma": ("[reconstruct]\nfill_max_sigma = 2.5\n", ["--fill-max-sigma", "2.5"], "fill_max_sigma", 2.5),
     "focal_mm": ("[reconstruct]\nfocal_mm = 35.0\n", ["--focal-mm", "35"], "focal_mm", 35.0),
     "pixel_size_mm": ("[reconstruct]\npixel_size_mm = 0.005\n", ["--pixel-size-mm", "0.005"], "pixel_size_mm",

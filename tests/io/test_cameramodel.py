@@ -354,7 +354,7 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     import subprocess
     from types import SimpleNamespace
 
-    from dstereo.calib.multiview import EXTRINSIC_NAMES, calibrate_views
+    from dstereo.calib.multiview import EXTRINSIC_NAMES, as_solved, calibrate_views
     from dstereo.io.cameramodel import write_cameramodels_of_rig
     from dstereo.io.cameras_files import _rig_solve
     from dstereo.models.board import Board
@@ -372,7 +372,8 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     sizes = [c.image_size for c in rig.cameras]
     sol = calibrate_views(obj, obs, visible, sizes, mode="joint", board_warp=True)
     assert (seen, 2) in sol.flipped
-    job = SimpleNamespace(solution=sol, observations=obs, inliers=None,
+    solved_obs, solved_inliers = as_solved(obs, None, sol.flipped)  # as calibrate --cameras keeps them
+    job = SimpleNamespace(solution=sol, solved_observations=solved_obs, solved_inliers=solved_inliers,
                           cameras=[SimpleNamespace(detection=SimpleNamespace(board=board))])
     solve, why = _rig_solve(job)
     assert solve is not None, why

@@ -28,7 +28,7 @@ from dstereo.synth.texture import Speckle
 W, H, F, B = 320, 240, 400.0, 60.0
 MAD_TO_STD = 1.4826
 TODAY = ReconstructionConfig(matching_cost="intensity", fill=False, uncertainty=False)
-NEW = ReconstructionConfig(uncertainty=False)
+NEW = ReconstructionConfig(uncertainty=False, fill=True)  # the fill is asked for (off by default)
 
 
 def relit(image: np.ndarray, gain: float, gamma: float) -> np.ndarray:
@@ -93,7 +93,7 @@ def test_relit_pair_defeats_the_grey_level_cost_not_the_rank_cost(sphere_rig):
     keeps what it had on the unchanged pair within 3 points (measured 0.90 -> 0.89, wrong 9 %)."""
     calib, left, right, depth = sphere_rig
     dark = relit(right, 0.5, 1.6)
-    match_only = replace(NEW, fill=False)
+    match_only = replace(NEW, fill=False, matching_cost="rank")
     scores = {name: _scores(reconstruct_calibrated(calib, left, r, cfg), depth)
               for name, r, cfg in (("grey, as is", right, TODAY), ("grey, relit", dark, TODAY),
                                    ("rank, as is", right, match_only), ("rank, relit", dark, match_only))}
@@ -164,7 +164,7 @@ def test_filled_points_are_flagged_and_carry_their_own_sigma(sphere_rig, tmp_pat
         cv2.imwrite(str(tmp_path / name), image)
     out = tmp_path / "out"
     [result] = run_reconstruction([(tmp_path / "left.png", tmp_path / "right.png")], out, tmp_path / "stereo.yml",
-                                  ReconstructionConfig(depth_range=(400.0, 800.0)))
+                                  ReconstructionConfig(depth_range=(400.0, 800.0), fill=True))
     filled = np.load(out / "filled.npy")
     points = np.load(out / "points.npy")
     valid = np.all(np.isfinite(points), axis=2)
@@ -202,3 +202,19 @@ def test_middlebury_relit_right_view(scene):
           f"{100 * est.mean() / nocc.mean():.1f} %, filled {filled.sum()}, obs / pred {ratio:.2f}")
     assert np.median(rel) <= 0.01 and np.percentile(rel, 90) <= 0.05 and est.sum() >= 0.8 * nocc.sum()
     assert 0.67 <= ratio <= 1.5
+
+
+def test_auto_cost_takes_the_rank_transform_only_where_the_views_are_lit_differently(sphere_rig):
+    """`matching_cost` auto (the default): the sphere's pair as rendered (lit alike) is matched on its grey levels,
+    the more precise cost there; with the right view relit as the issue asks (gain 0.7, gamma 1.3) on its rank
+    transform; the choice and its figure are in the search range's summary."""
+    from dstereo.stereo.matching import LIGHTING_MISMATCH, chosen_cost, lighting_mismatch
+
+    calib, left, right, depth = sphere_rig
+    alike, relit_ = chosen_cost(left, right, NEW), chosen_cost(left, relit(right, 0.7, 1.3), NEW)
+    assert alike["cost"] == "intensity" and relit_["cost"] == "rank", (alike, relit_)
+    assert lighting_mismatch(left, right) < LIGHTING_MISMATCH / 3 < 3 * LIGHTING_MISMATCH < \
+        lighting_mismatch(left, relit(right, 0.7, 1.3))  # far from the line on either side
+    assert chosen_cost(left, right, replace(NEW, matching_cost="rank"))["cost"] == "rank"  # a given cost is kept
+    result = reconstruct_calibrated(calib, left, relit(right, 0.7, 1.3), replace(NEW, fill=False))
+    assert result.summary["search_range"]["matching_cost"]["cost"] == "rank"

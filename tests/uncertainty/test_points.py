@@ -411,7 +411,8 @@ def test_reconstruct_cli_writes_sigma_maps_and_ply_attributes(tmp_path):
     assert "configured" in summary["sigma_d_source"] and noise["configured_px"] == 0.2
     # the configured constant is checked on the data and scaled to the level they show (dstereo.stereo.disparity_noise)
     sigma_d = np.load(out / "sigma_d.npy").astype(float)
-    matched = valid & ~np.load(out / "filled.npy")  # a filled pixel carries the fill's own sigma (`stereo.fill`)
+    # a filled pixel carries the fill's own sigma (`stereo.fill`; off by default, then no filled.npy)
+    matched = valid & ~np.load(out / "filled.npy") if (out / "filled.npy").exists() else valid
     np.testing.assert_allclose(sigma_d[matched], 0.2 * noise["scaled_by"], rtol=1e-6)
     assert summary["sigma_d_px"] == pytest.approx(0.2 * noise["scaled_by"], rel=1e-6)
     assert summary["calibration_included"]
