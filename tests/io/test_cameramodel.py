@@ -395,6 +395,8 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
         s = np.array([sigma[f"{sol.labels[k]}.{n}"] for n in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")])
         assert np.all(np.abs(np.array(got[0]["intrinsics"][k]) - values) < 1e-6 * s), k
     ext = np.concatenate([sol.rvecs, sol.T], axis=1)[1:]
+    # the file holds the solve's numbers written with repr (17 digits): read back exactly, so 1e-12 mm / rad only
+    # allows the Rodrigues vector's round trip through mrcal's reader, not any computation
     assert np.allclose(got[1]["file_extrinsics"], ext[0], rtol=0, atol=1e-12)
     sag_sigma = np.array([sigma["board_sag_x"], sigma["board_sag_y"]])
     assert np.all(np.abs(np.array(got[0]["warp"]) - sol.board_sag) < 1e-6 * sag_sigma)
