@@ -20,7 +20,6 @@ if TYPE_CHECKING:  # annotations only: importing the solvers here would load sci
     from dstereo.calib.rig_subsets import RigSubsets
     from dstereo.calib.coverage import Coverage
     from dstereo.calib.robust_steps import FilterResult
-    from dstereo.calib.stereo import StereoSolution, StereoSubsetSolutions
     from dstereo.config.calibration import Config
 
 
@@ -94,62 +93,6 @@ class StereoSources:
         return self.mono_left == self.stereo_left and self.mono_right == self.stereo_right
 
 
-FLAT_BOARD_NOTE = "not solved (--no-board-sag): a flat board for both cameras and the rig, as OpenCV"
-
-
-@dataclass(frozen=True)
-class RigSag:
-    """The board's sag a rig is solved on (x, y in the board unit) and its sigma, with the summary's text."""
-
-    value: np.ndarray
-    std: np.ndarray
-    note: str
-
-    def as_dict(self) -> dict:
-        return {"x": float(self.value[0]), "y": float(self.value[1]), "std_x": float(self.std[0]),
-                "std_y": float(self.std[1])}
-
-
-@dataclass
-class StereoCalibrationJob:
-    """Everything a stereo run produced. `final` is the thesis's answer (mean over surviving subsets) when
-    subsets were solved, else the full-set solve; `full` always holds the full-set solve with Jacobian std."""
-
-    config: Config
-    sources: StereoSources
-    left: CameraCalibration
-    right: CameraCalibration
-    detection: object  # dstereo.io.stereo_files.StereoDetection
-    full: StereoSolution
-    plan: object | None
-    subsets: StereoSubsetSolutions | None  # None above KEEP_SOLUTIONS subsets: then only `filtering.table`
-    filtering: FilterResult | None
-    final: dict[str, float]  # STEP_COLUMNS
-    spread: dict[str, float]  # std over surviving subsets (NaN without subsets)
-    R: np.ndarray
-    T: np.ndarray
-    E: np.ndarray
-    F: np.ndarray
-    warnings: list[str] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    # calib/final_solution.py: the rig solve on the surviving pairs beside the thesis's subset mean, and the
-    # rig's honest +- (fixed mode: intrinsics errors carried into the rig)
-    rig_final: object | None = None
-    subset_mean: dict[str, float] | None = None
-    calibration_covariance: tuple | None = None  # rig_covariance(job) of the written calibration
-    full_set_sigma: object | None = None  # final_solution.RigSigma of the full-set solve
-    board_sag: str = FLAT_BOARD_NOTE  # what this rig assumes of the board
-    consistency: RigConsistency | None = None  # calib/rig_consistency.py: does one rig explain the pairs?
-    rig_sag: RigSag | None = None  # the board's sag the rig was solved on (None: flat)
-    cross_validation: object | None = None  # calib/rig_cross_validation.RigCrossValidation (--cross-validate N)
-
-    @property
-    def columns(self) -> tuple[str, ...]:
-        from dstereo.calib.stereo import STEP_COLUMNS
-
-        return STEP_COLUMNS
-
-
 @dataclass
 class MultiviewJob:
     config: Config
@@ -173,6 +116,8 @@ class MultiviewJob:
     solved_inliers: np.ndarray | None = None
     cross_validation: RigCrossValidation | None = None  # --cross-validate N (calib/rig_cross_validation.py)
     pair_files: list = field(default_factory=list)  # calib.rig_pairs.PairCalibration of each stereo file (choose_pairs)
+    pair_file: str | None = None  # the one pair's file name (a stereo rig's stereo.yml); None: stereo_<a>_<b>.yml
+    sources: str | None = None  # where the images came from, in words (a stereo rig's flags or layout)
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""

@@ -10,8 +10,8 @@ consistent calibration (when every view appears in a surviving subset this is th
 views (RMS on the survivors' corners, each board pose refitted for the fixed camera) and a warning with the
 figures is given when it fits worse by more than `MEAN_MARGIN`.
 
-The same for the stereo rig: the rig solve on the pairs of the surviving stereo subsets (intrinsics held at
-each camera's written values), against the subset mean of the rig parameters.
+A rig's final solve is the K-camera job's (`jobs/calibrate_cameras.calibrate_rig`: the frames of the surviving
+rig subsets).
 
 Pose refits are a small Levenberg-Marquardt per view (6 parameters), vmapped; no OpenCV here.
 """
@@ -286,104 +286,3 @@ def written_camera_solution(cal):
     """The CameraSolution whose covariance goes with the written camera: the survivors' solve, or the full set."""
     fs = getattr(cal, "final_solution", None)
     return cal.full if fs is None else fs.solution
-
-
-# --- the stereo rig -------------------------------------------------------------------------------------------
-
-RIG = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
-
-
-@dataclass
-class RigFinal:
-    """What stereo.yml's R, T hold: the rig solve on the surviving pairs, or the thesis's subset mean."""
-
-    choice: str
-    views: np.ndarray  # (V,) bool: pairs in at least one surviving stereo subset
-    solution: object  # StereoSolution on those pairs (the full-set solve when all survive)
-    subset_mean: dict[str, float]  # STEP_COLUMNS
-    check: MeanCheck
-
-    @property
-    def final(self) -> dict[str, float]:
-        return dict(self.subset_mean) if self.choice == "mean" else dict(self.solution.columns())
-
-    def source(self) -> str:
-        kept, n = int(self.views.sum()), len(self.views)
-        solve = (f"rig solve on the {kept} pairs of the surviving stereo subsets"
-                 + (" = the full-set solve" if kept == n else f" ({n - kept} pair(s) in no surviving subset left out)"))
-        if self.choice == "mean":
-            return "mean over the surviving subsets (the thesis's answer; --final mean); the " + solve + \
-                " is in final_check"
-        return solve + "; the thesis's subset mean is beside it (subset_mean)"
-
-    def as_dict(self, pairs) -> dict:
-        return {"choice": self.choice, "source": self.source(),
-                "left_out_pairs": [list(pairs[i]) for i in np.flatnonzero(~self.views)],
-                "solution": dict(self.solution.columns()), "solution_rms_px": float(self.solution.rms),
-                "subset_mean": dict(self.subset_mean), "mean_check": self.check.as_dict()}
-
-
-def rig_final(choice: str, filtering, plan, obj, obs_l, obs_r, full, subset_mean: dict) -> RigFinal:
-    """The rig solve on the surviving pairs (intrinsics as `full` used them) and the mean check on those pairs."""
-    from dstereo.calib.stereo import calibrate_stereo
-
-    views = surviving_views(filtering, plan, len(obs_l))
-    solution = full if views.all() else calibrate_stereo(
-        obj, obs_l[views], obs_r[views], full.left, full.right, full.mode,
-        inliers=None if full.inliers is None else full.inliers[views])  # the cameras' outlier masks carry over
-    cams = [(np.asarray(c.k), np.asarray(c.dist.coeffs)) for c in (solution.left, solution.right)]
-    mean_rig = np.array([subset_mean[n] for n in RIG])
-    frees = (solution.left.dist.free, solution.right.dist.free)
-    rms = [refit_pairs_rms(*cams, rig, obj, obs_l[views], obs_r[views], solution.poses, solution.inliers, frees)
-           for rig in (np.asarray(solution.values[:6]), mean_rig)]
-    return RigFinal(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms[0], rms[1]))
-
-
-@dataclass
-class RigSigma:
-    """The rig's +- the reports show, and which covariance it is."""
-
-    std: dict[str, float]  # RVx..Tz, Tnorm, RVnorm
-    intrinsics_exact: dict[str, float]  # the fixed-intrinsics solve's Jacobian std alone (for comparison)
-    label: str
-
-    def as_dict(self) -> dict:
-        return {"std": dict(self.std), "label": self.label, "intrinsics_exact_std": dict(self.intrinsics_exact)}
-
-
-PROPAGATED_LABEL = ("propagated: the fixed-intrinsics rig solve's Jacobian covariance plus each camera's intrinsics "
-                    "covariance carried into the rig (A C_k A^T), as stereo.yml's cov")
-JOINT_LABEL = "Jacobian covariance of the joint solve (intrinsics refined with the rig)"
-
-
-def _norm_std(v, cov) -> float:
-    n = float(np.linalg.norm(v))
-    grad = np.asarray(v) / n if n > 0 else np.zeros(3)
-    return float(np.sqrt(max(grad @ cov @ grad, 0.0)))
-
-
-def rig_sigma(solution, calibration_covariance) -> RigSigma:
-    """RigSigma of `solution` from its calibration covariance (names, cov, structure) of `rig_covariance`."""
-    names, cov, _ = calibration_covariance
-    idx = [list(names).index(n) for n in RIG]
-    c6 = np.asarray(cov)[np.ix_(idx, idx)]
-    std = dict(zip(RIG, np.sqrt(np.maximum(np.diag(c6), 0.0)).tolist()))
-    std |= {"Tnorm": _norm_std(solution.T, c6[3:, 3:]), "RVnorm": _norm_std(solution.rvec, c6[:3, :3])}
-    exact = dict(zip(RIG, map(float, solution.std[:6]))) | {"Tnorm": float(solution.baseline_std),
-                                                          "RVnorm": float(solution.angle_std)}
-    return RigSigma(std, exact, JOINT_LABEL if solution.mode == "joint" else PROPAGATED_LABEL)
-
-
-def attach_rig_uncertainty(job) -> None:
-    """job.calibration_covariance (of what stereo.yml holds) and job.full_set_sigma (the full-set solve's honest
-    +-), both with each camera's written-solution covariance carried into the rig."""
-    from dstereo.uncertainty.rig import rig_covariance
-
-    cams = (written_camera_solution(job.left), written_camera_solution(job.right))
-    full_cov = rig_covariance(job, cameras=cams)
-    job.full_set_sigma = rig_sigma(job.full, full_cov)
-    rf = job.rig_final
-    if rf is None or rf.solution is job.full:
-        job.calibration_covariance = full_cov
-    else:
-        job.calibration_covariance = rig_covariance(job, solution=rf.solution, pairs=rf.views, cameras=cams)

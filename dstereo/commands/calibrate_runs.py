@@ -1,5 +1,5 @@
-"""`dstereo calibrate`'s three runs (one camera, a stereo pair, N cameras): call the job, write its folder, print
-its console text."""
+"""`dstereo calibrate`'s runs (one camera; a rig: a stereo pair or N cameras, both through the K-camera job): call the
+job, write its folder, print its console text."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from dstereo.commands.progress import progress_bars
 
 def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started,
                 projection_range=None, cross_validate: int = 0) -> None:
-    """Stereo mode (thesis 4.2.2.2): both cameras, then the rig; see dstereo.jobs.calibrate_stereo."""
-    from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources, summary_lines
+    """Stereo mode (thesis 4.2.2.2): the K-camera job on the two cameras; see dstereo.jobs.calibrate_stereo."""
+    from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
     from dstereo.errors import DstereoError
-    from dstereo.io.stereo_files import write_stereo_results
+    from dstereo.io.cameras_files import write_multiview_results
 
     if left is not None and right is not None and left.is_dir() and left.resolve() == Path(right).resolve():
         raise DstereoError(f"--left and --right are the same folder {left}; give each camera's images, e.g. "
@@ -29,19 +29,13 @@ def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, 
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                        cross_validate=cross_validate, projection_range=projection_range)
-        write_stereo_results(out, job, force)
-    job.timings["total_s"] = time.perf_counter() - started
-    for warning in job.warnings:
-        typer.echo(f"dstereo: warning: {warning}", err=True)
-    if not quiet:
-        typer.echo("\n".join(summary_lines(job, out)))
+        write_multiview_results(out, job, force)
+    _print_rig(job, out, quiet, started)
 
 
 def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started, projection_range=None,
                  cross_validate: int = 0) -> None:
     """N cameras (--cameras DIR): see dstereo.jobs.calibrate_cameras."""
-    import numpy as np
-
     from dstereo.jobs.calibrate_cameras import calibrate_cameras_project, camera_folders
     from dstereo.io.cameras_files import write_multiview_results
 
@@ -53,6 +47,13 @@ def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started,
                                         cross_validate=cross_validate, projection_range=projection_range,
                                         pairs=pair)
         write_multiview_results(out, job, force)
+    _print_rig(job, out, quiet, started)
+
+
+def _print_rig(job, out: Path, quiet: bool, started: float) -> None:
+    """A rig's warnings (stderr) and console text: each camera in the rig, the rig's fit and checks."""
+    import numpy as np
+
     job.timings["total_s"] = time.perf_counter() - started
     for warning in job.warnings:
         typer.echo(f"dstereo: warning: {warning}", err=True)
@@ -63,6 +64,12 @@ def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started,
                        f"cy {float(cam.k[3]):.3f}  |T| {np.linalg.norm(T):.4f}  RMS {rms:.4f} px "
                        f"({int(job.visible[:, job.labels.index(label)].sum())} views)" + _chosen(job, label))
         typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
+        for pair in job.pair_files:
+            a, b = job.labels[pair.a], job.labels[pair.b]
+            std = dict(zip(pair.cov_names, np.sqrt(np.maximum(np.diag(pair.cov), 0.0))))
+            typer.echo(f"{a}-{b}: baseline |T| {np.linalg.norm(pair.T):.6g} {job.config.unit}, T ("
+                       + ", ".join(f"{float(t):.6g} +- {std.get(n, float('nan')):.3g}"
+                                   for t, n in zip(np.ravel(pair.T), ("Tx", "Ty", "Tz"))) + ")")
         if job.consistency is not None:
             typer.echo(job.consistency.line())
         if job.cross_validation is not None:

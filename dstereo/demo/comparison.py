@@ -53,9 +53,11 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
     k_sig = BOUNDS["sigmas"]
     std = dict(zip(s.names, np.sqrt(np.diag(cov))))
     rows = []
-    for side, true_cam, thesis_cam, cam in (("left", rig.left, job.full.left, s.left),
-                                            ("right", rig.right, job.full.right, s.right)):
-        kt, kh, ke = (np.asarray(c.k, float) for c in (true_cam, thesis_cam, cam))
+    thesis_R, thesis_T = thesis_rig(job)
+    for side, true_cam, thesis_cal, cam in (("left", rig.left, job.cameras[0], s.left),
+                                            ("right", rig.right, job.cameras[1], s.right)):
+        kt, ke = (np.asarray(c.k, float) for c in (true_cam, cam))
+        kh = np.array([thesis_cal.final[n] for n in ("fx", "fy", "cx", "cy")])
         for j, name in enumerate(("fx", "fy", "cx", "cy")):
             sig = std[f"{side}.{name}"]
             if j < 2:
@@ -66,7 +68,7 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
                 rows.append(_row(f"{side} {name}", "px", kt[j], ke[j], ke[j] - kt[j],
                                  max(BOUNDS["principal_px"], k_sig * sig), sig, kh[j], kh[j] - kt[j]))
     r_true, t_true = rig.rotation_translation()
-    b_true, b_thesis = float(np.linalg.norm(t_true)), float(np.linalg.norm(job.T))
+    b_true, b_thesis = float(np.linalg.norm(t_true)), thesis_T
     rows.append(_row("baseline |T|", "mm", b_true, s.baseline, 100 * (s.baseline / b_true - 1),
                      BOUNDS["baseline_percent"], 100 * _norm_sigma(s.T, cov[3:6, 3:6]) / s.baseline, b_thesis,
                      100 * (b_thesis / b_true - 1), "%"))
@@ -75,8 +77,8 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
 
     angle = lambda r: float(np.degrees(np.linalg.norm(rotation_vector(r))))  # noqa: E731
     rows.append(_row("rotation R", "deg", angle(r_true), angle(s.R), rotation_error_deg(s.R, r_true),
-                     max(BOUNDS["rotation_deg"], k_sig * rot_sigma), rot_sigma, angle(job.R),
-                     rotation_error_deg(job.R, r_true)))
+                     max(BOUNDS["rotation_deg"], k_sig * rot_sigma), rot_sigma, angle(thesis_R),
+                     rotation_error_deg(thesis_R, r_true)))
     bound = surface_bound(s, cov, settings, surface["rms_slope"])
     joint, thesis, ref = surface["joint"], surface["thesis"], surface["true_calibration"]
     rows.append(_row("surface RMS", "mm", 0.0, joint["rms_mm"], joint["rms_mm"], bound["joint_mm"],
@@ -84,21 +86,35 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
     rows.append(_row("surface RMS, rigid fit", "mm", 0.0, joint["shape_rms_mm"], joint["shape_rms_mm"],
                      bound["matching_mm"], thesis=thesis["shape_rms_mm"], thesis_error=thesis["shape_rms_mm"]))
     rows.append(_row("surface RMS, true calibration", "mm", 0.0, ref["rms_mm"], ref["rms_mm"], bound["matching_mm"]))
-    f = job.filtering
-    stats = f.stats(len(f.steps))
+    sub = job.subsets
+    f, stats = sub.filtering, sub.stats()
     subsets = {
-        "plan": job.plan.describe(), "per_set": int(job.plan.index.shape[1]), "solved": int(len(f.table)),
+        "plan": sub.plan.describe(), "per_set": int(sub.plan.per_set), "solved": int(len(f.table)),
         "converged": int(f.usable.sum()), "survivors": int(f.survivors.sum()),
         "steps": [o.message for o in f.steps],
-        "after_steps": {c: {"mean": stats[c]["mean"], "std": stats[c]["std"]} for c in ("stereo_re", "Tnorm",
-                                                                                        "RVnorm")},
+        "after_steps": {c: {"mean": stats[c + PAIR]["mean"], "std": stats[c + PAIR]["std"]}
+                        for c in ("stereo_re", "Tnorm", "RVnorm")},
         "individual": {side: {"plan": c.plan.describe(), "rms_px": float(c.full.rms)}
-                       for side, c in (("left", job.left), ("right", job.right))},
+                       for side, c in zip(job.labels, job.cameras)},
     }
+    both = np.asarray(job.visible, bool).all(axis=1)
     warnings = [f"{r['parameter']}: error {number_text(r['error'])} {r['error_unit']} exceeds the bound "
                 f"{number_text(r['bound'])} {r['error_unit']}" for r in rows if not r["ok"]]
     return {"rows": rows, "ok": not warnings, "warnings": warnings, "calibration_warnings": list(job.warnings),
             "subsets": subsets, "surface": surface, "surface_bound": bound, "bounds": BOUNDS,
             "disparity_noise_px": DISPARITY_NOISE_PX,
-            "stereo": {"pairs": len(job.detection.pairs), "dropped": len(job.detection.dropped),
-                       "thesis_rms_px": job.full.rms, "joint_rms_px": s.rms, "joint_status": s.status_text}}
+            "stereo": {"pairs": int(both.sum()), "dropped": int((~both).sum()),
+                       "thesis_rms_px": float(job.held.rms), "joint_rms_px": s.rms, "joint_status": s.status_text}}
+
+
+PAIR = "@left-right"  # the stereo job's one pair in the rig subsets' column names (calib/rig_subsets.py)
+
+
+def thesis_rig(job) -> tuple[np.ndarray, float]:
+    """(R, |T|) of the thesis's answer: the means over the surviving rig subsets (intrinsics held at each camera's
+    own calibration) of the rotation vector and of the baseline."""
+    from dstereo.models.pose import rodrigues
+
+    stats = job.subsets.stats()
+    rvec = np.array([stats[f"RV{a}{PAIR}"]["mean"] for a in "xyz"])
+    return np.asarray(rodrigues(rvec)), float(stats["Tnorm" + PAIR]["mean"])

@@ -10,8 +10,10 @@ One run, all under `out/` (filled under a temporary name and renamed at the end)
     comparison.json / .md  every estimate against its truth, with the bound it is held to
 
 Calibration, the thesis's path (`jobs.calibrate_stereo`, as `dstereo calibrate` runs it): each camera alone
-with C(N, m) subsets, the rig with those intrinsics fixed, its subsets filtered by the stereo steps of the
-thesis's Figure 5.14; the answer is the mean over the surviving subsets. Then the joint refinement: both
+with C(N, m) subsets, the rig with those intrinsics held, its frame subsets filtered by the stereo steps of the
+thesis's Figure 5.14; the thesis's answer is each camera's subset mean and the rig's mean over the surviving
+subsets (what the comparison's "thesis path" shows; calibration/stereo.yml holds the job's joint solve on the
+surviving frames, as every rig's `dstereo calibrate` writes). Then the demo's own joint refinement: both
 cameras' intrinsics and the rig solved together on all pairs (`calib.stereo`, mode "joint"). The reduced rig
 sees 80 x 60 mm at 600 mm, a 7.6 deg field in which perspective barely shows on the board: one camera alone
 pins its focal length to ~0.1 % and its principal point to ~10 px, while the two cameras together (the board's
@@ -100,13 +102,22 @@ def thesis_config(board: dict, settings: DemoSettings, seed: int):
 def calibrate_thesis(images: Path, folder: Path, board: dict, settings: DemoSettings, seed: int, report):
     """`dstereo calibrate`'s stereo job on images/images_left + images_right; writes its results folder."""
     from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
-    from dstereo.io.stereo_files import write_stereo_results
+    from dstereo.io.cameras_files import write_multiview_results
 
     config = thesis_config(board, settings, seed)
     job = calibrate_stereo_project(stereo_sources(images, config), config, progress=report, use_cache=False)
     report("write calibration", 0, 1)
-    write_stereo_results(folder, job)
+    write_multiview_results(folder, job)
     return job
+
+
+def pair_corners(job) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """(board, left corners, right corners, frame names) of the frames both cameras of a stereo job saw, as its
+    rig solve read them (a view re-read reversed is in the solve's order)."""
+    obs = job.solved_observations if job.solved_observations is not None else job.observations
+    both = np.asarray(job.visible, bool).all(axis=1)
+    return (job.cameras[0].detection.object_points, obs[both, 0], obs[both, 1],
+            [f for f, b in zip(job.frames, both) if b])
 
 
 def calibrate_joint(job, folder: Path, report):
@@ -117,10 +128,11 @@ def calibrate_joint(job, folder: Path, report):
     from dstereo.io.results import atomic_folder, write_json
     from dstereo.io.stereo_files import write_stereo_yml
 
+    from dstereo.jobs.calibrate_camera import camera_of
+
     report("joint refinement", 0, 1)
-    obj = job.detection.object_points
-    obs_l, obs_r = job.detection.observations()
-    s = calibrate_stereo(obj, obs_l, obs_r, job.full.left, job.full.right, "joint")
+    obj, obs_l, obs_r, frames = pair_corners(job)
+    s = calibrate_stereo(obj, obs_l, obs_r, camera_of(job.cameras[0]), camera_of(job.cameras[1]), "joint")
     cov = joint_covariance(s, obj, obs_l, obs_r)
     with atomic_folder(folder, False) as tmp:
         write_stereo_yml(tmp / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
@@ -130,7 +142,7 @@ def calibrate_joint(job, folder: Path, report):
         write_json(tmp / "stereo.json", {
             "mode": s.mode, "status": s.status_text, "names": s.names, "values": s.values,
             "std": np.sqrt(np.diag(cov)), "covariance": cov, "R": s.R, "T": s.T, "E": s.E, "F": s.F,
-            "rms_px": s.rms, "stereo_re_px": s.stereo_re, "pairs": job.detection.pairs,
+            "rms_px": s.rms, "stereo_re_px": s.stereo_re, "pairs": frames,
             "std_note": "sigma^2 (J^T J)^-1 with J's columns scaled to unit norm, board poses as nuisance "
                         "parameters (demo.joint_covariance)"})
     report("joint refinement", 1, 1)
@@ -167,8 +179,8 @@ def joint_covariance(s, obj: np.ndarray, obs_left: np.ndarray, obs_right: np.nda
 
 
 def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> dict:
-    """Reconstruct the sample pair with the joint calibration (written to out/reconstruction), and with the
-    thesis's and the true calibrations (the latter: matching alone), all with the sub-pixel refinement; errors of
+    """Reconstruct the sample pair with the joint calibration (written to out/reconstruction), and with
+    calibration/stereo.yml (key "thesis": `dstereo calibrate`'s) and the true calibrations (the latter: matching alone), all with the sub-pixel refinement; errors of
     each against the true surface, the joint and true ones also without the refinement (`*_sgbm`), and the joint
     reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration

@@ -1,4 +1,5 @@
-"""The results folder of `dstereo calibrate --cameras DIR` (a finished `calib.calibrations.MultiviewJob`):
+"""The results folder of every rig's `dstereo calibrate` (`--cameras DIR`, `--left/--right`, the thesis's stereo
+layout: a finished `calib.calibrations.MultiviewJob`):
 
     <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
@@ -6,7 +7,8 @@
                                  beside and the rig-consistency test (`calib/rig_consistency.py`)
     rig_<camera>.cameramodel     mrcal's file of each camera in the rig's frame (the reference first), where mrcal
                                  has the lens model
-    stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B),
+    stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B; a
+                                 stereo rig's one pair: stereo.yml, which reconstruct finds in the folder),
                                  with the pair's calibration covariance (`uncertainty.rig.pair_covariance`) and,
                                  as a stereo job's stereo.yml, the board depths and corner angles of the frames
                                  both cameras saw
@@ -75,7 +77,7 @@ def cameras_summary(job: MultiviewJob) -> dict:
             "rms_alone": float(own.full.rms), "rms_held": float(held.camera_rms()[i]),
         })
     return {
-        "reference": job.labels[0], "convention": "x_cam_i = R_i x_ref + T_i (board unit)",
+        "sources": job.sources, "reference": job.labels[0], "convention": "x_cam_i = R_i x_ref + T_i (board unit)",
         "unit": job.config.unit, "frames": len(job.frames), "cameras": cams,
         "joint": {"rms": float(sol.rms), "status": sol.status_text, "iterations": sol.iterations,
                   "parameters": dict(zip(sol.names, map(float, sol.values))),
@@ -104,7 +106,7 @@ def _write_pair(folder: Path, job: MultiviewJob, pair) -> tuple[str | None, str 
 
     sol, a, b = job.solution, pair.a, pair.b
     ca, cb = sol.cameras[a], sol.cameras[b]
-    name = f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
+    name = job.pair_file or f"stereo_{job.labels[a]}_{job.labels[b]}.yml"
     write_stereo_yml(folder / name, ca.matrix(), _distortion(ca), cb.matrix(), _distortion(cb), pair.R, pair.T,
                      pair.E, pair.F, ca.image_size, cb.image_size, rms=float(sol.rms), models=(_lens(ca), _lens(cb)),
                      unit=job.config.unit, cov=pair.cov, cov_names=pair.cov_names, cov_structure=pair.structure)

@@ -30,7 +30,32 @@ from dstereo.calib.rig_cross_validation import cross_validate_rig
 from dstereo.calib.rig_subsets import run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
+from dstereo.jobs.flat_board import flat_board_check
 from dstereo.jobs.rig_sources import CameraSource, folder_sources
+
+# A baseline below this fraction of the board's size (its inner corners' diagonal) is no baseline. Identical left
+# and right images (a right folder holding copies of the left's) fit with |T| = 2.2e-9 mm; two cameras sit at least
+# a lens apart, and a board is seen by both from a distance of a few board sizes at most (a 1e-3 board baseline:
+# 0.24 mm against the 83 mm of the opencv_stereo rig, whose board is 236 mm across with 25 mm squares).
+SAME_PLACE_BOARD_FRACTION = 1e-3
+
+
+class _Prefixed:
+    """A progress callback whose stages (and notes) are prefixed with the camera's label."""
+
+    def __init__(self, progress, label: str):
+        self.progress, self.label = progress, label
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        self.progress(f"{self.label} {stage}", done, total)
+
+    def note(self, text: str) -> None:
+        if getattr(self.progress, "note", None) is not None:
+            self.progress.note(f"{self.label} camera: {text}")
+
+
+def _prefixed(progress, label: str):
+    return None if progress is None else _Prefixed(progress, label)
 
 
 def camera_folders(root: Path, config: Config) -> list[Path]:
@@ -128,13 +153,13 @@ def _check_steps(config: Config) -> None:
 
 def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, progress=None, use_cache: bool = True,
                   scratch: Path | None = None, cross_validate: int = 0, projection_range: float | None = None,
-                  pairs: tuple[str, str] | None = None, warnings: list[str] | None = None) -> MultiviewJob:
+                  pairs: tuple[str, str] | None = None, warnings: list[str] | None = None,
+                  pair_file: str | None = None) -> MultiviewJob:
     """Run the job of the module docstring on K camera sources (`jobs.rig_sources`; `where`: the rig's folder, for
     messages). Raises DstereoError for folders, boards or frames that cannot make one rig. `cross_validate`: that
     many random halvings of the frames (`calib/rig_cross_validation.py`). `pairs`: the two cameras (labels) that
-    get a stereo file, else every adjacent pair (`choose_pairs`). `warnings`: the sources' own, reported first."""
-    from dstereo.jobs.calibrate_stereo import _prefixed
-
+    get a stereo file, else every adjacent pair (`choose_pairs`). `warnings`: the sources' own, reported first.
+    `pair_file`: the one pair's file name (a stereo rig's `stereo.yml`), else stereo_<a>_<b>.yml."""
     t0 = time.perf_counter()
     _check_steps(config)
     labels = tuple(s.label for s in sources)
@@ -157,6 +182,8 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
     if len(shapes) != 1 or any(not np.allclose(c.detection.object_points, cams[0].detection.object_points)
                                for c in cams):
         raise DstereoError("cameras: the cameras' boards differ (pattern or square); one rig calibrates from one board")
+    if not config.board_sag:
+        flat_board_check(dict(zip(labels, cams)), warnings)
     frames, visible, obs, inliers = frame_table(cams, sources, frame_detections(cams, sources, config,
                                                                              use_cache))
     shared = visible.sum(axis=1)
@@ -222,7 +249,8 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
     solved_obs, solved_inliers = as_solved(obs, rig_inliers, joint.flipped)
     job = MultiviewJob(config, Path(where), labels, cams, frames, visible, obs, held, joint, warnings, timings,
                        inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets,
-                       rejected_frames=rejected, solved_observations=solved_obs, solved_inliers=solved_inliers)
+                       rejected_frames=rejected, solved_observations=solved_obs, solved_inliers=solved_inliers,
+                       pair_file=pair_file)
     _check(job)
     job.choose_pairs(pairs)
     timings["total_s"] = time.perf_counter() - t0
@@ -304,10 +332,8 @@ def _check(job: MultiviewJob) -> None:
 
 
 def _check_camera_baselines(job: MultiviewJob) -> None:
-    """Two cameras at one place (one camera's images copied into another's folder) are refused, with the limit of
-    a two-camera rig (`stereo_pipeline.SAME_PLACE_BOARD_FRACTION` of the board's size)."""
-    from dstereo.jobs.calibrate_stereo import SAME_PLACE_BOARD_FRACTION
-
+    """Two cameras at one place (one camera's images copied into another's folder) are refused
+    (SAME_PLACE_BOARD_FRACTION of the board's size)."""
     board = job.cameras[0].detection.board
     size = board.square * float(np.hypot(board.cols - 1, board.rows - 1))
     n = len(job.labels)

@@ -15,7 +15,7 @@ import pytest
 
 from conftest import require_data, run_cli
 from dstereo.calib import mono
-from dstereo.calib.final_solution import RIG, attach_rig_uncertainty, camera_final, surviving_views, view_survival
+from dstereo.calib.final_solution import camera_final, surviving_views, view_survival
 from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subsets import plan_subsets
 from dstereo.config.calibration import Step
@@ -151,90 +151,6 @@ def test_cli_final_mean_writes_the_thesis_mean(tmp_path):
     np.testing.assert_allclose(dist, [mean(n) for n in FIVE[:2] + ("p1", "p2", "k3")], rtol=1e-12, atol=1e-15)
 
 
-@pytest.fixture(scope="module")
-def rig_job():
-    """A synthetic rig (12 pairs, 0.2 px noise), each camera calibrated on its own views, the rig in fixed mode;
-    the job object carries what `attach_rig_uncertainty` reads."""
-    from dstereo.calib.stereo import calibrate_stereo, camera_from_solution
-    from dstereo.synth.poses import compose
-
-    obj = _board()
-    poses = _poses(5, 12)
-    rig = np.r_[0.02, -0.05, 0.01, -3.0, 0.1, 0.2]  # the board stays in both views
-    rng = np.random.default_rng(9)
-    obs_l = np.asarray(_project(K, COEFFS, poses, obj)) + rng.normal(0, 0.2, (12, 54, 2))
-    poses_r = np.array([compose(rig, p) for p in poses])
-    obs_r = np.asarray(_project(K + [5, 5, -10, 4], COEFFS, poses_r, obj)) + rng.normal(0, 0.2, (12, 54, 2))
-    sols = [mono.calibrate_full(obj, o, SIZE, FIVE) for o in (obs_l, obs_r)]
-    cams = [camera_from_solution(s) for s in sols]
-    stereo = calibrate_stereo(obj, obs_l, obs_r, *cams, "fixed")
-    job = SimpleNamespace(full=stereo, rig_final=None,
-                          left=SimpleNamespace(full=sols[0], final_solution=None),
-                          right=SimpleNamespace(full=sols[1], final_solution=None),
-                          detection=SimpleNamespace(object_points=obj, observations=lambda: (obs_l, obs_r)))
-    return obj, obs_l, obs_r, sols, cams, stereo, job
-
-
-def test_rig_written_is_the_solve_on_the_surviving_pairs(rig_job):
-    """Pair 0 in no surviving subset: stereo.yml's rig is a fresh rig solve on pairs 1-11, and its covariance
-    (stereo.yml's cov) is that solve's, not the full set's."""
-    from dstereo.calib.final_solution import rig_final
-    from dstereo.calib.stereo import STEP_COLUMNS, calibrate_stereo
-    from dstereo.uncertainty.rig import rig_covariance
-
-    obj, obs_l, obs_r, sols, cams, stereo, job = rig_job
-    index = np.array([np.arange(1, 7), np.arange(6, 12), np.arange(2, 8)])  # pair 0 in none
-    row = [stereo.columns()[k] for k in STEP_COLUMNS]
-    filtering = run_steps(np.array([row] * 3), STEP_COLUMNS, [])
-    mean = dict(zip(STEP_COLUMNS, row))
-    rf = rig_final("survivors", filtering, index, obj, obs_l, obs_r, stereo, mean)
-    fresh = calibrate_stereo(obj, obs_l[1:], obs_r[1:], *cams, "fixed")
-    np.testing.assert_array_equal(rf.solution.values, fresh.values)
-    assert rf.final == fresh.columns() and not rf.views[0] and rf.views[1:].all()
-    written = SimpleNamespace(**vars(job))
-    written.rig_final = rf
-    attach_rig_uncertainty(written)
-    expected = rig_covariance(job, solution=fresh, pairs=rf.views)[1]
-    np.testing.assert_array_equal(written.calibration_covariance[1], expected)
-    assert not np.allclose(expected, rig_covariance(job)[1], rtol=1e-3)
-
-
-def test_fixed_mode_rig_sigma_is_the_propagated_one(rig_job):
-    """The rig's reported +- equals an independent linear propagation: A = d rig / d intrinsics by central
-    differences of full re-solves of the rig, cov = C_rig|k + A C_k A^T.
-
-    Tolerance 3 %: the tool's A is the Gauss-Newton linearisation at the optimum (second-order residual terms
-    dropped, of relative size residual / (curvature * sigma) ~ 1 % at 0.2 px noise); the differences use steps
-    of 0.1 sigma (truncation ~1e-3) and re-solves converged to LM's 1e-12 tolerances."""
-    from scipy.linalg import block_diag
-
-    from dstereo.calib.stereo import calibrate_stereo
-    from dstereo.uncertainty.view_effects import reported_covariance
-
-    obj, obs_l, obs_r, sols, cams, stereo, job = rig_job
-    job = SimpleNamespace(**vars(job))
-    attach_rig_uncertainty(job)
-    columns = []
-    for side in (0, 1):
-        v0 = np.asarray(cams[side].free_vector())
-        for i, s in enumerate(sols[side].std):
-            out = []
-            for sign in (1, -1):
-                moved = list(cams)
-                moved[side] = cams[side].with_free_vector(v0 + sign * 0.1 * s * np.eye(len(v0))[i])
-                out.append(calibrate_stereo(obj, obs_l, obs_r, *moved, "fixed").values[:6])
-            columns.append((out[0] - out[1]) / (0.2 * s))
-    a = np.array(columns).T
-    # each camera's covariance as its files report it (with its views' effects), as the tool propagates it
-    cov = stereo.cov + a @ block_diag(reported_covariance(sols[0]), reported_covariance(sols[1])) @ a.T
-    expected = np.sqrt(np.diag(cov))
-    got = np.array([job.full_set_sigma.std[k] for k in RIG])
-    np.testing.assert_allclose(got, expected, rtol=0.03)
-    # It is not the fixed-intrinsics Jacobian sigma the reports showed before (that one is far smaller here).
-    assert np.all(got > 1.5 * np.asarray(stereo.std[:6]))
-    assert "propagated" in job.full_set_sigma.label
-
-
 def test_final_option_in_toml_and_its_errors():
     from dstereo.config.calibration import Config, config_from_toml, to_toml, validate
     from dstereo.errors import DstereoError
@@ -246,10 +162,10 @@ def test_final_option_in_toml_and_its_errors():
         validate(cfg.with_overrides(final="median"))
 
 
-def test_cli_stereo_final_mean_writes_the_thesis_rig(tmp_path):
-    """Stereo with `--final mean`: stereo.yml's T and R are the mean of stereo_subsets.csv's surviving rows (the
-    thesis's rig), and stereo.json keeps the consistent rig solve beside it (every pair survives: the full set)."""
-    import csv
+def test_cli_stereo_final_mean_says_what_the_rig_holds(tmp_path):
+    """Stereo with `--final mean` (issue 29: every rig runs the K-camera job, whose rig is the solve on the surviving
+    frames): each camera's own camera.yml holds its subset mean (the thesis's answer), stereo.yml the joint rig on
+    the surviving frames, the same numbers as cameras.yml, and the run says so."""
     import json
 
     from dstereo.io.calib_files import read_stereo_calibration
@@ -259,13 +175,12 @@ def test_cli_stereo_final_mean_writes_the_thesis_rig(tmp_path):
     code, _, err = run_cli("calibrate", "--left", data / "left*.jpg", "--right", data / "right*.jpg", "--pattern",
                            "9x6", "--per-set", "12", "--final", "mean", "--out", out, "-q")
     assert code == 0, err
-    rows = [r for r in csv.DictReader(open(out / "stereo_subsets.csv")) if r["survives"] == "1"]
-    mean = lambda n: np.mean([float(r[n]) for r in rows])  # noqa: E731
+    assert "--final mean: each camera's file holds its subset mean" in err
+    summary = json.loads((out / "cameras.json").read_text())
     back = read_stereo_calibration(out / "stereo.yml", unscaled=True)  # no --square: in board squares
-    # CSV rows at 17 digits, averaged by np.mean in another order than the pipeline: rounding ~1e-15.
-    np.testing.assert_allclose(back.T, [mean(n) for n in ("Tx", "Ty", "Tz")], rtol=1e-12)
-    np.testing.assert_allclose(cv2.Rodrigues(back.R)[0].ravel(), [mean(n) for n in ("RVx", "RVy", "RVz")],
-                               rtol=1e-9, atol=1e-15)  # R written as a matrix: Rodrigues round trip
-    summary = json.loads((out / "stereo.json").read_text())
-    assert summary["final_check"]["choice"] == "mean" and summary["final_check"]["left_out_pairs"] == []
-    assert summary["final_check"]["solution"]["Tx"] == pytest.approx(summary["full_set"]["Tx"], rel=1e-12)
+    right = summary["cameras"][1]
+    # stereo.yml and cameras.json: the same solve written by two writers (17 digits, a JSON float): exact
+    np.testing.assert_allclose(back.T, right["T"], rtol=1e-12)
+    np.testing.assert_allclose(back.K2, right["camera_matrix"], rtol=1e-12)
+    left_mean = json.loads((out / "left" / "summary.json").read_text())
+    assert left_mean["final_source"].startswith("mean over the surviving subsets"), left_mean["final_source"]

@@ -175,35 +175,3 @@ def test_csv_lines_are_what_csv_writer_writes(tmp_path):
     assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
 
 
-def test_stereo_blocks_fill_the_step_columns(tmp_path, monkeypatch):
-    # The stereo glue (solve per block -> STEP_COLUMNS rows -> table), with a stand-in for the rig solver: the
-    # real one is exercised by tests/calib/test_stereo.py (a real run per data set, under KEEP_SOLUTIONS subsets).
-    from dstereo.jobs import calibrate_stereo as stereo_pipeline
-    from dstereo.calib.stereo import STEP_COLUMNS, StereoSubsetSolutions
-
-    def fake(obj, obs_l, obs_r, block, full, progress=None):
-        idx = block.index.astype(float)
-        values = np.column_stack([idx[:, :3] * 1e-3, idx[:, 3:6] + 100.0])  # RVx..RVz, Tx..Tz
-        n = len(block)
-        return StereoSubsetSolutions(plan=block, names=full.names, values=values, std=np.zeros_like(values),
-                                     norm_std=np.zeros((n, 2)), rms=np.ones(n), stereo_re=idx[:, 0],
-                                     iterations=np.ones(n), status=np.ones(n, np.int32), timings={"solve_s": 0.0})
-
-    class Full:
-        names = ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")
-
-    monkeypatch.setattr(stereo_pipeline, "solve_stereo_subsets", fake)
-    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
-    plan = plan_subsets(12, 6)
-    for keep, limit in ((10 ** 6, None), (0, 0)):  # whole solutions kept in memory / none kept, table on disk
-        monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", keep)
-        monkeypatch.setattr(subset_table, "MEMORY_LIMIT_BYTES", 10 ** 9 if limit is None else limit)
-        # the corners only size the blocks (the chunk the real solver would take for 12 pairs of 54 corners)
-        corners = np.zeros((12, 54, 2))
-        subsets, table = stereo_pipeline._solve_stereo_subsets(None, corners, corners, plan, Full(), tmp_path, None)
-        idx = plan.index.astype(float)
-        assert table.columns == STEP_COLUMNS and table.on_disk == (limit == 0)
-        assert np.allclose(table.column("Tnorm"), np.linalg.norm(idx[:, 3:6] + 100.0, axis=1), rtol=0, atol=0)
-        assert np.array_equal(table.column("stereo_re"), idx[:, 0])
-        assert (subsets is None) == (keep == 0) and (subsets is None or len(subsets.status) == len(plan))
-        table.close()

@@ -14,7 +14,7 @@ from dstereo.jobs.stereo_folders import calibrate_stereo_folders
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.io.corners import Detection
-from dstereo.io.stereo_files import box_plots, match_pairs, write_json, write_stereo_corners, write_stereo_yml
+from dstereo.io.stereo_files import match_pairs, write_json, write_stereo_corners, write_stereo_yml
 from dstereo.models.camera import Camera
 from dstereo.models.rig import Rig, essential_matrix, fundamental_matrix, pair_residual, skew
 from dstereo.solver.lm import jacfwd_linearize
@@ -404,42 +404,40 @@ def test_unknown_mode_and_mismatched_pairs_are_errors(synthetic):
 # --- command line ----------------------------------------------------------------------------------------------------
 
 
-def test_cli_thesis_layout_writes_the_stereo_results(tmp_path):
+def test_cli_thesis_layout_equals_cameras_with_the_same_two_folders(tmp_path):
     """PROJECT/images/images_left, images_right, images_stereo_left, images_stereo_right (links to the same
-    pairs): individual calibrations, then the rig."""
-    name, result = _real("opencv_stereo")
-    left, right = _pairs(require_data(name))
+    pairs) runs the one K-camera job (issue 29): its stereo.yml equals `--cameras` with the same two cameras'
+    images (left/01.jpg, right/01.jpg: one frame by name) to the last bit, and holds the rig with its covariance."""
+    left, right = _pairs(require_data("opencv_stereo"))
     for folder, files in (("images_left", left), ("images_right", right), ("images_stereo_left", left),
                           ("images_stereo_right", right)):
         (tmp_path / "project" / "images" / folder).mkdir(parents=True)
         for f in files:
             (tmp_path / "project" / "images" / folder / f.name).symlink_to(f)
-    # Without outlier rejection and on a flat board: the CLI must then reproduce the library's solve of every
-    # corner exactly (`calibrate_stereo_folders`, itself checked against OpenCV on every corner, flat board)
-    code, out, err = run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1",
-                             "--no-outlier-rejection", "--no-board-sag")
+    for side, files in (("left", left), ("right", right)):
+        (tmp_path / "cams" / side).mkdir(parents=True)
+        for f in files:
+            (tmp_path / "cams" / side / (f.stem[len(side):] + f.suffix)).symlink_to(f)
+    code, out, err = run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1")
     assert code == 0, err
     res = tmp_path / "project" / "results"
-    assert "stereo: 13 pairs (0 dropped)" in out and "baseline |T|" in out
-    for f in ("stereo.yml", "stereo.json", "corners.npz", "stereo_pairs.csv", "report.md", "summary.json",
-              "left/camera.yml", "right/camera.yml", "plots/rig.png", "plots/pair_rms.png"):
+    assert "rig: 13 frames, joint RMS" in out and "left-right: baseline |T|" in out
+    for f in ("stereo.yml", "cameras.yml", "cameras.json", "frames.csv", "report.md", "summary.json",
+              "left/camera.yml", "right/camera.yml", "rig_left.cameramodel", "rig_right.cameramodel",
+              "plots/rig.png", "plots/rig_consistency.png"):
         assert (res / f).is_file(), f
-    back = read_stereo_calibration(res / "stereo.yml")
-    np.testing.assert_allclose(back.T, result.stereo.T, rtol=1e-9)  # no subsets: intrinsics = full-set solves
-    # stereo.yml written with 17 significant digits and read back: exact up to the last bit.
-    np.testing.assert_allclose(back.R, result.stereo.R, atol=1e-12)
-    np.testing.assert_allclose(back.K2, result.mono_right.camera_matrix, rtol=1e-12)
-    summary = json.loads((res / "stereo.json").read_text())
-    full = summary["full_set"]  # the +- shown is the propagated one (issue 15); the held-intrinsics one beside it
-    assert full["std_intrinsics_exact"]["Tnorm"] == pytest.approx(result.stereo.baseline_std, rel=1e-6)
-    assert "propagated" in full["std_kind"] and full["baseline"]["std"] == full["std"]["Tnorm"]
-    for k in ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"):  # = stereo.yml's covariance (no subsets: same solve)
-        assert full["std"][k] == pytest.approx(summary["calibration_covariance"]["std"][k], rel=1e-12)
-        assert full["std"][k] > full["std_intrinsics_exact"][k]
-    assert [p["left"] for p in summary["pairs"]] == [a for a, _ in result.pairs]
-    with np.load(res / "corners.npz") as z:
-        assert sorted(z.files) == sorted(["object_points"] + [f"left/{a}" for a, _ in result.pairs]
-                                         + [f"right/{b}" for _, b in result.pairs])
+    code, _, err = run_cli("calibrate", "--cameras", tmp_path / "cams", "--pattern", "9x6", "--square", "1",
+                           "--out", tmp_path / "k", "-q")
+    assert code == 0, err
+    a, b = (read_stereo_calibration(p, unscaled=True)
+            for p in (res / "stereo.yml", tmp_path / "k" / "stereo_left_right.yml"))
+    for name in ("K1", "D1", "K2", "D2", "R", "T"):  # one job on the same corners: the same bits
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    np.testing.assert_array_equal(a.extras["cov"], b.extras["cov"])
+    # the pair's covariance holds both cameras' intrinsics (reconstruct's point sigma carries them)
+    assert a.extras["cov"].shape[0] > 6 and "left.fx" in a.extras["cov_names"]
+    summary = json.loads((res / "cameras.json").read_text())
+    assert "individual and stereo folders" in summary["sources"] and summary["frames"] == 13
 
 
 def test_cli_stereo_errors_exit_1_and_write_nothing(tmp_path):
@@ -451,16 +449,3 @@ def test_cli_stereo_errors_exit_1_and_write_nothing(tmp_path):
                             "--pattern", "9x6", "--out", out)
     assert code == 1 and "9 left images" in err and "25 right images" in err
     assert not out.exists() and list(tmp_path.iterdir()) == []
-
-
-def test_box_plots_of_initial_and_optimised_subsets(tmp_path):
-    from dstereo.calib.robust_steps import run_steps
-    from dstereo.config.calibration import Step
-
-    rng = np.random.default_rng(0)
-    table = np.column_stack([rng.uniform(0.1, 0.2, 40), rng.normal(3.3, 0.01, (40, 8))])
-    table[0, 1] = 9.0  # an outlier |T|
-    f = run_steps(table, st.STEP_COLUMNS, [Step(("Tnorm",), (0.75,))])
-    assert not f.survivors[0]
-    box_plots(f, ("Tnorm", "Tx", "Ty", "Tz"), tmp_path / "T.png", "translation vector T", "mm")
-    assert (tmp_path / "T.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

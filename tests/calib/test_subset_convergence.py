@@ -8,7 +8,8 @@ import pytest
 
 from conftest import require_data
 from dstereo.calib import mono
-from dstereo.jobs import calibrate_stereo as stereo_pipeline
+from dstereo.calib.calibrations import StereoSources
+from dstereo.jobs.calibrate_stereo import calibrate_stereo_project
 from dstereo.jobs.calibrate_camera import calibrate_camera
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
@@ -51,17 +52,24 @@ def test_a_calibration_with_no_converged_subset_is_refused(monkeypatch):
         calibrate_camera(folder, CONFIG.with_overrides(glob="left*.jpg"))
 
 
-def test_unconverged_stereo_subsets_are_left_out_of_the_rig(monkeypatch):
+def test_unconverged_rig_subsets_are_left_out_of_the_rig(monkeypatch):
+    """A stereo rig (the K-camera job, K = 2): the rig's frame subsets whose solves did not converge are left out of
+    the statistics the stereo steps and the survivors are computed from, with a warning."""
+    from dstereo.calib import rig_subsets
+
     folder = require_data("opencv_stereo")
     left, right = sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg"))
-    sources = stereo_pipeline.StereoSources(tuple(left), tuple(right), tuple(left), tuple(right), "test pairs")
-    real = stereo_pipeline.solve_stereo_subsets
-    monkeypatch.setattr(stereo_pipeline, "solve_stereo_subsets", lambda *a, **k: _poison(real(*a, **k), 3, 1.0))
-    job = stereo_pipeline.calibrate_stereo_project(sources, CONFIG.with_overrides(mode="stereo"))
-    assert (~job.subsets.converged).sum() == 2
-    assert any("2 of 13 stereo subset solves did not converge" in w for w in job.warnings)
-    cols = job.subsets.columns()
-    keep = job.subsets.converged
+    sources = StereoSources(tuple(left), tuple(right), tuple(left), tuple(right), "test pairs")
+    real = rig_subsets.solve_view_subsets
+    # column 3: the right camera's Tx (after its RVx, RVy, RVz), moved by 1 square in the poisoned two
+    monkeypatch.setattr(rig_subsets, "solve_view_subsets", lambda *a, **k: _poison(real(*a, **k), 3, 1.0))
+    job = calibrate_stereo_project(sources, CONFIG.with_overrides(mode="stereo"))
+    assert any("2 of 13 rig subset solves did not converge" in w for w in job.warnings), job.warnings
+    f = job.subsets.filtering
+    assert list(np.flatnonzero(~f.usable)) == POISONED
+    alive = f.alive_after(len(f.steps))
+    assert not alive[POISONED].any() and alive.sum() > 0
     # Tx moved by 1 square in the poisoned two: averaged in, Tx would move by 2 / 13 = 0.15 square.
-    for name in ("Tx", "Tnorm", "RVx", "stereo_re"):
-        assert job.final[name] == pytest.approx(cols[name][keep].mean(), rel=1e-12), name
+    for name in ("Tx@left-right", "Tnorm@left-right", "RVx@left-right", "stereo_re@left-right"):
+        column = f.column(name)
+        assert job.subsets.stats()[name]["mean"] == pytest.approx(column[alive].mean(), rel=1e-12), name
