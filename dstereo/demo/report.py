@@ -81,8 +81,9 @@ def markdown(comparison: dict) -> str:
     lines += [f"- after the steps: {k} = {v['mean']:.6g} +- {v['std']:.3g}" for k, v in sub["after_steps"].items()]
     lines += ["", "## Sub-pixel refinement and predicted error", ""] + [f"- {n}" for n in surface_lines(comparison)]
     for key in ("joint", "thesis", "true_calibration", "joint_sgbm", "true_calibration_sgbm"):
-        title = ("calibration/stereo.yml, dstereo calibrate's joint rig solve on the surviving frames" if key == "thesis"
-                 else key.replace('_', ' ').replace('sgbm', 'SGBM only, no refinement'))
+        title = key.replace('_', ' ').replace('sgbm', 'SGBM only, no refinement')
+        if key == "thesis":
+            title = "calibration/stereo.yml, dstereo calibrate's joint rig solve on the surviving frames"
         lines += ["", f"## Surface ({title})", ""]
         lines += [f"- {k}: {number_text(v) if isinstance(v, float) else v}" for k, v in comparison["surface"][key].items()]
     lines += ["", "## Files", ""] + [f"- {k}: `{v}`" for k, v in comparison["paths"].items()]

@@ -180,9 +180,9 @@ def joint_covariance(s, obj: np.ndarray, obs_left: np.ndarray, obs_right: np.nda
 
 def reconstruct_sample(out: Path, rig, pair, settings: DemoSettings, report) -> dict:
     """Reconstruct the sample pair with the joint calibration (written to out/reconstruction), and with
-    calibration/stereo.yml (key "thesis": `dstereo calibrate`'s) and the true calibrations (the latter: matching alone), all with the sub-pixel refinement; errors of
-    each against the true surface, the joint and true ones also without the refinement (`*_sgbm`), and the joint
-    reconstruction's predicted depth std (`sigma_z_mm`)."""
+    calibration/stereo.yml (key "thesis": `dstereo calibrate`'s) and the true calibrations (the latter: matching
+    alone), all with the sub-pixel refinement; errors of each against the true surface, the joint and true ones also
+    without the refinement (`*_sgbm`), and the joint reconstruction's predicted depth std (`sigma_z_mm`)."""
     from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration
     from dstereo.io.reconstruction_files import write_atomically, write_pair
     from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated

@@ -106,7 +106,7 @@ def test_subset_steps_of_figure_5_14_ran(run):
     sub = c["subsets"]
     assert sub["solved"] == sub["converged"] == 28 and 0 < sub["survivors"] <= 28
     assert [s.split(" (")[1].split(")")[0] for s in sub["steps"]] == [
-        "stereo_re <= 3 px", "Tnorm within 0.75 IQR", "RVnorm within 0.75 IQR"]
+        "stereo_re@left-right <= 3 px", "Tnorm@left-right within 0.75 IQR", "RVnorm@left-right within 0.75 IQR"]
     assert sub["after_steps"]["stereo_re"]["mean"] < 0.05
     assert abs(sub["after_steps"]["Tnorm"]["mean"] / 100.0 - 1) < 1e-3
     assert rows(c)["baseline |T|"]["thesis"] == pytest.approx(sub["after_steps"]["Tnorm"]["mean"])
@@ -116,8 +116,8 @@ def test_results_are_written(run):
     out, c = run
     for path in ("scenes/calibration/images_left/left_07.png", "scenes/calibration/images_right/right_07.png",
                  "scenes/calibration/truth.json", "scenes/sample/images_left/left_000.npz",
-                 "scenes/sample/images_right/right_000.png", "calibration/stereo.yml", "calibration/stereo.json",
-                 "calibration/left/camera.yml", "calibration/stereo_stats/step_3.txt", "calibration_joint/stereo.yml",
+                 "scenes/sample/images_right/right_000.png", "calibration/stereo.yml", "calibration/cameras.json",
+                 "calibration/left/camera.yml", "calibration/rig_left.cameramodel", "calibration_joint/stereo.yml",
                  "calibration_joint/stereo.json", "reconstruction/summary.json", "reconstruction/mesh.ply",
                  "comparison.md"):
         assert (out / path).is_file(), path
@@ -130,8 +130,15 @@ def test_results_are_written(run):
     assert json.loads((out / "comparison.json").read_text())["rows"][0]["parameter"] == "left fx"
     assert "| parameter | truth | thesis path | error | joint | error | sigma | bound | check |" in (
         out / "comparison.md").read_text()
-    thesis = read_stereo_calibration(out / c["paths"]["thesis_yml"])
-    assert thesis.K1[0, 0] == pytest.approx(r["left fx"]["thesis"])
+    from dstereo.io.camera_file import read_camera_file
+
+    # the thesis path's left camera is its own calibration's camera.yml (its subset mean, --final mean)
+    left = read_camera_file(out / "calibration" / "left" / "camera.yml")
+    assert left.K[0, 0] == pytest.approx(r["left fx"]["thesis"])
+    # calibration/stereo.yml: the K-camera job's rig (its cameras.yml's), which the "thesis" surface reconstructs with
+    rig = json.loads((out / "calibration" / "cameras.json").read_text())
+    assert read_stereo_calibration(out / c["paths"]["thesis_yml"]).K1 == pytest.approx(
+        np.array(rig["cameras"][0]["camera_matrix"]))
 
 
 def test_existing_out_is_refused_without_force(tmp_path):
