@@ -24,6 +24,29 @@ class PairCalibration:
     poses: np.ndarray  # (V, 6) T_a_board of the frames both cameras saw (the stereo job's pairs)
     board: np.ndarray  # (n, 3) the board the solve fitted (sagged when it solved the sag)
 
+    def columns(self) -> dict[str, tuple[float, float]]:
+        """The thesis's rig columns (RIG_COLUMNS) as (value, std) from the pair's covariance; the lengths |T| and
+        |RV| with their first-order std (the gradient of the norm through the 3 x 3 block)."""
+        from dstereo.models.pose import rotation_vector
+
+        rvec, T = np.asarray(rotation_vector(self.R), float), np.ravel(np.asarray(self.T, float))
+        idx = [list(self.cov_names).index(n) for n in ("RVx", "RVy", "RVz", "Tx", "Ty", "Tz")]
+        cov = np.asarray(self.cov, float)[np.ix_(idx, idx)]
+        out = {n: (float(v), float(np.sqrt(max(cov[i, i], 0.0))))
+               for i, (n, v) in enumerate(zip(("RVx", "RVy", "RVz", "Tx", "Ty", "Tz"), np.r_[rvec, T]))}
+        out["Tnorm"] = (float(np.linalg.norm(T)), _norm_std(T, cov[3:, 3:]))
+        out["RVnorm"] = (float(np.linalg.norm(rvec)), _norm_std(rvec, cov[:3, :3]))
+        return {n: out[n] for n in RIG_COLUMNS}
+
+
+RIG_COLUMNS = ("Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")  # the thesis's, stereo_re aside
+
+
+def _norm_std(v: np.ndarray, cov: np.ndarray) -> float:
+    n = float(np.linalg.norm(v))
+    grad = v / n if n > 0 else np.zeros(3)
+    return float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+
 
 def pair_calibration(solution, a: int, b: int, obj: np.ndarray) -> PairCalibration:
     """Cameras a (left) and b (right) of a `calib.multiview.MultiviewSolution` (mode "joint") as one stereo rig;

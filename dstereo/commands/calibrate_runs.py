@@ -65,11 +65,7 @@ def _print_rig(job, out: Path, quiet: bool, started: float) -> None:
                        f"({int(job.visible[:, job.labels.index(label)].sum())} views)" + _chosen(job, label))
         typer.echo(f"rig: {len(job.frames)} frames, joint RMS {sol.rms:.4f} px (held {job.held.rms:.4f} px)")
         for pair in job.pair_files:
-            a, b = job.labels[pair.a], job.labels[pair.b]
-            std = dict(zip(pair.cov_names, np.sqrt(np.maximum(np.diag(pair.cov), 0.0))))
-            typer.echo(f"{a}-{b}: baseline |T| {np.linalg.norm(pair.T):.6g} {job.config.unit}, T ("
-                       + ", ".join(f"{float(t):.6g} +- {std.get(n, float('nan')):.3g}"
-                                   for t, n in zip(np.ravel(pair.T), ("Tx", "Ty", "Tz"))) + ")")
+            typer.echo("\n".join(_pair_lines(job, pair)))
         if job.consistency is not None:
             typer.echo(job.consistency.line())
         if job.cross_validation is not None:
@@ -77,6 +73,21 @@ def _print_rig(job, out: Path, quiet: bool, started: float) -> None:
         if job.subsets is not None:
             typer.echo("\n".join(job.subsets.lines()))
         typer.echo(f"wrote {out}")
+
+
+def _pair_lines(job, pair) -> list[str]:
+    """A pair's rig table: the written (joint) value +- its std (the pair file's covariance) beside, with subsets,
+    the thesis's subset mean +- spread over the surviving subsets (`NAME@a-b` columns)."""
+    a, b = job.labels[pair.a], job.labels[pair.b]
+    stats = job.subsets.stats() if job.subsets is not None else {}
+    pm = lambda v, e: f"{v:.6g} +- {e:.3g}"  # noqa: E731
+    head = f"{a}-{b} ({job.config.unit}, rad)"
+    kept = "" if job.subsets is None else f"subset mean +- spread of {int(job.subsets.filtering.survivors.sum())}"
+    lines = [f"{head:>14}  {'rig +- std (pair covariance)':>30}  {kept}"]
+    for name, (value, std) in pair.columns().items():
+        s = stats.get(f"{name}@{a}-{b}")
+        lines.append(f"{name:>14}  {pm(value, std):>30}  {'' if s is None else pm(s['mean'], s['std'])}")
+    return lines
 
 
 def _chosen(job, label: str) -> str:

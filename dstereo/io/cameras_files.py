@@ -13,8 +13,11 @@ layout: a finished `calib.calibrations.MultiviewJob`):
                                  as a stereo job's stereo.yml, the board depths and corner angles of the frames
                                  both cameras saw
     frames.csv                   which camera saw which frame, each view's RMS (joint solve)
+    rig_subsets.csv, rig_stats/  with images per set m: each rig subset (its frames, every pair's stereo columns
+                                 NAME@a-b, its fate) and the thesis's statistics files per step
     plots/                       rig.png (the rig and every frame's board), rig_consistency.png (each frame's
-                                 share of the consistency statistic)
+                                 share of the consistency statistic); with subsets T.png, RV.png (the thesis's
+                                 Figures 5.15/5.16; per pair T_<a>-<b>.png, RV_<a>-<b>.png for K > 2)
     summary.json, report.md
 """
 
@@ -159,9 +162,35 @@ def report_markdown(summary: dict) -> str:
             f"\n- {n}" for n in summary["stereo_notes"])]
     lines += ["", "## Figures", "", "![rig](plots/rig.png)", "",
               "![rig consistency per frame](plots/rig_consistency.png)"]
+    lines += [x for name in summary.get("subset_figures", []) for x in ("", f"![{name}]({name})")]
     if summary["warnings"]:
         lines += ["", "## Warnings"] + [f"- {w}" for w in summary["warnings"]]
     return "\n".join(lines) + "\n"
+
+
+def _rig_subset_files(folder: Path, job: MultiviewJob) -> list[str]:
+    """With rig subsets: rig_subsets.csv (each subset's frames, every pair's stereo columns, its fate), rig_stats/
+    (the thesis's statistics files per step and column) and, per camera pair, the thesis's box plots of T and RV
+    (Figures 5.15/5.16: plots/T.png, RV.png for a stereo rig; T_<a>-<b>.png ... for K > 2). Returns the figures."""
+    from dstereo.io.results import write_stats_files, write_subsets_csv
+    from dstereo.io.rig_figures import box_plots
+
+    sub = job.subsets
+    if sub is None:
+        return []
+    write_subsets_csv(folder / "rig_subsets.csv", sub.plan, sub.filtering)
+    write_stats_files(folder / "rig_stats", sub.filtering, "RIG PARAMETERS")
+    figures = []
+    pairs = [c.split("@")[1] for c in sub.columns if c.startswith("Tnorm@")]
+    for pair in pairs:
+        tail = "" if len(pairs) == 1 else f"_{pair}"
+        for names, stem, title in ((("Tnorm", "Tx", "Ty", "Tz"), "T", "translation vector T"),
+                                   (("RVnorm", "RVx", "RVy", "RVz"), "RV", "rotation vector RV")):
+            name = f"plots/{stem}{tail}.png"
+            box_plots(sub.filtering, [f"{n}@{pair}" for n in names], folder / name, f"{title} ({pair})",
+                      job.config.unit)
+            figures.append(name)
+    return figures
 
 
 def _rig_figures(plots: Path, job: MultiviewJob) -> None:
@@ -208,6 +237,7 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)
             _rig_figures(tmp / "plots", job)
+            summary["subset_figures"] = _rig_subset_files(tmp, job)
             write_json(tmp / "summary.json", summary)
             (tmp / "report.md").write_text(report_markdown(summary))
     finally:

@@ -105,3 +105,26 @@ def consistency_figure(consistency, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+RIG_UNITS = {"stereo_re": "px", "RVnorm": "rad", "RVx": "rad", "RVy": "rad", "RVz": "rad"}  # the rest: board unit
+
+
+def box_plots(filtering, names, path: Path, title: str, unit: str) -> None:
+    """Thesis Figures 5.15/5.16: one panel per column (`NAME@a-b` of `calib/rig_subsets.py`), box plots of the
+    initial and the optimised subsets."""
+    from dstereo.io.plots import box_stats
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.8))
+    for ax, name in zip(np.atleast_1d(axes), names):
+        col = filtering.column(name)
+        ax.bxp([box_stats(col[filtering.alive_after(0)], "initial"), box_stats(col[filtering.survivors], "final")],
+               widths=0.6)
+        ax.set_xticks([1, 2], ["initial", "optimised"])
+        ax.set_title(f"{name} ({RIG_UNITS.get(name.split('@')[0], unit)})")
+        ax.ticklabel_format(axis="y", useOffset=False)
+    fig.suptitle(f"{title}: {int(filtering.usable.sum())} initial, {int(filtering.survivors.sum())} optimised subsets")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

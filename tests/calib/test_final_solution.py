@@ -182,5 +182,11 @@ def test_cli_stereo_final_mean_says_what_the_rig_holds(tmp_path):
     # stereo.yml and cameras.json: the same solve written by two writers (17 digits, a JSON float): exact
     np.testing.assert_allclose(back.T, right["T"], rtol=1e-12)
     np.testing.assert_allclose(back.K2, right["camera_matrix"], rtol=1e-12)
+    # the rig subsets' files (C(13, 12) = 13 subsets), the thesis's statistics and its Figures 5.15/5.16
+    rows = (out / "rig_subsets.csv").read_text().splitlines()
+    assert len(rows) == 14 and "Tnorm@left-right" in rows[0] and "survives" in rows[0]
+    assert (out / "rig_stats" / "step_0_initial.txt").is_file()
+    for name in ("plots/T.png", "plots/RV.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"]({name})" in (out / "report.md").read_text()
     left_mean = json.loads((out / "left" / "summary.json").read_text())
     assert left_mean["final_source"].startswith("mean over the surviving subsets"), left_mean["final_source"]
