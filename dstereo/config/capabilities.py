@@ -41,13 +41,11 @@ CAPABILITIES: dict[str, tuple] = {
                       "images/images_right)"), True,
         "--model-right: only for a stereo rig (--left/--right); --cameras takes one --model for every camera"),
     SPLINED: (True, SPLINED_RIG, SPLINED_RIG),
-    "final = the survivors' solve (`--final mean`: the thesis's mean; a K-camera rig's file keeps the solve, each "
-    "pair's subset mean beside it)": (True, True, True),
+    "final = the survivors' solve (`--final mean`: the thesis's mean for each camera; a rig's file keeps the "
+    "solve, each pair's subset mean beside it)": (True, True, True),
     "mrcal `.cameramodel` (each camera; a rig's in its frame)": (True, True, True),
     "rig consistency test, rig figures": ("-", True, True),
-    "a frame the rig cannot explain (the other frames can) leaves the rig": (
-        "-", "not yet: the consistency warning names the frames; remove them from the folders, or give them "
-        "as --cameras DIR (a rig that fails the test loses them there)", True),
+    "a frame the rig cannot explain (the other frames can) leaves the rig": ("-", True, True),
     "stereo files with the calibration covariance (`reconstruct`'s point sigmas)": ("-", True, True),
 }
 
