@@ -66,30 +66,17 @@ def _mono_residual(pose, k, coeffs, obj, obs_v, rig, lens=project):
     return (jax.vmap(lens, in_axes=(None, None, 0))(k, coeffs, p) - obs_v).ravel()
 
 
-def _pair_residual(pose, cams, obj, obs_v, rig, lenses=(project, project)):
-    """Both cameras' residuals of one pair; `pose` is the board in the left camera, `rig` maps left -> right;
-    `lenses`: each camera's projection (k, coeffs, p) (`mono.lens_functions`)."""
-    (k_l, c_l), (k_r, c_r) = cams
-    p_l = obj @ rodrigues(pose[:3]).T + pose[3:6]
-    p_r = p_l @ rodrigues(rig[:3]).T + rig[3:6]
-    proj_l, proj_r = (jax.vmap(lens, in_axes=(None, None, 0)) for lens in lenses)
-    return jnp.concatenate([(proj_l(k_l, c_l, p_l) - obs_v[0]).ravel(), (proj_r(k_r, c_r, p_r) - obs_v[1]).ravel()])
-
-
 @functools.lru_cache(maxsize=None)
-def _refit(stereo: bool, free: tuple[str, ...] = (), right_free: tuple[str, ...] = ()):
-    """Compiled: every view's pose refitted by LM for fixed camera(s) (and rig); returns poses and SSE per view.
-    `free` names the mono (or the left) camera's lens model (`mono.lens_functions`: pinhole or fisheye),
-    `right_free` the right camera's of a pair."""
+def _refit(free: tuple[str, ...] = ()):
+    """Compiled: every view's pose refitted by LM for a fixed camera; returns poses and SSE per view. `free` names
+    the camera's lens model (`mono.lens_functions`: pinhole or fisheye)."""
     from dstereo.calib.mono import lens_functions
 
     lens = lens_functions(free)[0]
-    lenses = (lens, lens_functions(right_free)[0])
 
     def one(pose0, cams, obj, obs_v, rig, w_v):
         # w_v: residual weights (0 = an outlier corner, calib/outliers.py), as in the solve
-        res = (lambda p: _pair_residual(p, cams, obj, obs_v, rig, lenses) * w_v) if stereo else \
-            (lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens) * w_v)
+        res = lambda p: _mono_residual(p, cams[0], cams[1], obj, obs_v, rig, lens) * w_v  # noqa: E731
         cost0 = jnp.sum(res(pose0) ** 2)
 
         def body(state):
@@ -113,7 +100,7 @@ def _refit(stereo: bool, free: tuple[str, ...] = (), right_free: tuple[str, ...]
 
     from dstereo.runtime import aot  # kept on disk: a new process skips tracing it
 
-    return aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit", (stereo, free))
+    return aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit", (free,))
 
 
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
@@ -145,7 +132,7 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = (), inli
     free = tuple(free)
     cams = (np.asarray(k, float), np.asarray(coeffs, float))
     obj, obs = np.asarray(obj, float), np.asarray(obs, float)
-    refit = _refit(False, free)
+    refit = _refit(free)
     mask = np.ones(obs.shape[:2], bool) if inliers is None else np.asarray(inliers, bool)
     w = np.repeat(mask.astype(float), 2, axis=1)
     poses, sse = (np.asarray(a) for a in refit(np.asarray(start_poses, float), cams, obj, obs, np.zeros(6), w))
@@ -159,21 +146,6 @@ def refit_rms(k, coeffs, obj, obs, start_poses, free: tuple[str, ...] = (), inli
         better = np.isfinite(sse_h) & ~(sse_h >= sse)
         poses, sse = np.where(better[:, None], poses_h, poses), np.where(better, sse_h, sse)
     return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1))), poses
-
-
-def refit_pairs_rms(left, right, rig, obj, obs_l, obs_r, start_poses, inliers=None, frees=((), ())) -> float:
-    """RMS px over both cameras' corners of fixed cameras (k, coeffs) and rig (6,), board poses refitted;
-    `inliers` (V, 2, n): the corners that count (the rig solve's outlier mask; default all); `frees`: the two
-    cameras' free sets, which name their lens models (pinhole or fisheye)."""
-    from dstereo.calib.stereo import pair_weights
-
-    cams = tuple((np.asarray(c[0], float), np.asarray(c[1], float)) for c in (left, right))
-    data = np.stack([np.asarray(obs_l, float), np.asarray(obs_r, float)], axis=1)  # (V, 2, n, 2)
-    mask = np.ones((len(data), 2, data.shape[2]), bool) if inliers is None else np.asarray(inliers, bool)
-    refit = _refit(True, *(tuple(f) for f in frees))
-    _, sse = refit(np.asarray(start_poses, float), cams, np.asarray(obj, float), data, np.asarray(rig, float),
-                   pair_weights(mask))
-    return float(np.sqrt(np.sum(sse) / max(int(mask.sum()), 1)))
 
 
 # --- the decision -------------------------------------------------------------------------------------------

@@ -226,12 +226,3 @@ def of_multiview(joint, obj, obs, inliers=None, frames=None) -> RigConsistency:
                            joint.labels, frames)
 
 
-def of_stereo(joint, obj, obs_left, obs_right, pairs=None) -> RigConsistency:
-    """The test on a `stereo.StereoSolution` solved in "joint" mode (obs_* (V, n, 2) of its pairs)."""
-    obs = np.stack([obs_left, obs_right], axis=1).astype(float)
-    mask = np.ones(obs.shape[:3], bool) if joint.inliers is None else np.asarray(joint.inliers, bool)
-    rig_sse = np.sum(np.asarray(joint.residuals) ** 2 * mask[..., None], axis=(2, 3))
-    extrinsics = np.stack([np.zeros(POSE_SIZE), np.concatenate([joint.rvec, joint.T])])
-    frames = [f"{a} / {b}" for a, b in pairs] if pairs is not None else [f"pair {p}" for p in range(len(obs))]
-    return rig_consistency(obj, obs, mask, [joint.left, joint.right], rig_sse, extrinsics, joint.poses, None,
-                           ("left", "right"), frames)

@@ -279,48 +279,6 @@ def test_stereo_yml_carries_the_covariance_and_old_files_still_read(mc, tmp_path
         pu.theta_index(("left.fx", "left.skew"))
 
 
-def test_fixed_mode_covariance_carries_the_intrinsics_errors_into_the_rig(mc):
-    """Fixed mode: A = d rig / d intrinsics against central differences of re-solved fixed-mode rigs, and the
-    covariance assembled from it (block-diagonal only on request)."""
-    from scipy.linalg import block_diag
-
-    from dstereo.uncertainty.rig import BLOCK_STRUCTURE, FIXED_STRUCTURE, rig_covariance, rig_sensitivity
-
-    ql, qr = mc.data[:, 0], mc.data[:, 1]
-    fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")
-    a = rig_sensitivity(mc.obj, ql, qr, fixed)
-    n_l = len(mc.left.free_vector())
-    for j, h in ((2, 0.5), (n_l + 4, 1e-3)):  # left.cx, right.k1
-        rigs = []
-        for sign in (1.0, -1.0):
-            cams = [mc.left, mc.right]
-            side, k = (0, j) if j < n_l else (1, j - n_l)
-            cams[side] = cams[side].with_free_vector(cams[side].free_vector().at[k].add(sign * h))
-            rigs.append(st.calibrate_stereo(mc.obj, ql, qr, *cams, "fixed").values)
-        fd = (rigs[0] - rigs[1]) / (2 * h)
-        np.testing.assert_allclose(a[:, j], fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
-    assert np.abs(a[1, 2]) > 1e-4  # a principal point shift turns the rig (RVy): the compensation that matters
-    mono = lambda cam, s: SimpleNamespace(full=SimpleNamespace(  # noqa: E731
-        names=cam.free_names(), cov=np.diag(np.linspace(1.0, 2.0, len(cam.free_names())) * s)))
-    job = SimpleNamespace(left=mono(mc.left, 0.1), right=mono(mc.right, 0.2), full=fixed,
-                          detection=SimpleNamespace(object_points=mc.obj, observations=lambda: (ql, qr)))
-    names, cov, structure = rig_covariance(job)
-    c_k = block_diag(job.left.full.cov, job.right.full.cov)
-    assert names[:4] == ("left.fx", "left.fy", "left.cx", "left.cy") and names[-6:] == st.RIG_NAMES
-    assert structure == FIXED_STRUCTURE and "propagated" in structure
-    np.testing.assert_allclose(cov[:len(c_k), :len(c_k)], c_k)
-    # Matrix products whose summation order depends on the BLAS kernel (so on the CPU): rounding is relative to
-    # the largest term (~20 terms, eps each), not to an entry that cancels, hence the atol.
-    rig_block = fixed.cov + a @ c_k @ a.T
-    np.testing.assert_allclose(cov[len(c_k):, :len(c_k)], a @ c_k, rtol=1e-12, atol=1e-12 * np.abs(a @ c_k).max())
-    np.testing.assert_allclose(cov[len(c_k):, len(c_k):], rig_block, rtol=1e-12, atol=1e-12 * np.abs(rig_block).max())
-    assert np.all(np.linalg.eigvalsh(cov) > -1e-12 * np.abs(cov).max())
-    names_b, cov_b, structure_b = rig_covariance(job, propagate=False)
-    assert names_b == names and structure_b == BLOCK_STRUCTURE
-    np.testing.assert_array_equal(cov_b, block_diag(c_k, fixed.cov))
-    pu.theta_index(names)  # every name is a rig parameter
-
-
 def _lr_maps(rng, sigma, outliers=0.0, h=120, w=400):
     """Left and right disparity maps of a smooth surface with independent N(0, sigma) errors; a fraction
     `outliers` of the left pixels are wrong matches."""
