@@ -1,5 +1,6 @@
 """The covariance of what a pair file (stereo.yml) carries: both cameras' intrinsics and the pair's rig, from the
-rig's one joint solve (`pair_covariance`)."""
+rig's one joint solve (`pair_covariance`); and how a fixed-intrinsics rig moves with its held intrinsics
+(`rig_sensitivity`, the bound a test of the fixed-mode pair solver needs)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,37 @@ import numpy as np
 
 
 JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-set)"
+
+
+def rig_sensitivity(obj, obs_left, obs_right, solution) -> np.ndarray:
+    """A = d rig / d (left, right intrinsics) (6, G_l + G_r) of a fixed-intrinsics stereo solve: how the rig
+    that fits the pairs moves when the held intrinsics move, -S_rr^-1 S_rk with S the Schur complement of
+    J^T J (board poses eliminated) of the pairs' residuals, at the solution."""
+    import jax
+    import jax.numpy as jnp
+
+    from dstereo.models.rig import pair_residual
+
+    left, right, n_l = solution.left, solution.right, len(solution.left.free_vector())
+    per_pair = jax.vmap(pair_residual, in_axes=(None, None, None, None, None, 0, None, 0, 0))
+    obj, obs_l, obs_r = (jnp.asarray(a, float) for a in (obj, obs_left, obs_right))
+
+    def residuals(x):
+        cam_l, cam_r = left.with_free_vector(x[6:6 + n_l]), right.with_free_vector(x[6 + n_l:x.size - poses.size])
+        return per_pair(cam_l.k, cam_l.dist.coeffs, cam_r.k, cam_r.dist.coeffs, x[:6],
+                        x[x.size - poses.size:].reshape(-1, 6), obj, obs_l, obs_r).ravel()
+
+    poses = np.asarray(solution.poses, float)
+    x = np.concatenate([solution.values[:6], np.asarray(left.free_vector()), np.asarray(right.free_vector()),
+                        poses.ravel()])
+    jac = np.asarray(jax.jit(jax.jacfwd(residuals))(jnp.asarray(x)))
+    scale = np.linalg.norm(jac, axis=0)
+    jac = jac / scale  # Jacobi scaling: fx (px) next to k3 spans many decades
+    n_g = x.size - poses.size
+    jg, jp = jac[:, :n_g], jac[:, n_g:]
+    schur = jg.T @ jg - jg.T @ jp @ np.linalg.solve(jp.T @ jp, jp.T @ jg)
+    a = -np.linalg.solve(schur[:6, :6], schur[:6, 6:])
+    return a * scale[:6, None] ** -1 * scale[None, 6:n_g]
 
 
 PAIR_STRUCTURE = ("joint (a rig of K cameras, K >= 2): both cameras' intrinsics and the pair's rig from the rig's one joint solve of "

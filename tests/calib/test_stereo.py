@@ -421,7 +421,7 @@ def test_cli_thesis_layout_equals_cameras_with_the_same_two_folders(tmp_path):
     code, out, err = run_cli("calibrate", tmp_path / "project", "--pattern", "9x6", "--square", "1")
     assert code == 0, err
     res = tmp_path / "project" / "results"
-    assert "rig: 13 frames, joint RMS" in out and "left-right: baseline |T|" in out
+    assert "rig: 13 frames, joint RMS" in out and "left-right (mm, rad)" in out and "Tnorm" in out
     for f in ("stereo.yml", "cameras.yml", "cameras.json", "frames.csv", "report.md", "summary.json",
               "left/camera.yml", "right/camera.yml", "rig_left.cameramodel", "rig_right.cameramodel",
               "plots/rig.png", "plots/rig_consistency.png"):

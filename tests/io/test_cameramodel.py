@@ -403,3 +403,45 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     ext_sigma = np.array([[sigma[f"{sol.labels[k]}.{n}"] for n in EXTRINSIC_NAMES] for k in (1, 2)])
     moved = np.abs(np.array(got[0]["extrinsics"]) - ext) / ext_sigma
     assert moved.max() < 1e-6, moved.max()
+
+
+@pytest.mark.parametrize("rig", ["opencv_stereo", "rig640"])
+def test_a_real_stereo_rigs_files_carry_the_joint_solve_mrcal_reevaluates(tmp_path, rig):
+    """Issue 35 on the shared real rigs: `calibrate --left/--right` (the K-camera job, defaults: outlier rejection,
+    the board's sag) writes rig_left/rig_right.cameramodel with the joint solve stereo.yml holds as mrcal's
+    optimization inputs; mrcal evaluates them to dstereo's RMS (the rejected corners marked as its outliers) and,
+    re-solving from them, moves no parameter by 1e-6 of its sigma."""
+    import json
+    import subprocess
+
+    from dstereo.calib.multiview import EXTRINSIC_NAMES
+
+    _mrcal_or_skip()
+    data = require_data(rig)
+    out = tmp_path / "r"
+    code, _, err = run_cli("calibrate", "--left", data / "left*.jpg", "--right", data / "right*.jpg", "--pattern",
+                           "9x6", "--square", "25", "--out", out, "-q")
+    assert code == 0, err
+    joint = json.loads((out / "cameras.json").read_text())["joint"]
+    files = [str(out / f"rig_{side}.cameramodel") for side in ("left", "right")]
+    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_RIG_CHECK, *files], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    got = json.loads(done.stdout)
+    assert [g["icam"] for g in got] == [0, 1] and all(g["cameras"] == 2 for g in got)
+    # the same residuals at the same parameters: float64 rounding apart (sums of squares in another order)
+    assert abs(got[0]["rms"] / joint["rms"] - 1) < 1e-12, (got[0]["rms"], joint["rms"])
+    value, sigma = joint["parameters"], joint["std_jacobian"]
+    names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+    for k, side in enumerate(("left", "right")):
+        v = np.array([value[f"{side}.{n}"] for n in names])
+        s = np.array([sigma[f"{side}.{n}"] for n in names])
+        np.testing.assert_array_equal(got[k]["file_intrinsics"], v)  # the file's camera is the solve's
+        moved = np.abs(np.array(got[0]["intrinsics"][k]) - v) / s
+        assert moved.max() < 1e-6, (side, moved)
+    ext = np.array([value[f"right.{n}"] for n in EXTRINSIC_NAMES])
+    ext_sigma = np.array([sigma[f"right.{n}"] for n in EXTRINSIC_NAMES])
+    moved = np.abs(np.array(got[0]["extrinsics"][0]) - ext) / ext_sigma
+    assert moved.max() < 1e-6, moved
+    sag = np.array([value["board_sag_x"], value["board_sag_y"]])
+    sag_sigma = np.array([sigma["board_sag_x"], sigma["board_sag_y"]])
+    assert np.all(np.abs(np.array(got[0]["warp"]) - sag) < 1e-6 * sag_sigma), (got[0]["warp"], sag)

@@ -279,6 +279,27 @@ def test_stereo_yml_carries_the_covariance_and_old_files_still_read(mc, tmp_path
         pu.theta_index(("left.fx", "left.skew"))
 
 
+def test_fixed_mode_rig_sensitivity_is_the_central_difference_of_re_solved_rigs(mc):
+    """A = d rig / d intrinsics of a fixed-intrinsics pair solve against central differences of re-solved
+    fixed-mode rigs."""
+    from dstereo.uncertainty.rig import rig_sensitivity
+
+    ql, qr = mc.data[:, 0], mc.data[:, 1]
+    fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")
+    a = rig_sensitivity(mc.obj, ql, qr, fixed)
+    n_l = len(mc.left.free_vector())
+    for j, h in ((2, 0.5), (n_l + 4, 1e-3)):  # left.cx, right.k1
+        rigs = []
+        for sign in (1.0, -1.0):
+            cams = [mc.left, mc.right]
+            side, k = (0, j) if j < n_l else (1, j - n_l)
+            cams[side] = cams[side].with_free_vector(cams[side].free_vector().at[k].add(sign * h))
+            rigs.append(st.calibrate_stereo(mc.obj, ql, qr, *cams, "fixed").values)
+        fd = (rigs[0] - rigs[1]) / (2 * h)
+        np.testing.assert_allclose(a[:, j], fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
+    assert np.abs(a[1, 2]) > 1e-4  # a principal point shift turns the rig (RVy): the compensation that matters
+
+
 def _lr_maps(rng, sigma, outliers=0.0, h=120, w=400):
     """Left and right disparity maps of a smooth surface with independent N(0, sigma) errors; a fraction
     `outliers` of the left pixels are wrong matches."""
