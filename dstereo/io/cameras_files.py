@@ -157,6 +157,11 @@ def report_markdown(summary: dict) -> str:
     if summary["flipped_views"]:
         lines += ["", "Views re-read in reversed corner order: "
                   + ", ".join(f"{c}/{f}" for c, f in summary["flipped_views"])]
+    for pair in summary.get("pairs", []):
+        lines += ["", f"## Pair {pair['left']}-{pair['right']} ({pair['file']}: x_{pair['right']} = R x_{pair['left']} "
+                  "+ T; T in the board unit, RV in rad)", "", "| parameter | value | std (the file's covariance) |",
+                  "|---|---|---|"]
+        lines += [f"| {n} | {c['value']:.6g} | {c['std']:.3g} |" for n, c in pair["columns"].items()]
     if summary["stereo_files"] or summary["stereo_notes"]:
         lines += ["", "Stereo files: " + ", ".join(summary["stereo_files"]) + "".join(
             f"\n- {n}" for n in summary["stereo_notes"])]
@@ -218,11 +223,14 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
                 fill_camera_folder(tmp / label, cal)
             write_cameras_yml(tmp / "cameras.yml", job)
             summary = cameras_summary(job)
-            summary["stereo_files"], summary["stereo_notes"] = [], []
+            summary["stereo_files"], summary["stereo_notes"], summary["pairs"] = [], [], []
             for pair in job.pair_files:
                 name, note = _write_pair(tmp, job, pair)
                 if name:
                     summary["stereo_files"].append(name)
+                    summary["pairs"].append({"file": name, "left": job.labels[pair.a], "right": job.labels[pair.b],
+                                             "columns": {k: {"value": v, "std": e}
+                                                         for k, (v, e) in pair.columns().items()}})
                 if note:
                     summary["stereo_notes"].append(note)
                     job.warnings.append(note)  # printed by the command too, not only in report.md
