@@ -13,6 +13,7 @@ job is the one every rig runs (outlier rejection, board sag, the rig's consisten
 subsets and steps, cross-validation, the survivors' solve): the cameras are labelled `left` and `right`, and the
 pair's file is `stereo.yml`. Nothing here prints or writes files.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -72,7 +73,6 @@ def stereo_sources(images: Path | None, config: Config, left: Path | None = None
         pairs_r = _files(pair_dirs[1], fmt_r, str(pair_dirs[1]))
         return StereoSources(mono_l, mono_r, pairs_l, pairs_r, f"{images} (individual and stereo folders)")
     return StereoSources(mono_l, mono_r, mono_l, mono_r, f"{images} (the same images for both uses)")
-
 
 
 def calibrate_stereo_project(sources: StereoSources, config: Config, progress=None, use_cache: bool = True,
