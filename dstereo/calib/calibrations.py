@@ -118,6 +118,8 @@ class MultiviewJob:
     pair_files: list = field(default_factory=list)  # calib.rig_pairs.PairCalibration of each stereo file (choose_pairs)
     pair_file: str | None = None  # the one pair's file name (a stereo rig's stereo.yml); None: stereo_<a>_<b>.yml
     sources: str | None = None  # where the images came from, in words (a stereo rig's flags or layout)
+    # each camera's pose-compensated projection-uncertainty map of the joint solve (calib/rig_projection.py)
+    projection: list | None = None
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""

@@ -7,6 +7,8 @@ layout: a finished `calib.calibrations.MultiviewJob`):
                                  beside and the rig-consistency test (`calib/rig_consistency.py`)
     rig_<camera>.cameramodel     mrcal's file of each camera in the rig's frame (the reference first), where mrcal
                                  has the lens model
+    rig_<camera>_projection_uncertainty.npz   that camera's projection uncertainty in the joint solve (mrcal's
+                                 method for a rig's camera, `calib/rig_projection.py`)
     stereo_<a>_<b>.yml           a pair that `dstereo reconstruct` accepts (each adjacent pair, or --pair A,B; a
                                  stereo rig's one pair: stereo.yml, which reconstruct finds in the folder),
                                  with the pair's calibration covariance (`uncertainty.rig.pair_covariance`) and,
@@ -241,6 +243,7 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
             summary["cameramodels"] = write_cameramodels_of_rig(
                 tmp, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
                 [f"rig_{label}" for label in job.labels], np.concatenate([sol.rvecs, sol.T], axis=1), solve, why)
+            summary["rig_projection_uncertainty"] = _write_rig_maps(tmp, job)
             summary["warnings"] = list(job.warnings)
             write_json(tmp / "cameras.json", summary)
             write_frames_csv(tmp / "frames.csv", job)
@@ -252,6 +255,21 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
         for cal in job.cameras:
             if cal.filtering is not None:
                 cal.filtering.table.close()
+    return out
+
+
+def _write_rig_maps(folder: Path, job: MultiviewJob) -> dict:
+    """rig_<camera>_projection_uncertainty.npz (u, v, std, cov, range, mask, method, as one camera's
+    projection_uncertainty.npz) of each camera in the joint solve (`calib/rig_projection.py`: mrcal's method for a
+    rig's camera); returns the summary entries."""
+    out = {}
+    for label, pmap in zip(job.labels, job.projection or []):
+        name = f"rig_{label}_projection_uncertainty.npz"
+        np.savez(folder / name, u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov, range=pmap.range_, mask=pmap.mask,
+                 method=pmap.method)
+        out[label] = {**pmap.summary(), "file": name, "unit": job.config.unit,
+                      "note": "the joint rig solve's, pose-compensated over every frame (mrcal's method for a "
+                              "camera of a rig), Jacobian covariance sigma^2 = SSE / (N - p)"}
     return out
 
 

@@ -27,6 +27,7 @@ from dstereo.calib.calibrations import CameraCalibration, MultiviewJob, pair_ind
 from dstereo.jobs.calibrate_camera import calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
 from dstereo.calib.rig_cross_validation import cross_validate_rig
+from dstereo.calib.rig_projection import rig_maps
 from dstereo.calib.rig_subsets import run_rig_subsets
 from dstereo.config.calibration import Config
 from dstereo.errors import DstereoError
@@ -247,10 +248,13 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
             progress("rig cross-validation", 1, 1)
         timings["rig_cross_validation_s"] = time.perf_counter() - t
     solved_obs, solved_inliers = as_solved(obs, rig_inliers, joint.flipped)
+    t = time.perf_counter()
+    maps = rig_maps(joint, obj, solved_obs, solved_inliers, projection_range)
+    timings["rig_projection_s"] = time.perf_counter() - t
     job = MultiviewJob(config, Path(where), labels, cams, frames, visible, obs, held, joint, warnings, timings,
                        inliers=rig_inliers, consistency=consistency, cross_validation=cv, subsets=subsets,
                        rejected_frames=rejected, solved_observations=solved_obs, solved_inliers=solved_inliers,
-                       pair_file=pair_file)
+                       pair_file=pair_file, projection=maps)
     _check(job)
     job.choose_pairs(pairs)
     timings["total_s"] = time.perf_counter() - t0
