@@ -1,7 +1,10 @@
-"""Middlebury 2014 (quarter size) as it is and with the right view relit, today's matcher beside the new one
-(issue 30 item 3): SGBM on the grey levels without fill vs SGBM on the rank transform with the confidence-aware
-fill (`dstereo.stereo.rank_transform`, `dstereo.stereo.fill`), both with no flags (`ReconstructionConfig()`: the
-range from the file's ndisp).
+"""Middlebury 2014 (quarter size) as it is and with the right view relit, three matchers side by side (issue 30
+item 3), each with no other flags (`ReconstructionConfig()`: the range from the file's ndisp):
+- plain: SGBM on the grey levels, no fill (`--cost intensity`, the matching before issue 30);
+- default: what `dstereo reconstruct` does with no flags (`--cost auto`, no fill): the rank transform where the
+  views' brightness or contrast differ (`dstereo.stereo.matching.chosen_cost`), the grey levels elsewhere; the
+  table says which cost it took;
+- fill: the default cost with the confidence-aware fill of the unmatched pixels (`--fill`).
 
 Relit: the right image's levels I in 0..255 become 255 x GAIN x (I / 255)^GAMMA (gain 0.7, gamma 1.3: darker,
 more contrast in the highlights), rounded to 8 bits; the left image and the ground truth as they are.
@@ -11,7 +14,7 @@ the pixels with an estimate (matched or filled), density = their share (%), fill
 estimates that were filled. Filled obs / pred: the filled pixels' robust std of the disparity error (1.4826 x
 MAD, px) over the RMS of their predicted sigma (px), the convention of experiments/disparity_noise.py; z: the
 robust std of error / sigma, pixel by pixel (1 when each sigma is right). Acceptance (issue 30): median <= 1 %,
-p90 <= 5 %, density >= 80 % on every row of the new matcher; filled obs / pred within 0.67..1.5.
+p90 <= 5 %, density >= 80 % on every row; filled obs / pred within 0.67..1.5.
 
     python -m experiments.middlebury_lighting [--data ../shared/data/middlebury2014q] [--out FILE.md]
 """
@@ -25,15 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.io.calib_files import read_middlebury_calib, read_pfm
+from dstereo.io.calib_files import read_middlebury_calib
 from dstereo.io.images import read_image
 from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+from experiments.middlebury import ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"
 GAIN, GAMMA = 0.7, 1.3
-NEW = ReconstructionConfig(uncertainty=False, fill=True)  # the cost's default (auto) with the fill asked for
-TODAY = replace(NEW, matching_cost="intensity", fill=False)
+DEFAULT = ReconstructionConfig(uncertainty=False)
+CONFIGS = {"plain": replace(DEFAULT, matching_cost="intensity"), "default": DEFAULT,
+           "fill": replace(DEFAULT, fill=True)}
 MAD_TO_STD = 1.4826
 
 
@@ -49,22 +54,18 @@ def robust_std(x: np.ndarray) -> float:
 
 def score(scene: Path, right: np.ndarray, config: ReconstructionConfig) -> dict:
     """One reconstruction of `scene` (its im0 with `right`) scored against the ground truth (see the module)."""
-    import cv2
-
     calib = read_middlebury_calib(scene / "calib.txt")
     t0 = time.perf_counter()
     result = reconstruct_calibrated(calib, read_image(scene / "im0.png"), right, config, scene.name)
     seconds = time.perf_counter() - t0
-    gt = read_pfm(scene / "disp0GT.pfm").astype(np.float64)
-    nocc = (cv2.imread(str(scene / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE) == 255) & np.isfinite(gt)
-    f, baseline, doffs = calib.K1[0, 0], calib.baseline, calib.extras["doffs"]
-    z_gt = f * baseline / (gt + doffs)
+    gt, nocc, z_gt = ground_truth(scene, calib)
     est = nocc & np.isfinite(result.depth)
     rel = np.abs(result.depth - z_gt)[est] / z_gt[est]
     filled = est & (result.filled if result.filled is not None else False)
     row = {"median_pct": 100 * float(np.median(rel)), "p90_pct": 100 * float(np.percentile(rel, 90)),
            "density_pct": 100 * float(est.sum() / nocc.sum()), "filled_pct": 100 * float(filled.sum() / est.sum()),
-           "obs_pred": None, "z_scale": None, "seconds": seconds}
+           "cost": result.summary["search_range"]["matching_cost"]["cost"], "obs_pred": None, "z_scale": None,
+           "seconds": seconds}
     if filled.sum() >= 100:
         err = result.disparity[filled].astype(np.float64) - gt[filled]
         sigma = result.fill_sigma[filled]
@@ -77,16 +78,20 @@ def passes(row: dict) -> bool:
     return row["median_pct"] <= 1.0 and row["p90_pct"] <= 5.0 and row["density_pct"] >= 80.0
 
 
-def table(rows: list[tuple[str, str, dict, dict]]) -> str:
-    text = ("| scene | variant | median % today / new | p90 % today / new | density % today / new | filled % | "
-            "filled obs / pred | filled z | s today / new | pass today / new |\n"
-            "|---|---|---|---|---|---|---|---|---|---|\n")
+def table(rows: list[tuple[str, str, dict[str, dict]]]) -> str:
+    """One line per scene and variant; each figure as plain / default / fill."""
+    names = list(CONFIGS)
+    both = " / ".join(names)
+    text = (f"| scene | variant | default's cost | median % {both} | p90 % {both} | density % {both} | filled % | "
+            f"filled obs / pred | filled z | s {both} | pass {both} |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
-    for scene, variant, old, new in rows:
-        text += (f"| {scene} | {variant} | {old['median_pct']:.2f} / {new['median_pct']:.2f} | {old['p90_pct']:.2f} / "
-                 f"{new['p90_pct']:.2f} | {old['density_pct']:.1f} / {new['density_pct']:.1f} | "
-                 f"{new['filled_pct']:.1f} | {fmt(new['obs_pred'])} | {fmt(new['z_scale'])} | {old['seconds']:.1f} / "
-                 f"{new['seconds']:.1f} | {'yes' if passes(old) else 'no'} / {'yes' if passes(new) else 'no'} |\n")
+    each = lambda r, key, spec: " / ".join(format(r[n][key], spec) for n in names)  # noqa: E731
+    for scene, variant, r in rows:
+        fill = r["fill"]
+        text += (f"| {scene} | {variant} | {r['default']['cost']} | {each(r, 'median_pct', '.2f')} | "
+                 f"{each(r, 'p90_pct', '.2f')} | {each(r, 'density_pct', '.1f')} | {fill['filled_pct']:.1f} | "
+                 f"{fmt(fill['obs_pred'])} | {fmt(fill['z_scale'])} | {each(r, 'seconds', '.1f')} | "
+                 f"{' / '.join('yes' if passes(r[n]) else 'no' for n in names)} |\n")
     return text
 
 
@@ -99,13 +104,14 @@ def main() -> None:
     for scene in sorted(p for p in args.data.iterdir() if (p / "calib.txt").is_file()):
         right = read_image(scene / "im1.png")
         for variant, image in (("as is", right), (f"relit (gain {GAIN}, gamma {GAMMA})", relit(right))):
-            rows.append((scene.name, variant, score(scene, image, TODAY), score(scene, image, NEW)))
+            rows.append((scene.name, variant, {n: score(scene, image, c) for n, c in CONFIGS.items()}))
             print(table(rows[-1:]).splitlines()[-1], flush=True)
-    new_ok = sum(passes(r[3]) for r in rows)
-    sigma_ok = sum(r[3]["obs_pred"] is not None and 0.67 <= r[3]["obs_pred"] <= 1.5 for r in rows)
-    text = (table(rows) + f"\nToday (`matching_cost='intensity', fill=False`): {sum(passes(r[2]) for r in rows)} of "
-            f"{len(rows)} rows meet median <= 1 %, p90 <= 5 %, density >= 80 %; new (defaults): {new_ok} of "
-            f"{len(rows)}; filled obs / pred within 0.67..1.5 on {sigma_ok} of {len(rows)}. s: reconstruction time.\n")
+    met = {n: sum(passes(r[2][n]) for r in rows) for n in CONFIGS}
+    sigma_ok = sum(r[2]["fill"]["obs_pred"] is not None and 0.67 <= r[2]["fill"]["obs_pred"] <= 1.5 for r in rows)
+    text = (table(rows) + "\nRows meeting median <= 1 %, p90 <= 5 %, density >= 80 % (of " + str(len(rows)) + "): "
+            + ", ".join(f"{n} {k}" for n, k in met.items()) + f"; filled obs / pred within 0.67..1.5 on {sigma_ok}. "
+            "plain: `--cost intensity`; default: no flags (`--cost auto`, no fill); fill: `--fill`. s: "
+            "reconstruction time.\n")
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
