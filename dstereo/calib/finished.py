@@ -16,6 +16,32 @@ class FinishedProjection:
 
 
 @dataclass(frozen=True)
+class LensCovariance:
+    """The full-set solve's lens parameters and the covariance the tool reports for them (a solved board sag
+    marginalised: its rows and columns dropped), as calibration_covariance.npz holds them for `dstereo diff`."""
+
+    names: tuple[str, ...]
+    values: np.ndarray  # (G,)
+    cov: np.ndarray  # (G, G) with the views' effects where fitted
+    jacobian: np.ndarray  # (G, G) sigma^2 S^-1 alone
+    kind: str  # "per-view random effects" or "jacobian": which one `cov` is
+    views: int  # the views the solve used
+
+
+def lens_covariance(sol) -> LensCovariance:
+    """`LensCovariance` of a `CameraSolution` (a full-set solve)."""
+    from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
+
+    lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
+    effects = solution_effects(sol)
+    keep = np.ix_(lens, lens)
+    return LensCovariance(tuple(sol.names[i] for i in lens), np.asarray(sol.values, float)[lens],
+                          np.asarray(reported_covariance(sol), float)[keep], np.asarray(sol.cov, float)[keep],
+                          "per-view random effects" if effects is not None and effects.fitted else "jacobian",
+                          int(len(sol.poses)))
+
+
+@dataclass(frozen=True)
 class FinishedCamera:
     std: np.ndarray  # the +- every file shows: with the views' effects (the Jacobian's when the views agree)
     view_scatter: object | None  # uncertainty.view_scatter of the full-set solve
@@ -26,6 +52,7 @@ class FinishedCamera:
     splined_spans: object | None  # models.splined.valid_spans of a splined lens
     valid_region: object | None = None  # calib.valid_region.ValidRegion: invertible and reached by the corners
     mrcal_conversion: object | None = None  # calib.mrcal_convert.Conversion (--mrcal-convert, a lens with no twin)
+    covariance: LensCovariance | None = None  # the full-set solve's, for calibration_covariance.npz
 
 
 def projection_of(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedProjection:
@@ -71,7 +98,7 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
         view_effects=solution_effects(full), projection=projection,
         board_sag=None if sag is None else np.asarray(sag),
         solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans,
-        valid_region=region, mrcal_conversion=_conversion(cal, region, pmap))
+        valid_region=region, mrcal_conversion=_conversion(cal, region, pmap), covariance=lens_covariance(full))
 
 
 def _conversion(cal, region, pmap):

@@ -16,6 +16,7 @@ Layout of `write_camera_results(out, cal)`:
                          given range (default the mean board distance, board unit), pose-compensated (fixed in
                          the boards' frame; --projection-method intrinsics-only for the camera frame); npz keys u, v,
                          std, cov, range, mask (False: model not invertible there, NaN), method
+    calibration_covariance.npz   the lens parameters and their covariance (io/covariance_file.py), for dstereo diff
     cross_validation.npz, plots/cross_validation.png   with --cross-validate N: half-split differences vs predicted
     undistorted/*.jpg    original | undistorted side by side (thesis Figure 5.8)
 The folder is filled under a temporary name in the same parent and renamed at the end: an error leaves no
@@ -516,6 +517,11 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms), plot_dir / "per_image_rms.png")
     # the map next (~10 ms here): its figure, the slowest to draw, is then not the last one the workers start
     projection = write_projection_uncertainty(folder, cal, figures)
+    if getattr(finished(cal), "covariance", None) is not None:
+        from dstereo.io.covariance_file import write_calibration_covariance
+
+        summary["calibration_covariance"] = write_calibration_covariance(folder, finished(cal).covariance,
+                                                                         full.lens_model)
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
         f = cal.filtering

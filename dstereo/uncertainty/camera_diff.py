@@ -1,0 +1,302 @@
+"""The projection difference of two calibrations of one camera, the transform between them fitted, and what their
+covariances predict of it (`dstereo diff`, and each split of `--cross-validate`).
+
+The difference. A grid of pixels q spans the image; the point at `range` along q's ray through camera A is moved
+by a rigid transform T_BA and projected through camera B: e(q) = project_B(T_BA p_A(q)) - q. A camera frame is
+fixed by its calibration's boards and intrinsics, not by the housing, so two calibrations of one camera differ by
+an unknown small motion; T_BA is the least-squares fit over the grid's valid pixels (6 degrees of freedom at a
+finite range, as mrcal's implied transform: the boards' distance absorbs part of a focal difference; the rotation
+alone at an infinite range). Pixels where either camera has no ray (a model that folds back, a fisheye ray behind
+the camera) are left out, of the fit and of every statistic.
+
+The prediction, first order. With theta_A = theta + dA and theta_B = theta + dB independent, each with its
+calibration's covariance C_A, C_B of its lens parameters (the marginal one: every board pose solved out):
+e = P (F_A dA + F_B dB), F_X = d e / d theta_X at the fitted transform and P = I - J_T (J_T' J_T)^+ J_T' the
+projection that removes what the fit absorbs (J_T = d e / d T_BA). So Cov(e) = L L' with L = [P F_A R_A, P F_B R_B]
+and C_X = R_X R_X'. Its 2 x 2 block at a pixel gives that pixel's Mahalanobis distance sqrt(e' C^+ e)
+(sqrt(chi^2_2) if right: median 1.18).
+
+Why not the pose-compensated maps (projection_uncertainty.npz) directly. A map's covariance at q is that of the
+projection of a point held fixed in the boards' frame: F dtheta plus the motion of the boards' mean frame, which
+is rigid to first order. P removes every rigid motion, so P (map's full covariance) P' = P F C F' P': the map and
+the marginal covariance predict the same fitted difference. But a map file holds only each pixel's 2 x 2 block,
+not the covariance between pixels that P needs; the blocks' sum sigma_A^2 + sigma_B^2 counts what the fit
+absorbs and so overstates the difference (`map_excess`: how much, when both are at hand).
+
+The statistics. The grid's rms difference against the rms prediction, `ratio_raw` = sqrt(mean |e|^2 / mean
+trace C). Stacked over the grid, |e|^2 = sum_i lambda_i z_i^2 (lambda the eigenvalues of Cov(e), z standard normal):
+on real cameras one or two modes carry most of trace C, so one comparison's ratio is about |z| for one normal z,
+whose typical value exp(E ln|z|) = 0.53, not 1. `ratio` divides by that typical value computed from the lambdas
+(`expected_log_ratio`): its log has mean 0 when the prediction is right, and `ratio_band` is where a right
+prediction's `ratio` falls (5-95 %, from the same lambdas).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dstereo.errors import DstereoError
+from dstereo.models import splined
+from dstereo.models.camera import INTRINSIC_NAMES
+from dstereo.models.pose import rodrigues
+from dstereo.uncertainty.projection import (CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _project, _splined_grid, model_key,
+                                            pixel_ray)
+
+FIT_ITERATIONS = 12  # Gauss-Newton steps of the transform fit from the identity (small motions: 4-6 converge)
+BAND = (5.0, 95.0)  # percentiles of `ratio_band` and `mahalanobis_band`
+BAND_DRAWS = 4000  # simulated right predictions for the bands (their 5 % and 95 % points to ~+-2 %)
+MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))  # median of sqrt(chi^2_2)
+
+
+def slot_names(model: str) -> tuple[str, ...]:
+    """The names of a camera vector's slots (fx fy cx cy, then the lens model's coefficient slots)."""
+    if model == "fisheye":
+        return FISHEYE_CAMERA_NAMES
+    if model.startswith("splined"):
+        return INTRINSIC_NAMES + splined.knot_names(*_splined_grid(model))
+    return CAMERA_NAMES
+
+
+@dataclass(frozen=True)
+class LensCamera:
+    """One calibrated camera for a difference: `params` (4 + slots,) fx fy cx cy then its lens model's coefficient
+    slots (`slot_names`); `cov` (G, G) the marginal covariance of the parameters `names` (None: not known)."""
+
+    model: str
+    params: np.ndarray
+    names: tuple[str, ...] = ()
+    cov: np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
+    label: str = ""
+
+    def __post_init__(self):
+        slots = slot_names(self.model)
+        if len(self.params) != len(slots):
+            raise DstereoError(f"{self.label or 'camera'}: {len(self.params)} parameters for a {self.model} lens, "
+                               f"which has {len(slots)}")
+        unknown = [n for n in self.names if n not in slots]
+        if unknown:
+            raise DstereoError(f"{self.label or 'camera'}: covariance names {unknown} are not parameters of a "
+                               f"{self.model} lens")
+        if self.cov is not None and np.shape(self.cov) != (len(self.names),) * 2:
+            raise DstereoError(f"{self.label or 'camera'}: covariance {np.shape(self.cov)} for {len(self.names)} "
+                               "parameter names")
+
+    @property
+    def index(self) -> tuple[int, ...]:
+        slots = slot_names(self.model)
+        return tuple(slots.index(n) for n in self.names)
+
+
+def _found_ray(params, q, model: str):
+    """(unit ray of pixel q through the camera `params`, whether it was found): the model's own inverse, a
+    value only (no derivative is taken through its iterations)."""
+    k, c = jax.lax.stop_gradient(params[:4]), jax.lax.stop_gradient(params[4:])
+    v0, ok = pixel_ray(k, c, q, model)
+    ok = ok & jnp.all(jnp.isfinite(v0))
+    v0 = jnp.where(ok, v0, jnp.array([0.0, 0.0, 1.0]))
+    return v0 / jnp.linalg.norm(v0), ok
+
+
+def _ray(params, q, v0, model: str):
+    """The ray of pixel q as a function of the camera `params`, from its value v0 (`_found_ray`): one Newton step
+    on the projection in the ray's tangent plane leaves the value unchanged at the root and gives the
+    implicit-function derivative d ray / d params."""
+    k, c = params[:4], params[4:]
+    a = jnp.where(jnp.abs(v0[0]) < 0.9, jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0]))
+    e1 = a - jnp.dot(a, v0) * v0
+    e1 = e1 / jnp.linalg.norm(e1)
+    e2 = jnp.cross(v0, e1)
+    ray_at = lambda s: (v0 + s[0] * e1 + s[1] * e2) / jnp.linalg.norm(v0 + s[0] * e1 + s[1] * e2)  # noqa: E731
+    f = lambda s: _project(k, c, ray_at(s), model)  # noqa: E731
+    zero = jnp.zeros(2)
+    return ray_at(-jnp.linalg.solve(jax.jacfwd(f)(zero), f(zero) - q))
+
+
+def _residual(params_a, params_b, t, q, rays, models, rotation_only):
+    """e(q) (N, 2): A's ray point moved by T_BA, projected by B; lengths in units of the range."""
+    ray = jax.vmap(lambda qq, v0: _ray(params_a, qq, v0, models[0]))(q, rays)
+    rot = rodrigues(t[:3])
+    p_b = ray @ rot.T + (0.0 if rotation_only else t[3:])  # at range r: r (R v + t / r); projections ignore r
+    return jax.vmap(lambda p: _project(params_b[:4], params_b[4:], p, models[1]))(p_b) - q
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(models: tuple[str, str], index_a: tuple[int, ...], index_b: tuple[int, ...], rotation_only: bool):
+    """Compiled: (e, ok, J_T, F_A, F_B, t) for grid pixels q; rows of pixels that are not `ok` are zero in the
+    Jacobians and out of the fit."""
+    ia, ib = np.array(index_a, int), np.array(index_b, int)
+    n_t = 3 if rotation_only else 6
+
+    def run(params_a, params_b, q, weight):
+        rays, ok_a = jax.vmap(lambda qq: _found_ray(params_a, qq, models[0]))(q)
+        ok = ok_a & jax.vmap(lambda qq: _found_ray(params_b, qq, models[1])[1])(q) & (weight > 0)
+        res = lambda pa, pb, t: _residual(pa, pb, t, q, rays, models, rotation_only)  # noqa: E731
+        ok = ok & jnp.all(jnp.isfinite(res(params_a, params_b, jnp.zeros(n_t))), axis=1)
+        w = jnp.repeat(ok, 2)
+        mask = lambda m: jnp.where(w.reshape((-1,) + (1,) * (m.ndim - 1)), m, 0.0)  # noqa: E731
+
+        def gn(_, t):
+            r = mask(res(params_a, params_b, t).ravel())
+            jt = mask(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
+            return t - jnp.linalg.pinv(jt.T @ jt, rtol=1e-12, hermitian=True) @ (jt.T @ r)
+
+        t = jax.lax.fori_loop(0, FIT_ITERATIONS, gn, jnp.zeros(n_t))
+        e = res(params_a, params_b, t)
+        jt = mask(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
+        fa = mask(jax.jacfwd(lambda th: res(params_a.at[ia].set(th), params_b, t).ravel())(params_a[ia]))
+        fb = mask(jax.jacfwd(lambda th: res(params_a, params_b.at[ib].set(th), t).ravel())(params_b[ib]))
+        return e, ok & jnp.all(jnp.isfinite(e), axis=1), jt, fa, fb, t
+
+    return jax.jit(run)
+
+
+def grid_pixels(image_size, grid: tuple[int, int]):
+    """(u (gw,), v (gh,), q (gh gw, 2)): pixel centres spanning the image, row-major."""
+    w, h = image_size
+    u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
+    return u, v, np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+
+
+def _root(cov: np.ndarray) -> np.ndarray:
+    """R with R R' = cov, Jacobi-scaled before the eigen-decomposition (fx and k3 differ by 10^6)."""
+    cov = np.asarray(cov, float)
+    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    lam, vec = np.linalg.eigh(cov / np.outer(d, d))
+    return d[:, None] * vec * np.sqrt(np.clip(lam, 0.0, None))[None, :]
+
+
+def expected_log_ratio(lam: np.ndarray) -> float:
+    """E[ln sqrt(Q / sum lambda)] for Q = sum_i lambda_i z_i^2, z_i independent standard normals (the log of the
+    raw ratio when the prediction, with eigenvalues `lambda`, is right). From ln x = int_0^inf (e^-t - e^-xt)
+    dt / t and E e^-Qt = prod_i (1 + 2 lambda_i t)^-1/2, integrated in s = ln t on [-30, 60] (both ends' integrands
+    below 1e-13 for lambda normalised to sum 1): one lambda gives (psi(1/2) + ln 2) / 2 = -0.635, k equal ones
+    (psi(k/2) + ln(2/k)) / 2, checked to 1e-12 in the tests."""
+    lam = np.asarray(lam, float)
+    lam = lam[lam > 0.0] / np.sum(lam[lam > 0.0])
+    s = np.linspace(-30.0, 60.0, 901)
+    t = np.exp(s)
+    survival = np.exp(-0.5 * np.log1p(2.0 * t[:, None] * lam[None, :]).sum(axis=1))
+    f = np.exp(-t) - survival
+    return float(0.5 * np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(s)))
+
+
+def mahalanobis(e: np.ndarray, inv_blocks: np.ndarray) -> np.ndarray:
+    """sqrt(e' C^+ e) per pixel for e (..., N, 2) and the pixels' inverse 2 x 2 blocks (N, 2, 2)."""
+    return np.sqrt(np.maximum(np.einsum("...ni,nij,...nj->...n", e, inv_blocks, e), 0.0))
+
+
+@dataclass
+class ProjectionDiff:
+    """The difference of two cameras on a grid (module docstring). Arrays on the grid are (gh, gw, ...), NaN where
+    a pixel is left out; the prediction's fields are None when a camera carries no covariance."""
+
+    u: np.ndarray
+    v: np.ndarray
+    range_: float  # the distance of the points (calibration unit); inf: rotation only
+    diff: np.ndarray  # (gh, gw, 2) px
+    ok: np.ndarray  # (gh, gw) bool
+    transform: np.ndarray  # rvec (3) and translation (3, calibration unit) of T_BA
+    cov: np.ndarray | None = None  # (gh, gw, 2, 2) px^2, predicted
+    mahalanobis: np.ndarray | None = None  # (gh, gw)
+    ratio_raw: float = float("nan")  # sqrt(mean |e|^2 / mean trace C)
+    ratio: float = float("nan")  # ratio_raw / its typical value if right: 1 if right, in the log
+    typical: float = float("nan")  # exp(E ln ratio_raw) of a right prediction
+    modes: float = float("nan")  # effective number of modes of Cov(e): sum(lambda)^2 / sum(lambda^2)
+    lam: np.ndarray | None = None  # eigenvalues of Cov(e) (px^2), decreasing
+    # for simulations of right predictions (bands, `band_if_right`): e = lin_a dA + lin_b dB on the valid pixels,
+    # the inverses of their 2 x 2 blocks
+    lin_a: np.ndarray | None = None
+    lin_b: np.ndarray | None = None
+    inv_blocks: np.ndarray | None = None
+    bands: dict = field(default_factory=dict)
+
+    @property
+    def rms(self) -> float:
+        """Observed rms difference over the valid pixels (px)."""
+        return float(np.sqrt(np.mean(np.sum(self.diff[self.ok] ** 2, axis=-1))))
+
+    @property
+    def predicted_rms(self) -> float:
+        return float("nan") if self.cov is None else float(np.sqrt(np.mean(np.trace(self.cov[self.ok], axis1=1,
+                                                                                      axis2=2))))
+
+    @property
+    def mean_trace(self) -> float:
+        return self.predicted_rms ** 2
+
+    @property
+    def mahalanobis_median(self) -> float:
+        return float("nan") if self.mahalanobis is None else float(np.nanmedian(self.mahalanobis[self.ok]))
+
+    def band(self, draws: int = BAND_DRAWS, seed: int = 0) -> dict:
+        """Where a right prediction's `ratio` and median Mahalanobis fall on this grid (BAND percentiles of
+        `draws` differences drawn from the predicted covariance itself)."""
+        if self.lin_a is None:
+            return {}
+        key = (draws, seed)
+        if key not in self.bands:
+            rng = np.random.default_rng(seed)
+            e = (rng.normal(size=(draws, self.lin_a.shape[1])) @ self.lin_a.T
+                 + rng.normal(size=(draws, self.lin_b.shape[1])) @ self.lin_b.T)
+            ratio = np.sqrt(np.mean(e ** 2, axis=1) * 2.0 / self.mean_trace) / self.typical
+            maha = np.median(mahalanobis(e.reshape(draws, -1, 2), self.inv_blocks), axis=1)
+            lo, hi = BAND
+            self.bands[key] = {"percentiles": list(BAND), "draws": draws,
+                               "ratio": [float(np.percentile(ratio, lo)), float(np.percentile(ratio, hi))],
+                               "mahalanobis_median": [float(np.percentile(maha, lo)), float(np.percentile(maha, hi))]}
+        return self.bands[key]
+
+
+def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, int] = (32, 24),
+                    image_size: tuple[int, int] | None = None, weight: np.ndarray | None = None) -> ProjectionDiff:
+    """The difference of camera `b` against camera `a` at `range_` (module docstring) on a `grid` (columns, rows)
+    of pixel centres of `image_size` (default a's); `weight` (gh gw,) leaves pixels out where 0."""
+    size = image_size or a.image_size
+    if size is None:
+        raise DstereoError(f"{a.label or 'camera A'}: no image size; give one")
+    if not (range_ > 0):
+        raise DstereoError(f"distance {range_}: give a positive distance (the calibration's unit) or inf")
+    rotation_only = bool(np.isinf(range_))
+    u, v, q = grid_pixels(size, grid)
+    run = _compiled((a.model, b.model), a.index, b.index, rotation_only)
+    w = np.ones(len(q)) if weight is None else np.asarray(weight, float).ravel()
+    # the translation in units of the range: columns of one scale for the fit, whatever the unit
+    e, ok, jt, fa, fb, t = (np.array(x) for x in run(np.asarray(a.params, float), np.asarray(b.params, float),
+                                                   np.asarray(q, float), w))
+    if not ok.any():
+        raise DstereoError("no pixel of the grid has a ray through both cameras; check that both files describe "
+                           "the same camera")
+    t = np.concatenate([t[:3], np.zeros(3) if rotation_only else t[3:] * range_])
+    gh, gw = grid[1], grid[0]
+    e[~ok] = np.nan
+    out = ProjectionDiff(u, v, float(range_), e.reshape(gh, gw, 2), ok.reshape(gh, gw), t)
+    if a.cov is None or b.cov is None:
+        return out
+    def absorbed(f):  # P f: what the transform fit leaves of a parameter change's effect
+        return f - jt @ (np.linalg.pinv(jt.T @ jt, rcond=1e-12, hermitian=True) @ (jt.T @ f))
+
+    lin_a, lin_b = absorbed(fa) @ _root(a.cov), absorbed(fb) @ _root(b.cov)
+    lin = np.concatenate([lin_a, lin_b], axis=1)  # Cov(e) = lin lin'
+    n = len(q)
+    blocks = np.einsum("nik,njk->nij", lin.reshape(n, 2, -1), lin.reshape(n, 2, -1))
+    good = ok & np.all(np.isfinite(blocks), axis=(1, 2))
+    inv_blocks = np.linalg.pinv(blocks[good], hermitian=True)
+    maha = np.full(n, np.nan)
+    maha[good] = mahalanobis(e[good], inv_blocks)
+    lam = np.clip(np.linalg.eigvalsh(lin[np.repeat(good, 2)].T @ lin[np.repeat(good, 2)]), 0.0, None)[::-1]
+    mean_trace = float(np.mean(np.trace(blocks[good], axis1=1, axis2=2)))
+    ratio_raw = float(np.sqrt(np.mean(np.sum(e[good] ** 2, axis=1)) / mean_trace))
+    typical = float(np.exp(expected_log_ratio(lam)))
+    blocks[~good] = np.nan
+    out.ok = good.reshape(gh, gw)
+    out.cov, out.mahalanobis = blocks.reshape(gh, gw, 2, 2), maha.reshape(gh, gw)
+    out.ratio_raw, out.typical, out.ratio = ratio_raw, typical, ratio_raw / typical
+    out.modes, out.lam = float(lam.sum() ** 2 / np.sum(lam ** 2)), lam
+    out.lin_a, out.lin_b, out.inv_blocks = lin_a[np.repeat(good, 2)], lin_b[np.repeat(good, 2)], inv_blocks
+    return out
