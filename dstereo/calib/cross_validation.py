@@ -1,57 +1,44 @@
 """Cross-validation of a camera calibration's uncertainty: disjoint halves of the views, calibrated separately.
 
 If the uncertainty is honest, two calibrations from disjoint halves differ by about what their covariances
-predict. For a grid of pixels q, the point at `range` along q's ray of half A is moved by the rigid transform
-that best maps half A's camera onto half B's (a camera-frame difference between two calibrations is only defined
-up to that transform: the boards fix the world, not the camera; at a finite range fit rotation AND translation,
-as mrcal does, since the boards' distance absorbs a focal difference) and projected by B:
-e(q) = project_B(T_BA p_A(q)) - q, with T_BA the least-squares fit over the grid.
+predict. Each split's two halves are compared by `uncertainty.camera_diff.projection_diff`, the statistic `dstereo
+diff` computes on two written cameras (the module docstring there): the point at `range` on each grid pixel's ray
+through half A, moved by the rigid transform fitted between the halves (weighted by the inverse of the two halves'
+pose-compensated map variances, so the fit is held by the pixels both calibrations know, not by extrapolated
+image corners), projected by half B; against the first-order prediction from both halves' marginal lens
+covariances with what the fit absorbs removed. `cross_validation/split_<k>/a` and `/b` in the results folder hold
+each split's halves as camera files, so `dstereo diff` on them reads the split's figures (tests check to 1e-9).
 
-Prediction, first order: e = P (F_A dA + F_B dB), F_X = d e / d theta_X (intrinsics), P the projection that
-removes what the transform fit absorbs (I - J_T (J_T' J_T)^-1 J_T'), dA and dB independent with the halves'
-marginal intrinsics covariances. Per pixel the 2 x 2 block of that covariance gives the Mahalanobis distance
-sqrt(e' C^-1 e), which is sqrt(chi^2_2) if the prediction is right: median sqrt(2 ln 2) = 1.18.
-
-The ratio observed / predicted of a split compares the grid's rms difference sqrt(mean |e|^2) with what the
-prediction expects of it. Stacked over the grid, e ~ N(0, C) has |e|^2 = sum_i lambda_i z_i^2 (lambda the
-eigenvalues of C): on the real cameras one mode carries 90-100 % of trace C (effective modes sum(lambda)^2 /
-sum(lambda^2) = 1.0-1.4), so a split's ratio is about |z| for one normal z. Its geometric mean over splits is
-then exp(E ln|z|) = 0.53 even when C is right (the raw ratio sqrt(|e|^2 / trace C) measured 0.70-0.91 on right
-synthetic predictions). The ratio is therefore divided by the prediction's own typical value,
-exp(E[ln sqrt(|e|^2 / trace C)]), computed exactly from the lambdas (`expected_log_ratio`): its log has mean 0
-when the prediction is right, so the geometric mean over splits reads 1 (`ratio_raw` keeps the undivided one).
-`cross_validate` repeats the split over random halvings and pools them (geometric mean of the ratios, median of
-all Mahalanobis distances).
+A split's ratio is its weighted rms difference over the rms prediction, divided by the prediction's own typical
+value (`camera_diff.expected_log_ratio`: one dominant mode makes a right prediction's raw ratio typically 0.53):
+its log has mean 0 when the prediction is right, so the geometric mean over splits reads 1 (`ratio_raw` keeps the
+undivided one). Per pixel the 2 x 2 block of the prediction gives the Mahalanobis distance (median 1.18 if
+right). `cross_validate` repeats the split over random halvings and pools them (geometric mean of the ratios,
+median of all Mahalanobis distances).
 
 Even so, a dozen splits of a dozen views are a noisy test: the splits share their views. `cross_validate`
 therefore also simulates the whole procedure under the full set's own uncertainty model (each view's score drawn
 with the covariance the tool claims, both halves' errors from the same draws, every split as computed here) and
 reports the band in which a right prediction's pooled statistics fall on these very views and splits
-(`band_if_right`): a verdict outside the acceptance band but inside that one says the test cannot tell. The
-pose-compensated projection maps of the two halves give a further prediction, sqrt(sigma_A^2 + sigma_B^2) per
-pixel (`ratio_vs_maps`), which checks those maps directly.
+(`band_if_right`): a verdict outside the acceptance band but inside that one says the test cannot tell. The two
+halves' pose-compensated maps alone give a further prediction, sigma_A^2 + sigma_B^2 per pixel (`ratio_vs_maps`):
+blind to what the fit absorbs, it reads near the ratio_raw where the weighted fit recovers the boards' frame.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dstereo.calib.mono import _run
 from dstereo.calib.problem import WARP_NAMES
+from dstereo.uncertainty.camera_diff import (GRID, LensCamera, ProjectionDiff, expected_log_ratio,  # noqa: F401
+                                             projection_diff)
 from dstereo.uncertainty.covariance import covariance, joint_covariance, scaled_inverse
 from dstereo.errors import DstereoError
-from dstereo.models import fisheye
 from dstereo.models.distortion import lens_model
-from dstereo.models.distortion import COEFF_NAMES
-from dstereo.models.pose import rodrigues
-from dstereo.uncertainty.point_jacobians import newton_step
-from dstereo.uncertainty.projection import (CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _invertible, _project, _undistorted,
-                                            mean_board_distance, projection_uncertainty_map)
+from dstereo.uncertainty.projection import (CAMERA_NAMES, FISHEYE_CAMERA_NAMES, mean_board_distance, model_key)
 from dstereo.uncertainty.view_effects import view_effects
 from dstereo.solver.lm import LMOptions
 
@@ -85,21 +72,6 @@ class HalfSolution:
     # the lens rows of S^-1 (error = gain @ sum_v t_v), both at its own solution
     score_roots: np.ndarray | None = None
     lens_gain: np.ndarray | None = None
-
-
-def expected_log_ratio(lam: np.ndarray) -> float:
-    """E[ln sqrt(Q / sum lambda)] for Q = sum_i lambda_i z_i^2, z_i independent standard normals (the log of a
-    split's ratio when its prediction, with eigenvalues `lambda`, is right). From ln x = int_0^inf (e^-t - e^-xt)
-    dt / t and E e^-Qt = prod_i (1 + 2 lambda_i t)^-1/2, integrated in s = ln t on [-30, 60] (both ends' integrands
-    below 1e-13 for lambda normalised to sum 1): one lambda gives (psi(1/2) + ln 2) / 2 = -0.635, k equal ones
-    (psi(k/2) + ln(2/k)) / 2, checked to 1e-12 in the tests."""
-    lam = np.asarray(lam, float)
-    lam = lam[lam > 0.0] / np.sum(lam[lam > 0.0])
-    s = np.linspace(-30.0, 60.0, 901)
-    t = np.exp(s)
-    survival = np.exp(-0.5 * np.log1p(2.0 * t[:, None] * lam[None, :]).sum(axis=1))
-    f = np.exp(-t) - survival
-    return float(0.5 * np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(s)))
 
 
 def _names_of(model: str) -> tuple[str, ...]:
@@ -189,116 +161,50 @@ def _model_of(effects, n_lens: int) -> dict:
     return {"score_roots": roots, "lens_gain": scaled_inverse(s_total)[:n_lens]}
 
 
-def _ray_point(params, q, range_, model: str = "pinhole"):
-    k, c = params[:4], params[4:]
-    if model == "fisheye":  # the model's own inverse (Newton in theta, derivative through the converged steps)
-        ray, ok = fisheye.unproject(k, c[:4], q)
-        ok = ok & (ray[2] > 0)  # a point behind the camera has no pinhole-like transform fit
-        return range_ * jnp.where(ok, ray, jnp.array([0.0, 0.0, 1.0])), ok
-    x_conv = jax.lax.stop_gradient(_undistorted(k, c, q))
-    x = newton_step(k, c, q, x_conv)  # exact at the root; derivative is the implicit-function one
-    ray = jnp.append(x, 1.0)
-    return range_ * ray / jnp.linalg.norm(ray), _invertible(k, c, q, x_conv)
-
-
-def _diff(params_a, params_b, transform, q, range_, model: str = "pinhole"):
-    """e(q) (N, 2) for all grid pixels q (N, 2)."""
-    p_a = jax.vmap(lambda qq: _ray_point(params_a, qq, range_, model)[0])(q)
-    p_b = p_a @ rodrigues(transform[:3]).T + transform[3:]
-    return jax.vmap(lambda p: _project(params_b[:4], params_b[4:], p, model))(p_b) - q
-
-
-@functools.lru_cache(maxsize=None)
-def _compiled(index: tuple[int, ...], model: str = "pinhole"):
-    idx = np.array(index)
-    _diff_m = functools.partial(_diff, model=model)
-
-    def fit_and_linearise(params_a, params_b, q, range_, weight):
-        ok = jax.vmap(lambda qq: _ray_point(params_a, qq, range_, model)[1])(q) & \
-            jax.vmap(lambda qq: _ray_point(params_b, qq, range_, model)[1])(q) & (weight > 0)
-        w = jnp.repeat(ok.astype(float), 2)
-
-        def gn(_, t):  # Gauss-Newton on the 6 transform parameters (a small, smooth problem; 10 steps converge)
-            r = _diff_m(params_a, params_b, t, q, range_).ravel() * w
-            jt = jax.jacfwd(lambda tt: _diff_m(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
-            return t - jnp.linalg.solve(jt.T @ jt + 1e-12 * jnp.eye(6), jt.T @ r)
-
-        t = jax.lax.fori_loop(0, 10, gn, jnp.zeros(6))
-        e = _diff_m(params_a, params_b, t, q, range_)
-        jt = jax.jacfwd(lambda tt: _diff_m(params_a, params_b, tt, q, range_).ravel())(t) * w[:, None]
-        fa = jax.jacfwd(lambda th: _diff_m(params_a.at[idx].set(th), params_b, t, q, range_).ravel())(params_a[idx])
-        fb = jax.jacfwd(lambda th: _diff_m(params_a, params_b.at[idx].set(th), t, q, range_).ravel())(params_b[idx])
-        proj = jnp.eye(len(w)) - jt @ jnp.linalg.pinv(jt.T @ jt) @ jt.T
-        return e, ok, proj @ (fa * w[:, None]), proj @ (fb * w[:, None]), t
-
-    return jax.jit(fit_and_linearise)
+def half_camera(h: HalfSolution, names, image_size, label: str = "") -> LensCamera:
+    """A half's camera for `camera_diff.projection_diff`: its intrinsics, marginal and joint covariances, poses."""
+    model = model_key(tuple(names))
+    return LensCamera(model, np.asarray(h.params, float), tuple(names), h.cov, tuple(image_size), label,
+                      joint=h.joint, poses=h.poses)
 
 
 @dataclass
 class SplitResult:
+    """One split's comparison: the figures of its `projection` (`camera_diff.ProjectionDiff`, the statistic `dstereo
+    diff` computes on the halves' written files), on its grid (gh, gw)."""
+
     diff: np.ndarray  # (gh, gw, 2) px, NaN where masked
     cov: np.ndarray  # (gh, gw, 2, 2) px^2 predicted
     mahalanobis: np.ndarray  # (gh, gw)
-    ratio: float  # sqrt(mean |e|^2 / mean trace C) / its typical value if C is right (1 if right, in the log)
-    ratio_vs_maps: float  # sqrt(mean |e|^2 / mean (trace C_A + trace C_B)) of the pose-compensated maps
+    ratio: float  # weighted rms observed / predicted, divided by its typical value if right (1 if right, in the log)
+    ratio_vs_maps: float  # the same against the two halves' pose-compensated maps alone (blind to the fit)
     transform: np.ndarray  # (6,) rvec, t of T_BA
     covered: np.ndarray | None = None  # (gh, gw) grid pixels within COVERED_PX of an observed corner
     parameter_chi2: float = float("nan")  # d' (C_A + C_B)^-1 d / G of the lens parameters' difference d (1 if right)
-    ratio_raw: float = float("nan")  # sqrt(mean |e|^2 / mean trace C): 0.53 in the geometric mean for one mode
+    ratio_raw: float = float("nan")  # undivided: about 0.53-0.7 in the geometric mean of a right prediction
     modes: float = float("nan")  # effective number of modes of C, sum(lambda)^2 / sum(lambda^2)
-    # for the simulation of `band_if_right`: e = lin_a dA + lin_b dB on the valid pixels, their 2 x 2 inverses
-    lin_a: np.ndarray | None = None
-    lin_b: np.ndarray | None = None
-    inv_blocks: np.ndarray | None = None
-    mean_trace: float = float("nan")  # mean over the valid pixels of trace C (px^2)
+    projection: ProjectionDiff | None = None
+    weight: np.ndarray | None = None  # (gh, gw) each pixel's weight in the fit and the ratio (`camera_diff`)
 
 
 def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
-                   grid: tuple[int, int] = (16, 12), corners: np.ndarray | None = None) -> SplitResult:
-    model = lens_model(tuple(names))
-    index = tuple(_names_of(model).index(n) for n in names)
-    w, h = image_size
-    u, v = np.linspace(0.0, w - 1.0, grid[0]), np.linspace(0.0, h - 1.0, grid[1])
-    q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
-    e, ok, pa, pb, t = (np.array(x) for x in _compiled(index, model)(
-        jnp.asarray(a.params), jnp.asarray(b.params), jnp.asarray(q), float(range_), jnp.ones(len(q))))
-    c = pa @ a.cov @ pa.T + pb @ b.cov @ pb.T
-    n = len(q)
-    blocks = np.stack([c[2 * i: 2 * i + 2, 2 * i: 2 * i + 2] for i in range(n)])
-    ok = ok & np.all(np.isfinite(e), axis=1)
-    if not ok.any():
-        raise DstereoError("cross-validation: no pixel of the grid can be unprojected by both halves' cameras")
-    inv_blocks = np.linalg.pinv(blocks[ok], hermitian=True)
-    maha = np.full(n, np.nan)
-    maha[ok] = _mahalanobis(e[ok], inv_blocks)
-    e2 = float(np.mean(np.sum(e[ok] ** 2, axis=1)))
-    ratio_raw = float(np.sqrt(e2 / np.mean(np.trace(blocks[ok], axis1=1, axis2=2))))
-    rows = np.repeat(ok, 2)
-    lam = np.clip(np.linalg.eigvalsh(c[np.ix_(rows, rows)]), 0.0, None)
-    ratio = ratio_raw / float(np.exp(expected_log_ratio(lam)))
-    maps = [projection_uncertainty_map(s.params[:4], s.params[4:], names, s.joint, image_size, range_, grid,
-                                       poses=s.poses) for s in (a, b)]
-    tr = sum(np.trace(m.cov.reshape(-1, 2, 2), axis1=1, axis2=2) for m in maps)
-    good = ok & np.isfinite(tr)
-    ratio_maps = float(np.sqrt(np.mean(np.sum(e[good] ** 2, axis=1)) / np.mean(tr[good]))) if good.any() else np.nan
-    e[~ok] = np.nan
-    blocks[~ok] = np.nan
+                   grid: tuple[int, int] = GRID, corners: np.ndarray | None = None) -> SplitResult:
+    """Half B's camera against half A's by `camera_diff.projection_diff` (the module docstring there), with the
+    halves' own covariances; `corners` (n, 2): every observed corner, for the grid pixels inside their field."""
+    d = projection_diff(half_camera(a, names, image_size, "half A"), half_camera(b, names, image_size, "half B"),
+                        range_, grid, tuple(image_size))
+    if d.cov is None:
+        raise DstereoError("cross-validation: a half's covariance is missing")
     covered = None
     if corners is not None:
+        q = np.stack(np.meshgrid(d.u, d.v), axis=-1).reshape(-1, 2)
         near = np.array([np.min(np.sum((np.asarray(corners) - p) ** 2, axis=1)) for p in q])
         covered = (near < COVERED_PX ** 2).reshape(grid[1], grid[0])
-    d = a.values[: len(a.cov)] - b.values[: len(b.cov)]  # the lens parameters lead the shared vector
+    dp = a.values[: len(a.cov)] - b.values[: len(b.cov)]  # the lens parameters lead the shared vector
     # scaled first: fx and k3 differ by 10^6, and a plain pseudo-inverse of the sum loses the small directions
-    chi2 = float(d @ scaled_inverse(a.cov + b.cov) @ d / len(d))
-    return SplitResult(e.reshape(grid[1], grid[0], 2), blocks.reshape(grid[1], grid[0], 2, 2),
-                       maha.reshape(grid[1], grid[0]), ratio, ratio_maps, t, covered, chi2, ratio_raw,
-                       float(lam.sum() ** 2 / np.sum(lam ** 2)), pa[rows], pb[rows], inv_blocks,
-                       float(np.mean(np.trace(blocks[ok], axis1=1, axis2=2))))
-
-
-def _mahalanobis(e: np.ndarray, inv_blocks: np.ndarray) -> np.ndarray:
-    """sqrt(e' C^+ e) per pixel for e (..., N, 2) and the pixels' inverse 2 x 2 blocks (N, 2, 2)."""
-    return np.sqrt(np.maximum(np.einsum("...ni,nij,...nj->...n", e, inv_blocks, e), 0.0))
+    chi2 = float(dp @ scaled_inverse(a.cov + b.cov) @ dp / len(dp))
+    return SplitResult(d.diff, d.cov, d.mahalanobis, d.ratio, d.ratio_vs_maps, d.transform, covered, chi2,
+                       d.ratio_raw, d.modes, d, d.weight)
 
 
 @dataclass(frozen=True)
@@ -329,7 +235,7 @@ def band_if_right(halves, sols: list[HalfSolution], splits: list[SplitResult], d
     where fitted, sigma^2 S_v otherwise), its lens error [S_H^-1 sum_{v in H} t_v], and each split's difference,
     ratio and Mahalanobis distances as `compare_halves` computes them. First order, as the prediction itself.
     None where a half kept no model."""
-    if any(h.score_roots is None for h in sols) or any(x.lin_a is None for x in splits):
+    if any(h.score_roots is None for h in sols) or any(x.projection is None for x in splits):
         return None
     n_views, g = max(int(max(a.max(), b.max())) for a, b in halves) + 1, sols[0].score_roots.shape[1]
     z = np.random.default_rng(seed).normal(size=(draws, n_views, g))
@@ -337,10 +243,9 @@ def band_if_right(halves, sols: list[HalfSolution], splits: list[SplitResult], d
     for k, ((a, b), x) in enumerate(zip(halves, splits)):
         err = [np.einsum("vij,dvj->di", h.score_roots, z[:, part]) @ h.lens_gain.T
                for h, part in ((sols[2 * k], a), (sols[2 * k + 1], b))]
-        e = err[0] @ x.lin_a.T + err[1] @ x.lin_b.T  # (draws, 2 N)
-        typical = x.ratio_raw / x.ratio
-        log_ratio[:, k] = 0.5 * np.log(np.mean(e ** 2, axis=1) * 2.0 / x.mean_trace) - np.log(typical)
-        maha.append(_mahalanobis(e.reshape(draws, -1, 2), x.inv_blocks))
+        ratio_k, maha_k = x.projection.simulate(*err, per_pixel=True)
+        log_ratio[:, k] = np.log(ratio_k)
+        maha.append(maha_k)
     ratio = np.exp(log_ratio.mean(axis=1))
     median = np.median(np.concatenate(maha, axis=1), axis=1)
     passed = (ratio >= RATIO_BAND[0]) & (ratio <= RATIO_BAND[1]) & (median <= MAHALANOBIS_MAX)
@@ -359,6 +264,15 @@ class CrossValidation:
     v: np.ndarray
     std_ratios: list[float] | None = None  # per half (A, B of split 0, ...): `HalfSolution.std_ratio`
     band: BandIfRight | None = None  # where a right prediction's statistics fall here (`band_if_right`)
+    solutions: list[HalfSolution] | None = None  # the halves (A, B of split 0, ...), written for `dstereo diff`
+    names: tuple[str, ...] = ()  # their lens parameters (the covariances' order)
+    image_size: tuple[int, int] | None = None
+    grid: tuple[int, int] = GRID
+
+    def half_cameras(self, k: int) -> tuple[LensCamera, LensCamera]:
+        """Split k's two halves as `dstereo diff` reads them back from their files."""
+        return tuple(half_camera(self.solutions[2 * k + i], self.names, self.image_size, f"split {k + 1} half {h}")
+                     for i, h in enumerate("AB"))
 
     @property
     def ratio(self) -> float:  # geometric mean over splits, each divided by its typical value if right
@@ -372,12 +286,19 @@ class CrossValidation:
 
     @property
     def ratio_pooled(self) -> float:
-        """sqrt(mean |e|^2 / mean trace C) over all splits' pixels: unbiased in the squares, where the geometric
-        mean of per-split ratios of a few dominant modes sits below 1 even when the prediction is right."""
-        e2 = np.concatenate([np.sum(s.diff ** 2, axis=-1).ravel() for s in self.splits])
-        tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1).ravel() for s in self.splits])
-        ok = np.isfinite(e2) & np.isfinite(tr)
-        return float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok])))
+        """sqrt(sum w |e|^2 / sum w trace C) over all splits' pixels (each split's weights): unbiased in the
+        squares, where the geometric mean of per-split ratios of a few dominant modes sits below 1 even when the
+        prediction is right."""
+        return self._pooled(None)
+
+    def _pooled(self, where) -> float:
+        num = den = 0.0
+        for s in self.splits:
+            ok = np.isfinite(s.diff[..., 0]) & (np.ones(s.diff.shape[:2], bool) if where is None else where)
+            w = np.ones(ok.shape) if s.weight is None else s.weight
+            num += float(np.sum(w[ok] * np.sum(s.diff[ok] ** 2, axis=-1)))
+            den += float(np.sum(w[ok] * np.trace(s.cov[ok], axis1=-2, axis2=-1)))
+        return float(np.sqrt(num / den)) if den > 0 else float("nan")
 
     def covered_figures(self) -> dict | None:
         """Pooled ratio and median Mahalanobis over the grid pixels inside the corners' field only (where the
@@ -385,10 +306,7 @@ class CrossValidation:
         if self.splits[0].covered is None or not self.splits[0].covered.any():
             return None
         c = self.splits[0].covered
-        e2 = np.concatenate([np.sum(s.diff ** 2, axis=-1)[c] for s in self.splits])
-        tr = np.concatenate([np.trace(s.cov, axis1=-2, axis2=-1)[c] for s in self.splits])
-        ok = np.isfinite(e2) & np.isfinite(tr)
-        return {"pixels": int(c.sum()), "ratio_pooled_rms": float(np.sqrt(np.mean(e2[ok]) / np.mean(tr[ok]))),
+        return {"pixels": int(c.sum()), "ratio_pooled_rms": self._pooled(c),
                 "mahalanobis_median": float(np.nanmedian(np.concatenate([s.mahalanobis[c] for s in self.splits])))}
 
     def median_maps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -478,7 +396,7 @@ class CrossValidation:
 
 
 def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, range_: float | None = None,
-                   grid: tuple[int, int] = (16, 12)) -> CrossValidation:
+                   grid: tuple[int, int] = GRID) -> CrossValidation:
     """`splits` random halvings of the views of the full-set solve `full`, each half calibrated from the
     full-set start; see the module docstring."""
     from dstereo.models.distortion import lens_model
@@ -515,4 +433,5 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
                            np.linspace(0.0, h - 1.0, grid[1]), [s.std_ratio for s in sols],
-                           band_if_right(halves, sols, results, seed=seed))
+                           band_if_right(halves, sols, results, seed=seed), sols, _lens_names(full),
+                           tuple(image_size), tuple(grid))

@@ -26,19 +26,23 @@ class LensCovariance:
     jacobian: np.ndarray  # (G, G) sigma^2 S^-1 alone
     kind: str  # "per-view random effects" or "jacobian": which one `cov` is
     views: int  # the views the solve used
+    joint: np.ndarray | None = None  # (G + 6V, G + 6V) with the V board poses (None: the solve kept no blocks)
+    poses: np.ndarray | None = None  # (V, 6) rvec, tvec of T_cam_board
 
 
 def lens_covariance(sol) -> LensCovariance:
     """`LensCovariance` of a `CameraSolution` (a full-set solve)."""
+    from dstereo.uncertainty.projection import solution_joint
     from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
 
     lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
     effects = solution_effects(sol)
     keep = np.ix_(lens, lens)
+    joint = None if getattr(sol, "normal", None) is None else solution_joint(sol, effects)
     return LensCovariance(tuple(sol.names[i] for i in lens), np.asarray(sol.values, float)[lens],
                           np.asarray(reported_covariance(sol), float)[keep], np.asarray(sol.cov, float)[keep],
                           "per-view random effects" if effects is not None and effects.fitted else "jacobian",
-                          int(len(sol.poses)))
+                          int(len(sol.poses)), joint, None if joint is None else np.asarray(sol.poses, float))
 
 
 @dataclass(frozen=True)

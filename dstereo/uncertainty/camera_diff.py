@@ -44,13 +44,13 @@ from dstereo.errors import DstereoError
 from dstereo.models import splined
 from dstereo.models.camera import INTRINSIC_NAMES
 from dstereo.models.pose import rodrigues
-from dstereo.uncertainty.projection import (CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _project, _splined_grid, model_key,
-                                            pixel_ray)
+from dstereo.uncertainty.projection import CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _project, _splined_grid, pixel_ray
 
 FIT_ITERATIONS = 12  # Gauss-Newton steps of the transform fit from the identity (small motions: 4-6 converge)
 BAND = (5.0, 95.0)  # percentiles of `ratio_band` and `mahalanobis_band`
 BAND_DRAWS = 4000  # simulated right predictions for the bands (their 5 % and 95 % points to ~+-2 %)
 MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))  # median of sqrt(chi^2_2)
+GRID = (32, 24)  # columns, rows: the grid of a results folder's projection_uncertainty.npz
 
 
 def slot_names(model: str) -> tuple[str, ...]:
@@ -65,7 +65,10 @@ def slot_names(model: str) -> tuple[str, ...]:
 @dataclass(frozen=True)
 class LensCamera:
     """One calibrated camera for a difference: `params` (4 + slots,) fx fy cx cy then its lens model's coefficient
-    slots (`slot_names`); `cov` (G, G) the marginal covariance of the parameters `names` (None: not known)."""
+    slots (`slot_names`); `cov` (G, G) the marginal covariance of the parameters `names` (None: not known);
+    `joint` (G + 6V, G + 6V) and `poses` (V, 6) the joint covariance with its calibration's board poses, for its
+    pose-compensated map (None: not known); `map_std2` (gh, gw) its map's trace (px^2) on the difference's grid
+    where only the map is known (a written projection_uncertainty.npz at the same range and grid)."""
 
     model: str
     params: np.ndarray
@@ -73,6 +76,9 @@ class LensCamera:
     cov: np.ndarray | None = None
     image_size: tuple[int, int] | None = None
     label: str = ""
+    joint: np.ndarray | None = None
+    poses: np.ndarray | None = None
+    map_trace: np.ndarray | None = None
 
     def __post_init__(self):
         slots = slot_names(self.model)
@@ -86,11 +92,28 @@ class LensCamera:
         if self.cov is not None and np.shape(self.cov) != (len(self.names),) * 2:
             raise DstereoError(f"{self.label or 'camera'}: covariance {np.shape(self.cov)} for {len(self.names)} "
                                "parameter names")
+        if self.joint is not None and (self.poses is None or np.shape(self.joint) != (len(self.names)
+                                                                                     + 6 * len(self.poses),) * 2):
+            raise DstereoError(f"{self.label or 'camera'}: joint covariance {np.shape(self.joint)} does not match "
+                               f"{len(self.names)} parameters and {0 if self.poses is None else len(self.poses)} "
+                               "poses")
 
     @property
     def index(self) -> tuple[int, ...]:
         slots = slot_names(self.model)
         return tuple(slots.index(n) for n in self.names)
+
+    def pose_compensated_trace(self, range_: float, grid: tuple[int, int], image_size) -> np.ndarray | None:
+        """(gh, gw) trace (px^2) of its pose-compensated map at `range_` on `grid` (NaN where masked), from its
+        joint covariance, else its given `map_trace`; None when it has neither."""
+        if self.joint is None:
+            return self.map_trace
+        from dstereo.uncertainty.projection import projection_uncertainty_map
+
+        k, coeffs = self.params[:4], self.params[4:]
+        pmap = projection_uncertainty_map(k, coeffs, self.names, self.joint, image_size, range_, grid,
+                                          poses=self.poses)
+        return np.trace(pmap.cov, axis1=-2, axis2=-1)
 
 
 def _found_ray(params, q, model: str):
@@ -128,8 +151,8 @@ def _residual(params_a, params_b, t, q, rays, models, rotation_only):
 
 @functools.lru_cache(maxsize=None)
 def _compiled(models: tuple[str, str], index_a: tuple[int, ...], index_b: tuple[int, ...], rotation_only: bool):
-    """Compiled: (e, ok, J_T, F_A, F_B, t) for grid pixels q; rows of pixels that are not `ok` are zero in the
-    Jacobians and out of the fit."""
+    """Compiled: (e, ok, J_T, F_A, F_B, t) for grid pixels q and their fit weights; the Jacobians' rows are
+    multiplied by sqrt(weight) (the weighted fit's space) and are zero where a pixel is not `ok`."""
     ia, ib = np.array(index_a, int), np.array(index_b, int)
     n_t = 3 if rotation_only else 6
 
@@ -138,22 +161,25 @@ def _compiled(models: tuple[str, str], index_a: tuple[int, ...], index_b: tuple[
         ok = ok_a & jax.vmap(lambda qq: _found_ray(params_b, qq, models[1])[1])(q) & (weight > 0)
         res = lambda pa, pb, t: _residual(pa, pb, t, q, rays, models, rotation_only)  # noqa: E731
         ok = ok & jnp.all(jnp.isfinite(res(params_a, params_b, jnp.zeros(n_t))), axis=1)
-        w = jnp.repeat(ok, 2)
-        mask = lambda m: jnp.where(w.reshape((-1,) + (1,) * (m.ndim - 1)), m, 0.0)  # noqa: E731
+        root_w = jnp.repeat(jnp.where(ok, jnp.sqrt(jnp.where(ok, weight, 1.0)), 0.0), 2)
+        scaled = lambda m: jnp.where(root_w.reshape((-1,) + (1,) * (m.ndim - 1)) > 0,  # noqa: E731
+                                     m * root_w.reshape((-1,) + (1,) * (m.ndim - 1)), 0.0)
 
         def gn(_, t):
-            r = mask(res(params_a, params_b, t).ravel())
-            jt = mask(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
+            r = scaled(res(params_a, params_b, t).ravel())
+            jt = scaled(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
             return t - jnp.linalg.pinv(jt.T @ jt, rtol=1e-12, hermitian=True) @ (jt.T @ r)
 
         t = jax.lax.fori_loop(0, FIT_ITERATIONS, gn, jnp.zeros(n_t))
         e = res(params_a, params_b, t)
-        jt = mask(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
-        fa = mask(jax.jacfwd(lambda th: res(params_a.at[ia].set(th), params_b, t).ravel())(params_a[ia]))
-        fb = mask(jax.jacfwd(lambda th: res(params_a, params_b.at[ib].set(th), t).ravel())(params_b[ib]))
+        jt = scaled(jax.jacfwd(lambda tt: res(params_a, params_b, tt).ravel())(t))
+        fa = scaled(jax.jacfwd(lambda th: res(params_a.at[ia].set(th), params_b, t).ravel())(params_a[ia]))
+        fb = scaled(jax.jacfwd(lambda th: res(params_a, params_b.at[ib].set(th), t).ravel())(params_b[ib]))
         return e, ok & jnp.all(jnp.isfinite(e), axis=1), jt, fa, fb, t
 
-    return jax.jit(run)
+    from dstereo.runtime import aot  # kept on disk: a new process skips tracing it
+
+    return aot.jit(run, "uncertainty.camera_diff", (models, index_a, index_b, rotation_only))
 
 
 def grid_pixels(image_size, grid: tuple[int, int]):
@@ -194,7 +220,7 @@ def mahalanobis(e: np.ndarray, inv_blocks: np.ndarray) -> np.ndarray:
 @dataclass
 class ProjectionDiff:
     """The difference of two cameras on a grid (module docstring). Arrays on the grid are (gh, gw, ...), NaN where
-    a pixel is left out; the prediction's fields are None when a camera carries no covariance."""
+    a pixel is left out; the prediction's fields are None (NaN) when a camera carries no covariance."""
 
     u: np.ndarray
     v: np.ndarray
@@ -202,50 +228,71 @@ class ProjectionDiff:
     diff: np.ndarray  # (gh, gw, 2) px
     ok: np.ndarray  # (gh, gw) bool
     transform: np.ndarray  # rvec (3) and translation (3, calibration unit) of T_BA
+    weight: np.ndarray  # (gh, gw) the fit's and the ratio's weight per pixel (mean 1 over `ok`; 0 outside)
+    weighting: str = "uniform"  # or "pose-compensated maps": where the weights came from
+    map_trace: np.ndarray | None = None  # (gh, gw) trace C_A + trace C_B of the two pose-compensated maps (px^2)
     cov: np.ndarray | None = None  # (gh, gw, 2, 2) px^2, predicted
     mahalanobis: np.ndarray | None = None  # (gh, gw)
-    ratio_raw: float = float("nan")  # sqrt(mean |e|^2 / mean trace C)
+    ratio_raw: float = float("nan")  # sqrt(sum w |e|^2 / sum w trace C)
     ratio: float = float("nan")  # ratio_raw / its typical value if right: 1 if right, in the log
     typical: float = float("nan")  # exp(E ln ratio_raw) of a right prediction
     modes: float = float("nan")  # effective number of modes of Cov(e): sum(lambda)^2 / sum(lambda^2)
-    lam: np.ndarray | None = None  # eigenvalues of Cov(e) (px^2), decreasing
-    # for simulations of right predictions (bands, `band_if_right`): e = lin_a dA + lin_b dB on the valid pixels,
-    # the inverses of their 2 x 2 blocks
-    lin_a: np.ndarray | None = None
-    lin_b: np.ndarray | None = None
+    lam: np.ndarray | None = None  # eigenvalues of the weighted Cov(e) (px^2), decreasing
+    # for simulations of right predictions (bands, `band_if_right`): on the valid pixels' rows, in the weighted
+    # space, sqrt(w) e = pf_a dA + pf_b dB; `root_w` sqrt(w) per row; inverses of the 2 x 2 blocks of Cov(e)
+    pf_a: np.ndarray | None = None
+    pf_b: np.ndarray | None = None
+    root_a: np.ndarray | None = None  # R_A with R_A R_A' = C_A
+    root_b: np.ndarray | None = None
+    root_w: np.ndarray | None = None
     inv_blocks: np.ndarray | None = None
+    mean_trace_w: float = float("nan")  # mean over the valid pixels of w trace C (px^2)
     bands: dict = field(default_factory=dict)
 
     @property
     def rms(self) -> float:
-        """Observed rms difference over the valid pixels (px)."""
-        return float(np.sqrt(np.mean(np.sum(self.diff[self.ok] ** 2, axis=-1))))
+        """Observed rms difference over the valid pixels, weighted as the ratio (px)."""
+        w = self.weight[self.ok]
+        return float(np.sqrt(np.sum(w * np.sum(self.diff[self.ok] ** 2, axis=-1)) / np.sum(w)))
 
     @property
     def predicted_rms(self) -> float:
-        return float("nan") if self.cov is None else float(np.sqrt(np.mean(np.trace(self.cov[self.ok], axis1=1,
-                                                                                      axis2=2))))
+        """What the prediction expects of `rms` (px), NaN without one."""
+        return float(np.sqrt(self.mean_trace_w * self.ok.sum() / np.sum(self.weight[self.ok])))
 
     @property
-    def mean_trace(self) -> float:
-        return self.predicted_rms ** 2
+    def ratio_vs_maps(self) -> float:
+        """sqrt(sum w |e|^2 / sum w (trace C_A + trace C_B)) with the two pose-compensated maps' traces: what the
+        written maps alone predict, blind to what the fit absorbs (module docstring)."""
+        if self.map_trace is None:
+            return float("nan")
+        good = self.ok & np.isfinite(self.map_trace)
+        w = self.weight[good]
+        return float(np.sqrt(np.sum(w * np.sum(self.diff[good] ** 2, axis=-1)) / np.sum(w * self.map_trace[good])))
 
     @property
     def mahalanobis_median(self) -> float:
         return float("nan") if self.mahalanobis is None else float(np.nanmedian(self.mahalanobis[self.ok]))
 
+    def simulate(self, err_a: np.ndarray, err_b: np.ndarray, per_pixel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(ratio (D,), median Mahalanobis (D,)) of D simulated differences from lens errors err_a (D, G_A) and
+        err_b (D, G_B), computed as for the observed one; `per_pixel`: each valid pixel's Mahalanobis distance
+        (D, N) instead of their median."""
+        e_w = err_a @ self.pf_a.T + err_b @ self.pf_b.T
+        ratio = np.sqrt(np.mean(e_w ** 2, axis=1) * 2.0 / self.mean_trace_w) / self.typical
+        maha = mahalanobis((e_w / self.root_w).reshape(len(e_w), -1, 2), self.inv_blocks)
+        return ratio, (maha if per_pixel else np.median(maha, axis=1))
+
     def band(self, draws: int = BAND_DRAWS, seed: int = 0) -> dict:
         """Where a right prediction's `ratio` and median Mahalanobis fall on this grid (BAND percentiles of
         `draws` differences drawn from the predicted covariance itself)."""
-        if self.lin_a is None:
+        if self.pf_a is None:
             return {}
         key = (draws, seed)
         if key not in self.bands:
             rng = np.random.default_rng(seed)
-            e = (rng.normal(size=(draws, self.lin_a.shape[1])) @ self.lin_a.T
-                 + rng.normal(size=(draws, self.lin_b.shape[1])) @ self.lin_b.T)
-            ratio = np.sqrt(np.mean(e ** 2, axis=1) * 2.0 / self.mean_trace) / self.typical
-            maha = np.median(mahalanobis(e.reshape(draws, -1, 2), self.inv_blocks), axis=1)
+            ratio, maha = self.simulate(rng.normal(size=(draws, self.root_a.shape[1])) @ self.root_a.T,
+                                        rng.normal(size=(draws, self.root_b.shape[1])) @ self.root_b.T)
             lo, hi = BAND
             self.bands[key] = {"percentiles": list(BAND), "draws": draws,
                                "ratio": [float(np.percentile(ratio, lo)), float(np.percentile(ratio, hi))],
@@ -253,10 +300,26 @@ class ProjectionDiff:
         return self.bands[key]
 
 
-def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, int] = (32, 24),
-                    image_size: tuple[int, int] | None = None, weight: np.ndarray | None = None) -> ProjectionDiff:
+def fit_weights(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, int], image_size):
+    """(weights (gh gw,), map traces (gh, gw) or None, weighting): 1 / (trace C_A + trace C_B) of the two
+    pose-compensated maps where both cameras have one (0 where a map is masked), else uniform."""
+    if np.isinf(range_):
+        return np.ones(grid[0] * grid[1]), None, "uniform (an infinite range: no pose-compensated map)"
+    traces = [c.pose_compensated_trace(range_, grid, image_size) for c in (a, b)]
+    if any(t is None for t in traces):
+        return np.ones(grid[0] * grid[1]), None, "uniform (a camera has no pose-compensated map)"
+    total = traces[0] + traces[1]
+    good = np.isfinite(total) & (total > 0)
+    w = np.zeros(total.shape)
+    w[good] = 1.0 / total[good]
+    return w.ravel(), total, "pose-compensated maps"
+
+
+def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, int] = GRID,
+                    image_size: tuple[int, int] | None = None, weighted: bool = True) -> ProjectionDiff:
     """The difference of camera `b` against camera `a` at `range_` (module docstring) on a `grid` (columns, rows)
-    of pixel centres of `image_size` (default a's); `weight` (gh gw,) leaves pixels out where 0."""
+    of pixel centres of `image_size` (default a's). `weighted`: the fit and the ratio weight each pixel by
+    1 / (trace C_A + trace C_B) of the cameras' pose-compensated maps where both have one (module docstring)."""
     size = image_size or a.image_size
     if size is None:
         raise DstereoError(f"{a.label or 'camera A'}: no image size; give one")
@@ -264,39 +327,50 @@ def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int
         raise DstereoError(f"distance {range_}: give a positive distance (the calibration's unit) or inf")
     rotation_only = bool(np.isinf(range_))
     u, v, q = grid_pixels(size, grid)
+    gh, gw = grid[1], grid[0]
+    w, map_trace, weighting = (fit_weights(a, b, range_, grid, size) if weighted else
+                               (np.ones(len(q)), None, "uniform"))
     run = _compiled((a.model, b.model), a.index, b.index, rotation_only)
-    w = np.ones(len(q)) if weight is None else np.asarray(weight, float).ravel()
-    # the translation in units of the range: columns of one scale for the fit, whatever the unit
+    w_run = w / np.mean(w[w > 0]) if np.any(w > 0) else w
     e, ok, jt, fa, fb, t = (np.array(x) for x in run(np.asarray(a.params, float), np.asarray(b.params, float),
-                                                   np.asarray(q, float), w))
+                                                   np.asarray(q, float), w_run))
     if not ok.any():
         raise DstereoError("no pixel of the grid has a ray through both cameras; check that both files describe "
                            "the same camera")
+    w = np.where(ok, w, 0.0)
+    w = w / np.mean(w[ok])  # mean 1 over the valid pixels (the fit's scale is immaterial)
     t = np.concatenate([t[:3], np.zeros(3) if rotation_only else t[3:] * range_])
-    gh, gw = grid[1], grid[0]
     e[~ok] = np.nan
-    out = ProjectionDiff(u, v, float(range_), e.reshape(gh, gw, 2), ok.reshape(gh, gw), t)
+    out = ProjectionDiff(u, v, float(range_), e.reshape(gh, gw, 2), ok.reshape(gh, gw), t, w.reshape(gh, gw),
+                         weighting, map_trace)
     if a.cov is None or b.cov is None:
         return out
-    def absorbed(f):  # P f: what the transform fit leaves of a parameter change's effect
+
+    def absorbed(f):  # P f: what the (weighted) transform fit leaves of a parameter change's effect
         return f - jt @ (np.linalg.pinv(jt.T @ jt, rcond=1e-12, hermitian=True) @ (jt.T @ f))
 
-    lin_a, lin_b = absorbed(fa) @ _root(a.cov), absorbed(fb) @ _root(b.cov)
-    lin = np.concatenate([lin_a, lin_b], axis=1)  # Cov(e) = lin lin'
-    n = len(q)
+    rows = np.repeat(ok, 2)
+    root_w = np.sqrt(np.repeat(w, 2))
+    # the compiled Jacobians are scaled by sqrt of the weights it was given: rescale to these (mean 1 on ok)
+    scale = np.sqrt(np.repeat(np.where(ok, w / np.where(w_run > 0, w_run, 1.0), 0.0), 2))[:, None]
+    pf_a, pf_b = absorbed(fa) * scale, absorbed(fb) * scale
+    root_a, root_b = _root(a.cov), _root(b.cov)
+    lin = np.concatenate([pf_a @ root_a, pf_b @ root_b], axis=1)[rows] / root_w[rows][:, None]  # unweighted e
+    n = int(ok.sum())
     blocks = np.einsum("nik,njk->nij", lin.reshape(n, 2, -1), lin.reshape(n, 2, -1))
-    good = ok & np.all(np.isfinite(blocks), axis=(1, 2))
-    inv_blocks = np.linalg.pinv(blocks[good], hermitian=True)
-    maha = np.full(n, np.nan)
-    maha[good] = mahalanobis(e[good], inv_blocks)
-    lam = np.clip(np.linalg.eigvalsh(lin[np.repeat(good, 2)].T @ lin[np.repeat(good, 2)]), 0.0, None)[::-1]
-    mean_trace = float(np.mean(np.trace(blocks[good], axis1=1, axis2=2)))
-    ratio_raw = float(np.sqrt(np.mean(np.sum(e[good] ** 2, axis=1)) / mean_trace))
+    inv_blocks = np.linalg.pinv(blocks, hermitian=True)
+    maha = np.full(len(q), np.nan)
+    maha[ok] = mahalanobis(e[ok], inv_blocks)
+    lin_w = lin * root_w[rows][:, None]
+    lam = np.clip(np.linalg.eigvalsh(lin_w.T @ lin_w), 0.0, None)[::-1]
+    mean_trace_w = float(np.mean(w[ok] * np.trace(blocks, axis1=1, axis2=2)))
+    ratio_raw = float(np.sqrt(np.mean(w[ok] * np.sum(e[ok] ** 2, axis=1)) / mean_trace_w))
     typical = float(np.exp(expected_log_ratio(lam)))
-    blocks[~good] = np.nan
-    out.ok = good.reshape(gh, gw)
-    out.cov, out.mahalanobis = blocks.reshape(gh, gw, 2, 2), maha.reshape(gh, gw)
+    cov = np.full((len(q), 2, 2), np.nan)
+    cov[ok] = blocks
+    out.cov, out.mahalanobis = cov.reshape(gh, gw, 2, 2), maha.reshape(gh, gw)
     out.ratio_raw, out.typical, out.ratio = ratio_raw, typical, ratio_raw / typical
     out.modes, out.lam = float(lam.sum() ** 2 / np.sum(lam ** 2)), lam
-    out.lin_a, out.lin_b, out.inv_blocks = lin_a[np.repeat(good, 2)], lin_b[np.repeat(good, 2)], inv_blocks
+    out.pf_a, out.pf_b, out.root_a, out.root_b = pf_a[rows], pf_b[rows], root_a, root_b
+    out.root_w, out.inv_blocks, out.mean_trace_w = root_w[rows], inv_blocks, mean_trace_w
     return out

@@ -277,16 +277,10 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
     scatter = solution_view_scatter(sol)
     effects = solution_effects(sol)  # the views' effects: the covariance every +- of the tool carries
     if method == "pose-compensated":
-        from dstereo.uncertainty.covariance import joint_covariance
-
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        joint = (effects.joint(sol.normal) if effects is not None else
-                 joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
-                                  prior=knot_prior(sol.names)))
-        keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
-        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, joint[np.ix_(keep, keep)],
+        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, solution_joint(sol, effects),
                                           image_size, range_, grid, poses=sol.poses, method=method)
     else:
         cov = reported_covariance(sol)
@@ -294,6 +288,21 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
                                           image_size, range_, grid, method=method)
     return replace(pmap, view_scatter=scatter,
                    covariance="per-view random effects" if effects is not None and effects.fitted else "jacobian")
+
+
+def solution_joint(sol, effects=None) -> np.ndarray:
+    """(G + 6V, G + 6V) the joint covariance of a full-set solve's lens parameters and its V board poses, the
+    views' effects included where fitted (`effects`: `solution_effects(sol)`, computed here when None); a solved
+    board sag marginalised (its rows and columns dropped). The solve must keep its per-view normal blocks."""
+    from dstereo.uncertainty.covariance import joint_covariance
+
+    effects = solution_effects(sol) if effects is None else effects
+    lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
+    joint = (effects.joint(sol.normal) if effects is not None else
+             joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum(),
+                              prior=knot_prior(sol.names)))
+    keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
+    return joint[np.ix_(keep, keep)]
 
 
 def knot_prior(names) -> np.ndarray | None:

@@ -72,24 +72,6 @@ def test_calibrate_cross_validate_writes_verdict_map_and_method(tmp_path):
     assert code == 1 and "--projection-method mrcal" in err and not (tmp_path / "bad").exists()
 
 
-def test_fisheye_ray_point_round_trips_and_equal_cameras_differ_by_nothing():
-    """The fisheye half-comparison uses the model's own inverse: the point on a pixel's ray projects back onto the
-    pixel (Newton to 1e-12 in theta: far below 1e-9 px), and two equal cameras differ by 0 after the fit."""
-    import jax.numpy as jnp
-
-    params = np.zeros(12)
-    params[:8] = [300.0, 301.0, 320.0, 240.0, 0.05, -0.01, 0.002, -0.0005]
-    q = np.array([[100.0, 50.0], [320.0, 240.0], [600.0, 400.0]])
-    for qq in q:
-        p, ok = cv._ray_point(jnp.asarray(params), jnp.asarray(qq), 500.0, "fisheye")
-        assert bool(ok) and np.linalg.norm(p) == pytest.approx(500.0, rel=1e-12)
-        back = cv._project(jnp.asarray(params[:4]), jnp.asarray(params[4:]), p, "fisheye")
-        np.testing.assert_allclose(np.asarray(back), qq, atol=1e-9)
-    e, ok, *_ = cv._compiled((0, 1, 2, 3, 4, 5, 6, 7), "fisheye")(jnp.asarray(params), jnp.asarray(params),
-                                                                   jnp.asarray(q), 500.0, jnp.ones(len(q)))
-    assert np.all(np.asarray(ok)) and np.max(np.abs(np.asarray(e))) < 1e-9
-
-
 def test_parameters_differing_beyond_their_prediction_are_named_even_when_the_projection_passes(honest):
     """d'C^-1 d / G scales as 1/c for a covariance c times too small (exactly); a trusted projection whose
     parameters differ beyond PARAMETER_CHI2_MAX says that their +- cannot be read (cancelling parameters)."""
