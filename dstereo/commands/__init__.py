@@ -17,6 +17,7 @@ COMMANDS = [
     ("optics", "dstereo.commands.optics:optics"),
     ("demo", "dstereo.commands.demo:demo"),
     ("refine", "dstereo.commands.refine:refine"),
+    ("diff", "dstereo.commands.diff:diff"),
     ("serve", "dstereo.commands.serve:serve"),
 ]
 

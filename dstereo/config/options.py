@@ -222,6 +222,7 @@ RUN_FLAGS = {
                "left": "--left", "right": "--right", "depth_range": "--z-min/--z-max", "z_min": "--z-min",
                "z_max": "--z-max"},
     "demo": {"out": "--out", "force": "--force"},
+    "diff": {"out": "--out", "force": "--force", "distance": "--distance", "grid": "--grid"},
 }
 
 TABLES = {t.command: t for t in (CALIBRATE, RECONSTRUCT, OPTICS)}

@@ -8,12 +8,19 @@ calibration's uncertainty). Keys:
     values      (G,)       their values in the solve the covariance belongs to
     cov         (G, G)     the covariance every +- of the results folder shows: with the views' effects where
                            fitted (`kind`), the marginal one (every board pose solved out)
-    cov_jacobian (G, G)    sigma^2 (J'J)^-1's block alone, sigma^2 = SSE / (residuals - parameters)
+    cov_jacobian (G, G)    sigma^2 (J'J)^-1's block alone, sigma^2 = SSE / (residuals - parameters) (a results
+                           folder's; not written for a cross-validation half)
     kind        str        "per-view random effects" or "jacobian": which one `cov` is
     solve       str        which solve: "full set" (camera.yml holds the same unless --per-set's survivors or
-                           --final mean differ; `dstereo diff` says so when the values differ)
+                           --final mean differ; `dstereo diff` says so when the values differ), or a
+                           cross-validation half
     views       int        the views that solve used
     lens_model  str        pinhole, fisheye or splined
+    joint       (G + 6V, G + 6V)  the covariance of the lens parameters and the V board poses together (what the
+                           pose-compensated map propagates; absent when the solve kept no per-view blocks)
+    poses       (V, 6)     the board poses (rvec, tvec of T_cam_board, the calibration's unit)
+    range, grid, image_size   the distance (calibration unit), grid (columns, rows) and image of the folder's
+                           projection_uncertainty.npz: `dstereo diff`'s defaults
 
 A file without it (written before it existed, or by another program) still diffs, without a prediction.
 """
@@ -29,11 +36,17 @@ from dstereo.errors import DstereoError
 NAME = "calibration_covariance.npz"
 
 
-def write_calibration_covariance(folder: Path, cov, lens_model: str) -> dict:
-    """Write `cov` (a `calib.finished.LensCovariance`) as NAME into `folder`; returns the summary entry."""
-    np.savez(Path(folder) / NAME, names=np.array(cov.names), values=cov.values, cov=cov.cov,
-             cov_jacobian=cov.jacobian, kind=cov.kind, solve="full set", views=cov.views, lens_model=lens_model)
-    return {"file": NAME, "parameters": list(cov.names), "kind": cov.kind, "solve": "full set", "views": cov.views}
+def write_calibration_covariance(folder: Path, cov, lens_model: str, range_: float, grid, image_size,
+                                solve: str = "full set") -> dict:
+    """Write `cov` (a `calib.finished.LensCovariance`) as NAME into `folder`, with the range, grid and image size
+    of its projection-uncertainty map; returns the summary entry."""
+    joint = {} if cov.joint is None else {"joint": cov.joint, "poses": cov.poses}
+    jacobian = {} if cov.jacobian is None else {"cov_jacobian": cov.jacobian}
+    np.savez(Path(folder) / NAME, names=np.array(cov.names), values=cov.values, cov=cov.cov, **jacobian,
+             kind=cov.kind, solve=solve, views=cov.views, lens_model=lens_model,
+             range=float(range_), grid=np.asarray(grid, int), image_size=np.asarray(image_size, int), **joint)
+    return {"file": NAME, "parameters": list(cov.names), "kind": cov.kind, "solve": solve, "views": cov.views,
+            "joint_with_poses": cov.joint is not None}
 
 
 def read_calibration_covariance(path: Path) -> dict:
@@ -57,6 +70,18 @@ def read_calibration_covariance(path: Path) -> dict:
     if not np.all(np.isfinite(cov)):
         raise DstereoError(f"{path}: the covariance has non-finite entries (the solve left a parameter "
                            "undetermined); diff without it (remove the file) or calibrate again")
+    joint, poses = out.get("joint"), out.get("poses")
+    if joint is not None and (poses is None or np.shape(joint) != (len(names) + 6 * len(poses),) * 2
+                              or not np.all(np.isfinite(joint))):
+        raise DstereoError(f"{path}: joint {np.shape(joint)} does not match {len(names)} parameters and "
+                           f"{0 if poses is None else len(poses)} poses, or is not finite; write it again with "
+                           "dstereo calibrate")
+    grid = out.get("grid")
     return {"names": names, "values": values, "cov": cov, "kind": str(out.get("kind", "")),
             "solve": str(out.get("solve", "")), "views": int(out["views"]) if "views" in out else None,
-            "lens_model": str(out.get("lens_model", ""))}
+            "lens_model": str(out.get("lens_model", "")),
+            "joint": None if joint is None else np.asarray(joint, float),
+            "poses": None if poses is None else np.asarray(poses, float),
+            "range": float(out["range"]) if "range" in out else None,
+            "grid": None if grid is None else tuple(int(g) for g in np.ravel(grid)),
+            "image_size": tuple(int(x) for x in np.ravel(out["image_size"])) if "image_size" in out else None}

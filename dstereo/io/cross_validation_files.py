@@ -1,4 +1,6 @@
-"""The cross-validation files of a camera's results folder: cross_validation.npz and its figure."""
+"""The cross-validation files of a camera's results folder: cross_validation.npz, its figure, and each split's two
+halves as camera folders (cross_validation/split_<k>/a and b: camera.yml, camera.json, calibration_covariance.npz),
+so that `dstereo diff cross_validation/split_1/a cross_validation/split_1/b` reads split 1's figures."""
 
 from __future__ import annotations
 
@@ -13,14 +15,52 @@ if TYPE_CHECKING:  # annotations only: the writer takes a finished cross-validat
     from dstereo.calib.cross_validation import CrossValidation
 
 
-def write_cross_validation(folder, xval: CrossValidation, unit: str) -> dict:
-    """cross_validation.npz (per split: diff, predicted cov, Mahalanobis) and plots/cross_validation.png."""
+def write_cross_validation(folder, xval: CrossValidation, unit: str, view_names=None) -> dict:
+    """cross_validation.npz (per split: diff, predicted cov, Mahalanobis, weight), plots/cross_validation.png and
+    the halves' camera folders; `view_names`: the used views' names (the halves' indices point into them)."""
     folder = Path(folder)
     np.savez(folder / "cross_validation.npz", u=xval.u, v=xval.v, range=xval.range_,
              diff=np.stack([s.diff for s in xval.splits]), cov=np.stack([s.cov for s in xval.splits]),
-             mahalanobis=np.stack([s.mahalanobis for s in xval.splits]))
+             mahalanobis=np.stack([s.mahalanobis for s in xval.splits]),
+             weight=np.stack([np.ones(s.diff.shape[:2]) if s.weight is None else s.weight for s in xval.splits]))
     _plot(folder / "plots" / "cross_validation.png", xval, unit)
-    return {**xval.summary(), "unit": unit, "files": ["cross_validation.npz", "plots/cross_validation.png"]}
+    halves = _write_halves(folder / "cross_validation", xval, unit, view_names) if xval.solutions else []
+    return {**xval.summary(), "unit": unit, "files": ["cross_validation.npz", "plots/cross_validation.png"] + halves}
+
+
+def _write_halves(root: Path, xval: CrossValidation, unit: str, view_names) -> list[str]:
+    """cross_validation/split_<k>/{a,b}: each half's camera and calibration_covariance.npz (at the
+    cross-validation's range and grid, so `dstereo diff` repeats the split as computed here)."""
+    from types import SimpleNamespace
+
+    from dstereo.io.covariance_file import NAME, write_calibration_covariance
+    from dstereo.io.results import distortion_vector, write_camera_files
+    from dstereo.models.distortion import lens_model
+
+    names = tuple(xval.names)
+    free = names[4:]
+    model = lens_model(free)
+    written = []
+    for k, (split, parts) in enumerate(zip(xval.splits, xval.halves)):
+        for h, (sol, part) in enumerate(zip(xval.solutions[2 * k: 2 * k + 2], parts)):
+            where = root / f"split_{k + 1}" / "ab"[h]
+            where.mkdir(parents=True)
+            p = np.asarray(sol.params, float)
+            K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
+            views = [int(i) for i in part]
+            extra = {"distortion_names": free, "source": f"cross-validation split {k + 1}, half {'AB'[h]}",
+                     "views": views if view_names is None else [view_names[i] for i in views]}
+            write_camera_files(where, K, distortion_vector(p[4:], free), xval.image_size, extra, model=model,
+                               unit=unit)
+            values = np.asarray(sol.values, float)[: len(names)]  # the lens parameters lead (a sag follows)
+            cov = SimpleNamespace(names=names, values=values, cov=sol.cov, jacobian=None,
+                                  kind="the half's reported covariance (the views' effects where fitted)",
+                                  views=len(views), joint=sol.joint, poses=sol.poses)
+            write_calibration_covariance(where, cov, model, xval.range_, xval.grid, xval.image_size,
+                                         solve=f"cross-validation split {k + 1}, half {'AB'[h]}")
+            rel = where.relative_to(root.parent)
+            written += [str(rel / "camera.yml"), str(rel / "camera.json"), str(rel / NAME)]
+    return written
 
 
 def _plot(path, xval: CrossValidation, unit: str) -> None:

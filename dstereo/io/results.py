@@ -520,8 +520,10 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     if getattr(finished(cal), "covariance", None) is not None:
         from dstereo.io.covariance_file import write_calibration_covariance
 
-        summary["calibration_covariance"] = write_calibration_covariance(folder, finished(cal).covariance,
-                                                                         full.lens_model)
+        pmap = finished(cal).projection.map
+        summary["calibration_covariance"] = write_calibration_covariance(
+            folder, finished(cal).covariance, full.lens_model, pmap.range_, (len(pmap.u), len(pmap.v)),
+            det.image_size)
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
         f = cal.filtering
@@ -542,7 +544,8 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     if getattr(cal, "cross_validation", None) is not None:
         from dstereo.io.cross_validation_files import write_cross_validation
 
-        summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit)
+        summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit,
+                                                             list(cal.used))
     figures.wait()
     if taken:
         early.take(plot_dir)

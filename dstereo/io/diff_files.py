@@ -1,0 +1,187 @@
+"""`dstereo diff`'s files: the two cameras it reads (with their uncertainty files) and the folder it writes.
+
+A camera is given as
+- a camera's results folder (`dstereo calibrate --images`, or a rig's `left/`, `right/`, `<camera>/` subfolder, or
+  a cross-validation half `cross_validation/split_<k>/a`): its camera.yml, with calibration_covariance.npz and
+  projection_uncertainty.npz beside it when there;
+- a camera file (camera.yml, or any OpenCV camera file `io.camera_file` reads): the same files beside it count;
+- a rig's camera, `stereo.yml:left` or `stereo.yml:right` (a rig folder `DIR:left` finds DIR/stereo.yml): its
+  intrinsics, its block of the pair's covariance (`cov`, `cov_names`), and rig_<camera>_projection_uncertainty.npz
+  beside it when there.
+
+Written (`write_diff`, under a temporary name renamed at the end): diff.json (the summary), diff.npz (the grid, the
+difference, the prediction, Mahalanobis distances, weights) and diff.png (heat maps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dstereo.errors import DstereoError
+from dstereo.io.covariance_file import NAME as COVARIANCE_NAME
+from dstereo.io.covariance_file import read_calibration_covariance
+
+MAP_NAME = "projection_uncertainty.npz"
+SIDES = ("left", "right")
+
+
+@dataclass
+class DiffInput:
+    """One camera as read for a difference: K (3, 3), coeffs (8,) in its model's slots (a splined lens: its
+    knots), the covariance file's content (None without one), its written map (u, v, cov, range) when there."""
+
+    label: str
+    model: str  # pinhole, fisheye, splined
+    K: np.ndarray
+    coeffs: np.ndarray
+    image_size: tuple[int, int] | None
+    unit: str | None
+    free: tuple[str, ...] = ()  # a splined lens's knot names
+    covariance: dict | None = None  # `read_calibration_covariance`'s dict, or the rig's block (names, values, cov)
+    written_map: dict | None = None  # u, v, cov, range of its projection_uncertainty.npz
+    files: list[str] = field(default_factory=list)  # what was read
+    notes: list[str] = field(default_factory=list)
+
+
+def _read_map(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: np.asarray(z[k]) for k in ("u", "v", "cov", "range")}
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to replace
+        raise DstereoError(f"{path}: not a readable projection-uncertainty map ({type(exc).__name__}); remove it or "
+                           "write it again with dstereo calibrate") from None
+    out["range"] = float(out["range"])
+    return out
+
+
+def read_diff_input(spec: str, which: str) -> DiffInput:
+    """The camera `spec` names (module docstring); `which` ("A" or "B") for messages."""
+    text = str(spec)
+    side = None
+    if ":" in Path(text).name:
+        text, side = text.rsplit(":", 1)
+        if side not in SIDES:
+            raise DstereoError(f"camera {which} {spec!r}: after ':' give left or right (a rig's camera in its "
+                               "stereo.yml)")
+    path = Path(text)
+    if not path.exists():
+        raise DstereoError(f"camera {which}: {path} does not exist; give a results folder, a camera.yml or "
+                           "stereo.yml:left")
+    if side is not None:
+        return _rig_camera(path / "stereo.yml" if path.is_dir() else path, side, which)
+    if path.is_dir():
+        if (path / "camera.yml").is_file():
+            path = path / "camera.yml"
+        elif (path / "stereo.yml").is_file():
+            raise DstereoError(f"camera {which}: {path} is a rig's folder; name one camera: {path}/left (its own "
+                               f"calibration) or {path}:left (the rig's joint solve)")
+        else:
+            raise DstereoError(f"camera {which}: {path} holds no camera.yml; give a camera's results folder or file")
+    return _camera_file(path, which)
+
+
+def _camera_file(path: Path, which: str) -> DiffInput:
+    from dstereo.io.camera_file import read_camera_file
+
+    cam = read_camera_file(path)
+    out = DiffInput(f"{which}: {path}", cam.model, cam.K, cam.coeffs, cam.image_size, cam.unit, cam.free,
+                    files=[str(path)])
+    cov_path, map_path = path.parent / COVARIANCE_NAME, path.parent / MAP_NAME
+    if cov_path.is_file():
+        out.covariance = read_calibration_covariance(cov_path)
+        out.files.append(str(cov_path))
+    else:
+        out.notes.append(f"{path.parent} has no {COVARIANCE_NAME} (a folder written before it existed, or another "
+                         "program's file): no prediction for this camera")
+    out.written_map = _read_map(map_path)
+    if out.written_map is not None:
+        out.files.append(str(map_path))
+    return out
+
+
+def _rig_camera(path: Path, side: str, which: str) -> DiffInput:
+    from dstereo.io.calib_files import read_opencv_stereo
+
+    if not path.is_file():
+        raise DstereoError(f"camera {which}: {path} does not exist; a rig's camera is STEREO_YML:left or :right")
+    calib = read_opencv_stereo(path, unscaled=True)  # the file's own unit: the range is given in it
+    i = SIDES.index(side)
+    K, D, model = (calib.K1, calib.D1, calib.models[0]) if i == 0 else (calib.K2, calib.D2, calib.models[1])
+    from dstereo.io.calib_files import _read_storage
+
+    unit = str(_read_storage(path).get("unit", "") or "").strip().lower() or None
+    out = DiffInput(f"{which}: {path}:{side}", model, np.asarray(K, float), np.asarray(D, float).ravel()[:8],
+                    calib.image_size, unit, files=[str(path)])
+    cov, names = calib.extras.get("cov"), calib.extras.get("cov_names")
+    if cov is None:
+        out.notes.append(f"{path} carries no covariance: no prediction for this camera")
+    else:
+        prefix = f"{side}."
+        rows = [j for j, n in enumerate(names) if n.startswith(prefix)]
+        own = tuple(names[j][len(prefix):] for j in rows)
+        if model == "fisheye":  # the pair's names k1..k4 are cv2.fisheye's coefficients in the first slots
+            own = tuple({"k1": "fk1", "k2": "fk2", "k3": "fk3", "k4": "fk4"}.get(n, n) for n in own)
+        kv = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        from dstereo.uncertainty.camera_diff import slot_names
+
+        slots = slot_names(model)
+        values = np.array([kv[slots.index(n)] if slots.index(n) < 4 else out.coeffs[slots.index(n) - 4]
+                           for n in own if n in slots])
+        if len(values) != len(own):
+            raise DstereoError(f"{path}: cov_names {own} are not all parameters of its {model} {side} camera")
+        out.covariance = {"names": own, "values": values, "cov": np.asarray(cov, float)[np.ix_(rows, rows)],
+                          "kind": str(calib.extras.get("cov_structure", "")), "solve": "the rig's joint solve",
+                          "joint": None, "poses": None, "range": None, "grid": None, "image_size": calib.image_size}
+    map_path = path.parent / f"rig_{side}_{MAP_NAME}"
+    out.written_map = _read_map(map_path)
+    if out.written_map is not None:
+        out.files.append(str(map_path))
+    return out
+
+
+def write_diff(out: Path, force: bool, result: dict, arrays: dict, figure) -> Path:
+    """The results folder (module docstring), atomically: `result` as diff.json, `arrays` as diff.npz, and
+    `figure(path)` drawing diff.png."""
+    from dstereo.io.json_files import write_json
+    from dstereo.io.results import atomic_folder
+
+    with atomic_folder(out, force) as tmp:
+        np.savez(tmp / "diff.npz", **arrays)
+        figure(tmp / "diff.png")
+        write_json(tmp / "diff.json", result)
+    return Path(out)
+
+
+def diff_png(path: Path, u, v, diff, predicted, maha, title: str) -> None:
+    """Three heat maps on the grid: the observed |difference| with its vectors, the predicted rms difference,
+    and the Mahalanobis distance (1.18 if right); grey where a pixel is left out."""
+    import matplotlib
+
+    from dstereo.io.figures import pyplot, save
+
+    plt = pyplot()
+    panels = [(np.hypot(diff[..., 0], diff[..., 1]), "observed |difference| (px)")]
+    if predicted is not None:
+        panels += [(predicted, "predicted rms difference (px)"), (maha, "Mahalanobis distance (1.18 if right)")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    ext = (u[0], u[-1], v[-1], v[0])
+    both = np.concatenate([p[np.isfinite(p)] for p, _ in panels[:2]])
+    # the 95th percentile, not the maximum: extrapolated image corners would flatten the rest into one colour
+    top = float(np.percentile(both, 95)) if both.size else 1.0
+    for k, (ax, (data, label)) in enumerate(zip(axes[0], panels)):
+        cmap = matplotlib.colormaps["viridis"].with_extremes(over="tab:red", bad="0.6")
+        im = ax.imshow(np.ma.masked_invalid(data), extent=ext, vmin=0, vmax=4.0 if k == 2 else max(top, 1e-12),
+                       cmap=cmap)
+        ax.set_title(label, fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.04, extend="max")
+    q = np.stack(np.meshgrid(u, v), axis=-1)
+    spacing = u[1] - u[0] if len(u) > 1 else 1.0
+    axes[0][0].quiver(q[..., 0], q[..., 1], diff[..., 0], -diff[..., 1], color="w", scale_units="xy",
+                      scale=max(top, 1e-12) / (0.8 * spacing))  # the 95th-percentile length spans 0.8 grid steps
+    fig.suptitle(title, fontsize=8)
+    save(fig, path, dpi=80)
