@@ -158,30 +158,37 @@ def write_diff(out: Path, force: bool, result: dict, arrays: dict, figure) -> Pa
 
 
 def diff_png(path: Path, u, v, diff, predicted, maha, title: str) -> None:
-    """Three heat maps on the grid: the observed |difference| with its vectors, the predicted rms difference,
-    and the Mahalanobis distance (1.18 if right); grey where a pixel is left out."""
+    """Heat maps on the grid: the observed |difference| with its directions, the predicted rms difference (one
+    log colour scale for both: inside the calibrated field they are tenths of a pixel, in extrapolated corners
+    tens), and the Mahalanobis distance (1.18 if right); grey where a pixel is left out."""
+    import textwrap
+
     import matplotlib
+    from matplotlib.colors import LogNorm
 
     from dstereo.io.figures import pyplot, save
 
     plt = pyplot()
-    panels = [(np.hypot(diff[..., 0], diff[..., 1]), "observed |difference| (px)")]
+    size = np.hypot(diff[..., 0], diff[..., 1])
+    panels = [(size, "observed |difference| (px)")]
     if predicted is not None:
         panels += [(predicted, "predicted rms difference (px)"), (maha, "Mahalanobis distance (1.18 if right)")]
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.3), squeeze=False)
     ext = (u[0], u[-1], v[-1], v[0])
-    both = np.concatenate([p[np.isfinite(p)] for p, _ in panels[:2]])
-    # the 95th percentile, not the maximum: extrapolated image corners would flatten the rest into one colour
-    top = float(np.percentile(both, 95)) if both.size else 1.0
+    both = np.concatenate([p[np.isfinite(p) & (p > 0)] for p, _ in panels[:2]])
+    lo, hi = (np.percentile(both, [2, 98]) if both.size else (1e-3, 1.0))
+    hi = max(hi, lo * 10.0)
     for k, (ax, (data, label)) in enumerate(zip(axes[0], panels)):
-        cmap = matplotlib.colormaps["viridis"].with_extremes(over="tab:red", bad="0.6")
-        im = ax.imshow(np.ma.masked_invalid(data), extent=ext, vmin=0, vmax=4.0 if k == 2 else max(top, 1e-12),
-                       cmap=cmap)
+        cmap = matplotlib.colormaps["viridis"].with_extremes(over="tab:red", under="k", bad="0.6")
+        norm = matplotlib.colors.Normalize(0.0, 4.0) if k == 2 else LogNorm(lo, hi)
+        im = ax.imshow(np.ma.masked_invalid(data), extent=ext, norm=norm, cmap=cmap)
         ax.set_title(label, fontsize=9)
-        fig.colorbar(im, ax=ax, fraction=0.04, extend="max")
+        fig.colorbar(im, ax=ax, fraction=0.04, extend="max" if k == 2 else "both")
     q = np.stack(np.meshgrid(u, v), axis=-1)
-    spacing = u[1] - u[0] if len(u) > 1 else 1.0
-    axes[0][0].quiver(q[..., 0], q[..., 1], diff[..., 0], -diff[..., 1], color="w", scale_units="xy",
-                      scale=max(top, 1e-12) / (0.8 * spacing))  # the 95th-percentile length spans 0.8 grid steps
-    fig.suptitle(title, fontsize=8)
+    unit = np.where(size > 0, 1.0 / np.where(size > 0, size, 1.0), 0.0)
+    step = max(1, len(u) // 16)  # at most ~16 arrows a row: directions, each of the same length
+    axes[0][0].quiver(q[::step, ::step, 0], q[::step, ::step, 1], (diff[..., 0] * unit)[::step, ::step],
+                      -(diff[..., 1] * unit)[::step, ::step], color="w", pivot="middle", scale_units="xy",
+                      scale=1.0 / (0.6 * step * (u[1] - u[0] if len(u) > 1 else 1.0)))
+    fig.suptitle("\n".join(textwrap.wrap(title, 190)), fontsize=7)
     save(fig, path, dpi=80)
