@@ -1,0 +1,121 @@
+"""`uncertainty.camera_diff`: the projection difference of two cameras with the implied transform fitted, and its
+first-order prediction. Checked against: zero for equal cameras (every lens model), the model's own projection
+for the ray, central differences of the whole fitted difference for the prediction's linearisation (weighted and
+not), the exact 1/std scaling of the ratio, and a Monte Carlo in parameter space (a right covariance reads 1, in
+its band; a planted covariance 4x too small fails it)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dstereo.calib.mono import calibrate_full
+from dstereo.uncertainty import camera_diff as cd
+from dstereo.synth.board_views import FREE, SIZE, scene
+
+GRID = (12, 9)  # small: every test here shares one compiled program per lens model
+
+
+@pytest.fixture(scope="module")
+def calibrated():
+    """A synthetic camera calibrated from 12 views with 0.3 px noise: its values, covariance, joint and poses."""
+    from dstereo.calib.finished import lens_covariance
+
+    _, _, obj, corners = scene(n_views=12, seed=0)
+    obs = corners + np.random.default_rng(0).normal(0, 0.3, corners.shape)
+    full = calibrate_full(obj, obs, SIZE, FREE)
+    lc = lens_covariance(full)
+    params = np.concatenate([full.values[:4], full.coeffs])
+    return cd.LensCamera("pinhole", params, lc.names, lc.cov, SIZE, "A", joint=lc.joint, poses=lc.poses)
+
+
+def _perturbed(cam, delta):
+    p = cam.params.copy()
+    p[list(cam.index)] += delta
+    return dataclasses.replace(cam, params=p)
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye", "splined:6x5"])
+def test_equal_cameras_differ_by_nothing_after_the_fit(calibrated, model):
+    """Every lens model: a camera against itself differs by 0 (the rays are the model's own inverse, so each
+    pixel's point projects back onto it, and the fit stays at the identity); at an infinite range the
+    transform is a rotation alone."""
+    if model == "pinhole":
+        cam = calibrated
+    elif model == "fisheye":
+        cam = cd.LensCamera(model, np.r_[300.0, 301.0, 320.0, 240.0, 0.05, -0.01, 0.002, -0.0005, np.zeros(4)],
+                            image_size=SIZE)
+    else:
+        knots = np.random.default_rng(1).normal(0, 0.5, 2 * 6 * 5)
+        cam = cd.LensCamera(model, np.r_[330.0, 331.0, 320.0, 240.0, knots], image_size=SIZE)
+    d = cd.projection_diff(cam, cam, 500.0, GRID)
+    assert d.ok.mean() > 0.9 and np.nanmax(np.abs(d.diff)) < 1e-9 and np.max(np.abs(d.transform)) < 1e-9
+    if model == "pinhole":
+        inf = cd.projection_diff(cam, cam, np.inf, GRID)
+        assert np.nanmax(np.abs(inf.diff)) < 1e-9 and np.all(inf.transform[3:] == 0.0)
+        assert inf.weighting.startswith("uniform")  # no pose-compensated map at infinity
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_the_prediction_is_the_derivative_of_the_fitted_difference(calibrated, weighted):
+    """e(h) = difference of A and A + h delta, the transform refitted each time: (e(h) - e(-h)) / 2h equals the
+    prediction's linear map P F_B delta (P: what the fit absorbs removed), to the central difference's O(h^2)
+    (h = 1e-3 of each parameter's std: measured 1e-9 relative, 1e-6 allowed)."""
+    cam = calibrated
+    std = np.sqrt(np.diag(cam.cov))
+    delta = std * np.random.default_rng(5).normal(size=len(std))
+    h = 1e-3
+    d0 = cd.projection_diff(cam, cam, 600.0, GRID, weighted=weighted)
+    plus = cd.projection_diff(cam, _perturbed(cam, h * delta), 600.0, GRID, weighted=weighted)
+    minus = cd.projection_diff(cam, _perturbed(cam, -h * delta), 600.0, GRID, weighted=weighted)
+    assert d0.weighting == ("pose-compensated maps" if weighted else "uniform")
+    fd = ((plus.diff - minus.diff) / (2 * h))[d0.ok].ravel()
+    lin = (d0.pf_b @ delta) / d0.root_w
+    np.testing.assert_allclose(fd, lin, rtol=1e-6, atol=1e-6 * np.max(np.abs(lin)))
+    if weighted:  # weights 1 / (trace C_A + trace C_B): the extrapolated corners weigh ~1e4 less than the centre
+        assert np.max(d0.weight) / np.min(d0.weight[d0.ok]) > 100
+
+
+def test_the_ratio_scales_as_one_over_the_claimed_std(calibrated):
+    """A covariance 9x smaller (stds 3x) triples the ratio exactly and leaves the band (a property of the
+    prediction's shape, not its scale) unchanged; the weights come from the joint covariance, held."""
+    other = _perturbed(calibrated, np.sqrt(np.diag(calibrated.cov)) * 0.7)
+    fine = cd.projection_diff(calibrated, other, 600.0, GRID)
+    small = lambda c: dataclasses.replace(c, cov=c.cov / 9.0)  # noqa: E731
+    bad = cd.projection_diff(small(calibrated), small(other), 600.0, GRID)
+    assert bad.ratio == pytest.approx(3.0 * fine.ratio, rel=1e-9)
+    assert bad.band()["ratio"] == pytest.approx(fine.band()["ratio"], rel=1e-9)
+
+
+def test_a_monte_carlo_of_right_covariances_reads_one_and_a_planted_wrong_scale_fails(calibrated):
+    """Both cameras drawn around one truth with the covariance they claim: the log-ratio has mean 0 (60 draws of
+    sd ~0.45: the geometric mean within exp(+-0.2), 3.4 standard errors) and ~90 % of draws fall in each draw's
+    own 5-95 % band (binomial sd 4 %: at least 75 %). Claiming stds 2x too small (a planted wrong covariance
+    scale, the truth's draws unchanged): the geometric mean doubles (outside exp(+-0.2)) and most draws leave
+    the band."""
+    cam = calibrated
+    root = np.linalg.cholesky(cam.cov)
+    rng = np.random.default_rng(11)
+    logs, inside, logs_bad, inside_bad = [], [], [], []
+    for _ in range(60):
+        a = _perturbed(cam, root @ rng.normal(size=len(root)))
+        b = _perturbed(cam, root @ rng.normal(size=len(root)))
+        d = cd.projection_diff(a, b, 600.0, GRID)
+        logs.append(np.log(d.ratio))
+        lo, hi = d.band(draws=1000)["ratio"]
+        inside.append(lo <= d.ratio <= hi)
+        bad = cd.projection_diff(dataclasses.replace(a, cov=a.cov / 4), dataclasses.replace(b, cov=b.cov / 4),
+                                 600.0, GRID)
+        logs_bad.append(np.log(bad.ratio))
+        lo, hi = bad.band(draws=1000)["ratio"]
+        inside_bad.append(lo <= bad.ratio <= hi)
+    print(f"\nright: geometric mean {np.exp(np.mean(logs)):.3f}, inside its band {np.mean(inside):.2f}; "
+          f"stds claimed 2x too small: {np.exp(np.mean(logs_bad)):.3f}, inside {np.mean(inside_bad):.2f}")
+    assert abs(np.mean(logs)) < 0.2 and np.mean(inside) >= 0.75
+    assert np.mean(logs_bad) > np.log(2.0) - 0.2 and np.mean(inside_bad) < 0.75
+
+
+def test_expected_log_ratio_is_the_one_cross_validation_uses():
+    from dstereo.calib import cross_validation as cv
+
+    assert cv.expected_log_ratio is cd.expected_log_ratio
