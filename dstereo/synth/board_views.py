@@ -165,3 +165,23 @@ def iid_views(cam: Camera, n_views: int, noise_px: float, seed: int = 0, square:
     poses = board_pose_set([cam], [np.zeros(6)], Board(PATTERN, square, square), n_views, seed)
     truth = np.stack([true_corners(cam, p, PATTERN, square) for p in poses])
     return object_points(PATTERN, square), truth + np.random.default_rng(seed + 1).normal(0, noise_px, truth.shape)
+
+
+# Sensor noise of a rendered calibration: Poisson shot noise (1000 e- at white), 2 DN read noise, the usual 1 px
+# lens blur (the exposure of experiments/projection_mc_rendered.py).
+RENDERED_NOISE = dict(supersample=2, defocus_sigma_px=1.0, full_well=1000.0, read_noise_dn=2.0)
+
+
+def rendered_views(cam: Camera, n_views: int, seed: int, square: float = 20.0):
+    """(object points (n, 3), detected corners (V', n, 2)) of `n_views` board views of `cam` rendered with sensor
+    noise (`RENDERED_NOISE`; poses and noise from `seed`) and detected by the project's detector; a view the
+    detector misses is left out, as `dstereo calibrate` leaves it out."""
+    from dstereo.io.corners import _detect_one
+    from dstereo.synth.scenes import calibration_set
+    from dstereo.synth.sensor import RenderOptions
+
+    rendered = calibration_set(cam, pattern=PATTERN, square=square, n_views=n_views, seed=seed,
+                               options=RenderOptions(**RENDERED_NOISE))
+    found = [q for q in (_detect_one(img if img.ndim == 2 else img[..., 0], PATTERN)[0] for img in rendered.left)
+             if q is not None]
+    return np.asarray(rendered.truth["object_points"], float), np.stack(found)
