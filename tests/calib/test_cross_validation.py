@@ -67,6 +67,14 @@ def test_calibrate_cross_validate_writes_verdict_map_and_method(tmp_path):
     if not x["trusted"]:  # an uncertainty that fails the acceptance is said on stderr too, with its figures
         assert ("can NOT be trusted" in err) != ("the test cannot tell here" in err)
         assert ("cannot tell" in x["verdict"]) == bool(x["consistent_with_right_prediction"])
+    # the split's halves are written as camera folders: `dstereo diff` on them reads the split's figures, the same
+    # computation on the same numbers (camera.yml's 16 digits and the covariance file's float64: 1e-9)
+    split = out / "cross_validation" / "split_1"
+    code, _, err = run_cli("diff", split / "a", split / "b", "--out", tmp_path / "diff")
+    assert code == 0, err
+    d = json.loads((tmp_path / "diff" / "diff.json").read_text())["prediction"]
+    assert d["ratio"] == pytest.approx(x["ratios"][0], rel=1e-9)
+    assert d["mahalanobis_median"] == pytest.approx(x["mahalanobis_medians"][0], rel=1e-9)
     code, _, err = run_cli("calibrate", "--images", data, "--glob", "left*.jpg", "--pattern", "9x6",
                            "--projection-method", "mrcal", "--out", tmp_path / "bad")
     assert code == 1 and "--projection-method mrcal" in err and not (tmp_path / "bad").exists()
