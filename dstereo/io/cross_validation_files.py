@@ -15,26 +15,27 @@ if TYPE_CHECKING:  # annotations only: the writer takes a finished cross-validat
     from dstereo.calib.cross_validation import CrossValidation
 
 
-def write_cross_validation(folder, xval: CrossValidation, unit: str, view_names=None) -> dict:
-    """cross_validation.npz (per split: diff, predicted cov, Mahalanobis, weight), plots/cross_validation.png and
-    the halves' camera folders; `view_names`: the used views' names (the halves' indices point into them)."""
+def write_cross_validation(folder, xval: CrossValidation, unit: str, view_names=None, camera_writer=None) -> dict:
+    """cross_validation.npz (per split: diff, predicted cov, Mahalanobis, weight), plots/cross_validation.png and,
+    given `camera_writer` (`io.results.write_camera_files`, passed in: results imports this module), the halves'
+    camera folders; `view_names`: the used views' names (the halves' indices point into them)."""
     folder = Path(folder)
     np.savez(folder / "cross_validation.npz", u=xval.u, v=xval.v, range=xval.range_,
              diff=np.stack([s.diff for s in xval.splits]), cov=np.stack([s.cov for s in xval.splits]),
              mahalanobis=np.stack([s.mahalanobis for s in xval.splits]),
              weight=np.stack([np.ones(s.diff.shape[:2]) if s.weight is None else s.weight for s in xval.splits]))
     _plot(folder / "plots" / "cross_validation.png", xval, unit)
-    halves = _write_halves(folder / "cross_validation", xval, unit, view_names) if xval.solutions else []
+    halves = (_write_halves(folder / "cross_validation", xval, unit, view_names, camera_writer)
+              if xval.solutions and camera_writer is not None else [])
     return {**xval.summary(), "unit": unit, "files": ["cross_validation.npz", "plots/cross_validation.png"] + halves}
 
 
-def _write_halves(root: Path, xval: CrossValidation, unit: str, view_names) -> list[str]:
+def _write_halves(root: Path, xval: CrossValidation, unit: str, view_names, write_camera_files) -> list[str]:
     """cross_validation/split_<k>/{a,b}: each half's camera and calibration_covariance.npz (at the
     cross-validation's range and grid, so `dstereo diff` repeats the split as computed here)."""
     from types import SimpleNamespace
 
     from dstereo.io.covariance_file import NAME, write_calibration_covariance
-    from dstereo.io.results import distortion_vector, write_camera_files
     from dstereo.models.distortion import lens_model
 
     names = tuple(xval.names)
@@ -50,8 +51,8 @@ def _write_halves(root: Path, xval: CrossValidation, unit: str, view_names) -> l
             views = [int(i) for i in part]
             extra = {"distortion_names": free, "source": f"cross-validation split {k + 1}, half {'AB'[h]}",
                      "views": views if view_names is None else [view_names[i] for i in views]}
-            write_camera_files(where, K, distortion_vector(p[4:], free), xval.image_size, extra, model=model,
-                               unit=unit)
+            d = p[4:8] if model == "fisheye" else p[4: 12 if set(free) & {"k4", "k5", "k6"} else 9]
+            write_camera_files(where, K, d, xval.image_size, extra, model=model, unit=unit)
             values = np.asarray(sol.values, float)[: len(names)]  # the lens parameters lead (a sag follows)
             cov = SimpleNamespace(names=names, values=values, cov=sol.cov, jacobian=None,
                                   kind="the half's reported covariance (the views' effects where fitted)",

@@ -126,15 +126,8 @@ def _rig_camera(path: Path, side: str, which: str) -> DiffInput:
         own = tuple(names[j][len(prefix):] for j in rows)
         if model == "fisheye":  # the pair's names k1..k4 are cv2.fisheye's coefficients in the first slots
             own = tuple({"k1": "fk1", "k2": "fk2", "k3": "fk3", "k4": "fk4"}.get(n, n) for n in own)
-        kv = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-        from dstereo.uncertainty.camera_diff import slot_names
-
-        slots = slot_names(model)
-        values = np.array([kv[slots.index(n)] if slots.index(n) < 4 else out.coeffs[slots.index(n) - 4]
-                           for n in own if n in slots])
-        if len(values) != len(own):
-            raise DstereoError(f"{path}: cov_names {own} are not all parameters of its {model} {side} camera")
-        out.covariance = {"names": own, "values": values, "cov": np.asarray(cov, float)[np.ix_(rows, rows)],
+        # the values it belongs to are the file's own (one joint solve): None, nothing to check
+        out.covariance = {"names": own, "values": None, "cov": np.asarray(cov, float)[np.ix_(rows, rows)],
                           "kind": str(calib.extras.get("cov_structure", "")), "solve": "the rig's joint solve",
                           "joint": None, "poses": None, "range": None, "grid": None, "image_size": calib.image_size}
     map_path = path.parent / f"rig_{side}_{MAP_NAME}"

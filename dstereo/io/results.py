@@ -545,7 +545,7 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
         from dstereo.io.cross_validation_files import write_cross_validation
 
         summary["cross_validation"] = write_cross_validation(folder, cal.cross_validation, cal.config.unit,
-                                                             list(cal.used))
+                                                             list(cal.used), write_camera_files)
     figures.wait()
     if taken:
         early.take(plot_dir)

@@ -107,7 +107,8 @@ def _camera(inp: DiffInput, notes: list[str]) -> LensCamera:
                            "the covariance file belongs to another camera (remove it or calibrate again)")
     idx = [slots.index(n) for n in cov["names"]]
     std = np.sqrt(np.maximum(np.diag(cov["cov"]), 1e-300))
-    off = np.abs(params[idx] - np.asarray(cov["values"], float)) / std
+    off = (np.zeros(len(idx)) if cov.get("values") is None else
+           np.abs(params[idx] - np.asarray(cov["values"], float)) / std)
     if np.max(off) > VALUES_SIGMA:
         worst = int(np.argmax(off))
         notes.append(f"camera {inp.label}: its values differ from those its covariance belongs to ({cov['solve']}) "
