@@ -123,7 +123,8 @@ def main(out: Path, splits: int = SPLITS) -> None:
                          f"{r['ratio_cli_own_distance']:.2f} ({r['own_distance']:.4g}) |")
     pooled = [f"- {c['label']}: geometric mean {c['ratio_geometric_mean']:.2f} over {len(c['splits'])} splits, a right "
               f"prediction reads {c['band_if_right']['ratio'][0]:.2f}-{c['band_if_right']['ratio'][1]:.2f} here; "
-              f"against the maps alone {c['ratio_vs_maps']:.2f}; {c['seconds']:.0f} s" for c in data]
+              f"against the maps alone {c['ratio_vs_maps']:.2f}"
+              + ("" if REUSE else f"; {c['seconds']:.0f} s") for c in data]
     text = ("# `dstereo diff` on two halves of the real cameras (experiments/diff_halves_real.py)\n\n"
             + __doc__.split("\n\n")[1] + "\n\n" + "\n".join(lines) + "\n\n" + "\n".join(pooled) + "\n")
     (RESULTS / "diff_halves_real.md").write_text(text)
