@@ -4,31 +4,38 @@ covariances predict of it (`dstereo diff`, and each split of `--cross-validate`)
 The difference. A grid of pixels q spans the image; the point at `range` along q's ray through camera A is moved
 by a rigid transform T_BA and projected through camera B: e(q) = project_B(T_BA p_A(q)) - q. A camera frame is
 fixed by its calibration's boards and intrinsics, not by the housing, so two calibrations of one camera differ by
-an unknown small motion; T_BA is the least-squares fit over the grid's valid pixels (6 degrees of freedom at a
-finite range, as mrcal's implied transform: the boards' distance absorbs part of a focal difference; the rotation
-alone at an infinite range). Pixels where either camera has no ray (a model that folds back, a fisheye ray behind
-the camera) are left out, of the fit and of every statistic.
+an unknown small motion; T_BA is fitted (6 degrees of freedom at a finite range, as mrcal's implied transform: the
+boards' distance absorbs part of a focal difference; the rotation alone at an infinite range). Pixels where
+either camera has no ray (a model that folds back, a fisheye ray behind the camera) are left out, of the fit and
+of every statistic.
+
+The weights. The fit minimises sum_q w_q |e(q)|^2 with w_q = 1 / (trace C_A(q) + trace C_B(q)) of the two
+cameras' pose-compensated maps (from their joint covariances with their board poses, or their written maps at
+this range and grid; uniform where a camera has neither), as mrcal weights its implied transform by the
+projection uncertainty. Unweighted, the image corners, where each calibration extrapolates its lens model and two
+calibrations differ by tens of pixels, hold the fit and leave pixel-sized residuals in the centre that both
+calibrations know to a tenth of a pixel; weighted, the pixels both know hold it. The ratio is weighted alike.
 
 The prediction, first order. With theta_A = theta + dA and theta_B = theta + dB independent, each with its
 calibration's covariance C_A, C_B of its lens parameters (the marginal one: every board pose solved out):
-e = P (F_A dA + F_B dB), F_X = d e / d theta_X at the fitted transform and P = I - J_T (J_T' J_T)^+ J_T' the
-projection that removes what the fit absorbs (J_T = d e / d T_BA). So Cov(e) = L L' with L = [P F_A R_A, P F_B R_B]
-and C_X = R_X R_X'. Its 2 x 2 block at a pixel gives that pixel's Mahalanobis distance sqrt(e' C^+ e)
-(sqrt(chi^2_2) if right: median 1.18).
+sqrt(W) e = P sqrt(W) (F_A dA + F_B dB), F_X = d e / d theta_X at the fitted transform and P = I - J (J' J)^+ J'
+with J = sqrt(W) d e / d T_BA: the projection that removes what the (weighted) fit absorbs. So Cov(e) follows from
+pf_X = P sqrt(W) F_X and C_X = R_X R_X'. Its 2 x 2 block at a pixel gives that pixel's Mahalanobis distance
+sqrt(e' C^+ e) (sqrt(chi^2_2) if right: median 1.18).
 
-Why not the pose-compensated maps (projection_uncertainty.npz) directly. A map's covariance at q is that of the
-projection of a point held fixed in the boards' frame: F dtheta plus the motion of the boards' mean frame, which
-is rigid to first order. P removes every rigid motion, so P (map's full covariance) P' = P F C F' P': the map and
-the marginal covariance predict the same fitted difference. But a map file holds only each pixel's 2 x 2 block,
-not the covariance between pixels that P needs; the blocks' sum sigma_A^2 + sigma_B^2 counts what the fit
-absorbs and so overstates the difference (`map_excess`: how much, when both are at hand).
+Why not the pose-compensated maps alone. A map's covariance at q is that of the projection of a point held fixed
+in the boards' frame: F dtheta plus the motion of the boards' mean frame, which is rigid to first order. P
+removes every rigid motion, so P (the maps' full covariance) P' is the prediction above. But a map file holds
+only each pixel's 2 x 2 block, not the covariance between pixels that P needs; their sum sigma_A^2 + sigma_B^2
+counts what the fit absorbs (`ratio_vs_maps` reads it against the difference: 0.6-1.2x the prediction's reading
+on the shared cameras, docs/validation.md).
 
-The statistics. The grid's rms difference against the rms prediction, `ratio_raw` = sqrt(mean |e|^2 / mean
-trace C). Stacked over the grid, |e|^2 = sum_i lambda_i z_i^2 (lambda the eigenvalues of Cov(e), z standard normal):
-on real cameras one or two modes carry most of trace C, so one comparison's ratio is about |z| for one normal z,
-whose typical value exp(E ln|z|) = 0.53, not 1. `ratio` divides by that typical value computed from the lambdas
-(`expected_log_ratio`): its log has mean 0 when the prediction is right, and `ratio_band` is where a right
-prediction's `ratio` falls (5-95 %, from the same lambdas).
+The statistics. `ratio_raw` = sqrt(sum w |e|^2 / sum w trace C), the observed over the predicted weighted rms.
+Stacked over the grid, sum w |e|^2 = sum_i lambda_i z_i^2 (lambda the eigenvalues of the weighted Cov(e), z
+standard normal): when one mode carries most of it, one comparison's raw ratio is about |z| for one normal z,
+whose typical value exp(E ln|z|) = 0.53, not 1. `ratio` divides by the typical value computed from the lambdas
+(`expected_log_ratio`): its log has mean 0 when the prediction is right. `band()` simulates differences from the
+prediction itself: where a right prediction's `ratio` and median Mahalanobis fall on this grid (5-95 %).
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ from dstereo.models.pose import rodrigues
 from dstereo.uncertainty.projection import CAMERA_NAMES, FISHEYE_CAMERA_NAMES, _project, _splined_grid, pixel_ray
 
 FIT_ITERATIONS = 12  # Gauss-Newton steps of the transform fit from the identity (small motions: 4-6 converge)
-BAND = (5.0, 95.0)  # percentiles of `ratio_band` and `mahalanobis_band`
+BAND = (5.0, 95.0)  # percentiles of `ProjectionDiff.band`
 BAND_DRAWS = 4000  # simulated right predictions for the bands (their 5 % and 95 % points to ~+-2 %)
 MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))  # median of sqrt(chi^2_2)
 GRID = (32, 24)  # columns, rows: the grid of a results folder's projection_uncertainty.npz
@@ -67,7 +74,7 @@ class LensCamera:
     """One calibrated camera for a difference: `params` (4 + slots,) fx fy cx cy then its lens model's coefficient
     slots (`slot_names`); `cov` (G, G) the marginal covariance of the parameters `names` (None: not known);
     `joint` (G + 6V, G + 6V) and `poses` (V, 6) the joint covariance with its calibration's board poses, for its
-    pose-compensated map (None: not known); `map_std2` (gh, gw) its map's trace (px^2) on the difference's grid
+    pose-compensated map (None: not known); `map_trace` (gh, gw) its map's trace (px^2) on the difference's grid
     where only the map is known (a written projection_uncertainty.npz at the same range and grid)."""
 
     model: str
