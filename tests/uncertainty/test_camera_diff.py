@@ -92,20 +92,24 @@ def test_the_ratio_scales_as_one_over_the_claimed_std(calibrated):
 def test_a_monte_carlo_of_right_covariances_reads_one_and_a_planted_wrong_scale_fails(calibrated):
     """Both cameras drawn around one truth with the covariance they claim: the log-ratio has mean 0 (60 draws of
     sd ~0.45: the geometric mean within exp(+-0.2), 3.4 standard errors) and ~90 % of draws fall in each draw's
-    own 5-95 % band (binomial sd 4 %: at least 75 %). Claiming stds 2x too small (a planted wrong covariance
+    own 5-95 % band (binomial sd 4 %: at least 75 %), and of their median Mahalanobis distances. Claiming stds 2x too small (a planted wrong covariance
     scale, the truth's draws unchanged): the geometric mean doubles (outside exp(+-0.2)) and most draws leave
     the band."""
     cam = calibrated
     root = np.linalg.cholesky(cam.cov)
     rng = np.random.default_rng(11)
-    logs, inside, logs_bad, inside_bad = [], [], [], []
+    logs, inside, logs_bad, inside_bad, inside_maha, diffs, traces = [], [], [], [], [], [], []
     for _ in range(60):
         a = _perturbed(cam, root @ rng.normal(size=len(root)))
         b = _perturbed(cam, root @ rng.normal(size=len(root)))
         d = cd.projection_diff(a, b, 600.0, GRID)
+        diffs.append(d.diff)
+        traces.append(np.trace(d.cov, axis1=-2, axis2=-1))
         logs.append(np.log(d.ratio))
-        lo, hi = d.band(draws=1000)["ratio"]
-        inside.append(lo <= d.ratio <= hi)
+        band = d.band(draws=1000)
+        inside.append(band["ratio"][0] <= d.ratio <= band["ratio"][1])
+        lo, hi = band["mahalanobis_median"]
+        inside_maha.append(lo <= d.mahalanobis_median <= hi)
         bad = cd.projection_diff(dataclasses.replace(a, cov=a.cov / 4), dataclasses.replace(b, cov=b.cov / 4),
                                  600.0, GRID)
         logs_bad.append(np.log(bad.ratio))
@@ -114,7 +118,41 @@ def test_a_monte_carlo_of_right_covariances_reads_one_and_a_planted_wrong_scale_
     print(f"\nright: geometric mean {np.exp(np.mean(logs)):.3f}, inside its band {np.mean(inside):.2f}; "
           f"stds claimed 2x too small: {np.exp(np.mean(logs_bad)):.3f}, inside {np.mean(inside_bad):.2f}")
     assert abs(np.mean(logs)) < 0.2 and np.mean(inside) >= 0.75
+    assert np.mean(inside_maha) >= 0.75  # the observed Mahalanobis median is computed as the simulated ones
+    # each pixel's predicted 2 x 2 covariance (of the unweighted difference) against the draws' own spread: 60
+    # draws give a trace to ~18 %; at the pixels of the smallest and the largest fit weight (14x apart here) too
+    spread = np.mean(np.sum(np.array(diffs) ** 2, axis=-1), axis=0) / np.mean(traces, axis=0)
+    w = d.weight
+    ends = [spread[np.unravel_index(np.argmin(np.where(d.ok, w, np.inf)), w.shape)],
+            spread[np.unravel_index(np.argmax(w), w.shape)]]
+    print(f"observed / predicted variance per pixel: median {np.median(spread[d.ok]):.2f}, at the least and the "
+          f"most weighted pixel {ends[0]:.2f}, {ends[1]:.2f}")
+    assert 0.75 < np.median(spread[d.ok]) < 1.33 and all(0.5 < x < 2.0 for x in ends)
     assert np.mean(logs_bad) > np.log(2.0) - 0.2 and np.mean(inside_bad) < 0.75
+
+
+def test_one_dominant_mode_reads_one_after_its_typical_value(calibrated):
+    """Only k1 uncertain: the difference has one mode, a right raw ratio is |z| for one normal z, typically
+    exp(E ln|z|) = exp((psi(1/2) + ln 2) / 2) = 0.53. Divided by it, 60 draws' geometric mean reads 1 (log sd 1.1:
+    within exp(+-0.45), 3.2 standard errors), the raw one near 0.53 (outside that)."""
+    k1 = calibrated.names.index("k1")
+    cov = np.zeros_like(calibrated.cov)
+    cov[k1, k1] = calibrated.cov[k1, k1]
+    cam = dataclasses.replace(calibrated, cov=cov)
+    rng = np.random.default_rng(4)
+    ratio, raw = [], []
+    for _ in range(60):
+        delta = np.zeros(len(cov))
+        a = _perturbed(cam, np.where(np.arange(len(cov)) == k1, np.sqrt(cov[k1, k1]) * rng.normal(), 0.0))
+        b = _perturbed(cam, np.where(np.arange(len(cov)) == k1, np.sqrt(cov[k1, k1]) * rng.normal(), 0.0))
+        d = cd.projection_diff(a, b, 600.0, GRID)
+        # A's and B's k1 act along nearly one direction (their Jacobians at two nearby cameras): one mode, nearly
+        assert d.modes < 1.05 and d.typical == pytest.approx(0.530, abs=0.01)
+        ratio.append(d.ratio)
+        raw.append(d.ratio_raw)
+        del delta
+    assert abs(np.mean(np.log(ratio))) < 0.45 and abs(np.mean(np.log(raw)) - np.log(0.53)) < 0.45
+    assert np.mean(np.log(raw)) < -0.45
 
 
 def test_expected_log_ratio_is_the_one_cross_validation_uses():
