@@ -1,7 +1,8 @@
 """View scatter (the cluster-robust check of the Jacobian covariance, `uncertainty/view_scatter.py`) and the
 cross-validation it changes, on the real cameras of ../shared/data, through the CLI:
 `dstereo calibrate --cross-validate 12` (outlier rejection on, the default), 12 random half splits pooled.
-Run: .venv/bin/python -m experiments.view_scatter_real [OUT_DIR] [--board-sag] [--splits=N]   (a few minutes of CPU; with
+Run: .venv/bin/python -m experiments.view_scatter_real [OUT_DIR] [--board-sag] [--splits=N] [--reuse]   (a few minutes of CPU;
+--reuse: a camera whose results folder is in OUT_DIR already is read, not calibrated again; with
 --board-sag the board's sag is solved too and the table goes to view_scatter_real_sag.md)."""
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ SETS = [("opencv_stereo L", "opencv_stereo", "left*.jpg", None), ("opencv_stereo
 SPLITS = 12
 
 
-def main(out: Path, sag: bool = False, splits: int = SPLITS) -> None:
+def main(out: Path, sag: bool = False, splits: int = SPLITS, reuse: bool = False) -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows = ["| camera | views | RMS px | kappa (1 +- se if independent) | reported / Jacobian std (view effects) | "
             "cross-validation ratio (1 if right) | raw ratio | median Mahalanobis | parameter d'C^-1d/G | trusted | "
@@ -30,7 +31,12 @@ def main(out: Path, sag: bool = False, splits: int = SPLITS) -> None:
         cmd = [sys.executable, "-m", "dstereo.cli", "calibrate", "--images", str(DATA / folder), "--glob", glob,
                "--pattern", "9x6", "--cross-validate", str(splits), "--out", str(res), "--force", "-q"]
         cmd += ["--board-sag"] if sag else []
-        subprocess.run(cmd + (["--model", model] if model else []), check=True, capture_output=True)
+        if not (reuse and (res / "summary.json").is_file()):
+            run = subprocess.run(cmd + (["--model", model] if model else []), capture_output=True, text=True)
+            if run.returncode != 0:  # the row says why (e.g. a half that does not converge)
+                rows.append(f"| {label} | - | - | - | - | {run.stderr.strip().splitlines()[-1]} |" + " |" * 7)
+                print(rows[-1], flush=True)
+                continue
         s = json.loads((res / "summary.json").read_text())
         x, vs = s["cross_validation"], s["full_set"]["view_scatter"]
         b = x["band_if_right"]
@@ -59,4 +65,4 @@ if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     n = [int(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--splits=")]
     main(Path(args[0]) if args else Path("/tmp/dstereo_view_scatter"), "--board-sag" in sys.argv,
-         n[0] if n else SPLITS)
+         n[0] if n else SPLITS, "--reuse" in sys.argv)

@@ -760,7 +760,8 @@ def report_markdown(cal: CameraCalibration, summary: dict) -> str:
     xv = summary.get("cross_validation")
     if xv is not None:
         lines += ["## Cross-validation", "", xv["verdict"] + ".", "", "![cross-validation](plots/cross_validation.png)",
-                  ""]
+                  "", "Each split's halves are camera folders, cross_validation/split_<k>/a and b: `dstereo diff "
+                  "cross_validation/split_1/a cross_validation/split_1/b` repeats split 1's comparison from them.", ""]
     lines += ["## Figures", "", "![per-image RMS](plots/per_image_rms.png)", "",
               "![residuals](plots/residuals.png)", ""]
     if cal.filtering is not None:
