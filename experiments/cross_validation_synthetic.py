@@ -46,8 +46,9 @@ def main() -> None:
             print(lines[-1], flush=True)
     text = ("# Cross-validation statistics on synthetic sets (experiments/cross_validation_synthetic.py)\n\n"
             f"{SPLITS} splits per set, {SEEDS} seeds per row; acceptance: ratio 0.67-1.5 and median Mahalanobis <= "
-            "1.8. The ratio is each split's observed / predicted rms difference divided by the typical value of that "
-            "ratio when the prediction is right (`cross_validation.expected_log_ratio`), so its geometric mean reads "
+            "1.8. The ratio is each split's observed / predicted rms difference (`uncertainty/camera_diff.py`: the "
+            "transform fit and the rms weighted by the halves' pose-compensated maps) divided by the typical value of "
+            "that ratio when the prediction is right (`camera_diff.expected_log_ratio`), so its geometric mean reads "
             "1 for a right prediction; the raw ratio (undivided, as before) reads below 1 then (one or a few dominant "
             "modes per split). The band column: the observed pair (ratio, Mahalanobis) inside the 5-95 % band that "
             "the tool simulates for a right prediction on the same views and splits (`band_if_right`); about 80-90 "
