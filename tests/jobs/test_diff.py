@@ -181,3 +181,32 @@ def test_a_splined_camera_diffs_through_its_files(tmp_path):
     assert code == 0, err
     s = json.loads((tmp_path / "o" / "diff.json").read_text())
     assert s["observed_rms_px"] > 0 and np.isfinite(s["prediction"]["ratio"])
+
+
+def test_a_fisheye_camera_diffs_through_its_files(tmp_path):
+    """A fisheye camera.yml (cv2.fisheye's k1..k4) with its covariance over fk1..fk4: read back into the fisheye
+    slots; a moved k1 gives a finite prediction, and itself a zero difference."""
+    from types import SimpleNamespace
+
+    from dstereo.io.covariance_file import write_calibration_covariance
+    from dstereo.io.results import write_camera_files
+    from dstereo.jobs.diff import compute_diff
+
+    names = ("fx", "fy", "cx", "cy", "fk1", "fk2", "fk3", "fk4")
+    cov = np.diag([1.0, 1.0, 0.5, 0.5, 1e-4, 1e-4, 1e-4, 1e-4])
+    folders = []
+    for i, k1 in enumerate((0.05, 0.0512)):
+        folder = tmp_path / f"f{i}"
+        folder.mkdir()
+        d = np.array([k1, -0.01, 0.002, -0.0005])
+        write_camera_files(folder, np.array([[300.0, 0, 320.0], [0, 301.0, 240.0], [0, 0, 1.0]]), d, SIZE, {},
+                           model="fisheye")
+        write_calibration_covariance(folder, SimpleNamespace(
+            names=names, values=np.r_[300.0, 301.0, 320.0, 240.0, d], cov=cov, jacobian=None, kind="jacobian",
+            views=10, joint=None, poses=None), "fisheye", 300.0, (12, 9), SIZE)
+        folders.append(folder)
+    same = compute_diff(str(folders[0]), str(folders[0])).projection
+    assert same.ok.mean() > 0.9 and np.nanmax(np.abs(same.diff)) < 1e-9
+    moved = compute_diff(str(folders[0]), str(folders[1]))
+    assert not moved.notes or all("alike" in n for n in moved.notes)  # the values match their covariance's
+    assert moved.projection.rms > 0 and np.isfinite(moved.projection.ratio)
