@@ -139,7 +139,7 @@ def write_frames_csv(path: Path, job: MultiviewJob) -> None:
 def report_markdown(summary: dict) -> str:
     lines = [f"# {len(summary['cameras'])} cameras, {summary['frames']} frames", "",
              f"Reference: {summary['reference']}; {summary['convention']}.", "",
-             "| camera | views | fx | fy | cx | cy | RMS alone (px) | RMS held (px) | RMS joint (px) | |T| |",
+             "| camera | views | fx | fy | cx | cy | RMS alone (px) | RMS held (px) | RMS joint (px) | \\|T\\| |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for c in summary["cameras"]:
         K = np.array(c["camera_matrix"])
