@@ -12,7 +12,7 @@
   section, and listed at the top;
 - every figure with its caption (`CAPTIONS`, else the markdown's alt text); a table of more than
   SORTABLE_ROWS rows sorts by a column when its header is clicked;
-- `view3d`: an HTML fragment (a rotatable 3D view, `io.cloud_view`) shown after the summary.
+- `view3d`: an HTML fragment (a rotatable 3D view, `io.view3d`) shown after the summary.
 Nothing here computes a result: it renders finished text and figures. The figures must all be in the folder when
 it is called (a figure drawn by the figure workers is there once its writer waited for them): a missing one is a
 programming error, raised.
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import base64
 import html
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -219,11 +220,31 @@ def caption(src: str, alt: str) -> str:
     return alt or name
 
 
-def data_uri(path: Path) -> str:
+EMBED_BYTES = 1_500_000  # an image file larger than this is embedded downscaled (the file keeps its full size)
+EMBED_WIDTH = 1600  # px: the downscaled copy's width at most (a laptop screen's)
+
+
+def data_uri(path: Path) -> tuple[str, bool]:
+    """(the data URI of the image at `path`, whether it was downscaled to fit the page: a file over EMBED_BYTES is
+    embedded as a JPEG at most EMBED_WIDTH px wide)."""
     mime = MIME.get(path.suffix.lower())
     if mime is None:
         raise ValueError(f"report.html: {path} is not an image it can embed ({', '.join(MIME)})")
-    return f"data:{mime};base64,{base64.b64encode(path.read_bytes()).decode('ascii')}"
+    data = path.read_bytes()
+    if len(data) > EMBED_BYTES and mime in ("image/png", "image/jpeg"):
+        import cv2
+        import numpy as np
+
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if image is not None:
+            scale = min(1.0, EMBED_WIDTH / image.shape[1])
+            if scale < 1.0:
+                image = cv2.resize(image, (round(image.shape[1] * scale), round(image.shape[0] * scale)),
+                                   interpolation=cv2.INTER_AREA)
+            ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85])
+            if ok:
+                return f"data:image/jpeg;base64,{base64.b64encode(jpeg.tobytes()).decode('ascii')}", True
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}", False
 
 
 def _figure(folder: Path, block: Block) -> str:
@@ -233,8 +254,10 @@ def _figure(folder: Path, block: Block) -> str:
         raise ValueError(f"report.html: {folder}/report.md shows {src}, which is not in the folder (write "
                          "report.html after every figure is drawn)")
     text = caption(src, alt)
-    return (f'<figure><img src="{data_uri(path)}" alt="{html.escape(alt or src)}" title="click to enlarge">'
-            f"<figcaption>{inline(text)} <span class=\"file\">{html.escape(src)}</span></figcaption></figure>")
+    uri, smaller = data_uri(path)
+    where = f"{src}, shown downscaled" if smaller else src
+    return (f'<figure><img src="{uri}" alt="{html.escape(alt or src)}" title="click to enlarge">'
+            f"<figcaption>{inline(text)} <span class=\"file\">{html.escape(where)}</span></figcaption></figure>")
 
 
 def _table(rows: list[list[str]]) -> str:
@@ -413,8 +436,9 @@ def write_report_html(folder: str | Path, headline: Headline | None = None, view
     """report.html of `folder`'s report.md (module docstring); returns its path."""
     folder = Path(folder)
     page = render((folder / "report.md").read_text(), folder, headline, view3d)
-    path = folder / "report.html"
-    path.write_text(page, encoding="utf-8")
+    path, partial = folder / "report.html", folder / ".report.html.partial"
+    partial.write_text(page, encoding="utf-8")
+    os.replace(partial, path)  # never half-written where it is read (optics --plots writes into a plain folder)
     return path
 
 
