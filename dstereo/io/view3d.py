@@ -55,7 +55,7 @@ def cloud_view(points: np.ndarray, sigma_z: np.ndarray | None = None, units: str
     k = decimation(shown_range)
     keep = shown_range[::k, ::k]
     p = points[::k, ::k][keep].astype(np.float32)
-    marker = {"size": 2, "color": p[:, 2], "colorscale": "Viridis", "colorbar": _colorbar(f"depth ({units})")}
+    marker = {"size": 3, "color": p[:, 2], "colorscale": "Viridis", "colorbar": _colorbar(f"depth ({units})")}
     trace = {"type": "scatter3d", "mode": "markers", "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "marker": marker,
              "hovertemplate": "x %{x:.4g}<br>y %{y:.4g}<br>z %{z:.5g}<extra></extra>"}
     layout = _scene_layout(units, camera_view=True)
@@ -70,7 +70,7 @@ def cloud_view(points: np.ndarray, sigma_z: np.ndarray | None = None, units: str
                  "args": [{"marker.color": [p[:, 2]], "marker.colorscale": "Viridis", "marker.cmin": float(lo),
                            "marker.cmax": float(hi), "marker.colorbar.title.text": f"depth ({units})"}]},
                 {"label": "colour: depth std sigma_z", "method": "restyle",
-                 "args": [{"marker.color": [s], "marker.colorscale": "Inferno", "marker.cmin": 0.0,
+                 "args": [{"marker.color": [s], "marker.colorscale": "Hot", "marker.cmin": 0.0,
                            "marker.cmax": top, "marker.colorbar.title.text": f"sigma_z ({units})"}]}]}]
     view = _to_html({"data": [trace], "layout": layout}, "cloud3d")
     left_out = int((valid & ~shown_range).sum())
@@ -91,7 +91,7 @@ def _scene_layout(units: str, camera_view: bool) -> dict:
     scene = {"aspectmode": "data", "xaxis": {"title": {"text": f"x ({units})"}},
              "yaxis": {"title": {"text": f"y ({units})"}}, "zaxis": {"title": {"text": f"z ({units})"}}}
     if camera_view:  # the left camera's frame: x right, y down, z forward; look along +z with y down
-        scene["camera"] = {"eye": {"x": 0.0, "y": -0.3, "z": -1.9}, "up": {"x": 0.0, "y": -1.0, "z": 0.0}}
+        scene["camera"] = {"eye": {"x": 0.6, "y": -0.5, "z": -2.2}, "up": {"x": 0.0, "y": -1.0, "z": 0.0}}
     return {"scene": scene, "margin": {"l": 0, "r": 0, "t": 30, "b": 0}, "height": 620}
 
 
