@@ -338,10 +338,15 @@ def open_reports(folders, screenshot: Path | None = None) -> list[dict]:
 def assert_reports_render(folders) -> list[dict]:
     """Each folder's report.html, opened in the browser: no console error, no request outside the file, every
     image decoded, and a 3D view (where the page has one) drawn."""
+    import re
+
     seen = open_reports(folders)
-    for page in seen:
+    for folder, page in zip(folders, seen):
         assert not page["errors"], (page["path"], page["errors"])
         assert not page["outside"], (page["path"], page["outside"])
+        figures = [s for s in (Path(folder) / "report.md").read_text().splitlines()
+                   if re.fullmatch(r"!\[[^\]]*\]\([^)\s]+\)", s.strip())]
+        assert len(page["images"]) == len(figures), (page["path"], len(page["images"]), figures)
         assert all(w > 0 for w in page["images"]), (page["path"], page["images"])
         assert not page["has_view3d"] or page["views3d"], (page["path"], "a 3D view without a canvas")
         for view in page["views3d"]:

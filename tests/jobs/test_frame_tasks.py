@@ -52,7 +52,14 @@ def serial(sequence, tmp_path_factory):
     out = tmp_path_factory.mktemp("serial") / "out"
     code, _, err = _run(sequence, out, "--workers", "1")
     assert code == 0, err
-    return _numbers(out)
+    return (*_numbers(out), out)
+
+
+def test_report_html_with_the_face_in_3d_in_a_browser(serial):
+    from conftest import assert_reports_render
+
+    page, = assert_reports_render([serial[3]])
+    assert len(page["views3d"]) == 1
 
 
 def _assert_same_maps(a, b):

@@ -280,3 +280,6 @@ def test_plots_written(tmp_path):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
     # no partial files left; the report (its figures embedded) beside them
     assert sorted(p.name for p in out.iterdir()) == sorted([*optics.PLOT_NAMES, "report.html", "report.md"])
+    from conftest import assert_reports_render
+
+    assert_reports_render([out])
