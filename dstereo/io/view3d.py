@@ -107,7 +107,9 @@ def surface_view(u: np.ndarray, v: np.ndarray, height: np.ndarray, colour: np.nd
     layout = _scene_layout("mm", camera_view=False)
     layout["scene"]["xaxis"]["title"]["text"] = "u (mm)"
     layout["scene"]["yaxis"]["title"]["text"] = "v (mm)"
-    layout["scene"]["zaxis"]["title"]["text"] = "height along the axis (mm)"
+    # heights grow along the axis, away from the cameras: reversed, the face is seen as the cameras see it
+    layout["scene"]["zaxis"].update({"title": {"text": "height along the axis (mm)"}, "autorange": "reversed"})
+    layout["scene"]["camera"] = {"eye": {"x": 0.9, "y": -1.1, "z": 0.8}}
     layout["scene"]["aspectmode"] = "manual"  # the face is wide and shallow: its relief would not show at 1:1:1
     layout["scene"]["aspectratio"] = {"x": 1.0, "y": float(np.ptp(v) / max(np.ptp(u), 1e-12)), "z": 0.4}
     view = _to_html({"data": [trace], "layout": layout}, "surface3d")
