@@ -102,8 +102,9 @@ def rig_headline(summary: dict) -> Headline:
         checks.append(Check("frames the rig cannot explain", False,
                             ", ".join(r["frame"] for r in summary["rejected_frames"])))
     checks.append(_warnings_check(summary.get("warnings")))
-    return Headline(measured, checks, "+-: one standard deviation from the pair's covariance in its stereo file; "
-                                      "each camera's own report is in its folder.")
+    reports = ", ".join(f"[{c['name']}]({c['name']}/report.html)" for c in summary["cameras"])
+    return Headline(measured, checks, "+-: one standard deviation from the pair's covariance in its stereo file. "
+                                      f"Each camera's own report: {reports}.")
 
 
 def reconstruction_headline(summary: dict) -> Headline:

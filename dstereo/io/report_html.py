@@ -371,6 +371,13 @@ def place_warnings(parts: list[Section]) -> list[tuple[str, str]]:
     return found
 
 
+def _own_report(folder: Path, warning: str) -> str | None:
+    """A rig's warning about one camera ("camera left: ..."): that camera's own report in its folder, if written."""
+    about = warning.split(": ", 1)[0].strip() if ": " in warning else ""
+    name = about[len("camera "):] if about.startswith("camera ") else ""
+    return f"{name}/report.html" if name and (folder / name / "report.html").is_file() else None
+
+
 def _headline_html(headline: Headline | None, warnings: list[tuple[str, str]]) -> str:
     out = []
     if headline is not None and headline.measured:
@@ -390,7 +397,8 @@ def _headline_html(headline: Headline | None, warnings: list[tuple[str, str]]) -
         out.append('<h3>Self-checks</h3><ul class="checks">' + "".join(rows) + "</ul>")
     if warnings:
         out.append(f'<h3>Warnings ({len(warnings)})</h3><ul class="warnings">'
-                   + "".join(f'<li>{inline(w)} <a href="#{a}">(section)</a></li>' for w, a in warnings) + "</ul>")
+                   + "".join(f'<li>{inline(w)} <a href="{a}">({"its report" if a.endswith(".html") else "section"})'
+                             f"</a></li>" for w, a in warnings) + "</ul>")
     else:
         out.append('<p class="ok">No warnings.</p>')
     return "".join(out)
@@ -399,7 +407,7 @@ def _headline_html(headline: Headline | None, warnings: list[tuple[str, str]]) -
 def render(text: str, folder: Path, headline: Headline | None = None, view3d: str | None = None) -> str:
     """The page of report.md's `text`, its figures read from `folder`."""
     title, preamble, parts = sections(markdown_blocks(text))
-    warnings = place_warnings(parts)
+    warnings = [(w, _own_report(folder, w) or f"#{a}") for w, a in place_warnings(parts)]
     if preamble:  # what report.md says before its first section: shown after the summary, as its own section
         parts.insert(0, Section("Overview", "overview", preamble))
     body = [f"<h1>{inline(title or 'dstereo report')}</h1>",

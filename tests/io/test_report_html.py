@@ -85,6 +85,9 @@ def test_inline_escapes_and_marks():
 
 def test_page_embeds_figures_sorts_long_tables_and_places_warnings(tmp_path):
     folder = _folder(tmp_path)
+    (folder / "left").mkdir()
+    (folder / "left" / "report.html").write_text("")  # a rig's camera: its warnings link its own report
+    (folder / "report.md").write_text((folder / "report.md").read_text() + "- camera left: too few views\n")
     headline = Headline([("fx", "1000.0 +- 1.2 px")], [Check("identifiability", True, "fine"),
                                                         Check("residual pattern", False, "too simple")])
     page = write_report_html(folder, headline).read_text()
@@ -100,7 +103,8 @@ def test_page_embeds_figures_sorts_long_tables_and_places_warnings(tmp_path):
     rest = page[page.index('id="warnings"'):]
     assert "camera left: something else" in rest and "3 grid pixels masked" not in rest
     top = page[page.index('class="summary"'):page.index("<nav>")]
-    assert "Warnings (3)" in top and "1000.0 +- 1.2 px" in top and "too simple" in top
+    assert "Warnings (4)" in top and "1000.0 +- 1.2 px" in top and "too simple" in top
+    assert 'too few views <a href="left/report.html">(its report)</a>' in top
     assert '<li class="fail">' in top and '<li class="ok">' in top
     text = re.sub(r"<script>.*?</script>|<style>.*?</style>|data:[^\"]+", "", page, flags=re.S)
     assert "|---" not in text and "**" not in text and "![" not in text  # no markdown left over
