@@ -24,17 +24,18 @@ def _search_range(sr: dict) -> str:
 def report_markdown(summary: dict, files: list[str]) -> str:
     """report.md of one pair's folder; `files`: the folder's files (the figures shown are those among them)."""
     s, depth, unc = summary, summary.get("depth_mm") or {}, summary.get("uncertainty") or {}
-    w, h = s["image_size"]
-    lines = [f"# Reconstruction: {s['name']}", "",
-             f"- {s['mode']} pair, {w} x {h} px" + (f", calibration {s['calibration']}" if s.get("calibration") else "")
+    w, h = s.get("image_size") or ("?", "?")
+    lines = [f"# Reconstruction: {s.get('name', 'pair')}", "",
+             f"- {s.get('mode', 'a')} pair, {w} x {h} px"
+             + (f", calibration {s['calibration']}" if s.get("calibration") else "")
              + (f" ({s['calibration_unit']})" if s.get("calibration_unit") else ""),
              f"- points with a depth: {s['valid_points']} ({100 * s['valid_fraction']:.1f} % of the pixels), in "
-             f"{s['units']}; frame: {s['frame']}"]
+             f"{s.get('units', 'mm')}" + (f"; frame: {s['frame']}" if s.get("frame") else "")]
     if s.get("rectification"):
         lines.append(f"- rectification: {s['rectification']['projection']} ({s['rectification']['why']})")
     lines.append("")
     if depth:
-        lines += ["## Depth", "", f"Depth {depth['min']:.5g} .. {depth['max']:.5g} {s['units']}, median "
+        lines += ["## Depth", "", f"Depth {depth['min']:.5g} .. {depth['max']:.5g} {s.get('units', 'mm')}, median "
                   f"{depth['median']:.5g} (5-95 %: {depth['p05']:.5g} .. {depth['p95']:.5g}).", ""]
     lines += ["## Disparity", ""]
     if s.get("search_range"):
@@ -82,7 +83,7 @@ def write_report(folder: Path, summary: dict, points: np.ndarray, sigma_z: np.nd
 
     files = sorted(p.name for p in Path(folder).iterdir() if p.is_file())
     (folder / "report.md").write_text(report_markdown(summary, files))
-    write_report_html(folder, reconstruction_headline(summary), cloud_view(points, sigma_z, summary["units"]))
+    write_report_html(folder, reconstruction_headline(summary), cloud_view(points, sigma_z, summary.get("units", "mm")))
 
 
 def write_index(folder: Path, summaries: list[dict], names: list[str]) -> None:

@@ -110,8 +110,9 @@ def rig_headline(summary: dict) -> Headline:
 def reconstruction_headline(summary: dict) -> Headline:
     """One reconstructed pair (its summary.json)."""
     depth, unc = summary.get("depth_mm") or {}, summary.get("uncertainty") or {}
+    w, h = summary.get("image_size") or ("?", "?")
     measured = [("valid points", f"{summary['valid_points']} ({100 * summary['valid_fraction']:.1f} % of "
-                                 f"{summary['image_size'][0]} x {summary['image_size'][1]} px)")]
+                                 f"{w} x {h} px)")]
     if depth:
         measured.append(("depth", f"median {depth['median']:.4g} mm (5-95 %: {depth['p05']:.4g} .. "
                                   f"{depth['p95']:.4g} mm)"))

@@ -11,6 +11,7 @@ was in the results before.
 
 from __future__ import annotations
 
+import base64
 import math
 
 import numpy as np
@@ -28,6 +29,15 @@ def decimation(valid: np.ndarray, limit: int = MAX_POINTS) -> int:
     while int(valid[::k, ::k].sum()) > limit:
         k += 1
     return k
+
+
+def typed(values) -> dict:
+    """plotly.js's typed-array form of an array ({dtype, bdata: base64, shape}), float32: 4 bytes a value in the
+    page and no JSON number formatting (a list of 50k x 3 floats took 0.9 s to encode, this ~10 ms); NaN stays NaN
+    (a gap)."""
+    a = np.ascontiguousarray(values, dtype=np.float32)
+    spec = {"dtype": "f4", "bdata": base64.b64encode(a.tobytes()).decode("ascii")}
+    return spec | ({"shape": ", ".join(map(str, a.shape))} if a.ndim > 1 else {})
 
 
 def _to_html(figure: dict, div_id: str) -> str:
@@ -55,22 +65,23 @@ def cloud_view(points: np.ndarray, sigma_z: np.ndarray | None = None, units: str
     k = decimation(shown_range)
     keep = shown_range[::k, ::k]
     p = points[::k, ::k][keep].astype(np.float32)
-    marker = {"size": 3, "color": p[:, 2], "colorscale": "Viridis", "colorbar": _colorbar(f"depth ({units})")}
-    trace = {"type": "scatter3d", "mode": "markers", "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "marker": marker,
+    marker = {"size": 3, "color": typed(p[:, 2]), "colorscale": "Viridis", "colorbar": _colorbar(f"depth ({units})")}
+    trace = {"type": "scatter3d", "mode": "markers", "x": typed(p[:, 0]), "y": typed(p[:, 1]), "z": typed(p[:, 2]),
+             "marker": marker,
              "hovertemplate": "x %{x:.4g}<br>y %{y:.4g}<br>z %{z:.5g}<extra></extra>"}
     layout = _scene_layout(units, camera_view=True)
     if sigma_z is not None:
         s = np.asarray(sigma_z)[::k, ::k][keep].astype(np.float32)
         finite = s[np.isfinite(s)]
-        top = float(np.percentile(finite, 99)) if finite.size else 1.0
+        low, top = (float(x) for x in np.percentile(finite, (1, 99))) if finite.size else (0.0, 1.0)
         layout["updatemenus"] = [{
             "type": "buttons", "direction": "right", "x": 0.0, "y": 1.07, "xanchor": "left", "showactive": True,
             "buttons": [
                 {"label": "colour: depth", "method": "restyle",
-                 "args": [{"marker.color": [p[:, 2]], "marker.colorscale": "Viridis", "marker.cmin": float(lo),
+                 "args": [{"marker.color": [typed(p[:, 2])], "marker.colorscale": "Viridis", "marker.cmin": float(lo),
                            "marker.cmax": float(hi), "marker.colorbar.title.text": f"depth ({units})"}]},
                 {"label": "colour: depth std sigma_z", "method": "restyle",
-                 "args": [{"marker.color": [s], "marker.colorscale": "Hot", "marker.cmin": 0.0,
+                 "args": [{"marker.color": [typed(s)], "marker.colorscale": "Hot", "marker.cmin": low,
                            "marker.cmax": top, "marker.colorbar.title.text": f"sigma_z ({units})"}]}]}]
     view = _to_html({"data": [trace], "layout": layout}, "cloud3d")
     left_out = int((valid & ~shown_range).sum())
@@ -101,8 +112,8 @@ def surface_view(u: np.ndarray, v: np.ndarray, height: np.ndarray, colour: np.nd
     height, colour = np.asarray(height, float), np.asarray(colour, float)
     if not np.isfinite(height).any():
         return "<p>No grid cell has a height: nothing to show in 3D.</p>"
-    trace = {"type": "surface", "x": np.asarray(u, float), "y": np.asarray(v, float), "z": height,
-             "surfacecolor": colour, "colorscale": "Viridis", "colorbar": _colorbar(colour_label),
+    trace = {"type": "surface", "x": typed(u), "y": typed(v), "z": typed(height), "surfacecolor": typed(colour),
+             "colorscale": "Viridis", "colorbar": _colorbar(colour_label),
              "hovertemplate": "u %{x:.4g}<br>v %{y:.4g}<br>height %{z:.4g}<extra></extra>"}
     layout = _scene_layout("mm", camera_view=False)
     layout["scene"]["xaxis"]["title"]["text"] = "u (mm)"

@@ -208,6 +208,11 @@ def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_pa
     assert code == 0, err
     names = [f"left_{i:03d}" for i in range(PAIRS)]
     assert sorted(p.name for p in serial.iterdir() if p.is_dir()) == names
+    from conftest import assert_reports_render
+
+    assert_reports_render([serial])  # the index: one row per pair, each linking the pair's report.html
+    assert all(f"]({n}/report.html)" in (serial / "report.md").read_text() for n in names)
+    assert all((serial / n / "report.html").is_file() for n in names)
 
     real = pairs.reconstruct_pair
 
