@@ -440,10 +440,11 @@ def render(text: str, folder: Path, headline: Headline | None = None, view3d: st
     return PAGE.format(title=page_title, style=STYLE, body="\n".join(body), script=SCRIPT)
 
 
-def write_report_html(folder: str | Path, headline: Headline | None = None, view3d: str | None = None) -> Path:
-    """report.html of `folder`'s report.md (module docstring); returns its path."""
+def write_report_html(folder: str | Path, headline: Headline | None = None, view3d: str | None = None,
+                      source: str = "report.md") -> Path:
+    """report.html of `folder`'s report.md (or the `source` markdown file; module docstring); returns its path."""
     folder = Path(folder)
-    page = render((folder / "report.md").read_text(), folder, headline, view3d)
+    page = render((folder / source).read_text(), folder, headline, view3d)
     path, partial = folder / "report.html", folder / ".report.html.partial"
     partial.write_text(page, encoding="utf-8")
     os.replace(partial, path)  # never half-written where it is read (optics --plots writes into a plain folder)
