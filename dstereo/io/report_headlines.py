@@ -17,12 +17,7 @@ def pm(value, std=None, unit: str = "") -> str:
     if std is None or not math.isfinite(float(std)) or std <= 0:
         return f"{value:.6g}{tail}"
     decimals = max(0, 1 - int(math.floor(math.log10(abs(std)))))
-    return f"{value:.{decimals}f} +- {std:.2g}{tail}"
-
-
-def _warnings_check(warnings: list) -> Check:
-    n = len(warnings or [])
-    return Check("warnings", n == 0, "none" if n == 0 else f"{n}, listed below with the section each concerns")
+    return f"{value:.{decimals}f} +- {std:.{decimals}f}{tail}"
 
 
 def camera_headline(summary: dict) -> Headline:
@@ -62,7 +57,6 @@ def camera_headline(summary: dict) -> Headline:
     xv = summary.get("cross_validation")
     if xv:
         checks.append(Check("cross-validation", xv.get("trusted"), xv.get("verdict", "")))
-    checks.append(_warnings_check(summary.get("warnings")))
     return Headline(measured, checks, "+-: one standard deviation of the full-set solve (with the views' effects "
                                       "where they were fitted); the values are the file's (camera.yml).")
 
@@ -101,7 +95,6 @@ def rig_headline(summary: dict) -> Headline:
     if summary.get("rejected_frames"):
         checks.append(Check("frames the rig cannot explain", False,
                             ", ".join(r["frame"] for r in summary["rejected_frames"])))
-    checks.append(_warnings_check(summary.get("warnings")))
     reports = ", ".join(f"[{c['name']}]({c['name']}/report.html)" for c in summary["cameras"])
     return Headline(measured, checks, "+-: one standard deviation from the pair's covariance in its stereo file. "
                                       f"Each camera's own report: {reports}.")
@@ -139,7 +132,6 @@ def reconstruction_headline(summary: dict) -> Headline:
         checks.append(Check("calibration uncertainty", bool(unc.get("calibration_included")),
                             "included in every point's sigma" if unc.get("calibration_included") else
                             "not included: the calibration file has no covariance"))
-    checks.append(_warnings_check(summary.get("warnings")))
     return Headline(measured, checks)
 
 
@@ -161,7 +153,6 @@ def recession_headline(summary: dict) -> Headline:
                     f"{len(summary['skipped'])} skipped: " + "; ".join(f"{k['name']}: {k['reason']}"
                                                                       for k in summary["skipped"][:3]))]
     checks.append(Check("line fit", None, f"residual RMS {rate['residual_rms']:.3g} mm over {rate['n']} frames"))
-    checks.append(_warnings_check(summary.get("warnings")))
     return Headline(measured, checks)
 
 

@@ -131,6 +131,15 @@ def test_a_large_figure_is_embedded_downscaled(tmp_path):
     assert "epipolar.png, shown downscaled" in page
 
 
+def test_value_with_its_std_to_two_significant_digits():
+    from dstereo.io.report_headlines import pm
+
+    assert pm(4787.3812, 9.338, "px") == "4787.4 +- 9.3 px"
+    assert pm(100.00412, 0.00914, "mm") == "100.0041 +- 0.0091 mm"
+    assert pm(4787.3812, 123.4) == "4787 +- 123"
+    assert pm(0.5, None) == "0.5" and pm(float("nan"), 1.0) == "-"
+
+
 def test_decimation_keeps_at_most_the_limit():
     valid = np.ones((480, 640), bool)
     k = decimation(valid, 50_000)
