@@ -162,6 +162,9 @@ def test_reports_in_a_browser_and_controls_that_fail(tmp_path):
     that throws, and one whose 3D scene has no data fail the check meant for them."""
     import plotly.io
 
+    from conftest import require_browser
+
+    require_browser()  # before any page is built
     good = _folder(tmp_path, "good")
     pts, sigma = _sphere_points()
     write_report_html(good, Headline([("x", "1")]), cloud_view(pts, sigma))
