@@ -1,7 +1,8 @@
 """What a report.html does in a real browser (chromium driven by playwright; `conftest.open_reports` finds the
 browser or skips): its console errors, the requests it makes outside its own file (routed and refused, so a page
-that tries one is caught even where the machine has no network), each image's decoded width, and the share of
-coloured pixels in each 3D view's WebGL canvas."""
+that tries one is caught even where the machine has no network), each image's decoded width, the share of
+coloured pixels in each 3D view's WebGL canvas, and the first long table's second column after a click on its
+header (sorted by the page's script)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,11 @@ CANVAS_PIXELS_JS = """() => Array.from(document.querySelectorAll('.view3d canvas
   }
   return {width: c.width, height: c.height, webgl: true, coloured: coloured, pixels: px.length / 4};
 }).filter(v => v.width > 0 && v.height > 0)"""
+
+# Clicks the second header of the first sortable table and reads that column back (the page's sort script).
+SORT_JS = """() => { const t = document.querySelector('table.sortable'); if (!t) return null;
+  const th = t.querySelectorAll('thead th'); const col = th.length > 1 ? 1 : 0; th[col].click();
+  return Array.from(t.tBodies[0].rows).map(r => r.cells[col] ? r.cells[col].textContent.trim() : ''); }"""
 
 IMAGES_JS = "() => Array.from(document.images).map(i => (i.complete ? i.naturalWidth : 0))"
 
@@ -73,7 +79,7 @@ def _one(browser, path: Path, screenshot, settle_ms: int, viewport) -> dict:
         v["coloured_share"] = v["coloured"] / max(v["pixels"], 1)
     result = {"path": str(path), "errors": errors, "outside": outside, "images": page.evaluate(IMAGES_JS),
               "views3d": views, "has_view3d": page.query_selector(".view3d") is not None,
-              "seconds": time.perf_counter() - t0}
+              "sorted_column": page.evaluate(SORT_JS), "seconds": time.perf_counter() - t0}
     if screenshot is not None:
         page.screenshot(path=str(screenshot))
     page.close()

@@ -192,7 +192,9 @@ def test_reports_in_a_browser_and_controls_that_fail(tmp_path):
     (empty / "report.md").write_text("# Empty\n")
     write_report_html(empty, None, f'<figure class="view3d">{div}</figure>')
 
-    assert_reports_render([good, surf])
+    pages = assert_reports_render([good, surf])
+    values = [float(v) for v in pages[0]["sorted_column"]]  # written 10.5, 9.5, ... -1.5: sorted by the click
+    assert values == sorted(values) and len(values) == 12
     seen = {p["path"].split("/")[-2]: p for p in open_reports([outside, blocked, broken, empty])}
     assert seen["outside"]["outside"] == ["http://192.0.2.1/x.png"] and 0 in seen["outside"]["images"]
     assert any("Content Security Policy" in e for e in seen["blocked"]["errors"]), seen["blocked"]
