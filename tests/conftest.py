@@ -292,3 +292,66 @@ def refused(args, out: Path | None, *mentions: str) -> str:
         assert not Path(out).exists(), f"{out} was written"
         assert not Path(str(out) + ".partial").exists(), f"{out}.partial was left"
     return lines[0]
+
+
+# --- reports in a real browser (report.html: tests in the rooms that write each kind) ---------------------------
+
+BROWSER = Path(os.environ.get("DSTEREO_TEST_BROWSER", "/usr/bin/chromium"))  # Debian's chromium; .ci/run installs it
+# Headless, and nothing that reaches out on its own (updates, sync, metrics): a request seen is the page's.
+# WebGL draws in software (SwiftShader) without a GPU; measured: plotly's 3D canvas draws with these flags alone.
+BROWSER_ARGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                "--disable-component-update", "--no-first-run", "--disable-sync", "--disable-default-apps",
+                "--disable-extensions", "--metrics-recording-only", "--mute-audio")
+
+
+# A 3D view is drawn when more than this share of its canvas is coloured: the same scene with no data reads 0
+# (tests/io/test_report_html.py's control), a 640 x 480 reconstruction's cloud 1-5 %.
+DRAWN_SHARE = 0.002
+
+
+def require_browser() -> Path:
+    """The chromium binary that playwright drives; skip (with the reason) where it or playwright is absent on a
+    developer's machine, fail under CI=true (.ci/run installs chromium, `make test` playwright)."""
+    missing = None
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        missing = "the playwright package is not installed (it is in the lock's test extra: make install)"
+    if missing is None and not BROWSER.is_file():
+        missing = f"no browser at {BROWSER} (apt-get install chromium; .ci/run installs it)"
+    if missing:
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"{missing}, and CI=true requires the browser tests to run")
+        pytest.skip(f"{missing}: the report.html browser tests need it")
+    return BROWSER
+
+
+def open_reports(folders, screenshot: Path | None = None) -> list[dict]:
+    """Open each folder's report.html from file:// in one headless chromium and return what the page did (see
+    `tests/report_browser.py`); `screenshot`: the first page's top, saved there. This process's compiled programs
+    are dropped first (as before a Dask cluster): chromium with a page holding a 3D view measured ~1.1 GB PSS over
+    its processes (0.4 GB with a page of figures alone), beside the suite's two workers."""
+    require_browser()
+    release_compiled_programs()
+    from report_browser import browse
+
+    return browse([Path(f) / "report.html" for f in folders], BROWSER, BROWSER_ARGS, screenshot)
+
+
+def assert_reports_render(folders) -> list[dict]:
+    """Each folder's report.html, opened in the browser: no console error, no request outside the file, every
+    image decoded, and a 3D view (where the page has one) drawn."""
+    import re
+
+    seen = open_reports(folders)
+    for folder, page in zip(folders, seen):
+        assert not page["errors"], (page["path"], page["errors"])
+        assert not page["outside"], (page["path"], page["outside"])
+        figures = [s for s in (Path(folder) / "report.md").read_text().splitlines()
+                   if re.fullmatch(r"!\[[^\]]*\]\([^)\s]+\)", s.strip())]
+        assert len(page["images"]) == len(figures), (page["path"], len(page["images"]), figures)
+        assert all(w > 0 for w in page["images"]), (page["path"], page["images"])
+        assert not page["has_view3d"] or page["views3d"], (page["path"], "a 3D view without a canvas")
+        for view in page["views3d"]:
+            assert view["webgl"] and view["coloured_share"] > DRAWN_SHARE, (page["path"], view)
+    return seen

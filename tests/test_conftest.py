@@ -1,4 +1,5 @@
-"""The suite's own rules: real-data tests skip with the reason on a machine without the data, and fail under CI."""
+"""The suite's own rules: real-data tests (and the report.html browser tests) skip with the reason on a machine
+without the data (the browser), and fail under CI."""
 
 from pathlib import Path
 
@@ -13,6 +14,14 @@ def test_absent_real_data_skips_locally_and_fails_under_ci(monkeypatch, tmp_path
     monkeypatch.setenv("CI", ci)
     with pytest.raises(outcome, match="opencv_stereo"):
         conftest.require_data("opencv_stereo")
+
+
+@pytest.mark.parametrize("ci,outcome", [("", pytest.skip.Exception), ("true", pytest.fail.Exception)])
+def test_absent_browser_skips_locally_and_fails_under_ci(monkeypatch, tmp_path, ci, outcome):
+    monkeypatch.setattr(conftest, "BROWSER", tmp_path / "no_chromium")
+    monkeypatch.setenv("CI", ci)
+    with pytest.raises(outcome, match="no_chromium"):
+        conftest.require_browser()
 
 
 def test_present_real_data_is_returned(monkeypatch, tmp_path):

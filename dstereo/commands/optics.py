@@ -56,9 +56,14 @@ def _fmt(value: Any) -> str:
     return f"{value:.2f}" if abs(value) >= 10 else f"{value:.4g}"
 
 
+def table_rows(results: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, value) of each result that has a value, in the order of ROWS."""
+    return [(label, _fmt(results[key])) for key, label in ROWS if results.get(key) is not None]
+
+
 def render_table(results: dict[str, Any]) -> str:
     """Plain two-column text table of the results, then the notes."""
-    rows = [(label, _fmt(results[key])) for key, label in ROWS if results.get(key) is not None]
+    rows = table_rows(results)
     width = max(len(label) for label, _ in rows)
     lines = [f"{label:<{width}}  {value}" for label, value in rows]
     lines += [f"note: {note}" for note in results["notes"]]
@@ -108,9 +113,10 @@ def optics(
     setup = lib.make_config(settings.settings(file_layer, flags))
     results = lib.compute_optics(setup)
     if plots is not None:
-        from dstereo.io.optics_figures import write_plots
+        from dstereo.io.optics_figures import write_plots, write_report
 
         results["plots"] = [str(p) for p in write_plots(setup, lib.dof_curves(setup), plots)]
+        results["plots"] += [str(p) for p in write_report(plots, table_rows(results), results)]
     if json_output:
         typer.echo(to_json(results))
         return

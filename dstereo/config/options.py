@@ -209,7 +209,7 @@ OPTICS = OptionTable("optics", (
     _opt("dof_focal_length", "optics.dof_focal_length", "--dof-focal-length",
          "Focal length in the DoF equations: effective (thesis) or lens [effective]."),
     _opt("config", (), "--config", "TOML file with an [optics] section; flags override.", in_config=False),
-    _opt("plots", (), "--plots", "Write the three DoF figures (PNG) to this folder.", in_config=False),
+    _opt("plots", (), "--plots", "Write the three DoF figures (PNG) and report.md, report.html to this folder.", in_config=False),
 ))
 
 # Flags of the commands without a table of their own (recession shares reconstruct's matching options).

@@ -73,7 +73,7 @@ def markdown(comparison: dict) -> str:
     """comparison.md: the table, the subset steps, the surface statistics and where everything is."""
     lines = ["# dstereo demo: estimates against the truth", "",
              "| " + " | ".join(TABLE_HEADER) + " |", "|" + "---|" * len(TABLE_HEADER)]
-    lines += ["| " + " | ".join(row) + " |" for row in table_rows(comparison)]
+    lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in table_rows(comparison)]
     sub = comparison["subsets"]
     lines += [""] + [f"- {n}" for n in notes(comparison)]
     lines += ["", f"## Stereo subsets, thesis path ({sub['plan']}, m = {sub['per_set']})", ""]
@@ -86,7 +86,9 @@ def markdown(comparison: dict) -> str:
             title = "calibration/stereo.yml, dstereo calibrate's joint rig solve on the surviving frames"
         lines += ["", f"## Surface ({title})", ""]
         lines += [f"- {k}: {number_text(v) if isinstance(v, float) else v}" for k, v in comparison["surface"][key].items()]
-    lines += ["", "## Files", ""] + [f"- {k}: `{v}`" for k, v in comparison["paths"].items()]
+    lines += ["", "## Files", "", "Reports: [calibration](calibration/report.html) (each camera's in its folder), "
+              "[reconstruction](reconstruction/report.html), with the cloud in 3D.", ""]
+    lines += [f"- {k}: `{v}`" for k, v in comparison["paths"].items()]
     if comparison["warnings"] or comparison["calibration_warnings"]:
         lines += ["", "## Warnings", ""]
         lines += [f"- {w}" for w in comparison["warnings"] + comparison["calibration_warnings"]]

@@ -8,6 +8,7 @@ One run, all under `out/` (filled under a temporary name and renamed at the end)
     reconstruction/        the `dstereo reconstruct` results folder of the sample pair (joint calibration,
                            sub-pixel refinement on, point sigmas from the joint covariance)
     comparison.json / .md  every estimate against its truth, with the bound it is held to
+    report.html            comparison.md as one page for a browser, linking the calibration's and the reconstruction's
 
 Calibration, the thesis's path (`jobs.calibrate_stereo`, as `dstereo calibrate` runs it): each camera alone
 with C(N, m) subsets, the rig with those intrinsics held, its frame subsets filtered by the stereo steps of the
@@ -72,6 +73,9 @@ def run_demo(out, force: bool = False, quick: bool = False, seed: int = 0, progr
                        "settings": asdict(settings), "timings_s": timings, "paths": PATHS}
         write_json(tmp / "comparison.json", comparison)
         (tmp / "comparison.md").write_text(markdown(comparison))
+        from dstereo.io.report_html import write_report_html
+
+        write_report_html(tmp, source="comparison.md")  # the demo's page, as report.html
     return comparison
 
 

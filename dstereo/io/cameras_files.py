@@ -20,7 +20,7 @@ layout: a finished `calib.calibrations.MultiviewJob`):
     plots/                       rig.png (the rig and every frame's board), rig_consistency.png (each frame's
                                  share of the consistency statistic); with subsets T.png, RV.png (the thesis's
                                  Figures 5.15/5.16; per pair T_<a>-<b>.png, RV_<a>-<b>.png for K > 2)
-    summary.json, report.md
+    summary.json, report.md, report.html   (report.html: the same in one page a browser opens, `io.report_html`)
 """
 
 from __future__ import annotations
@@ -139,7 +139,7 @@ def write_frames_csv(path: Path, job: MultiviewJob) -> None:
 def report_markdown(summary: dict) -> str:
     lines = [f"# {len(summary['cameras'])} cameras, {summary['frames']} frames", "",
              f"Reference: {summary['reference']}; {summary['convention']}.", "",
-             "| camera | views | fx | fy | cx | cy | RMS alone (px) | RMS held (px) | RMS joint (px) | |T| |",
+             "| camera | views | fx | fy | cx | cy | RMS alone (px) | RMS held (px) | RMS joint (px) | \\|T\\| |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for c in summary["cameras"]:
         K = np.array(c["camera_matrix"])
@@ -251,6 +251,10 @@ def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path
             summary["subset_figures"] = _rig_subset_files(tmp, job)
             write_json(tmp / "summary.json", summary)
             (tmp / "report.md").write_text(report_markdown(summary))
+            from dstereo.io.report_headlines import rig_headline
+            from dstereo.io.report_html import write_report_html
+
+            write_report_html(tmp, rig_headline(summary))
     finally:
         for cal in job.cameras:
             if cal.filtering is not None:

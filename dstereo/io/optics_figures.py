@@ -30,6 +30,21 @@ def write_plots(config: OpticsConfig, curves: DofCurves, out_dir: str | os.PathL
     return paths
 
 
+def write_report(out_dir: str | os.PathLike, rows: list[tuple[str, str]], results: dict) -> list[Path]:
+    """report.md (the set-up's table `rows` of (quantity, value), the notes, the figures) and report.html beside
+    the figures `write_plots` drew in `out_dir`; returns both paths."""
+    from dstereo.io.report_headlines import optics_headline
+    from dstereo.io.report_html import write_report_html
+
+    out_dir = Path(out_dir)
+    lines = ["# Optics: depth of field of the set-up", "", "| quantity | value |", "|---|---|"]
+    lines += [f"| {label} | {value} |" for label, value in rows]
+    lines += ["", *(f"- note: {n}" for n in results.get("notes", [])), "", "## Figures", ""]
+    lines += [f"![{name}]({name})" for name in PLOT_NAMES]
+    (out_dir / "report.md").write_text("\n".join(lines) + "\n")
+    return [out_dir / "report.md", write_report_html(out_dir, optics_headline(results))]
+
+
 def _label_focal(config: OpticsConfig) -> str:
     return f"lens focal length (mm); DoF with the {config.dof_focal_length} focal length"
 

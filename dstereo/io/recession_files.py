@@ -1,6 +1,7 @@
 """The recession results folder, written atomically (`io.results.atomic_folder`):
 
     report.md             the run in a page, with the figures
+    report.html           the same in one page a browser opens, with the face in 3D (`io.report_html`)
     summary.json          rate (with its 95 % interval), weighted rate, axis, stagnation point, grid, skipped
                           frames with reasons, configuration, units
     recession.csv         one row per frame: time, stagnation-point recession and its standard error, cells, status
@@ -65,10 +66,30 @@ def write_results(out, result, calibration: str, sequence: str, force: bool = Fa
         plots.rate_map(result, tmp / "plots" / "rate_map.png")
         plots.radial_profiles(result, tmp / "plots" / "radial_profiles.png")
         summary["files"] = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file()) + \
-            ["summary.json", "report.md"]
+            ["summary.json", "report.md", "report.html"]
         write_json(tmp / "summary.json", summary)
         (tmp / "report.md").write_text(report_markdown(result, summary))
+        write_html(tmp, result, summary)
     return summary
+
+
+def write_html(folder: Path, result, summary: dict) -> None:
+    """report.html: report.md with the summary at the top and the face of the last frame used in 3D, coloured by
+    its recession since the reference frame."""
+    from dstereo.io.report_headlines import recession_headline
+    from dstereo.io.report_html import write_report_html
+    from dstereo.io.view3d import surface_view
+
+    used = np.flatnonzero(result.ok)
+    view = None
+    if len(used):
+        last = int(used[-1])
+        f = result.frames[last]
+        view = surface_view(result.grid.u, result.grid.v, result.heights[last], result.recession[last],
+                            "recession (mm)", f"The face in frame {f.name} (t = {f.time_s:g} s, the last frame used) "
+                            "on the analysis grid: height along the sample axis over (u, v), coloured by its "
+                            "recession since the reference frame. Drag to rotate, scroll to zoom.")
+    write_report_html(folder, recession_headline(summary), view)
 
 
 def _rate(fit) -> str:

@@ -1,5 +1,6 @@
 """The results folder of `dstereo reconstruct`: rectified images, epipolar check, disparity, depth, points,
-per-point standard deviations, PLY cloud and mesh, matrices and summary.json, written atomically."""
+per-point standard deviations, PLY cloud and mesh, matrices, summary.json, report.md and report.html (with the
+cloud in 3D, `io.reconstruction_report`), written atomically."""
 
 from __future__ import annotations
 
@@ -98,6 +99,9 @@ def write_pair(folder: Path, result: PairResult, config: ReconstructionConfig | 
     summary["config"] = config.as_dict()
     summary["timings_s"] = {**summary.get("timings_s", {}), "write_s": time.perf_counter() - t0}
     (folder / "summary.json").write_text(json.dumps(summary, indent=2, default=json_default))
+    from dstereo.io.reconstruction_report import write_report
+
+    write_report(folder, summary, result.points, None if unc is None else unc.sigma_z)
 
 
 def write_atomically(out: str | Path, force: bool, fill) -> Path:

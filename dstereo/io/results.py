@@ -2,6 +2,7 @@
 
 Layout of `write_camera_results(out, cal)`:
     report.md            what was done and what came out, with links to everything below
+    report.html          the same in one page a browser opens: figures embedded, summary at the top
     summary.json         machine-readable: full_set, subsets (steps, survivors), final, images, coverage, ...
     camera.yml/.json     the result for OpenCV (FileStorage) and for anything else
     subsets.csv          one row per subset: image indices, every parameter, rms, fate
@@ -550,9 +551,13 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     if taken:
         early.take(plot_dir)
     summary["files"] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()) + \
-        ["summary.json", "report.md"]
+        ["summary.json", "report.md", "report.html"]
     write_json(folder / "summary.json", summary)
     (folder / "report.md").write_text(report_markdown(cal, summary))
+    from dstereo.io.report_headlines import camera_headline
+    from dstereo.io.report_html import write_report_html
+
+    write_report_html(folder, camera_headline(summary))  # every figure is in place: the workers were waited for
     return summary
 
 

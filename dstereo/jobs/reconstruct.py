@@ -25,6 +25,7 @@ def run_reconstruction(
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.json_files import json_default
     from dstereo.io.reconstruction_files import write_atomically, write_pair
+    from dstereo.io.reconstruction_report import write_index
 
     check_output(out, force)
     if not pairs:
@@ -55,6 +56,7 @@ def run_reconstruction(
             write_pair(tmp / r.name, r, config)
         index = {"pairs": [r.summary for r in results], "config": config.as_dict()}
         (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=json_default))
+        write_index(tmp, [r.summary for r in results], [r.name for r in results])
 
     write_atomically(out, force, fill)
     return results

@@ -70,6 +70,7 @@ def reconstruct_pairs(pairs, out, calib_path, config, force: bool, runner, store
     from dstereo.io.calib_files import read_stereo_calibration
     from dstereo.io.json_files import json_default
     from dstereo.io.reconstruction_files import write_atomically
+    from dstereo.io.reconstruction_report import write_index
 
     calib = read_stereo_calibration(calib_path) if calib_path is not None else None
     names = pair_names(pairs)
@@ -103,6 +104,7 @@ def reconstruct_pairs(pairs, out, calib_path, config, force: bool, runner, store
             (tmp / r.name / "pair_done.json").unlink()
         index = {"pairs": [r.summary for r in results], "config": config.as_dict()}
         (tmp / "summary.json").write_text(json.dumps(index, indent=2, default=json_default))
+        write_index(tmp, [r.summary for r in results], [r.name for r in results])
 
     write_atomically(out, force, fill)
     store.remove()

@@ -4,6 +4,7 @@
     stereo.yml    the corrected calibration (M1 D1 M2 D2 R T E F imageSize), readable wherever stereo.yml is
     refine.json   the correction with standard deviations, residual RMS before/after, conditioning, checks
     report.md     the same for a reader
+    report.html   the same in one page a browser opens (`io.report_html`)
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
                    fixed: tuple[str, ...] = (), marks=None, force: bool = False, config=None) -> Refinement:
     """Read, refine and write the results folder `out` (see the module docstring)."""
     from dstereo.io.calib_files import read_stereo_calibration
+    from dstereo.io.report_headlines import refine_headline
+    from dstereo.io.report_html import write_report_html
     from dstereo.io.results import atomic_folder, check_output, write_json
     from dstereo.stereo.reconstruct import check_pair
     from dstereo.io.images import read_image
@@ -77,6 +80,7 @@ def run_refinement(calib_path, left_path, right_path, reference, out, focal: boo
         write_calibration(tmp / "stereo.yml", result.calibration, (left.shape[1], left.shape[0]))
         write_json(tmp / "refine.json", report)
         (tmp / "report.md").write_text(report_markdown(report))
+        write_report_html(tmp, refine_headline(report))
     return result
 
 

@@ -45,6 +45,13 @@ def rig_run(rig_folder, tmp_path_factory):
     return out, vis
 
 
+def test_report_html_of_the_rig_and_each_camera_in_a_browser(rig_run):
+    from conftest import assert_reports_render
+
+    out, _ = rig_run
+    assert_reports_render([out, *(out / f"cam{k}" for k in range(3))])
+
+
 def test_cameras_yml_holds_every_camera_and_the_rig_near_the_truth(rig_run):
     out, vis = rig_run
     fs = cv2.FileStorage(str(out / "cameras.yml"), cv2.FILE_STORAGE_READ)

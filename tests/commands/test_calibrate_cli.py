@@ -50,6 +50,12 @@ def thesis_run(tmp_path_factory, left_images):
     return project / "results", out, err
 
 
+def test_report_html_in_a_browser(thesis_run):
+    from conftest import assert_reports_render
+
+    assert_reports_render([thesis_run[0]])
+
+
 def _summary(folder: Path) -> dict:
     return json.loads((folder / "summary.json").read_text())
 

@@ -195,3 +195,20 @@ def test_refinement_and_calibration_sigma_in_the_demo_reconstruction(run):
     summary = json.loads((out / "reconstruction" / "summary.json").read_text())
     assert summary["refine"]["enabled"] and summary["uncertainty"]["calibration_included"]
     assert 0.5 < s["sigma_z_mm"]["median"] / s["joint"]["rms_mm"] < 2.0
+
+
+def test_reports_in_a_browser_and_the_reconstruction_page_under_15_mb(run):
+    """The demo's results folders (the rig, each camera, the 640 x 480 reconstruction with its cloud in 3D) open in
+    a browser with every check passed; the reconstruction's page, plotly.js inlined, stays under 15 MB."""
+    from conftest import assert_reports_render, open_reports
+
+    out, _ = run
+    folders = [out / "calibration", out / "calibration" / "left", out / "calibration" / "right",
+               out / "reconstruction"]
+    pages = assert_reports_render(folders)
+    top, = open_reports([out])  # the demo's own page (comparison.md as report.html)
+    assert not top["errors"] and not top["outside"] and not top["images"]
+    assert "baseline |T| [mm]" in (out / "report.html").read_text()  # the escaped pipe stays in its cell
+    assert len(pages[-1]["views3d"]) == 1
+    assert json.loads((out / "reconstruction" / "summary.json").read_text())["image_size"] == [640, 480]
+    assert (out / "reconstruction" / "report.html").stat().st_size < 15e6

@@ -52,7 +52,14 @@ def serial(sequence, tmp_path_factory):
     out = tmp_path_factory.mktemp("serial") / "out"
     code, _, err = _run(sequence, out, "--workers", "1")
     assert code == 0, err
-    return _numbers(out)
+    return (*_numbers(out), out)
+
+
+def test_report_html_with_the_face_in_3d_in_a_browser(serial):
+    from conftest import assert_reports_render
+
+    page, = assert_reports_render([serial[3]])
+    assert len(page["views3d"]) == 1
 
 
 def _assert_same_maps(a, b):
@@ -201,6 +208,11 @@ def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_pa
     assert code == 0, err
     names = [f"left_{i:03d}" for i in range(PAIRS)]
     assert sorted(p.name for p in serial.iterdir() if p.is_dir()) == names
+    from conftest import assert_reports_render
+
+    assert_reports_render([serial])  # the index: one row per pair, each linking the pair's report.html
+    assert all(f"]({n}/report.html)" in (serial / "report.md").read_text() for n in names)
+    assert all((serial / n / "report.html").is_file() for n in names)
 
     real = pairs.reconstruct_pair
 

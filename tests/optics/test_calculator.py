@@ -278,4 +278,8 @@ def test_plots_written(tmp_path):
     for name in optics.PLOT_NAMES:
         data = (out / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
-    assert sorted(p.name for p in out.iterdir()) == sorted(optics.PLOT_NAMES)  # no partial files left
+    # no partial files left; the report (its figures embedded) beside them
+    assert sorted(p.name for p in out.iterdir()) == sorted([*optics.PLOT_NAMES, "report.html", "report.md"])
+    from conftest import assert_reports_render
+
+    assert_reports_render([out])

@@ -321,7 +321,10 @@ def test_cli_end_to_end(tmp_path, board_view, truth):
             "--board", "13x10", "--square", repr(ref.square), "--out", tmp_path / "out"]
     code, out, err = run_cli(*args)
     assert code == 0, err
-    assert {p.name for p in (tmp_path / "out").iterdir()} == {"stereo.yml", "refine.json", "report.md"}
+    assert {p.name for p in (tmp_path / "out").iterdir()} == {"stereo.yml", "refine.json", "report.md", "report.html"}
+    from conftest import assert_reports_render
+
+    assert_reports_render([tmp_path / "out"])
     e = rig_error(read_stereo_calibration(tmp_path / "out" / "stereo.yml"), truth)
     assert e["rotation_deg"] < 0.01 and abs(e["baseline_rel"]) < 5e-4
     code, _, err = run_cli(*args)
