@@ -13,8 +13,9 @@ def diff(
                             "calibration_covariance.npz and projection_uncertainty.npz beside it are read), or a "
                             "rig's camera STEREO_YML:left / :right."),
     b: str = typer.Argument(..., help="The second camera, given as A."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results folder: diff.json, diff.npz, diff.png (refused "
-                                       "if it exists, unless --force); without it the summary is printed only."),
+    out: Optional[Path] = typer.Option(
+        None, "--out", help="Results folder: diff.json, diff.npz, diff.png, report.md, report.html (refused if it "
+        "exists, unless --force); without it the summary is printed only."),
     distance: Optional[float] = typer.Option(
         None, "--distance", help="Distance of the compared points, in the calibrations' unit (inf: directions only, "
         "the transform a rotation) [A's projection-uncertainty range: its mean board distance]."),

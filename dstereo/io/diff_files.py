@@ -10,7 +10,7 @@ A camera is given as
   beside it when there.
 
 Written (`write_diff`, under a temporary name renamed at the end): diff.json (the summary), diff.npz (the grid, the
-difference, the prediction, Mahalanobis distances, weights) and diff.png (heat maps).
+difference, the prediction, Mahalanobis distances, weights), diff.png (heat maps), report.md and report.html.
 """
 
 from __future__ import annotations
@@ -143,11 +143,63 @@ def write_diff(out: Path, force: bool, result: dict, arrays: dict, figure) -> Pa
     from dstereo.io.json_files import write_json
     from dstereo.io.results import atomic_folder
 
+    from dstereo.io.report_html import write_report_html
+
     with atomic_folder(out, force) as tmp:
         np.savez(tmp / "diff.npz", **arrays)
         figure(tmp / "diff.png")
         write_json(tmp / "diff.json", result)
+        (tmp / "report.md").write_text(report_markdown(result))
+        write_report_html(tmp, diff_headline(result))
     return Path(out)
+
+
+def report_markdown(s: dict) -> str:
+    """report.md of a difference (its diff.json's content, formatted)."""
+    t, p = s["implied_transform"], s["prediction"]
+    at = "infinity" if s["distance"] is None else f"{s['distance']:.4g} {s['unit'] or ''}".strip()
+    lines = ["# dstereo diff", "", f"A: {s['a']}", "", f"B: {s['b']}", "",
+             f"Points at {at} ({s['distance_source']}) on a {s['grid'][0]} x {s['grid'][1]} grid of pixels "
+             f"({s['pixels_left_out']} left out: no ray through both cameras); the transform between the cameras "
+             f"fitted with weights from {s['weighting']}: rotation {t['rotation_deg']:.4g} deg, translation "
+             f"{', '.join(f'{x:.4g}' for x in t['translation'])} {s['unit'] or ''}.", "",
+             "## Verdict", "", s["verdict"] + ".", "", "| figure | value |", "|---|---|",
+             f"| observed rms difference (weighted) | {s['observed_rms_px']:.4g} px |",
+             f"| largest difference | {s['observed_max_px']:.4g} px |"]
+    if p is not None:
+        b = p["band_if_right"]
+        lines += [f"| predicted rms difference | {p['predicted_rms_px']:.4g} px |",
+                  f"| ratio (1 if right) | {p['ratio']:.3f} (a right prediction: {b['ratio'][0]:.2f}-"
+                  f"{b['ratio'][1]:.2f}, 5-95 %) |",
+                  f"| median Mahalanobis distance (1.18 if right) | {p['mahalanobis_median']:.3f} "
+                  f"({b['mahalanobis_median'][0]:.2f}-{b['mahalanobis_median'][1]:.2f}) |",
+                  f"| raw ratio, its typical value if right | {p['ratio_raw']:.3f}, "
+                  f"{p['typical_raw_ratio_if_right']:.3f} |"]
+        if p.get("ratio_vs_pose_compensated_maps") is not None:
+            lines += [f"| raw ratio against the two pose-compensated maps alone | "
+                      f"{p['ratio_vs_pose_compensated_maps']:.3f} |"]
+    lines += ["", "![observed difference, predicted difference and Mahalanobis distance per pixel](diff.png)", ""]
+    if s["notes"]:
+        lines += ["## Notes", ""] + [f"- {n}" for n in s["notes"]] + [""]
+    lines += ["Files: [diff.json](diff.json) (these figures), [diff.npz](diff.npz) (the grid's arrays).", ""]
+    return "\n".join(lines)
+
+
+def diff_headline(s: dict):
+    """report.html's summary of a difference."""
+    from dstereo.io.report_html import Check, Headline
+
+    p = s["prediction"]
+    measured = [("observed rms difference", f"{s['observed_rms_px']:.3g} px")]
+    if p is None:
+        return Headline(measured, [Check("prediction", None, "a camera has no covariance")])
+    b = p["band_if_right"]
+    measured += [("predicted rms difference", f"{p['predicted_rms_px']:.3g} px"),
+                 ("ratio (1 if right)", f"{p['ratio']:.2f}"),
+                 ("median Mahalanobis (1.18 if right)", f"{p['mahalanobis_median']:.2f}")]
+    return Headline(measured, [Check("inside the band a right prediction falls in", bool(p["inside_band"]),
+                                     f"ratio {b['ratio'][0]:.2f}-{b['ratio'][1]:.2f}, Mahalanobis "
+                                     f"{b['mahalanobis_median'][0]:.2f}-{b['mahalanobis_median'][1]:.2f}")])
 
 
 def diff_png(path: Path, u, v, diff, predicted, maha, title: str) -> None:

@@ -69,6 +69,9 @@ def test_the_files_give_the_statistic_computed_in_memory(folders):
         np.testing.assert_allclose(z["diff"], d.diff, rtol=1e-9, atol=1e-12)
         assert z["cov"].shape == (9, 12, 2, 2)
     assert (root / "out" / "diff.png").stat().st_size > 1000
+    report = (root / "out" / "report.md").read_text()
+    assert s["verdict"] in report and f"{d.ratio:.3f}" in report
+    assert "data:image/png;base64," in (root / "out" / "report.html").read_text()  # the figure embedded
     # swapping A and B: the same comparison from the other side, so nearly the same ratio (first order: equal)
     code, _, _ = run_cli("diff", fb, fa, "--distance", "500", "--grid", "12x9")
     assert code == 0
