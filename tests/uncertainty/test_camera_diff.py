@@ -92,9 +92,9 @@ def test_the_ratio_scales_as_one_over_the_claimed_std(calibrated):
 def test_a_monte_carlo_of_right_covariances_reads_one_and_a_planted_wrong_scale_fails(calibrated):
     """Both cameras drawn around one truth with the covariance they claim: the log-ratio has mean 0 (60 draws of
     sd ~0.45: the geometric mean within exp(+-0.2), 3.4 standard errors) and ~90 % of draws fall in each draw's
-    own 5-95 % band (binomial sd 4 %: at least 75 %), and of their median Mahalanobis distances. Claiming stds 2x too small (a planted wrong covariance
-    scale, the truth's draws unchanged): the geometric mean doubles (outside exp(+-0.2)) and most draws leave
-    the band."""
+    own 5-95 % band (binomial sd 4 %: at least 75 %), and so do their median Mahalanobis distances. Claiming stds
+    2x too small (a planted wrong covariance scale, the truth's draws unchanged): the geometric mean doubles
+    (outside exp(+-0.2)) and most draws leave the band."""
     cam = calibrated
     root = np.linalg.cholesky(cam.cov)
     rng = np.random.default_rng(11)
