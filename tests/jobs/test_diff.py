@@ -77,6 +77,19 @@ def test_the_files_give_the_statistic_computed_in_memory(folders):
     assert code == 0
 
 
+def test_the_report_renders_in_a_browser(folders, tmp_path):
+    """diff's report.html, as every results folder's: no console error, no request outside the file, its figure
+    decoded (issue 34: every kind of report passes the browser test)."""
+    from conftest import assert_reports_render
+
+    root, fa, fb, _, _ = folders
+    out = tmp_path / "d"
+    code, _, err = run_cli("diff", fa, fb, "--out", out)
+    assert code == 0, err
+    (page,) = assert_reports_render([out])
+    assert len(page["images"]) >= 1
+
+
 def test_a_camera_without_covariance_diffs_without_a_prediction(folders, tmp_path):
     root, fa, fb, a, b = folders
     bare = tmp_path / "bare"
