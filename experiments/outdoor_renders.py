@@ -10,10 +10,12 @@ and relit as the Middlebury check does (gain 0.7, gamma 1.3). Configurations, ea
 - default: no flags;
 - fill: `--fill`.
 
-Scored on the left pixels the right camera also sees (`synth.outdoor.visible_in_right`): density = share with an
-estimate, median and p90 of |Z - Z_true| / Z_true (%) over those estimates, within 1 % = share of the seen pixels
-with an estimate within 1 % of the truth (accuracy and density in one figure), filled obs / pred = the filled
-pixels' robust std of the disparity error over the RMS of their sigma.
+Scored on the left pixels the right camera also sees (`synth.outdoor.visible_in_right`), as ETH3D's two-view
+benchmark scores disparities: density = share with an estimate; over the estimates, the mean |d - d_true| (px),
+bad 1 = share off by more than 1 px, and the median of |Z - Z_true| / Z_true (%); good = share of the seen pixels
+with an estimate within 1 px (a hole counts as not good: accuracy and density in one figure); filled obs / pred =
+the filled pixels' robust std of the disparity error over the RMS of their sigma. The backdrop near 1.7 px
+holds a 1 % depth error only within 0.02 px: disparity errors in px are the fair measure of a wide-range scene.
 
     python -m experiments.outdoor_renders [--seeds 4] [--out experiments/results/outdoor_renders.md]
 """
@@ -43,11 +45,13 @@ def robust_std(x: np.ndarray) -> float:
 
 def score(result, depth: np.ndarray, seen: np.ndarray, disparity_true: np.ndarray) -> dict:
     """The figures of one reconstruction against the render's truth (module docstring)."""
-    est = seen & np.isfinite(result.depth)
+    est = seen & np.isfinite(result.depth) & np.isfinite(result.disparity)
     rel = np.abs(result.depth - depth)[est] / depth[est]
+    err = np.abs(result.disparity[est].astype(np.float64) - disparity_true[est])
     filled = est & (result.filled if result.filled is not None else False)
-    row = {"density_pct": 100.0 * est.sum() / seen.sum(), "median_pct": 100.0 * float(np.median(rel)),
-           "p90_pct": 100.0 * float(np.percentile(rel, 90)), "within_1pct": 100.0 * (rel <= 0.01).sum() / seen.sum(),
+    row = {"density_pct": 100.0 * est.sum() / seen.sum(), "mean_px": float(np.mean(err)),
+           "bad1_pct": 100.0 * float(np.mean(err > 1.0)), "median_pct": 100.0 * float(np.median(rel)),
+           "good_pct": 100.0 * float((err <= 1.0).sum() / seen.sum()),
            "cost": result.summary["search_range"]["matching_cost"]["cost"],
            "filled_pct": 100.0 * filled.sum() / max(est.sum(), 1), "obs_pred": None}
     if filled.sum() >= 100:
@@ -80,12 +84,13 @@ def table(rows: list[tuple[int, str, dict]]) -> str:
     both = " / ".join(names)
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     each = lambda r, key, spec: " / ".join(format(r[n][key], spec) for n in names)  # noqa: E731
-    text = (f"| seed | right view | default's cost | density % {both} | median % {both} | p90 % {both} | "
-            f"within 1 % {both} | filled % | filled obs / pred |\n|---|---|---|---|---|---|---|---|---|\n")
+    text = (f"| seed | right view | default's cost | density % {both} | mean error px {both} | bad 1 px % {both} | "
+            f"median depth error % {both} | good % {both} | filled % | filled obs / pred |\n"
+            "|---|---|---|---|---|---|---|---|---|---|\n")
     for seed, variant, r in rows:
         text += (f"| {seed} | {variant} | {r['default']['cost']} | {each(r, 'density_pct', '.1f')} | "
-                 f"{each(r, 'median_pct', '.2f')} | {each(r, 'p90_pct', '.2f')} | {each(r, 'within_1pct', '.1f')} | "
-                 f"{r['fill']['filled_pct']:.1f} | {fmt(r['fill']['obs_pred'])} |\n")
+                 f"{each(r, 'mean_px', '.3f')} | {each(r, 'bad1_pct', '.2f')} | {each(r, 'median_pct', '.2f')} | "
+                 f"{each(r, 'good_pct', '.1f')} | {r['fill']['filled_pct']:.2f} | {fmt(r['fill']['obs_pred'])} |\n")
     return text
 
 

@@ -42,7 +42,7 @@ class ReconstructionConfig:
     # reads 0.45-0.86x the errors on Middlebury (outside the 0.67-1.5 asked), and on the demo's and the sphere
     # reference's renders it adds 10-14 % of points beyond the sample, where nothing was matched
     fill: bool = False
-    fill_max_sigma: float = 1.5  # px: a pixel whose fill sigma would exceed this stays unmatched
+    fill_max_sigma: float = 0.7  # px: a pixel whose fill sigma would exceed this stays unmatched (`stereo.fill`: why)
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0
     outlier_std: float = 2.0
