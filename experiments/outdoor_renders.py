@@ -8,7 +8,8 @@ and relit as the Middlebury check does (gain 0.7, gamma 1.3). Configurations, ea
 (`ReconstructionConfig()`: the range from the pair's own sparse matches and the rig's geometric bounds):
 - before: `--cost intensity`, no fill (the matching before issue 30);
 - default: no flags;
-- fill: `--fill`.
+- fill: `--fill`;
+- rank fill: `--cost rank --fill`.
 
 Scored on the left pixels the right camera also sees (`synth.outdoor.visible_in_right`), as ETH3D's two-view
 benchmark scores disparities: density = share with an estimate; over the estimates, the mean |d - d_true| (px),
@@ -34,7 +35,8 @@ from dstereo.synth.outdoor import OutdoorRig, exposed, outdoor_pair, true_dispar
 
 DEFAULT = ReconstructionConfig(uncertainty=False)
 CONFIGS = {"before": replace(DEFAULT, matching_cost="intensity", fill=False), "default": DEFAULT,
-           "fill": replace(DEFAULT, fill=True)}
+           "fill": replace(DEFAULT, fill=True), "rank fill": replace(DEFAULT, matching_cost="rank", fill=True)}
+FILLED = ("fill", "rank fill")
 VARIANTS = {"as rendered": None, "right gain 0.85": (0.85, 1.0), "right gain 0.7, gamma 1.3": (0.7, 1.3)}
 MAD_TO_STD = 1.4826
 
@@ -85,12 +87,14 @@ def table(rows: list[tuple[int, str, dict]]) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     each = lambda r, key, spec: " / ".join(format(r[n][key], spec) for n in names)  # noqa: E731
     text = (f"| seed | right view | default's cost | density % {both} | mean error px {both} | bad 1 px % {both} | "
-            f"median depth error % {both} | good % {both} | filled % | filled obs / pred |\n"
+            f"median depth error % {both} | good % {both} | filled % {' / '.join(FILLED)} | "
+            f"filled obs / pred {' / '.join(FILLED)} |\n"
             "|---|---|---|---|---|---|---|---|---|---|\n")
     for seed, variant, r in rows:
         text += (f"| {seed} | {variant} | {r['default']['cost']} | {each(r, 'density_pct', '.1f')} | "
                  f"{each(r, 'mean_px', '.3f')} | {each(r, 'bad1_pct', '.2f')} | {each(r, 'median_pct', '.2f')} | "
-                 f"{each(r, 'good_pct', '.1f')} | {r['fill']['filled_pct']:.2f} | {fmt(r['fill']['obs_pred'])} |\n")
+                 f"{each(r, 'good_pct', '.1f')} | {' / '.join(format(r[n]['filled_pct'], '.2f') for n in FILLED)} | "
+                 f"{' / '.join(fmt(r[n]['obs_pred']) for n in FILLED)} |\n")
     return text
 
 
@@ -107,7 +111,8 @@ def main() -> None:
             print(table(rows[-1:]).splitlines()[-1], flush=True)
     text = (f"Rendered outdoor scenes (`dstereo.synth.outdoor`, {rig.size[0]} x {rig.size[1]}, f {rig.focal_px:g} px, "
             f"baseline {rig.baseline_mm:g} mm), scored on the pixels both cameras see. before: `--cost intensity`, "
-            "no fill (the matching before issue 30); default: no flags; fill: `--fill`.\n\n" + table(rows))
+            "no fill (the matching before issue 30); default: no flags; fill: `--fill`; rank fill: `--cost rank --fill`.\n\n"
+            + table(rows))
     print(text)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
