@@ -111,7 +111,8 @@ def main() -> None:
             print(table(rows[-1:]).splitlines()[-1], flush=True)
     text = (f"Rendered outdoor scenes (`dstereo.synth.outdoor`, {rig.size[0]} x {rig.size[1]}, f {rig.focal_px:g} px, "
             f"baseline {rig.baseline_mm:g} mm), scored on the pixels both cameras see. before: `--cost intensity`, "
-            "no fill (the matching before issue 30); default: no flags; fill: `--fill`; rank fill: `--cost rank --fill`.\n\n"
+            "no fill (the matching before issue 30); default: no flags; fill: `--fill`; rank fill: "
+            "`--cost rank --fill`.\n\n"
             + table(rows))
     print(text)
     if args.out is not None:

@@ -44,7 +44,8 @@ def layered_pair(rig: StereoRig, layers: list[Layer], seed: int = 0,
         image, depth, which = None, None, None
         for i, layer in enumerate(layers):
             img, truth = render_object(camera, compose(T_cam_world, layer.T_world_object), layer.surface,
-                                       Speckle.create(seed + 101 * i, layer.speckle_mm, layer.contrast, layer.octaves), _light(layer),
+                                       Speckle.create(seed + 101 * i, layer.speckle_mm, layer.contrast, layer.octaves),
+                                       _light(layer),
                                        options=options, seed=[seed, c, i], rays=rays, centre_rays=centre_rays)
             z = np.where(np.isfinite(truth["depth"]), truth["depth"], np.inf)
             if image is None:
