@@ -26,7 +26,7 @@ window (their correlation 0.6-0.9 within 3 px, where the fit's weight lies), so 
   (the rest moves the plane, and is in the first term). It depends on the noise's correlation, so it is
   measured on the image itself: over windows of the matched map, the plane-fit residual variance of the field
   SGBM-minus-refinement (the matching error as `sgbm_sigma` sees it) over that field's variance (Middlebury
-  0.56-0.63; the same measured on the true errors 0.50-0.58); for a refined disparity, of a simulated field
+  0.57-0.65 on the rank-cost maps; on the true errors about 0.5-0.6); for a refined disparity, of a simulated field
   correlated as the refinement's noise (`disparity_noise.iterated_kernel`);
 - so s^2 - kappa^2 sigma_w^2 is the surface's own relief about the plane (and mismatches the biweight kept), the
   spread of a new point about it, and (A^-1)_00 the plane's own variance at p in units of it (A the weighted
