@@ -154,7 +154,7 @@ RECONSTRUCT = OptionTable("reconstruct", (
          "their own, larger sigma and the flag `filled` (filled.npy, points.ply); --no-fill leaves them empty.",
          bool),
     _opt("fill_max_sigma", "reconstruct.fill_max_sigma", "--fill-max-sigma",
-         "Largest fill sigma, px, for a pixel to be filled [1.5].", float),
+         "Largest fill sigma, px, for a pixel to be filled [0.7].", float),
     _opt("focal_mm", "reconstruct.focal_mm", "--focal-mm", "Uncalibrated: lens focal length, mm.", float),
     _opt("pixel_size_mm", "reconstruct.pixel_size_mm", "--pixel-size-mm", "Uncalibrated: pixel pitch, mm.", float),
     _opt("crop_factor", "reconstruct.crop_factor", "--crop-factor", "Uncalibrated: crop factor (36 mm).", float),

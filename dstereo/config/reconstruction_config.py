@@ -38,11 +38,14 @@ class ReconstructionConfig:
     undistort: str = "opencv"
     color_matching: bool = False
     matching_cost: str = "auto"  # auto | rank | intensity (`dstereo.stereo.matching.chosen_cost`)
-    # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged. Off by default: its sigma
-    # reads 0.45-0.86x the errors on Middlebury (outside the 0.67-1.5 asked), and on the demo's and the sphere
-    # reference's renders it adds 10-14 % of points beyond the sample, where nothing was matched
+    # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged. Off by default: with the
+    # grey-level cost that auto takes for views lit alike, a fill extends SGBM's own false matches around its holes
+    # (Middlebury Piano, Pipes as they are: observed / predicted 6.6 / 4.4, experiments/results/middlebury_lighting.md),
+    # it costs 6-97 s per quarter-size Middlebury pair on the shared machine (SGBM 0.1-1.3 s), and the earlier fill
+    # added 10-14 % of points beyond the demo's and the sphere reference's samples; with `--cost rank` its sigma
+    # holds (observed / predicted 0.71-1.36 on all 10 Middlebury rows)
     fill: bool = False
-    fill_max_sigma: float = 1.5  # px: a pixel whose fill sigma would exceed this stays unmatched
+    fill_max_sigma: float = 0.7  # px: a pixel whose fill sigma would exceed this stays unmatched (`stereo.fill`: why)
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0
     outlier_std: float = 2.0

@@ -226,16 +226,18 @@ def correlation_gain(e: np.ndarray, g: np.ndarray, ok: np.ndarray, lags: int = 3
     return float(np.clip(np.sum(_autocorrelation(e, ok, lags) * _autocorrelation(g, ok, lags)), 1.0, 16.0))
 
 
-def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block_size: int) -> np.ndarray:
+def sgbm_sigma(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, block_size: int,
+               refined: np.ndarray | None = None) -> np.ndarray:
     """sigma_d (h, w) px of SGBM's own sub-pixel disparity. SGBM's error is measured against the sub-pixel
     refinement run on the same pair as a reference (it is 2-3x more accurate on textured surfaces, and its own
     sigma is `refined_sigma`): sigma^2 = local mean of (d_SGBM - d_refined)^2 - sigma_refined^2 (independent
     errors; SGBM's smoothness penalties keep it apart from the refinement's noise on weak texture), the local
     mean over a Gaussian of `block_size` px, at least SGBM's 1/16 px steps. Where the refinement drops pixels, the mean comes from the
-    neighbours, else the map's median deviation is used (with the refined model's sigma at SGBM's d)."""
+    neighbours, else the map's median deviation is used (with the refined model's sigma at SGBM's d).
+    `refined`: `subpixel.refine_disparity(left, right, disparity)` when the caller has it already."""
     from dstereo.stereo.subpixel import refine_disparity
 
-    refined = refine_disparity(left, right, disparity)
+    refined = refine_disparity(left, right, disparity) if refined is None else refined
     ok = np.isfinite(refined) & np.isfinite(disparity)
     dev2 = (disparity - refined) ** 2
     local = _masked_smooth(dev2, ok, float(block_size))

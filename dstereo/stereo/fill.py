@@ -8,22 +8,38 @@ fit, the support-weight idea of Yoon & Kweon 2006 applied to a plane d = a + b d
 slanted-plane fills of segment-based stereo). Two re-weightings (Tukey's biweight on the residuals, at 4.685
 robust stds) drop mismatches and the other surface's pixels that pass the colour test.
 
-The sigma of a fill (px) is the weighted regression's prediction error for one more sample at p with the unit
-weight of a pixel of p's own colour: sigma^2 = s^2 (1 + (A^-1)_00), s^2 = the weighted residual variance of the
-window about its plane (sum w r^2 / sum w, scaled by n_eff / (n_eff - 3), n_eff = (sum w)^2 / sum w^2), A the
-weighted normal matrix in (1, du, dv). It is larger than a matched pixel's where the window's surface is not
-flat or mixes surfaces, and where p lies at the edge of its support. A pixel is filled only when that sigma is at
-most `max_sigma` px and its window holds at least MIN_SUPPORT weight on matched pixels around it, at least
-MIN_SIDE_SUPPORT of it on each side (left, right, above, below: a hole is interpolated, a rim never extended); the
-rest stay
-NaN. The fill uses matched pixels only (a fill never feeds another). The raw sigma is then scaled by `sigma_scale`'s
-k, measured on the image itself by filling matched pixels hidden around the holes. Limitation: the window's
-scatter is taken as the pixel's own, so where it is mostly matching noise (smooth, well-textured surfaces, which
-the fit averages) the sigma overstates the error against the true surface (0.24 x on a noisy synthetic sphere
-cap); on Middlebury, where surface shape and mixed surfaces dominate, observed / predicted (robust std of the
-errors / RMS sigma) is 0.45-0.86, the per-pixel robust std of error / sigma 0.55-1.20 (still conservative on
-Adirondack and Teddy). Checked against ground truth in
-experiments/middlebury_lighting.py and on renders in tests/stereo/test_fill.py.
+The sigma of a fill (px) follows from what its error is made of. The fill at p is a weighted sum of the matched
+disparities of its window, sum_q h_q d_q (h the fit's intercept row: the sum of h is 1, a plane is reproduced
+exactly), so its error is (a) the matched pixels' own errors carried through the fit, sum_q h_q n_q, plus (b)
+the true surface's departure from the window's plane, at p and in the fit. Measured against Middlebury's truth
+(5 scenes, as is and relit), (a) is nearly all of it: the matched errors near a hole are correlated over the
+window (their correlation 0.6-0.9 within 3 px, where the fit's weight lies), so they do not average away. Hence
+
+    sigma^2 = (sum_q h_q sigma_q)^2 + max(s^2 - kappa^2 sigma_w^2, 0) (1 + (A^-1)_00)
+
+- sigma_q: each matched pixel's disparity noise, the per-pixel model of `disparity_noise` (SGBM's local deviation
+  from the sub-pixel refinement, `sgbm_sigma`; the refinement's own sandwich sigma, `refined_sigma`, where the
+  disparity was refined); carried as if common to the window (the upper end of (a));
+- s^2: the window's weighted residual variance about its plane (sum w r^2 / sum w, scaled by n_eff / (n_eff - 3),
+  n_eff = (sum w)^2 / sum w^2); sigma_w^2 = sum w sigma_q^2 / sum w, the matching noise's variance there;
+- kappa^2: the share of the matching noise's variance that a plane fit over the window leaves in its residuals
+  (the rest moves the plane, and is in the first term). It depends on the noise's correlation, so it is
+  measured on the image itself: over windows of the matched map, the plane-fit residual variance of the field
+  SGBM-minus-refinement (the matching error as `sgbm_sigma` sees it) over that field's variance (Middlebury
+  0.57-0.65 on the rank-cost maps; on the true errors about 0.5-0.6); for a refined disparity, of a simulated field
+  correlated as the refinement's noise (`disparity_noise.iterated_kernel`);
+- so s^2 - kappa^2 sigma_w^2 is the surface's own relief about the plane (and mismatches the biweight kept), the
+  spread of a new point about it, and (A^-1)_00 the plane's own variance at p in units of it (A the weighted
+  normal matrix in (1, du, dv)).
+A pixel is filled only when that sigma is at most `max_sigma` px and its window holds at least MIN_SUPPORT weight
+on matched pixels around it, at least MIN_SIDE_SUPPORT of it on each side (left, right, above, below: a hole is
+interpolated, a rim never extended); the rest stay NaN. The fill uses matched pixels only (a fill never feeds
+another). What no window can see: a hole at a depth edge whose support lies on the wrong surface, or a
+matched neighbourhood that is itself wrong (SGBM's fattening at an occlusion, its smooth false matches on a
+blank wall with the grey-level cost); those fills are off by pixels whatever their sigma, which is why the
+default `max_sigma` is 0.7 px (fills up to it: observed / predicted 0.71-1.36 on Middlebury's rank-cost rows,
+experiments/results/middlebury_lighting.md; beyond it their share grows: 1.4-1.6 at 1 px on Piano and Pipes).
+Checked against ground truth in experiments/middlebury_lighting.py and on renders in tests/stereo/test_fill.py.
 """
 
 from __future__ import annotations
@@ -39,9 +55,8 @@ BIWEIGHT_C = 4.685  # Tukey's constant: 95 % efficiency at normal residuals
 MAD_TO_STD = 1.4826
 # The windows tried, smallest first: (half width px, stride px); a pixel keeps the first that fills it.
 PASSES = ((6, 1), (14, 2), (30, 4))
-HOLDOUT_BAND = 3  # px: the band of matched pixels around the holes hidden to measure the sigma scale
-HOLDOUT_PIXELS = 4000  # of them filled (a robust std to ~1.5 %)
-MIN_HOLDOUT = 100  # fewer: the scale is not measured (1)
+KAPPA_WINDOWS = 2000  # windows over which the noise's residual share kappa^2 is measured (a mean to ~2 %)
+MIN_KAPPA_WINDOWS = 50  # fewer: kappa^2 = 0 (the whole scatter taken as relief: the larger sigma)
 CHUNK = 4096  # unmatched pixels per vectorised block (memory ~ CHUNK x window samples x 8 bytes, a few x)
 
 
@@ -53,8 +68,8 @@ class Fill:
     disparity: np.ndarray
     filled: np.ndarray
     sigma: np.ndarray
-    scale: float = 1.0  # `sigma_scale`'s k, applied to every fill's raw sigma
-    scale_pixels: int = 0  # the hold-out fills k was measured on
+    kappa2: float = 0.0  # the matching noise's share left in a window's plane-fit residuals (`noise_left_share`)
+    kappa_windows: int = 0  # the windows it was measured on
 
     def summary(self, max_sigma: float) -> dict:
         matched = int(np.isfinite(self.disparity).sum() - self.filled.sum())
@@ -62,8 +77,10 @@ class Fill:
         return {"enabled": True, "filled_pixels": int(self.filled.sum()), "matched_pixels": matched,
                 "max_sigma_px": max_sigma,
                 "sigma_px": {"median": float(np.median(s)), "p90": float(np.percentile(s, 90))} if s.size else None,
+                "kappa2": self.kappa2, "kappa2_windows": self.kappa_windows,
                 "method": "edge-aware local plane fit on matched pixels (dstereo.stereo.fill); a filled pixel "
-                          "carries its own sigma (the fit's prediction error) and the flag `filled`"}
+                          "carries its own sigma (the matched pixels' noise carried through the fit and the "
+                          "surface's relief about it) and the flag `filled`"}
 
 
 def _colours(image: np.ndarray) -> np.ndarray:
@@ -76,11 +93,12 @@ def _colour_weights(channels: int) -> np.ndarray:
     return np.exp(-np.arange(255 * channels + 1) / channels / COLOUR_SCALE).astype(np.float32)
 
 
-def _fit_block(disp_pad, col_pad, ys, xs, oy, ox, centre_col):
+def _fit_block(disp_pad, col_pad, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
     """Weighted robust plane at each (ys, xs) (padded coordinates) from the samples at offsets (oy, ox):
-    (prediction px, raw sigma px, support). The normal equations are sums of w, w du, ... over the window: matrix
-    products with the fixed offset vectors. float32 sums over at most a few hundred samples of disparities below
-    a few thousand px keep ~1e-4 px, far below any sigma."""
+    (prediction px, sigma px, support). `sm_pad`: the matched pixels' disparity noise (px), padded alike. The
+    normal equations are sums of w, w du, ... over the window: matrix products with the fixed offset vectors.
+    float32 sums over at most a few hundred samples of disparities below a few thousand px keep ~1e-4 px, far
+    below any sigma."""
     d = disp_pad[ys[:, None] + oy, xs[:, None] + ox]  # (n, k) float32
     c = col_pad[ys[:, None] + oy, xs[:, None] + ox]  # (n, k, ch) int16
     ok = np.isfinite(d)
@@ -103,8 +121,15 @@ def _fit_block(disp_pad, col_pad, ys, xs, oy, ox, centre_col):
         w = w0 * np.square(np.maximum(1 - u2, 0))
     n_eff = support ** 2 / np.maximum((w * w).sum(axis=1, dtype=np.float64), 1e-300)
     s2 = (w * r * r).sum(axis=1, dtype=np.float64) / np.maximum(support, 1e-300) * n_eff / np.maximum(n_eff - 3.0, 1e-3)
-    lever = np.linalg.inv(A)[:, 0, 0]
-    sigma = np.where(n_eff > 4.0, np.sqrt(np.maximum(s2 * (1.0 + lever), 0.0)), np.inf)
+    a_inv = np.linalg.inv(A)
+    hat = w * (a_inv[:, 0, :].astype(np.float32) @ basis)  # the intercept's row: prediction = sum hat d
+    sm = sm_pad[ys[:, None] + oy, xs[:, None] + ox]
+    sm = np.where(ok & np.isfinite(sm), sm, np.float32(0.0))
+    carried = (hat * sm).sum(axis=1, dtype=np.float64)  # the matched noise, common to the window, through the fit
+    noise2 = (w * sm * sm).sum(axis=1, dtype=np.float64) / np.maximum(support, 1e-300)
+    relief2 = np.maximum(s2 - kappa2 * noise2, 0.0)
+    var = carried ** 2 + relief2 * (1.0 + a_inv[:, 0, 0])
+    sigma = np.where(n_eff > 4.0, np.sqrt(var), np.inf)
     # surrounded: support on each side (left, right, above, below), so a fill interpolates a hole and never
     # extends a surface past its rim into what lies beyond it (measured: a rendered fisheye plane's rim
     # extended into the background put its RMS at 12 mm against 7.5 allowed)
@@ -113,9 +138,11 @@ def _fit_block(disp_pad, col_pad, ys, xs, oy, ox, centre_col):
     return coef[:, 0], sigma, support
 
 
-def _predict(disparity: np.ndarray, cols: np.ndarray, ys: np.ndarray, xs: np.ndarray, accept):
-    """(prediction px, raw sigma px) at the pixels (ys, xs) from the matched (finite) pixels of `disparity`, each
-    from the smallest window of PASSES whose fit `accept(raw sigma, support)` takes (NaN, inf where none does)."""
+def _predict(disparity: np.ndarray, cols: np.ndarray, matched_sigma: np.ndarray, kappa2: float, ys: np.ndarray,
+             xs: np.ndarray, max_sigma: float):
+    """(prediction px, sigma px) at the pixels (ys, xs) from the matched (finite) pixels of `disparity`, each from
+    the smallest window of PASSES whose fit has a sigma of at most `max_sigma` and MIN_SUPPORT (NaN, inf where
+    none has)."""
     pred, sigma = np.full(len(ys), np.nan), np.full(len(ys), np.inf)
     todo = np.arange(len(ys))
     for half, stride in PASSES:
@@ -127,77 +154,121 @@ def _predict(disparity: np.ndarray, cols: np.ndarray, ys: np.ndarray, xs: np.nda
         oy, ox = oy[keep], ox[keep]
         disp_pad = np.pad(disparity.astype(np.float32), half, constant_values=np.nan)
         col_pad = np.pad(cols, ((half, half), (half, half), (0, 0)), mode="edge")
+        sm_pad = np.pad(matched_sigma.astype(np.float32), half, constant_values=np.nan)
         taken = np.zeros(len(todo), bool)
         for start in range(0, len(todo), CHUNK):
             i = todo[start:start + CHUNK]
             y, x = ys[i], xs[i]
             with np.errstate(invalid="ignore", divide="ignore"):  # an empty window: NaN sigma, never accepted
-                p, sig, support = _fit_block(disp_pad, col_pad, y + half, x + half, oy, ox, cols[y, x])
-            good = accept(sig, support)
+                p, sig, support = _fit_block(disp_pad, col_pad, sm_pad, y + half, x + half, oy, ox, cols[y, x],
+                                             kappa2)
+            good = (sig <= max_sigma) & (support >= MIN_SUPPORT)
             pred[i[good]], sigma[i[good]] = p[good], sig[good]
             taken[start:start + CHUNK] = good
         todo = todo[~taken]
     return pred, sigma
 
 
-def sigma_scale(disparity: np.ndarray, cols: np.ndarray, todo: np.ndarray, seed: int = 0) -> tuple[float, int]:
-    """(k, pixels used): the factor that makes the raw fit sigma honest, measured on this image by hiding the
-    matched pixels of a HOLDOUT_BAND px band around the unmatched ones and filling up to HOLDOUT_PIXELS of them
-    from the rest: k = 1.4826 x the median |error / raw sigma| of those fills (the robust std of the normalised
-    errors, 1 when the raw sigma is right), at least 1. The band is where a real fill reaches from its support."""
-    import cv2
+def noise_left_share(error_field: np.ndarray, seed: int = 0) -> tuple[float, int]:
+    """(kappa^2, windows): the share of a matching-error field's variance that a plane fit over the fill's first
+    window (PASSES[0], unit weights) leaves in its residuals, over up to KAPPA_WINDOWS windows at least 80 %
+    finite (kappa^2 = mean residual variance / mean square of the field about its median there; values clipped to
+    +-2 px, a mismatch is not noise). (0, n) with fewer than MIN_KAPPA_WINDOWS windows: nothing subtracted."""
+    half, stride = PASSES[0]
+    r = np.arange(-half, half + 1, stride)
+    oy, ox = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
+    field = np.clip(error_field - np.nanmedian(error_field), -2.0, 2.0) if np.isfinite(error_field).any() \
+        else error_field
+    ok = np.isfinite(field)
+    ok[:half], ok[-half:], ok[:, :half], ok[:, -half:] = False, False, False, False
+    ys, xs = np.nonzero(ok)
+    if not len(ys):
+        return 0.0, 0
+    pick = np.random.default_rng(seed).choice(len(ys), min(4 * KAPPA_WINDOWS, len(ys)), replace=False)
+    v = field[ys[pick][:, None] + oy, xs[pick][:, None] + ox]
+    m = np.isfinite(v)
+    full = m.mean(axis=1) >= 0.8
+    v, m = np.where(m, v, 0.0)[full][:KAPPA_WINDOWS], m[full][:KAPPA_WINDOWS].astype(float)
+    if len(v) < MIN_KAPPA_WINDOWS:
+        return 0.0, int(len(v))
+    basis = np.stack([np.ones_like(ox), ox, oy], axis=1).astype(float)  # (k, 3)
+    a = np.einsum("nk,ki,kj->nij", m, basis, basis)
+    coef = np.linalg.solve(a, ((m * v) @ basis)[..., None])[..., 0]
+    resid = (v - coef @ basis.T) * m
+    n = m.sum(axis=1)
+    left = (resid ** 2).sum(axis=1) / np.maximum(n - 3.0, 1.0)  # unbiased for the window's 3 fitted terms
+    total = (v ** 2).sum(axis=1) / n
+    return float(np.clip(left.mean() / max(total.mean(), 1e-12), 0.0, 1.0)), int(len(v))
 
-    matched = np.isfinite(disparity)
-    near = cv2.dilate(todo.astype(np.uint8), np.ones((2 * HOLDOUT_BAND + 1,) * 2, np.uint8)).astype(bool)
-    band = near & matched
-    ys, xs = np.nonzero(band)
-    if len(ys) < MIN_HOLDOUT:
-        return 1.0, int(len(ys))
-    pick = np.random.default_rng(seed).choice(len(ys), min(HOLDOUT_PIXELS, len(ys)), replace=False)
-    hidden = np.where(band, np.nan, disparity)
-    pred, raw = _predict(hidden, cols, ys[pick], xs[pick], lambda s, n: np.isfinite(s) & (n >= MIN_SUPPORT))
-    ok = np.isfinite(raw) & (raw > 0)
-    if ok.sum() < MIN_HOLDOUT:
-        return 1.0, int(ok.sum())
-    z = (pred[ok] - disparity[ys[pick][ok], xs[pick][ok]]) / raw[ok]
-    return max(1.0, float(MAD_TO_STD * np.median(np.abs(z)))), int(ok.sum())
+
+def matched_noise(left_rect: np.ndarray, right_rect: np.ndarray, disparity: np.ndarray, block_size: int,
+                  exact=None) -> tuple[np.ndarray, float, int, str]:
+    """(sigma_q (h, w) px of the matched pixels, kappa^2, its windows, how): the disparity noise of
+    `disparity_noise` before any plane-check scaling (the model's own level: the check's tiles read a surface's
+    relief as noise). SGBM's disparity: `sgbm_sigma`, and kappa^2 from the SGBM-minus-refinement field it uses;
+    a refined one (`exact`: the float rectified pair it was refined on): `refined_sigma`, and kappa^2 from a
+    simulated field correlated as the refinement's noise."""
+    from dstereo.stereo.disparity_noise import iterated_kernel, refined_sigma, sgbm_sigma
+    from dstereo.stereo.pair_result import grey
+
+    if exact is None:
+        from dstereo.stereo.subpixel import refine_disparity
+
+        left, right = (grey(x).astype(np.float64) for x in (left_rect, right_rect))
+        refined = refine_disparity(left, right, disparity)
+        sigma = sgbm_sigma(left, right, disparity, block_size, refined=refined)
+        kappa2, windows = noise_left_share(disparity - refined)
+        return sigma, kappa2, windows, "SGBM's local deviation from the sub-pixel refinement (sgbm_sigma)"
+    from scipy.ndimage import correlate
+
+    sigma = refined_sigma(*exact, disparity)
+    white = np.random.default_rng(1).normal(size=(320, 320))
+    kappa2, windows = noise_left_share(correlate(white, iterated_kernel(2.0, 6), mode="reflect")[32:-32, 32:-32])
+    return sigma, kappa2, windows, "the sub-pixel refinement's sandwich sigma (refined_sigma)"
 
 
 def fill_disparity(disparity: np.ndarray, image: np.ndarray, outside: np.ndarray | None = None,
-                   max_sigma: float = 1.0) -> Fill:
+                   max_sigma: float = 0.7, matched_sigma: np.ndarray | None = None, kappa2: float = 0.0,
+                   kappa_windows: int = 0) -> Fill:
     """Fill the NaN pixels of `disparity` (h, w) px from the matched ones around them (see the module); `image`
     the rectified left image (h, w) or (h, w, 3) uint8; `outside` (h, w) bool pixels with no source (never
-    filled)."""
+    filled); `matched_sigma` (h, w) px the matched pixels' disparity noise and `kappa2` its share left in a
+    window's residuals (`matched_noise`; None: no noise known, the window's whole scatter is the sigma's)."""
     todo = ~np.isfinite(disparity)
     if outside is not None:
         todo &= ~outside
     cols = _colours(image)
-    k, used = sigma_scale(disparity, cols, todo)
+    if matched_sigma is None:
+        matched_sigma, kappa2 = np.zeros(disparity.shape, np.float32), 0.0
     ys, xs = np.nonzero(todo)
-    pred, raw = _predict(disparity, cols, ys, xs, lambda s, n: (k * s <= max_sigma) & (n >= MIN_SUPPORT))
-    good = np.isfinite(raw)
+    pred, sig = _predict(disparity, cols, matched_sigma, kappa2, ys, xs, max_sigma)
+    good = np.isfinite(sig)
     out = disparity.astype(np.float32).copy()
     sigma = np.full(disparity.shape, np.nan)
     out[ys[good], xs[good]] = pred[good]
-    sigma[ys[good], xs[good]] = k * raw[good]
-    return Fill(out, np.isfinite(sigma), sigma, k, used)
+    sigma[ys[good], xs[good]] = sig[good]
+    return Fill(out, np.isfinite(sigma), sigma, kappa2, kappa_windows)
 
 
-def fill_unmatched(name: str, left_rect: np.ndarray, disparity: np.ndarray, outside: np.ndarray, config,
-                   summary: dict, timings: dict) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def fill_unmatched(name: str, left_rect: np.ndarray, right_rect: np.ndarray, disparity: np.ndarray,
+                   outside: np.ndarray, config, summary: dict, timings: dict, exact=None
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(disparity, filled mask, fill sigma px) after `fill_disparity` when `config.fill` (summary['fill'] says
-    what it did); the disparity as it is and (None, None) without it. A map with no matched pixel is left as it
-    is (the pipeline refuses it)."""
+    what it did); the disparity as it is and (None, None) without it. `exact`: the float rectified pair a refined
+    disparity was refined on (None: SGBM's disparity, its grey pair from left_rect, right_rect). A map with no
+    matched pixel is left as it is (the pipeline refuses it)."""
     import time
 
     if not config.fill or not np.isfinite(disparity).any():
         summary["fill"] = {"enabled": bool(config.fill), "filled_pixels": 0}
         return disparity, None, None
     t0 = time.perf_counter()
-    done = fill_disparity(disparity, left_rect, outside, config.fill_max_sigma)
+    sigma_q, kappa2, windows, how = matched_noise(left_rect, right_rect, disparity, summary["sgbm"]["block_size"],
+                                                  exact)
+    done = fill_disparity(disparity, left_rect, outside, config.fill_max_sigma, sigma_q, kappa2, windows)
     timings["fill_s"] = time.perf_counter() - t0
     summary["fill"] = done.summary(config.fill_max_sigma) | {  # its time: timings_s.fill_s
-        "sigma_scale": done.scale, "sigma_scale_pixels": done.scale_pixels,
-        "sigma_scale_how": f"hold-out: matched pixels of a {HOLDOUT_BAND} px band around the holes hidden and "
-                           "filled; the robust std of their errors / raw sigma (at least 1)"}
+        "matched_noise": how + ", before the plane check's scaling",
+        "kappa2_how": f"plane fits over {2 * PASSES[0][0] + 1} x {2 * PASSES[0][0] + 1} px windows of the matching "
+                      "error field: residual variance / the field's variance"}
     return done.disparity, done.filled, done.sigma

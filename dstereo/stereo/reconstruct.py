@@ -129,7 +129,8 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     exact = None
     if config.refine:
         disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
-    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, disparity, outside, config, summary, timings)
+    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, right_rect, disparity, outside, config, summary,
+                                                   timings, exact)
     result = points_and_summary(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
                                 timings, warnings, filled, fill_sigma)
     result.exact_rect = exact

@@ -95,10 +95,12 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
                                "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
     if config.refine:
-        disparity, _ = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
+        disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
+    else:
+        exact = None
     from dstereo.stereo.fill import fill_unmatched
 
-    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, disparity, np.zeros(disparity.shape, bool), config,
-                                                   summary, timings)
+    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, right_rect, disparity,
+                                                   np.zeros(disparity.shape, bool), config, summary, timings, exact)
     return points_and_summary(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
                               warnings, filled, fill_sigma)

@@ -23,11 +23,14 @@ from dstereo.synth.texture import Speckle
 
 @dataclass(frozen=True)
 class Layer:
-    """One surface of a layered scene: the surface (Plane, Sphere, Sample), T_world_object, its speckle size."""
+    """One surface of a layered scene: the surface (Plane, Sphere, Sample), T_world_object, its speckle size, the
+    speckle's contrast and octaves (`Speckle.create`)."""
 
     surface: object
     T_world_object: np.ndarray
     speckle_mm: float
+    contrast: float = 2.0
+    octaves: int = 2
 
 
 def layered_pair(rig: StereoRig, layers: list[Layer], seed: int = 0,
@@ -41,7 +44,8 @@ def layered_pair(rig: StereoRig, layers: list[Layer], seed: int = 0,
         image, depth, which = None, None, None
         for i, layer in enumerate(layers):
             img, truth = render_object(camera, compose(T_cam_world, layer.T_world_object), layer.surface,
-                                       Speckle.create(seed + 101 * i, layer.speckle_mm), _light(layer),
+                                       Speckle.create(seed + 101 * i, layer.speckle_mm, layer.contrast, layer.octaves),
+                                       _light(layer),
                                        options=options, seed=[seed, c, i], rays=rays, centre_rays=centre_rays)
             z = np.where(np.isfinite(truth["depth"]), truth["depth"], np.inf)
             if image is None:

@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.spatial.transform import Rotation
 
-OCTAVE_WEIGHTS = (1.0, 0.5)
+OCTAVE_WEIGHTS = (1.0, 0.5)  # the default two octaves; octave k of a multi-scale texture weighs 0.5^k
 FIELD_STD = 0.45  # standard deviation of the two-octave field, measured; makes `contrast` a gain on a unit field
 
 
@@ -32,17 +32,21 @@ class Speckle(eqx.Module):
     amplitude: float = 0.42
 
     @classmethod
-    def create(cls, seed: int, size_mm: float = 0.6, contrast: float = 2.0) -> "Speckle":
-        """Speckle whose blobs are about `size_mm` across; deterministic in `seed`."""
+    def create(cls, seed: int, size_mm: float = 0.6, contrast: float = 2.0, octaves: int = 2) -> "Speckle":
+        """Speckle whose blobs are about `size_mm` across; deterministic in `seed`. `octaves` > 2: a multi-scale
+        (fractal) texture, octave k at size_mm / 2^k with weight 0.5^k (natural ground, foliage, rock)."""
+        if octaves < 1:
+            raise ValueError(f"octaves {octaves}: at least 1")
         rng = np.random.default_rng(seed)
-        rotations = Rotation.random(2, random_state=rng).as_matrix()
-        offsets = rng.uniform(0.0, 1000.0, (2, 3))
-        seeds = rng.integers(0, 2**32, 2, dtype=np.uint64).astype(np.uint32)
+        rotations = Rotation.random(octaves, random_state=rng).as_matrix()
+        offsets = rng.uniform(0.0, 1000.0, (octaves, 3))
+        seeds = rng.integers(0, 2**32, octaves, dtype=np.uint64).astype(np.uint32)
         return cls(jnp.asarray(rotations), jnp.asarray(offsets), jnp.asarray(seeds), size_mm, contrast)
 
     def to_truth(self) -> dict:
-        return {"type": "speckle (value noise)", "size_mm": float(self.size_mm), "contrast": float(self.contrast),
-                "mean": float(self.mean), "amplitude": float(self.amplitude)}
+        out = {"type": "speckle (value noise)", "size_mm": float(self.size_mm), "contrast": float(self.contrast),
+               "mean": float(self.mean), "amplitude": float(self.amplitude)}
+        return out if self.seeds.shape[0] == 2 else out | {"octaves": int(self.seeds.shape[0])}
 
 
 def _lattice_value(i: Array, j: Array, k: Array, seed: Array) -> Float[Array, ""]:
@@ -72,11 +76,15 @@ def value_noise(p: Float[Array, "3"], seed: Array) -> Float[Array, ""]:
 
 def albedo(tex: Speckle, p: Float[Array, "3"]) -> Float[Array, ""]:
     """Reflectance in (mean - amplitude, mean + amplitude) at texture point `p` (mm), one point."""
+    octaves = tex.seeds.shape[0]
+    weights = OCTAVE_WEIGHTS if octaves == 2 else tuple(0.5**k for k in range(octaves))
     field = 0.0
-    for octave, weight in enumerate(OCTAVE_WEIGHTS):
+    for octave, weight in enumerate(weights):
         q = tex.rotations[octave] @ p / (tex.size_mm / 2**octave) + tex.offsets[octave]
         field = field + weight * value_noise(q, tex.seeds[octave])
-    return tex.mean + tex.amplitude * jnp.tanh(tex.contrast * field / FIELD_STD)
+    # the octaves are independent, each with the same std: the field's std grows as sqrt(sum of weights^2)
+    std = FIELD_STD if octaves == 2 else FIELD_STD * float(np.sqrt(sum(w * w for w in weights) / 1.25))
+    return tex.mean + tex.amplitude * jnp.tanh(tex.contrast * field / std)
 
 
 def lambert(
