@@ -1,0 +1,81 @@
+"""Shape buckets: the sizes a compiled program is built for, so that one program serves every data set in a bucket.
+
+A compiled program is specialised to its arguments' shapes; a calibration's shapes follow the data set (views,
+subset size, problems per call), so every new data set compiled its programs anew (seconds each, issue 33). The
+solver already takes a weight per view (0: the view is carried but takes no part), so a problem of V views is
+solved as one of `views(V)` views, the extra ones weighted 0, and its results cut back to V: one compiled program,
+kept on disk (`runtime/aot.py`), then serves every V of the bucket. Per-view programs (a pose refit, an
+undistortion) take copies of a real view as padding and drop their results (`pad_rows`, `cut_rows`).
+
+The sizes (`VIEW_BUCKETS`) are chosen by measuring compile time against the cost of the padded work
+(experiments/bucket_sizes.py; docs/validation.md): the padded views are computed like real ones, so a solve of V
+views costs about views(V) / V of its unpadded time. DSTEREO_SHAPE_BUCKETS=0 turns padding off (exact shapes, as
+before): a check, and the padding's cost measured side by side.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+# Views (frames of a rig) per problem: 1-4 exact (the smallest calibrations compile little), then steps of ~12 %
+# (experiments/bucket_sizes.py: the largest padding a size meets is the step to its bucket), above the last a
+# multiple of its step.
+VIEW_BUCKETS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 14, 16, 18, 20, 22, 24, 27, 30, 34, 38, 42, 47, 52, 58, 64)
+STEP_ABOVE = 8  # above the last bucket: the next multiple of this (at most 12 % padding there)
+
+
+def enabled(env=None) -> bool:
+    """Whether shapes are padded to buckets (DSTEREO_SHAPE_BUCKETS=0: exact shapes)."""
+    env = os.environ if env is None else env
+    return env.get("DSTEREO_SHAPE_BUCKETS", "") != "0"
+
+
+def views(n: int) -> int:
+    """The bucket of n views: the smallest VIEW_BUCKETS entry >= n, above them the next multiple of STEP_ABOVE;
+    n itself with buckets off."""
+    n = int(n)
+    if not enabled() or n <= 0:
+        return n
+    for b in VIEW_BUCKETS:
+        if b >= n:
+            return b
+    return -(-n // STEP_ABOVE) * STEP_ABOVE
+
+
+def sizes_between(lo: int, hi: int) -> tuple[int, ...]:
+    """The buckets that views lo..hi fall in (each once, ascending)."""
+    return tuple(sorted({views(n) for n in range(max(1, lo), hi + 1)}))
+
+
+def pad_axis(a, size: int, axis: int, fill=None):
+    """numpy `a` padded along `axis` to `size`: with `fill` (a scalar) or, for None, copies of its first entry
+    along that axis (a real view: finite values that every per-view computation handles). `a` unchanged when it
+    already has `size` entries."""
+    a = np.asarray(a)
+    n = a.shape[axis]
+    if n == size:
+        return a
+    if n > size:
+        raise ValueError(f"pad_axis: {n} entries along axis {axis}, more than the bucket's {size}")
+    shape = list(a.shape)
+    shape[axis] = size - n
+    if fill is None:
+        first = np.take(a, [0], axis=axis)
+        extra = np.broadcast_to(first, shape)
+    else:
+        extra = np.full(shape, fill, dtype=np.result_type(a, np.asarray(fill)))
+    return np.concatenate([a, extra.astype(a.dtype, copy=False)], axis=axis)
+
+
+def pad_rows(a, size: int):
+    """`pad_axis` along the first axis with copies of the first row."""
+    return pad_axis(a, size, 0)
+
+
+def cut_rows(tree, n: int):
+    """Every array of `tree` (a tuple, list or single array) cut to its first n rows."""
+    if isinstance(tree, (tuple, list)):
+        return type(tree)(cut_rows(t, n) for t in tree)
+    return np.asarray(tree)[:n]
