@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.final_solution import surviving_views
 from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, as_solved, solve_view_subsets
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
+from dstereo.runtime import buckets
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS
 from dstereo.config.steps import Step, is_absolute
@@ -68,10 +69,16 @@ def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs
                          np.stack([np.asarray(c.dist.coeffs) for c in start.cameras]))
     residual = batched_residuals(problem)
     out = []
+    # one program for every plan: blocks of RESIDUAL_BLOCK subsets (the last one padded with copies of its first)
+    # and m frames padded to their bucket (runtime/buckets.py; copies of the first frame); the padding is cut off
+    size = buckets.views(subs.index.shape[1])
+    pad = lambda a: buckets.pad_axis(buckets.pad_rows(a, RESIDUAL_BLOCK), size, 1)  # noqa: E731
     for c in range(0, len(g), RESIDUAL_BLOCK):
         rows = subs.index[c:c + RESIDUAL_BLOCK]
         w = weights[rows]  # (C, m, K 2n)
-        r = np.asarray(residual(g[c:c + RESIDUAL_BLOCK], subs.poses[c:c + RESIDUAL_BLOCK], obs[rows], shared)) * w
+        r = np.asarray(residual(buckets.pad_rows(g[c:c + RESIDUAL_BLOCK], RESIDUAL_BLOCK),
+                                pad(subs.poses[c:c + RESIDUAL_BLOCK]), pad(obs[rows]), shared))
+        r = r[:len(rows), :rows.shape[1]] * w
         sq = np.sum((r ** 2).reshape(*r.shape[:2], k, 2 * n), axis=-1)  # (C, m, K)
         seen = np.sum(w.reshape(*w.shape[:2], k, 2 * n), axis=-1) / 2  # inlier corners
         per = []

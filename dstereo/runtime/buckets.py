@@ -79,3 +79,20 @@ def cut_rows(tree, n: int):
     if isinstance(tree, (tuple, list)):
         return type(tree)(cut_rows(t, n) for t in tree)
     return np.asarray(tree)[:n]
+
+
+def per_row(fn, row_args: tuple[int, ...]):
+    """`fn` whose positional arguments `row_args` (a leading axis of rows, the same length, each row computed on its
+    own: a vmapped per-view program) are padded to their bucket with copies of the first row, and whose outputs are
+    cut back to the rows given: one compiled `fn` serves every row count of a bucket."""
+
+    def padded(*args):
+        n = len(args[row_args[0]])
+        size = views(n)
+        if size == n:
+            return fn(*args)
+        args = tuple(pad_rows(a, size) if i in row_args else a for i, a in enumerate(args))
+        return cut_rows(fn(*args), n)
+
+    padded.__wrapped__ = fn
+    return padded
