@@ -175,3 +175,62 @@ def test_csv_lines_are_what_csv_writer_writes(tmp_path):
     assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
 
 
+
+
+def test_a_stopped_run_resumes_from_its_kept_blocks(tmp_path, monkeypatch):
+    """With a store (runtime.placement), each finished block is kept; a run stopped in its third block (Ctrl-C)
+    resumes: the kept blocks are read back, only the others solved, and the table is the uninterrupted run's."""
+    from dstereo.io.partial_store import PartialStore
+    from dstereo.runtime.placement import Placement, placed
+
+    monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", 100)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
+    plan = plan_subsets(12, 6)  # 924 subsets: 15 blocks of 64
+    solved = []
+
+    def solve_block(block, report, stop_at=None):
+        if stop_at is not None and len(solved) == stop_at:
+            raise KeyboardInterrupt
+        solved.append(int(block.index[0, 0] * 1000 + block.index[0, -1]))
+        return block.index[:, :2] + 0.5, np.where(block.index[:, 0] == 0, 1, -1), None
+
+    key = (np.arange(5.0), "model")
+    stores = {}
+
+    def store(k):
+        stores.setdefault(k, PartialStore(tmp_path / k[:16], k).open(resume=True, force=False))
+        return stores[k]
+
+    whole, _ = solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8)
+    solved.clear()
+    with placed(Placement(store=store)), pytest.raises(KeyboardInterrupt):
+        solve_in_blocks(plan, ("a", "b"), lambda b, r: solve_block(b, r, stop_at=2), chunk=8, key=key)
+    assert len(solved) == 2 and next(iter(stores.values())).count() == 2 and len(stores) == 1
+    solved.clear()
+    notes = []
+    with placed(Placement(store=store)):
+        table, kept = solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8, key=key, note=notes.append)
+    assert len(solved) == 15 - 2 and "resumed" in notes[0]
+    assert np.array_equal(table.rows(0, len(plan)), whole.rows(0, len(plan)))
+    assert np.array_equal(table.status, whole.status)
+    with placed(Placement(store=store)):  # other inputs: a store of their own, nothing reused
+        solved.clear()
+        solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8, key=(np.arange(6.0), "model"))
+    assert len(solved) == 15
+
+
+def test_blocks_on_a_dask_cluster_give_the_serial_files(tmp_path, left_images, monkeypatch):
+    """`--workers 2`: the subset blocks are tasks of a local Dask cluster (two processes); the run's files are the
+    serial run's, byte for byte (the blocks are the same problems in the same compiled program)."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in left_images:
+        (images / src.name).symlink_to(src)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "serial")
+    assert code == 0, err
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "dask", "--workers", "2")
+    assert code == 0, err
+    for name in ("subsets.csv", "camera.yml", "stats/step_2.txt", "stats/parameter_fx.txt"):
+        assert (tmp_path / "serial" / name).read_bytes() == (tmp_path / "dask" / name).read_bytes(), name
+    assert not (tmp_path / "dask.partial").exists()
