@@ -102,7 +102,7 @@ def _refit(free: tuple[str, ...] = ()):
 
     # one program per bucket of view counts (runtime/buckets.py): poses, corners and weights padded with view 0's
     return buckets.per_row(aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit",
-                                   (free,)), (0, 3, 5))
+                                   (free,)), (0, 3, 5), kind=("refit", (free,)))
 
 
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:

@@ -83,7 +83,7 @@ def _normalised_points():
     one = jax.vmap(undistort, in_axes=(None, 0))
     # one program per bucket of view counts (runtime/buckets.py): the views padded with copies of the first
     return buckets.per_row(aot.jit(lambda k, coeffs, q: jax.vmap(one, in_axes=(None, 0))(coeffs, (q - k[2:4]) / k[0:2]),
-                                   "calib.stereo.normalised_points", ()), (2,))
+                                   "calib.stereo.normalised_points", ()), (2,), kind=("normalised_points", ()))
 
 
 # --- start ---------------------------------------------------------------------------------------------------

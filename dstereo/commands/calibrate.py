@@ -132,12 +132,29 @@ def _subset_placement(workers, scheduler, resume, force, out, project):
     def around():
         with placed(Placement(runner, store)):
             yield
+        _build_ahead()
         if target is not None:  # the run ended with its results: its kept blocks are done with
             from dstereo.io.partial_store import PartialStore
 
             PartialStore(target, "").remove()
 
     return around()
+
+
+def _build_ahead() -> None:
+    """The programs this run used whose shapes follow the view count, built for the other view buckets in the
+    background (`runtime/prebuild.py`); said once per executables folder."""
+    from dstereo.runtime import buckets, prebuild
+
+    records = buckets.noted()
+    buckets.clear_noted()
+    if prebuild.start(records):
+        told = prebuild.folder() / "told"
+        if not told.exists():
+            told.touch()
+            typer.echo("dstereo: note: building this calibration's programs for other view counts (5-60) in the "
+                       "background, one core at low priority, so that a data set of another size starts without "
+                       "compiling; off: DSTEREO_PREBUILD=0 (this note is shown once)", err=True)
 
 
 def _calibrate(project, config, images, glob, image_format, pattern, square, unit, model, model_right, per_set,

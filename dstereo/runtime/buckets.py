@@ -81,14 +81,18 @@ def cut_rows(tree, n: int):
     return np.asarray(tree)[:n]
 
 
-def per_row(fn, row_args: tuple[int, ...]):
+def per_row(fn, row_args: tuple[int, ...], kind: tuple | None = None):
     """`fn` whose positional arguments `row_args` (a leading axis of rows, the same length, each row computed on its
     own: a vmapped per-view program) are padded to their bucket with copies of the first row, and whose outputs are
-    cut back to the rows given: one compiled `fn` serves every row count of a bucket."""
+    cut back to the rows given: one compiled `fn` serves every row count of a bucket. `kind` = (name, factory
+    arguments): how jobs/prebuild.py makes `fn` again, to build it ahead for the other buckets (`note`)."""
 
     def padded(*args):
         n = len(args[row_args[0]])
         size = views(n)
+        if kind is not None and enabled():
+            note(kind[0], (kind[1], tuple(np.asarray(a)[:1] if i in row_args else a for i, a in enumerate(args)),
+                           row_args))
         if size == n:
             return fn(*args)
         args = tuple(pad_rows(a, size) if i in row_args else a for i, a in enumerate(args))
@@ -96,3 +100,29 @@ def per_row(fn, row_args: tuple[int, ...]):
 
     padded.__wrapped__ = fn
     return padded
+
+
+# --- what this process used, to build the other buckets ahead (runtime/prebuild.py, jobs/prebuild.py) --------------
+
+_noted: dict[str, tuple[str, object]] = {}
+
+
+def note(kind: str, spec) -> None:
+    """Record that a program of `kind` (a name jobs/prebuild.py knows) was called with `spec` (picklable: what it
+    needs besides the view count to call it again); once per distinct spec."""
+    import pickle
+
+    try:
+        tag = kind + "\0" + repr(pickle.dumps(spec, protocol=4))
+    except Exception:  # noqa: BLE001 - not picklable: not built ahead, nothing else changes
+        return
+    _noted.setdefault(tag, (kind, spec))
+
+
+def noted() -> list[tuple[str, object]]:
+    """The (kind, spec) recorded so far, in first-use order."""
+    return list(_noted.values())
+
+
+def clear_noted() -> None:
+    _noted.clear()

@@ -1,0 +1,141 @@
+"""The background builder of `runtime/prebuild.py`: each recorded program compiled for every view bucket of 5-60.
+
+`python -m dstereo.jobs.prebuild FOLDER` (started by a command, detached): takes the lock, then the lists
+FOLDER/todo-*.pkl one after another (a list left by a command while it runs included), and for each (kind, spec)
+calls the program through the code that calls it in a calibration (`REPLAY`), on placeholder data at each bucket's
+view count: the same arguments' shapes and types as a real call, so the executable it stores (`runtime/aot.py`) is
+the one a real call of that count loads. Each program's marker is written once all its buckets are built.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+POSE = np.r_[0.0, 0.0, 0.0, 0.0, 0.0, 1000.0]  # a placeholder board pose in front of the camera
+
+
+def _solver(spec, views: int) -> None:
+    from dstereo.calib.problem import run
+
+    problem, key, one, k, n_pts, shared = spec
+    run(problem, key, np.zeros((1, problem.n_shared)), np.tile(POSE, (1, views, 1)),
+        np.full((1, views, k, n_pts, 2), np.nan), np.ones((1, views)), np.array([1e-3]), shared,
+        rows=1 if one else None)
+
+
+def _per_row(factory):
+    def replay(spec, views: int) -> None:
+        factory_args, template, row_args = spec
+        fn = factory(*factory_args)
+        fn(*(np.repeat(np.asarray(a), views, axis=0) if i in row_args else a for i, a in enumerate(template)))
+    return replay
+
+
+def _refit(*args):
+    from dstereo.calib.final_solution import _refit as make
+
+    return make(*args)
+
+
+def _normalised_points(*args):
+    from dstereo.calib.stereo import _normalised_points as make
+
+    return make(*args)
+
+
+def _pose_refit(*args):
+    from dstereo.calib.model_choice import _pose_refit as make
+
+    return make(*args)
+
+
+def _projection_map(spec, views: int) -> None:
+    from dstereo.uncertainty.projection import _map_fn
+
+    index, method, model, params, q, range_ = spec
+    n = len(index) + 6 * views
+    _map_fn(index, method, model)(params, np.tile(POSE, (views, 1)), np.ones(views), 1e-6 * np.eye(n), q, range_)
+
+
+def _rig_residuals(spec, views: int) -> None:
+    from dstereo.calib.problem import batched_residuals
+    from dstereo.calib.rig_subsets import RESIDUAL_BLOCK
+
+    problem, shared, n_g = spec
+    k, n_pts = len(shared[1]), len(shared[0])
+    batched_residuals(problem)(np.zeros((RESIDUAL_BLOCK, n_g)), np.tile(POSE, (RESIDUAL_BLOCK, views, 1)),
+                               np.full((RESIDUAL_BLOCK, views, k, n_pts, 2), np.nan), shared)
+
+
+REPLAY = {"solver": _solver, "refit": _per_row(_refit), "normalised_points": _per_row(_normalised_points),
+          "pose_refit": _per_row(_pose_refit), "projection_map": _projection_map, "rig_residuals": _rig_residuals}
+
+
+def build(records, views, deadline: float = float("inf"), log=print) -> int:
+    """Build every (kind, spec) of `records` at each view count of `views` (bucket sizes), marking each program
+    built; returns how many (program, count) were called. Stops at `deadline` (time.monotonic)."""
+    from dstereo.runtime import prebuild
+
+    where = prebuild.folder()
+    calls = 0
+    for kind, spec in records:
+        if kind not in REPLAY or where is None or (where / prebuild.marker(kind, spec)).exists():
+            continue
+        t0 = time.perf_counter()
+        try:
+            for v in views:
+                if time.monotonic() > deadline:
+                    return calls
+                REPLAY[kind](spec, v)
+                calls += 1
+        except Exception as exc:  # noqa: BLE001 - one program that cannot be built leaves the others to build
+            log(f"prebuild: {kind} not built ({type(exc).__name__}: {exc})")
+            continue
+        where.mkdir(parents=True, exist_ok=True)
+        (where / prebuild.marker(kind, spec)).write_text(f"{kind}: {len(views)} view counts\n")
+        log(f"prebuild: {kind} at {len(views)} view counts in {time.perf_counter() - t0:.1f} s")
+    return calls
+
+
+def main(argv=None) -> int:
+    from dstereo.runtime import buckets, prebuild
+
+    where = Path((argv or sys.argv[1:])[0])
+    try:
+        os.nice(19)
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core: the others stay the user's
+    except (OSError, AttributeError):
+        pass
+    lock = os.open(where / "lock", os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return 0  # a builder is running: it takes this list too
+    deadline = time.monotonic() + prebuild.LIMIT_S
+    views = buckets.sizes_between(*prebuild.VIEWS)
+    print(f"prebuild: started, pid {os.getpid()}, {len(views)} view buckets", flush=True)
+    while time.monotonic() < deadline:
+        lists = sorted(where.glob("todo-*.pkl"))
+        if not lists:
+            break
+        for path in lists:
+            try:
+                records = pickle.loads(path.read_bytes())
+            except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError):
+                records = []  # unreadable, or from another version: dropped
+            build(records, views, deadline, log=lambda s: print(s, flush=True))
+            if time.monotonic() < deadline:
+                path.unlink(missing_ok=True)
+    print("prebuild: done", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
