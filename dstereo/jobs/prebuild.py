@@ -74,8 +74,25 @@ def _rig_residuals(spec, views: int) -> None:
                                np.full((RESIDUAL_BLOCK, views, k, n_pts, 2), np.nan), shared)
 
 
+def _rig_covariance(spec, views: int) -> None:
+    from dstereo.calib.rig_projection import _residual_jacobian
+
+    problem, n_g, frame_shape, shared = spec
+    _residual_jacobian(problem, n_g, views)(np.r_[np.zeros(n_g), np.tile(POSE, views)],
+                                            np.full((views, *frame_shape), np.nan),
+                                            np.zeros((views, int(np.prod(frame_shape)))), shared)
+
+
+def _rig_camera_poses(spec, views: int) -> None:
+    from dstereo.calib.rig_projection import _camera_poses_fn
+
+    problem, k, n_g = spec
+    _camera_poses_fn(problem, k, n_g, views)(np.r_[np.zeros(n_g), np.tile(POSE, views)])
+
+
 REPLAY = {"solver": _solver, "refit": _per_row(_refit), "normalised_points": _per_row(_normalised_points),
-          "pose_refit": _per_row(_pose_refit), "projection_map": _projection_map, "rig_residuals": _rig_residuals}
+          "pose_refit": _per_row(_pose_refit), "projection_map": _projection_map, "rig_residuals": _rig_residuals,
+          "rig_covariance": _rig_covariance, "rig_camera_poses": _rig_camera_poses}
 
 
 def build(records, views, deadline: float = float("inf"), log=print) -> int:
