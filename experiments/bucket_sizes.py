@@ -10,7 +10,8 @@ new process with no compilation cache (DSTEREO_JAX_CACHE=0) and exact shapes (DS
     the program just compiled: what padding costs measured directly, against those counts' own exact runs.
 Wall and CPU seconds both (the machine is shared: CPU time is the steadier figure of the work); `uptime` before and
 after. Then, for candidate bucket lists, the number of buckets between 5 and 60 views (programs to compile ahead)
-and the padded work's worst and mean share over every V in 5..60 from the measured per-pass times.
+and the padded work's worst and mean share over every V in 5..60 from the measured per-pass times (a line fitted
+through them).
 
 `python -m experiments.bucket_sizes [--views 6,8,12,16,24,32,48,64] [--kinds mono,stereo]`; writes
 experiments/results/bucket_sizes.md and .json.
@@ -155,7 +156,7 @@ CANDIDATES = {
 
 def _padding_table(curves: dict) -> list[str]:
     """Per candidate list: buckets in 5..60, worst and mean padded share of a subset chunk's and a full solve's
-    work (per-pass CPU times interpolated over V from the measured counts)."""
+    work over V = 5..60 (per-pass CPU times: a line fitted to the measured counts)."""
     from dstereo.runtime import buckets
 
     lines = ["| buckets | count in 5-60 views | padded work, worst / mean (subset chunk, per problem-pass) | "
@@ -168,7 +169,10 @@ def _padding_table(curves: dict) -> list[str]:
             for kind, cases in curves.items():
                 vs = np.array([c["views"] for c in cases], float)
                 ts = np.array([c[key] for c in cases], float)
-                cost = lambda v: np.interp(v, vs, ts)  # noqa: E731
+                # a straight line a + b V through the measured costs (least squares): on a shared machine the points
+                # scatter by tens of percent, and interpolating between them would turn that noise into "padding"
+                b, a = np.polyfit(vs, ts, 1)
+                cost = lambda v: a + b * v  # noqa: E731
                 shares = [cost(min(b for b in sizes if b >= v)) / cost(v) - 1 for v in range(5, 61)]
                 parts.append(f"{kind} {100 * max(shares):.0f} / {100 * np.mean(shares):.0f} %")
             row.append(", ".join(parts))
