@@ -79,6 +79,9 @@ def start(records) -> bool:
         try:
             env = dict(os.environ, DSTEREO_AOT="1")  # it builds (runtime/aot.builds_here)
             env.pop("DSTEREO_SERVE", None)
+            # this very package (its code is in the executables' key), wherever the builder's working folder is
+            root = str(Path(__file__).resolve().parents[2])
+            env["PYTHONPATH"] = os.pathsep.join([root, *[p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]])
             subprocess.Popen([sys.executable, "-m", "dstereo.jobs.prebuild", str(where)], stdin=subprocess.DEVNULL,
                              stdout=log, stderr=log, cwd="/", start_new_session=True, close_fds=True, env=env)
         finally:
