@@ -147,7 +147,8 @@ def run_rig_subsets(config, start: MultiviewSolution, obj, obs, visible, inliers
     """Solve the rig's frame subsets from `start` (the held solve), filter them by the configuration's stereo
     steps on every adjacent pair, and find the frames that survive. Raises DstereoError when no subset converges
     or a step would leave none."""
-    from dstereo.calib.subset_runs import check_subset_run
+    from dstereo.calib.subset_runs import NOTE_ABOVE, check_subset_run, solve_in_blocks
+    from dstereo.calib.subset_solve import chunk_size
     from dstereo.calib.subsets import plan_subsets
 
     t0 = time.perf_counter()
@@ -158,9 +159,21 @@ def run_rig_subsets(config, start: MultiviewSolution, obj, obs, visible, inliers
                      getattr(progress, "note", None), label="rig ")
     plan = plan_subsets(n_frames, config.per_set, cap=config.max_subsets, seed=config.seed)
     report = None if progress is None else (lambda d, n: progress("rig subsets", d, n))
-    subs = solve_view_subsets(obj, obs, visible, plan.index, start, progress=report, inliers=inliers)
-    table = subset_table(subs, start, obj, obs, visible, inliers, pairs)
-    usable = subs.converged & np.all(np.isfinite(table), axis=1)
+
+    def solve_block(block, block_progress):
+        subs = solve_view_subsets(obj, obs, visible, block.index, start, progress=block_progress, inliers=inliers)
+        return subset_table(subs, start, obj, obs, visible, inliers, pairs), subs.status, None
+
+    # block by block (calib/subset_runs.py): bounded memory, and on a Dask cluster where the command says so
+    table, _ = solve_in_blocks(plan, columns, solve_block,
+                               chunk_size(n_frames, plan.per_set, int(np.prod(obs.shape[1:3])), len(plan)),
+                               scratch, progress=report,
+                               note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None,
+                               key=(obj, obs, visible, "all" if inliers is None else inliers, start.values,
+                                    start.poses, tuple(start.names)))
+    usable = table.status > 0
+    for j in range(len(columns)):
+        usable &= np.isfinite(table.column(j))
     warnings = []
     if not usable.any():
         raise DstereoError(f"none of the {len(plan)} rig subset solves converged (m = {plan.per_set} frames); raise "
