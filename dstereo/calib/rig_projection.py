@@ -48,7 +48,7 @@ def frames_covariance(solution, obj: np.ndarray, obs: np.ndarray, inliers: np.nd
     weights = buckets.pad_axis(np.asarray(r_w, float), size, 0, 0.0)
     poses = buckets.pad_rows(np.asarray(solution.poses, float), size)
     x = np.concatenate([np.asarray(solution.values, float), poses.ravel()])
-    buckets.note("rig_covariance", (problem, n_g, data[0].shape, shared))
+    buckets.note("rig_covariance", (problem, n_g, data[0].shape, shared), tag=(problem, n_g, data[0].shape))
     r, jac = (np.asarray(a) for a in _residual_jacobian(problem, n_g, size)(x, data, weights, shared))
     rows, n_par = n_f * data[0].size, n_g + 6 * n_f  # a frame's residuals: K cameras x n corners x (x, y)
     r, jac = r[:rows], jac[:rows, :n_par]
@@ -79,7 +79,7 @@ def camera_poses(solution, cov: np.ndarray, k: int):
     size = buckets.views(n_f)
     x = np.concatenate([np.asarray(solution.values, float),
                         buckets.pad_rows(np.asarray(solution.poses, float), size).ravel()])
-    buckets.note("rig_camera_poses", (problem, k, n_g))
+    buckets.note("rig_camera_poses", (problem, k, n_g), tag=(problem, k, n_g))
     y, lin = (np.asarray(a) for a in _camera_poses_fn(problem, k, n_g, size)(x))
     m = len(names) + 6 * n_f
     y, lin = y[:m], lin[:m, :n_g + 6 * n_f]

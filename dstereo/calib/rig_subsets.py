@@ -72,7 +72,7 @@ def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs
     # one program for every plan: blocks of RESIDUAL_BLOCK subsets (the last one padded with copies of its first)
     # and m frames padded to their bucket (runtime/buckets.py; copies of the first frame); the padding is cut off
     size = buckets.views(subs.index.shape[1])
-    buckets.note("rig_residuals", (problem, shared, g.shape[1]))
+    buckets.note("rig_residuals", (problem, shared, g.shape[1]), tag=(problem, g.shape[1], obs.shape[1:]))
     pad = lambda a: buckets.pad_axis(buckets.pad_rows(a, RESIDUAL_BLOCK), size, 1)  # noqa: E731
     for c in range(0, len(g), RESIDUAL_BLOCK):
         rows = subs.index[c:c + RESIDUAL_BLOCK]

@@ -281,7 +281,8 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
     if method == "pose-compensated":
         from dstereo.runtime import buckets  # what jobs/prebuild.py builds ahead: this map at every view count
 
-        buckets.note("projection_map", (index, method, model, params, np.asarray(q, float), float(range_)))
+        buckets.note("projection_map", (index, method, model, params, np.asarray(q, float), float(range_)),
+                     tag=(index, method, model, len(q)))
     cov_q, ok = _map_fn(index, method, model)(params, np.asarray(poses, float), weight, cov, np.asarray(q, float),
                                               float(range_))
     cov_q, ok = np.array(cov_q), np.asarray(ok) & np.all(np.isfinite(np.asarray(cov_q)), axis=(1, 2))
