@@ -72,27 +72,32 @@ def run(cmd: list[str], env: dict) -> dict:
             "aot_loads": prof["counts"].get("aot_load_s", 0)}
 
 
-def wait_for_builder(cache: Path, limit_s: float = 3600.0) -> dict:
-    """Until the background builder has taken every list and let go of its lock: its wall time and CPU time (its
-    log's last line)."""
-    import fcntl
+def wait_for_builder(cache: Path, bucket: int, limit_s: float = 3600.0) -> dict:
+    """Until the background builder (runtime/prebuild.py) has built every program at `bucket` (it builds the buckets
+    next to the warm-up's first): then it is stopped (by its pid, from its log), so that it does not share the
+    cores with the timed runs. Its log's bucket lines give each bucket's wall and CPU time."""
+    import signal
 
-    folder = cache / "dstereo-aot" / "prebuild"
+    log_path = cache / "dstereo-aot" / "prebuild" / "prebuild.log"
     t0 = time.perf_counter()
+    log = ""
     while time.perf_counter() - t0 < limit_s:
-        if folder.exists() and not list(folder.glob("todo-*.pkl")):
-            fd = os.open(folder / "lock", os.O_RDWR | os.O_CREAT)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except OSError:
-                pass
-            finally:
-                os.close(fd)
+        log = log_path.read_text() if log_path.exists() else ""
+        if f"prebuild: bucket {bucket} done" in log or "prebuild: done" in log:
+            break
         time.sleep(1.0)
-    log = (folder / "prebuild.log").read_text() if (folder / "prebuild.log").exists() else ""
-    done = [ln for ln in log.splitlines() if ln.startswith("prebuild: done")]
-    return {"waited_s": time.perf_counter() - t0, "log_tail": log.splitlines()[-12:], "done": done[-1:] }
+    pid = next((int(ln.split("pid ")[1].split(",")[0]) for ln in log.splitlines() if "started, pid" in ln), None)
+    stopped = False
+    if pid is not None and "prebuild: done" not in log:
+        try:
+            os.kill(pid, signal.SIGTERM)
+            stopped = True
+        except OSError:
+            pass
+    lines = [ln for ln in log.splitlines() if ln.startswith("prebuild: bucket")]
+    cpu = [float(ln.split(", ")[-1].split(" s CPU")[0]) for ln in lines]
+    return {"waited_s": time.perf_counter() - t0, "bucket_lines": lines, "buckets_built": len(lines),
+            "cpu_per_bucket_s": sum(cpu) / len(cpu) if cpu else None, "stopped_early": stopped}
 
 
 def case(kind: str, work: Path, repeat: int) -> dict:
@@ -108,7 +113,7 @@ def case(kind: str, work: Path, repeat: int) -> dict:
     out["same_bucket_first"] = run(command(kind, work, NEW), env)
     env = fresh("ahead")
     out["ahead_warmup"] = run(command(kind, work, OTHER), env)
-    out["builder"] = wait_for_builder(work / f"jax-{kind}-ahead")
+    out["builder"] = wait_for_builder(work / f"jax-{kind}-ahead", 24)
     out["ahead_first"] = run(command(kind, work, NEW), dict(env, DSTEREO_PREBUILD="0"))
     env = dict(env, DSTEREO_PREBUILD="0")
     run(command(kind, work, NEW), dict(env, DSTEREO_SHAPE_BUCKETS="0"))  # exact shapes compiled once
@@ -136,13 +141,16 @@ def main() -> None:
              f"{SAME} (N's bucket) and {OTHER} (another bucket); subsets m = N - 4, at most "
              f"{SUBSETS['max_subsets']}. Wall seconds; [executables built / XLA compiles] in brackets.", "",
              "| case | cold: N first | cold: N repeat | first / repeat | warm-up in N's bucket, then N | / repeat | "
-             "warm-up in another bucket + builder, then N | / repeat | builder (wall, CPU) | repeat, buckets on | "
+             "warm-up in another bucket + builder, then N | / repeat | builder: buckets until N's, wait, CPU a bucket | "
+             "repeat, buckets on | "
              "repeat, exact shapes | padding's cost |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     fmt = lambda r: f"{r['wall_s']:.2f} [{r['aot_builds']}/{r['compiles']}]"  # noqa: E731
     walls = lambda rs: ", ".join(f"{x['wall_s']:.2f}" for x in rs)  # noqa: E731
     for r in results:
         rep = best(r["repeat_buckets"])
-        done = r["builder"]["done"][0].removeprefix("prebuild: done in ") if r["builder"]["done"] else "not done"
+        b = r["builder"]
+        done = (f"{b['buckets_built']} bucket(s) first, {b['waited_s']:.0f} s; {b['cpu_per_bucket_s']:.1f} s CPU a "
+                f"bucket" if b["cpu_per_bucket_s"] is not None else "no bucket line")
         lines.append(f"| {r['kind']} | {fmt(r['cold_first'])} | {fmt(r['cold_repeat'])} | "
                      f"{r['cold_first']['wall_s'] / r['cold_repeat']['wall_s']:.2f}x | {fmt(r['same_bucket_first'])} | "
                      f"{r['same_bucket_first']['wall_s'] / rep:.2f}x | {fmt(r['ahead_first'])} | "

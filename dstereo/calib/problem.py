@@ -392,7 +392,7 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     key = options._replace(lambda0=0.0, decrement_tol=None)  # both traced, not compiled in
     if buckets.enabled():  # what jobs/prebuild.py builds ahead for the other buckets: this program at every count
         buckets.note("solver", (problem, key, rows == 1, int(k), int(n_pts), shared),
-                     tag=(problem, key, rows == 1, int(k), int(n_pts)))
+                     tag=(problem, key, rows == 1, int(k), int(n_pts)), size=n_frames)
     args = [prep(g0), prep(p0, None), prep(obs, np.nan), prep(weight, 0.0), prep(lambda0),
             prep(normal0[0], 0.0), prep(normal0[1], 0.0), prep(r_weight, 0.0)]
     limit = np.int32(np.iinfo(np.int32).max if max_passes is None else max_passes)

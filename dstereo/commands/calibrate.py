@@ -146,9 +146,9 @@ def _build_ahead() -> None:
     background (`runtime/prebuild.py`); said once per executables folder."""
     from dstereo.runtime import buckets, prebuild
 
-    records = buckets.noted()
+    records, sizes = buckets.noted(), buckets.noted_sizes()
     buckets.clear_noted()
-    if prebuild.start(records):
+    if prebuild.start(records, sizes):
         told = prebuild.folder() / "told"
         if not told.exists():
             told.touch()

@@ -96,28 +96,37 @@ REPLAY = {"solver": _solver, "refit": _per_row(_refit), "normalised_points": _pe
 
 
 def build(records, views, deadline: float = float("inf"), log=print) -> int:
-    """Build every (kind, spec) of `records` at each view count of `views` (bucket sizes), marking each program
-    built; returns how many (program, count) were called. Stops at `deadline` (time.monotonic)."""
+    """Build every (kind, spec) of `records` at each view count of `views` (bucket sizes, in that order: each count
+    for every program before the next count), marking each program once built at every count; returns how many
+    (program, count) were called. Stops at `deadline` (time.monotonic)."""
     from dstereo.runtime import prebuild
 
     where = prebuild.folder()
+    if where is None:
+        return 0
+    todo = [(kind, spec) for kind, spec in records
+            if kind in REPLAY and not (where / prebuild.marker(kind, spec)).exists()]
+    failed: set[int] = set()
     calls = 0
-    for kind, spec in records:
-        if kind not in REPLAY or where is None or (where / prebuild.marker(kind, spec)).exists():
-            continue
-        t0 = time.perf_counter()
-        try:
-            for v in views:
-                if time.monotonic() > deadline:
-                    return calls
+    for v in views:
+        t0, c0 = time.perf_counter(), time.process_time()
+        for i, (kind, spec) in enumerate(todo):
+            if i in failed:
+                continue
+            if time.monotonic() > deadline:
+                return calls
+            try:
                 REPLAY[kind](spec, v)
                 calls += 1
-        except Exception as exc:  # noqa: BLE001 - one program that cannot be built leaves the others to build
-            log(f"prebuild: {kind} not built ({type(exc).__name__}: {exc})")
-            continue
-        where.mkdir(parents=True, exist_ok=True)
-        (where / prebuild.marker(kind, spec)).write_text(f"{kind}: {len(views)} view counts\n")
-        log(f"prebuild: {kind} at {len(views)} view counts in {time.perf_counter() - t0:.1f} s")
+            except Exception as exc:  # noqa: BLE001 - one program that cannot be built leaves the others to build
+                failed.add(i)
+                log(f"prebuild: {kind} not built ({type(exc).__name__}: {exc})")
+        log(f"prebuild: bucket {v} done ({len(todo) - len(failed)} program(s), {time.perf_counter() - t0:.1f} s, "
+            f"{time.process_time() - c0:.1f} s CPU)")
+    where.mkdir(parents=True, exist_ok=True)
+    for i, (kind, spec) in enumerate(todo):
+        if i not in failed:
+            (where / prebuild.marker(kind, spec)).write_text(f"{kind}: {len(views)} view counts\n")
     return calls
 
 
@@ -145,10 +154,12 @@ def main(argv=None) -> int:
             break
         for path in lists:
             try:
-                records = pickle.loads(path.read_bytes())
-            except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError):
-                records = []  # unreadable, or from another version: dropped
-            build(records, views, deadline, log=lambda s: print(s, flush=True))
+                todo = pickle.loads(path.read_bytes())
+                records, used = todo["records"], todo["sizes"]
+            except (OSError, ValueError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, KeyError,
+                    TypeError):
+                records, used = [], ()  # unreadable, or from another version: dropped
+            build(records, buckets.nearest_first(views, used), deadline, log=lambda s: print(s, flush=True))
             if time.monotonic() < deadline:
                 path.unlink(missing_ok=True)
     print(f"prebuild: done in {time.monotonic() - t0:.1f} s, {time.process_time():.1f} s CPU", flush=True)

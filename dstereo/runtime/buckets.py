@@ -93,7 +93,7 @@ def per_row(fn, row_args: tuple[int, ...], kind: tuple | None = None):
         if kind is not None and enabled():
             shapes = tuple((np.shape(a)[1:] if i in row_args else np.shape(a)) for i, a in enumerate(args))
             note(kind[0], (kind[1], tuple(np.asarray(a)[:1] if i in row_args else a for i, a in enumerate(args)),
-                           row_args), tag=(kind[1], shapes))
+                           row_args), tag=(kind[1], shapes), size=size)
         if size == n:
             return fn(*args)
         args = tuple(pad_rows(a, size) if i in row_args else a for i, a in enumerate(args))
@@ -106,13 +106,16 @@ def per_row(fn, row_args: tuple[int, ...], kind: tuple | None = None):
 # --- what this process used, to build the other buckets ahead (runtime/prebuild.py, jobs/prebuild.py) --------------
 
 _noted: dict = {}
+_sizes: set[int] = set()
 
 
-def note(kind: str, spec, tag=None) -> None:
+def note(kind: str, spec, tag=None, size: int | None = None) -> None:
     """Record that a program of `kind` (a name jobs/prebuild.py knows) was called with `spec` (picklable: what it
     needs besides the view count to call it again); once per distinct `tag` (hashable: what decides the program;
     default the pickled spec). A subset run calls its solver once per chunk: a tag is checked in ~1 us, a pickle
-    takes ~50 us."""
+    takes ~50 us. `size`: the bucket it ran at (the builder starts next to the sizes used)."""
+    if size is not None:
+        _sizes.add(int(size))
     if tag is not None:
         tag = (kind, tag)
         if tag in _noted:
@@ -132,5 +135,20 @@ def noted() -> list[tuple[str, object]]:
     return list(_noted.values())
 
 
+def noted_sizes() -> tuple[int, ...]:
+    """The view buckets the noted programs ran at."""
+    return tuple(sorted(_sizes))
+
+
 def clear_noted() -> None:
     _noted.clear()
+    _sizes.clear()
+
+
+def nearest_first(sizes, used) -> list[int]:
+    """`sizes` ordered by their distance (ratio) to the nearest of `used` (a data set of a similar size is the
+    likeliest next one); as given without `used`."""
+    used = [u for u in used if u > 0]
+    if not used:
+        return list(sizes)
+    return sorted(sizes, key=lambda s: (min(abs(np.log(s / u)) for u in used), s))

@@ -58,9 +58,10 @@ def pending(records) -> list:
     return [(kind, spec) for kind, spec in records if not (where / marker(kind, spec)).exists()]
 
 
-def start(records) -> bool:
+def start(records, sizes=()) -> bool:
     """Write the records not built yet as a list for the builder and start one (detached, see the module); False
-    where nothing was started (nothing to build, not wanted, or it could not be). Never raises."""
+    where nothing was started (nothing to build, not wanted, or it could not be). `sizes`: the view buckets the
+    command ran at (the builder builds the nearest first). Never raises."""
     try:
         if not wanted():
             return False
@@ -71,7 +72,7 @@ def start(records) -> bool:
         where.mkdir(parents=True, exist_ok=True)
         name = where / f"todo-{uuid.uuid4().hex}.pkl"
         tmp = name.with_suffix(".tmp")
-        tmp.write_bytes(pickle.dumps(todo, protocol=4))
+        tmp.write_bytes(pickle.dumps({"records": todo, "sizes": tuple(sizes)}, protocol=4))
         os.replace(tmp, name)
         import subprocess
 
