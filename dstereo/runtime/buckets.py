@@ -81,6 +81,11 @@ def cut_rows(tree, n: int):
     return np.asarray(tree)[:n]
 
 
+def _shape(a):
+    """np.shape, and a tuple of them for a tuple or list of arrays (an argument may be a pair of arrays)."""
+    return tuple(_shape(x) for x in a) if isinstance(a, (tuple, list)) else np.shape(a)
+
+
 def per_row(fn, row_args: tuple[int, ...], kind: tuple | None = None):
     """`fn` whose positional arguments `row_args` (a leading axis of rows, the same length, each row computed on its
     own: a vmapped per-view program) are padded to their bucket with copies of the first row, and whose outputs are
@@ -91,7 +96,7 @@ def per_row(fn, row_args: tuple[int, ...], kind: tuple | None = None):
         n = len(args[row_args[0]])
         size = views(n)
         if kind is not None and enabled():
-            shapes = tuple((np.shape(a)[1:] if i in row_args else np.shape(a)) for i, a in enumerate(args))
+            shapes = tuple((np.shape(a)[1:] if i in row_args else _shape(a)) for i, a in enumerate(args))
             note(kind[0], (kind[1], tuple(np.asarray(a)[:1] if i in row_args else a for i, a in enumerate(args)),
                            row_args), tag=(kind[1], shapes), size=size)
         if size == n:

@@ -38,3 +38,15 @@ def test_pad_axis_fills_or_copies_and_per_row_cuts_back(monkeypatch):
     out = padded(x, 2.0, y)
     assert calls == [buckets.views(13)] and calls[0] > 13  # one call at the bucket's size
     assert np.array_equal(out[0], 2 * x) and np.array_equal(out[1], np.full(13, 3.0))  # cut back to 13 rows
+
+
+def test_per_row_with_a_pair_of_arrays_among_its_arguments_is_noted_once(monkeypatch):
+    """A per-view program's other arguments may be tuples of arrays (a camera's (k, coeffs)): recorded once for
+    the builder (jobs/prebuild.py), whatever the row count."""
+    monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", "1")
+    buckets.clear_noted()
+    padded = buckets.per_row(lambda x, cams: x + cams[0][0], (0,), kind=("refit", ("k1",)))
+    for n in (13, 14, 20):
+        assert padded(np.zeros((n, 6)), (np.ones(4), np.zeros(8))).shape == (n, 6)
+    assert [k for k, _ in buckets.noted()] == ["refit"] and buckets.noted_sizes() == (14, 20)
+    buckets.clear_noted()
