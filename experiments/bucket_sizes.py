@@ -185,9 +185,14 @@ def main() -> None:
     ap.add_argument("--views", default="6,8,12,16,24,32,48,64")
     ap.add_argument("--kinds", default="mono,stereo")
     ap.add_argument("--worker", nargs=2, metavar=("KIND", "VIEWS"))
+    ap.add_argument("--report-only", action="store_true", help="rewrite the report from the saved .json")
     args = ap.parse_args()
     if args.worker:
         _worker(args.worker[0], int(args.worker[1]))
+        return
+    if args.report_only:
+        saved = json.loads((OUT / "bucket_sizes.json").read_text())
+        report(saved["curves"], saved["load"])
         return
     env = dict(os.environ, DSTEREO_JAX_CACHE="0", DSTEREO_AOT="0", DSTEREO_SHAPE_BUCKETS="0")
     load = [f"before: {uptime()}"]
@@ -203,6 +208,10 @@ def main() -> None:
             curves.setdefault(kind, []).append(res)
             print(kind, json.dumps(res), flush=True)
     load.append(f"after: {uptime()}")
+    report(curves, load)
+
+
+def report(curves: dict, load: list[str]) -> None:
     lines = ["# Shape buckets: compile time against padded work", "",
              "`python -m experiments.bucket_sizes` (module docstring); " + "; ".join(load), "",
              "| kind | views | full solve: first call s (compile) | full solve s (CPU s) | iterations | chunk rows | "
