@@ -214,8 +214,9 @@ def main() -> None:
 def report(curves: dict, load: list[str]) -> None:
     lines = ["# Shape buckets: compile time against padded work", "",
              "`python -m experiments.bucket_sizes` (module docstring); " + "; ".join(load), "",
-             "| kind | views | full solve: first call s (compile) | full solve s (CPU s) | iterations | chunk rows | "
-             "chunk: first call s | chunk s (CPU s) | passes | per problem-pass CPU us | padded: views -> bucket, "
+             "| kind | views | full solve: first call s (CPU s: the compile) | full solve s (CPU s) | iterations | "
+             "chunk rows | chunk: first call s (CPU s) | chunk s (CPU s) | passes | per problem-pass CPU us | "
+             "padded: views -> bucket, "
              "s (CPU s), per-pass CPU us vs exact |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for kind, cases in curves.items():
         for c in cases:
@@ -224,9 +225,10 @@ def report(curves: dict, load: list[str]) -> None:
             pad_txt = "" if p is None else (
                 f"{p['views']} -> {p['bucket']}: {p['full_s']:.3f} ({p['full_cpu_s']:.3f}), {p['pass_cpu_us']:.0f} us"
                 + (f" vs {exact['full_pass_cpu_us']:.0f} us" if exact else ""))
-            lines.append(f"| {kind} | {c['views']} | {c['full_first_s']:.1f} ({c['full_first_s'] - c['full_s']:.1f}) | "
+            lines.append(f"| {kind} | {c['views']} | {c['full_first_s']:.1f} ({c['full_first_cpu_s']:.1f}) | "
                          f"{c['full_s']:.3f} ({c['full_cpu_s']:.3f}) | {c['full_iterations']} | {c['chunk_rows']} | "
-                         f"{c['chunk_first_s']:.1f} | {c['chunk_s']:.3f} ({c['chunk_cpu_s']:.3f}) | "
+                         f"{c['chunk_first_s']:.1f} ({c['chunk_first_cpu_s']:.1f}) | {c['chunk_s']:.3f} "
+                         f"({c['chunk_cpu_s']:.3f}) | "
                          f"{c['chunk_passes']} | {c['per_problem_pass_cpu_us']:.0f} | {pad_txt} |")
     lines += ["", *_padding_table(curves), ""]
     OUT.mkdir(parents=True, exist_ok=True)
