@@ -228,8 +228,9 @@ def solve_in_blocks(plan, columns: Sequence[str], solve_block: Block, chunk: int
                 finished(start, np.asarray(rows, float), np.asarray(status), solutions)
                 if start == todo[0] and stop < n and note is not None:
                     rate = (stop - start) / max(time.perf_counter() - t0, 1e-9)
+                    left = "all" if done == stop - start else f"the other {n - done + stop - start} of"
                     note(f"subsets: {rate:.0f} subsets/s on the first {stop - start}: about "
-                         f"{_duration((n - done) / rate)} for the other {n - done}")
+                         f"{_duration((n - done + stop - start) / rate)} for {left} {n}")
     except BaseException:
         table.close()
         raise

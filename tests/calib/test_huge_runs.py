@@ -234,3 +234,16 @@ def test_blocks_on_a_dask_cluster_give_the_serial_files(tmp_path, left_images, m
     for name in ("subsets.csv", "camera.yml", "stats/step_2.txt", "stats/parameter_fx.txt"):
         assert (tmp_path / "serial" / name).read_bytes() == (tmp_path / "dask" / name).read_bytes(), name
     assert not (tmp_path / "dask.partial").exists()
+
+
+def test_resume_without_an_earlier_run_and_blocks_without_resume_are_refused_first(tmp_path, left_images):
+    """--resume with no OUT.partial, and an OUT.partial without --resume or --force: one line, exit 1, before any
+    work (no results folder)."""
+    code, _, err = run_cli("calibrate", "--images", left_images[0].parent, "--glob", "left*.jpg", *FLAGS,
+                           "--out", tmp_path / "res", "--resume")
+    assert code == 1 and "--resume" in err and "does not exist" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "res.partial").mkdir()
+    code, _, err = run_cli("calibrate", "--images", left_images[0].parent, "--glob", "left*.jpg", *FLAGS,
+                           "--out", tmp_path / "res")
+    assert code == 1 and "holds the subset blocks of an earlier run" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "res").exists()
