@@ -59,14 +59,20 @@ def command(kind: str, work: Path, n: int) -> list[str]:
 
 
 def run(cmd: list[str], env: dict) -> dict:
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # the command's own process (its detached builder is not
+    # waited for, so not counted): CPU seconds, the steadier figure on a shared machine
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if done.returncode != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{done.stderr[-3000:]}")
     line = next(ln for ln in done.stderr.splitlines() if ln.startswith("PROFILE "))
     prof = json.loads(line[8:])
-    return {"wall_s": wall, "aot_builds": prof["counts"].get("aot_build_s", 0),
+    return {"wall_s": wall, "cpu_s": cpu, "aot_builds": prof["counts"].get("aot_build_s", 0),
             "aot_build_s": prof["totals"].get("aot_build_s", 0.0), "compiles": prof["counts"].get("xla_compile_or_fetch_s", 0),
             "compile_s": prof["totals"].get("xla_compile_or_fetch_s", 0.0),
             "aot_loads": prof["counts"].get("aot_load_s", 0)}
@@ -100,7 +106,7 @@ def wait_for_builder(cache: Path, bucket: int, limit_s: float = 3600.0) -> dict:
             "cpu_per_bucket_s": sum(cpu) / len(cpu) if cpu else None, "stopped_early": stopped}
 
 
-def case(kind: str, work: Path, repeat: int) -> dict:
+def case(kind: str, work: Path, repeat: int, same: bool = True) -> dict:
     base = dict(os.environ, DSTEREO_SERVE="0")
     base.pop("DSTEREO_SHAPE_BUCKETS", None)
     out: dict = {"kind": kind}
@@ -108,9 +114,10 @@ def case(kind: str, work: Path, repeat: int) -> dict:
     env = fresh("cold", DSTEREO_PREBUILD="0")
     out["cold_first"] = run(command(kind, work, NEW), env)
     out["cold_repeat"] = run(command(kind, work, NEW), env)
-    env = fresh("same", DSTEREO_PREBUILD="0")
-    out["same_bucket_warmup"] = run(command(kind, work, SAME), env)
-    out["same_bucket_first"] = run(command(kind, work, NEW), env)
+    if same:
+        env = fresh("same", DSTEREO_PREBUILD="0")
+        out["same_bucket_warmup"] = run(command(kind, work, SAME), env)
+        out["same_bucket_first"] = run(command(kind, work, NEW), env)
     env = fresh("ahead")
     out["ahead_warmup"] = run(command(kind, work, OTHER), env)
     out["builder"] = wait_for_builder(work / f"jax-{kind}-ahead", 24)
@@ -125,41 +132,48 @@ def case(kind: str, work: Path, repeat: int) -> dict:
     return out
 
 
+def table(results) -> list[str]:
+    lines = ["| case | cold: N first | cold: N repeat | first / repeat | warm-up in N's bucket, then N | / repeat | "
+             "warm-up in another bucket + builder, then N | / repeat | builder: buckets until N's, wait, CPU a bucket | "
+             "repeats, buckets on | repeats, exact shapes | padding's cost |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    fmt = lambda r: f"{r['wall_s']:.1f} / {r.get('cpu_s', float('nan')):.1f} [{r['aot_builds']}/{r['compiles']}]"  # noqa: E731
+    cpu = lambda r: r.get("cpu_s", r["wall_s"])  # noqa: E731
+    best = lambda rs: min(cpu(r) for r in rs)  # noqa: E731
+    walls = lambda rs: ", ".join(fmt(x) for x in rs)  # noqa: E731
+    for r in results:
+        rep = best(r["repeat_buckets"])
+        b = r.get("builder", {})
+        done = (f"{b['buckets_built']} bucket(s) first, {b['waited_s']:.0f} s; {b['cpu_per_bucket_s']:.1f} s CPU a "
+                f"bucket" if b.get("cpu_per_bucket_s") is not None else "-")
+        same = r.get("same_bucket_first")
+        lines.append(f"| {r['kind']} | {fmt(r['cold_first'])} | {fmt(r['cold_repeat'])} | "
+                     f"{cpu(r['cold_first']) / cpu(r['cold_repeat']):.2f}x | {fmt(same) if same else '-'} | "
+                     f"{f'{cpu(same) / rep:.2f}x' if same else '-'} | {fmt(r['ahead_first'])} | "
+                     f"{cpu(r['ahead_first']) / rep:.2f}x | {done} | {walls(r['repeat_buckets'])} | "
+                     f"{walls(r['repeat_exact'])} | {100 * (rep / best(r['repeat_exact']) - 1):+.0f} % |")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--no-same", action="store_true", help="leave out the warm-up in N's bucket")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="dstereo-newsize-"))
     load = [f"before: {uptime()}"]
-    results = [case(kind, work, args.repeat) for kind in args.kinds.split(",")]
+    results = [case(kind, work, args.repeat, not args.no_same) for kind in args.kinds.split(",")]
     load.append(f"after: {uptime()}")
-    best = lambda rs: min(r["wall_s"] for r in rs)  # noqa: E731
     lines = ["# A data set of a new size: first run against its repeat (`make bench`, experiments/bench_new_size.py)",
              "", f"Machine: {os.cpu_count()} cores, shared; load {load[0]}; {load[1]}. Whole `dstereo calibrate` "
              f"runs in new processes (DSTEREO_SERVE=0), rig640; new size N = {NEW} views (frames), warm-ups at "
              f"{SAME} (N's bucket) and {OTHER} (another bucket); subsets m = N - 4, at most "
-             f"{SUBSETS['max_subsets']}. Wall seconds; [executables built / XLA compiles] in brackets.", "",
-             "| case | cold: N first | cold: N repeat | first / repeat | warm-up in N's bucket, then N | / repeat | "
-             "warm-up in another bucket + builder, then N | / repeat | builder: buckets until N's, wait, CPU a bucket | "
-             "repeat, buckets on | "
-             "repeat, exact shapes | padding's cost |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    fmt = lambda r: f"{r['wall_s']:.2f} [{r['aot_builds']}/{r['compiles']}]"  # noqa: E731
-    walls = lambda rs: ", ".join(f"{x['wall_s']:.2f}" for x in rs)  # noqa: E731
-    for r in results:
-        rep = best(r["repeat_buckets"])
-        b = r["builder"]
-        done = (f"{b['buckets_built']} bucket(s) first, {b['waited_s']:.0f} s; {b['cpu_per_bucket_s']:.1f} s CPU a "
-                f"bucket" if b["cpu_per_bucket_s"] is not None else "no bucket line")
-        lines.append(f"| {r['kind']} | {fmt(r['cold_first'])} | {fmt(r['cold_repeat'])} | "
-                     f"{r['cold_first']['wall_s'] / r['cold_repeat']['wall_s']:.2f}x | {fmt(r['same_bucket_first'])} | "
-                     f"{r['same_bucket_first']['wall_s'] / rep:.2f}x | {fmt(r['ahead_first'])} | "
-                     f"{r['ahead_first']['wall_s'] / rep:.2f}x | {done} | "
-                     f"{rep:.2f} ({walls(r['repeat_buckets'])}) | "
-                     f"{best(r['repeat_exact']):.2f} ({walls(r['repeat_exact'])}) | "
-                     f"{100 * (rep / best(r['repeat_exact']) - 1):+.0f} % |")
-    lines += ["", "first / repeat and / repeat: against the best repeat with buckets on. padding's cost: best repeat "
-              "with buckets on against best with exact shapes (alternated)."]
+             f"{SUBSETS['max_subsets']}.", ""]
+    lines += table(results)
+    lines += ["", "Each cell: wall s / CPU s of the command's process [executables built / XLA compiles]. first / "
+              "repeat: CPU against the best repeat's CPU with buckets on. padding's cost: best repeat CPU with "
+              "buckets on against best with exact shapes (alternated)."]
     text = "\n".join(lines) + "\n"
     print(text)
     out = ROOT / "experiments" / "results" / "bench_new_size.md"
