@@ -410,6 +410,7 @@ def test_a_solve_padded_to_its_bucket_is_the_unpadded_solve(monkeypatch):
     from dstereo.solver.lm import LMOptions
 
     problem, g0, p0, obs, shared = _bucket_case()
+    monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", "1")
     assert buckets.views(len(obs)) > len(obs)  # really padded
 
     def solve():
