@@ -67,8 +67,10 @@ def main() -> None:
     dask = run(cmd("dask", "--workers", "2"), env)
     dask_again = run(cmd("dask2", "--workers", "2"), env)  # the workers' compiles now in the persistent cache
     # stopped once a few blocks are kept, then resumed
-    proc = subprocess.Popen(cmd("stopped"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=ROOT)
+    # SIGINT as a terminal's Ctrl-C sends it: its default action restored in the child (a process started in the
+    # background by a shell inherits it ignored)
+    proc = subprocess.Popen(cmd("stopped"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.default_int_handler))
     partial = work / "stopped.partial"
     t0 = time.perf_counter()
     while proc.poll() is None and time.perf_counter() - t0 < 1800:
@@ -78,6 +80,8 @@ def main() -> None:
         time.sleep(0.2)
     code = proc.wait()
     kept = len(list(partial.glob("*/frames/*.json")))
+    if not partial.exists():
+        raise SystemExit(f"the stopped run ended (exit {code}) without kept blocks: nothing to resume")
     resumed = run(cmd("stopped", "--resume"), env)
     load.append(f"after: {uptime()}")
     n = args.subsets

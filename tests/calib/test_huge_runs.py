@@ -247,3 +247,43 @@ def test_resume_without_an_earlier_run_and_blocks_without_resume_are_refused_fir
                            "--out", tmp_path / "res")
     assert code == 1 and "holds the subset blocks of an earlier run" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "res").exists()
+
+
+def test_a_stopped_calibration_resumes_and_writes_the_uninterrupted_files(tmp_path, left_images, monkeypatch):
+    """The command: a run of streamed blocks (as above) stopped by Ctrl-C in its third block keeps two blocks in
+    OUT.partial and no results folder; `--resume` solves only the others and writes the uninterrupted run's files,
+    then removes OUT.partial."""
+    from dstereo.calib import mono
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in left_images:
+        (images / src.name).symlink_to(src)
+    monkeypatch.setattr(subset_table, "MEMORY_LIMIT_BYTES", 0)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 40)
+    monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", 0)
+    solve, calls, stop = mono.solve_subsets, [], []
+
+    def counted(*a, **k):  # one call per block of subsets
+        calls.append(1)
+        if stop and len(calls) == 3:
+            raise KeyboardInterrupt
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mono, "solve_subsets", counted)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "whole")
+    assert code == 0, err
+    blocks, calls[:] = len(calls), []
+    assert blocks > 3
+    stop.append(True)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "res")
+    assert code != 0 and not (tmp_path / "res").exists()
+    assert len(list((tmp_path / "res.partial").glob("*/frames/*.json"))) == 2
+    stop.clear()
+    calls[:] = []
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "res", "--resume")
+    assert code == 0, err
+    assert len(calls) == blocks - 2  # the kept blocks read back, not solved again
+    for name in ("subsets.csv", "camera.yml", "stats/step_2.txt"):
+        assert (tmp_path / "whole" / name).read_bytes() == (tmp_path / "res" / name).read_bytes(), name
+    assert not (tmp_path / "res.partial").exists()
