@@ -98,9 +98,11 @@ def _refit(free: tuple[str, ...] = ()):
         pose, _, cost, _, _ = jax.lax.while_loop(lambda s: ~s[4] & (s[3] < POSE_ITERATIONS), body, state)
         return pose, cost
 
-    from dstereo.runtime import aot  # kept on disk: a new process skips tracing it
+    from dstereo.runtime import aot, buckets  # kept on disk: a new process skips tracing it
 
-    return aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit", (free,))
+    # one program per bucket of view counts (runtime/buckets.py): poses, corners and weights padded with view 0's
+    return buckets.per_row(aot.jit(jax.vmap(one, in_axes=(0, None, None, 0, None, 0)), "calib.final_solution.refit",
+                                   (free,)), (0, 3, 5), kind=("refit", (free,)))
 
 
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:

@@ -155,7 +155,9 @@ def _pose_refit(free: tuple[str, ...]):
 
         return jax.lax.fori_loop(0, POSE_ITERATIONS, body, (pose0, 1e-3, jnp.sum(res(pose0) ** 2)))[2]
 
-    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None)))
+    from dstereo.runtime import buckets  # one program per bucket of held-out view counts: rows padded with copies
+
+    return buckets.per_row(jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, None))), (0, 1, 2, 3), kind=("pose_refit", (free,)))
 
 
 def evaluate(preset: str, obj, obs, image_size) -> Candidate:

@@ -32,7 +32,7 @@ from dstereo.runtime.jax_workarounds import CALL_POINTS, MAX_CHUNK, MAX_CONCURRE
 from dstereo.models import board, camera, fisheye, splined
 from dstereo.models.distortion import coeff_slots, lens_model, with_free
 from dstereo.models.pose import rodrigues, rodrigues_jacobian
-from dstereo.runtime import aot
+from dstereo.runtime import aot, buckets
 from dstereo.solver.lm import COMPILE_OPTIONS, LMOptions, solve_structured_batch
 
 POSE_SIZE = 6  # rvec, tvec: of a frame's board pose and of a camera's extrinsics
@@ -273,11 +273,11 @@ def prior_matrix(problem: Problem) -> np.ndarray | None:
 
 def chunk_rows(n_frames: int, n_points: int, problem: Problem | None = None) -> int:
     """Problems per compiled call for frames of `n_points` corner observations (all cameras together), fixed
-    per shape so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`). A `problem` with
+    per shape bucket (`frame_bucket`) so one compile: as many as fit CALL_POINTS, at most MAX_CHUNK (`jax_workarounds`). A `problem` with
     a splined camera gets fewer, in proportion to the square of its shared parameters against a rational camera's
     (each frame's normal block is (G + 7)^2; the one chunked call pads a single full-set solve to this many
     problems: a splined full-set solve would otherwise compute ~20 copies of itself, 103 s instead of 7 s)."""
-    rows = int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, n_frames * n_points))))
+    rows = int(max(1, min(MAX_CHUNK, CALL_POINTS // max(1, frame_bucket(n_frames) * n_points))))
     if problem is not None and any(lens_model(c.free) == "splined" for c in problem.cameras):
         rational = 4 + 8 + POSE_SIZE + 1
         rows = max(1, rows * rational ** 2 // (problem.n_shared + POSE_SIZE + 1) ** 2)
@@ -333,6 +333,12 @@ def shared_data(obj: np.ndarray, ks: np.ndarray, coeffs: np.ndarray):
     return (np.asarray(obj, float), np.asarray(ks, float).reshape(-1, 4), np.asarray(coeffs, float).reshape(-1, 8))
 
 
+def pad_frames(a, n_frames: int, fill=None):
+    """numpy per-problem array (B, F, ...) padded along its frame axis to `n_frames` (`buckets.pad_axis`: with
+    `fill`, or copies of the first frame for None)."""
+    return buckets.pad_axis(a, n_frames, 1, fill)
+
+
 def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shared, normal0=None, r_weight=None,
         rows: int | None = None, max_passes: int | None = None):
     """Call the compiled solver on one chunk given as per-problem arrays (leading axis <= chunk_rows): g0 (B, G),
@@ -341,12 +347,20 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
     `normal0 = (r, m)`, per problem, is the linearisation at (g0, p0) from an earlier solve (`LMResult.residuals`
     and `.normal`); the solver then skips linearising the start. Without it, the same compiled program linearises
     the start itself (a traced flag, not a second compile). An argument that is already a device array is taken
-    as it is, at the chunk's full size: subsets pass what all their chunks share once. `weight` is always per
-    chunk and gives the number of problems. `r_weight` (B, F, K 2n), default: 1 where seen. `rows`: problems per
-    compiled call (default `chunk_rows`, the program subsets of these frames share; fewer problems are padded to
-    it and computed all the same: a single solve that shares no program with subsets passes 1). `max_passes`: see
-    `lm.solve_structured_batch` (problems still running come back with status 0; default: no limit)."""
-    n, (n_frames, k, n_pts) = len(weight), np.shape(obs)[1:4]
+    as it is, at the chunk's full size and `frame_bucket(F)` frames: subsets pass what all their chunks share once.
+    `weight` is always per chunk, numpy, and gives the number of problems and of frames F. `r_weight` (B, F, K 2n),
+    default: 1 where seen. `rows`: problems per compiled call (default `chunk_rows`, the program subsets of these
+    frames share; fewer problems are padded to it and computed all the same: a single solve that shares no program
+    with subsets passes 1). `max_passes`: see `lm.solve_structured_batch` (problems still running come back with
+    status 0; default: no limit).
+
+    The frames are padded to their bucket (`runtime/buckets.py`): frames of weight 0, unseen (NaN corners, residual
+    weight 0), at the first frame's pose; they take no part in any sum, count or step (`lm`), and the results are
+    cut back to F frames, so a caller sees the solve of its F frames, and one compiled program serves every F of
+    the bucket."""
+    n, n_real = np.shape(weight)[:2]
+    n_frames = frame_bucket(n_real)
+    k, n_pts = np.shape(obs)[2:4]
     rows = chunk_rows(n_frames, k * n_pts, problem) if rows is None else int(rows)
     if n > rows:  # more problems than one call may carry (jax_workarounds): call after call
         cut = lambda a, i: a if a is None or isinstance(a, jax.Array) else a[i:i + rows]  # noqa: E731
@@ -355,27 +369,45 @@ def run(problem: Problem, options: LMOptions, g0, p0, obs, weight, lambda0, shar
                  for i in range(0, n, rows)]
         return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts)
 
-    def prep(a):
+    def prep(a, frame_fill=(), device_frames=True):
+        """Padded to `rows` problems (copies of the first) and, where `frame_fill` is given, to `n_frames` frames
+        with that fill (None: copies of the first frame). A device array is checked, not copied."""
         if isinstance(a, jax.Array):
+            if device_frames and frame_fill != () and a.shape[:2] != (rows, n_frames):
+                raise ValueError(f"problem.run: a device array of shape {a.shape} where ({rows}, {n_frames}, ...) "
+                                 "(chunk rows, frames padded to their bucket) is expected")
             return a
         a = np.asarray(a, float)
+        if frame_fill != ():
+            a = pad_frames(a, n_frames, frame_fill)
         # numpy in, not jnp.asarray: that compiles a small staging program per new shape (~10 ms each, measured)
         return np.ascontiguousarray(np.concatenate([a, np.repeat(a[:1], rows - n, axis=0)]) if n < rows else a)
 
     n_p1 = problem.n_shared + POSE_SIZE + 1
     given = normal0 is not None
     if not given:
-        normal0 = (np.zeros((n, n_frames, 2 * k * n_pts)), np.zeros((n, n_frames, n_p1, n_p1)))
+        normal0 = (np.zeros((n, n_real, 2 * k * n_pts)), np.zeros((n, n_real, n_p1, n_p1)))
     if r_weight is None and not isinstance(obs, jax.Array):
         r_weight = residual_weights(np.isfinite(np.asarray(obs)[..., 0]))
     key = options._replace(lambda0=0.0, decrement_tol=None)  # both traced, not compiled in
-    args = [prep(a) for a in (g0, p0, obs, weight, lambda0, *normal0, r_weight)]
+    if buckets.enabled():  # what jobs/prebuild.py builds ahead for the other buckets: this program at every count
+        buckets.note("solver", (problem, key, rows == 1, int(k), int(n_pts), shared),
+                     tag=(problem, key, rows == 1, int(k), int(n_pts)), size=n_frames)
+    args = [prep(g0), prep(p0, None), prep(obs, np.nan), prep(weight, 0.0), prep(lambda0),
+            prep(normal0[0], 0.0), prep(normal0[1], 0.0), prep(r_weight, 0.0)]
     limit = np.int32(np.iinfo(np.int32).max if max_passes is None else max_passes)
     solver = compiled_solver(problem, key)
     # the compiled call and its results' transfer (where a hung call waits) under the watchdog, keyed by program
     # and shapes: the allowance comes from the longest such call before it (dstereo/runtime/watchdog.py)
-    what = f"a chunk of {rows} problem(s) of {problem.k} camera(s), {n_frames} view(s) x {n_pts} corner(s)"
+    what = f"a chunk of {rows} problem(s) of {problem.k} camera(s), {n_real} view(s) x {n_pts} corner(s)"
     with watchdog.watched((problem, key, rows, n_frames, k * n_pts, max_passes is None), what):
         out = solver(*args[:5], (*args[5:7], np.full(rows, given)), args[7], shared,
                      np.float64(options.decrement_tol or 0.0), limit)
-        return jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
+        out = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out)
+    # the padded frames cut off: their poses, residuals (0) and normal blocks (weight 0: no part in the solve)
+    return out._replace(p=out.p[:, :n_real], residuals=out.residuals[:, :n_real], normal=out.normal[:, :n_real])
+
+
+def frame_bucket(n_frames: int) -> int:
+    """The frames a problem of `n_frames` is solved with: its shape bucket (`runtime/buckets.py`)."""
+    return buckets.views(n_frames)

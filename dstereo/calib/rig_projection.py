@@ -13,6 +13,8 @@ sigma^2 = SSE / (N - p) as dstereo reports it (mrcal's is SSE / N).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +22,7 @@ import numpy as np
 from dstereo.calib.multiview import _data, _shared
 from dstereo.calib.problem import Problem, frame_residual
 from dstereo.models.pose import log_rotation, rodrigues
+from dstereo.runtime import buckets
 
 
 def _problem(solution) -> Problem:
@@ -37,16 +40,32 @@ def frames_covariance(solution, obj: np.ndarray, obs: np.ndarray, inliers: np.nd
     data, r_w = _data(np.asarray(obs, float), np.asarray(solution.visible, bool), inliers)
     shared = _shared(np.asarray(obj, float), solution.cameras)
     n_g, n_f = len(solution.values), len(solution.poses)
-    per_frame = jax.vmap(frame_residual(problem), in_axes=(None, 0, 0, None))
-    data, weights = jnp.asarray(data), jnp.asarray(r_w)
+    # the frames padded to their bucket (runtime/buckets.py: one program for every count of it), unseen and of
+    # weight 0 at the first frame's pose; their residual rows and pose columns cut off
+    size = buckets.views(n_f)
+    data = buckets.pad_rows(np.asarray(data, float), size)
+    data[n_f:] = np.nan
+    weights = buckets.pad_axis(np.asarray(r_w, float), size, 0, 0.0)
+    poses = buckets.pad_rows(np.asarray(solution.poses, float), size)
+    x = np.concatenate([np.asarray(solution.values, float), poses.ravel()])
+    buckets.note("rig_covariance", (problem, n_g, data[0].shape, shared), tag=(problem, n_g, data[0].shape))
+    r, jac = (np.asarray(a) for a in _residual_jacobian(problem, n_g, size)(x, data, weights, shared))
+    rows, n_par = n_f * data[0].size, n_g + 6 * n_f  # a frame's residuals: K cameras x n corners x (x, y)
+    r, jac = r[:rows], jac[:rows, :n_par]
+    n_res = int(np.count_nonzero(np.asarray(r_w)))
+    return covariance(jac.T @ jac, float(r @ r), n_res, n_par), n_res, n_par
 
-    def residuals(x):
+
+@functools.lru_cache(maxsize=None)
+def _residual_jacobian(problem: Problem, n_g: int, n_f: int):
+    """Compiled: (residuals, dense Jacobian) of n_f frames at x = [shared vector, poses (n_f, 6) row by row]."""
+    per_frame = jax.vmap(frame_residual(problem), in_axes=(None, 0, 0, None))
+
+    def residuals(x, data, weights, shared):
         return (per_frame(x[:n_g], x[n_g:].reshape(n_f, 6), data, shared) * weights).ravel()
 
-    x = jnp.concatenate([jnp.asarray(solution.values, float), jnp.asarray(solution.poses, float).ravel()])
-    r, jac = (np.asarray(a) for a in jax.jit(lambda x: (residuals(x), jax.jacfwd(residuals)(x)))(x))
-    n_res, n_par = int(np.count_nonzero(np.asarray(r_w))), len(x)
-    return covariance(jac.T @ jac, float(r @ r), n_res, n_par), n_res, n_par
+    return jax.jit(lambda x, data, weights, shared: (residuals(x, data, weights, shared),
+                                                     jax.jacfwd(residuals)(x, data, weights, shared)))
 
 
 def camera_poses(solution, cov: np.ndarray, k: int):
@@ -54,8 +73,23 @@ def camera_poses(solution, cov: np.ndarray, k: int):
     poses)) from `frames_covariance`'s `cov` (module docstring)."""
     problem = _problem(solution)
     n_g, n_f = len(solution.values), len(solution.poses)
-    spec, sl = problem.cameras[k], problem.intrinsic_slices()[k]
+    spec = problem.cameras[k]
     names = ("fx", "fy", "cx", "cy") + tuple(spec.free)
+    # compiled once per bucket of frame counts (runtime/buckets.py): the frames padded with copies, then cut off
+    size = buckets.views(n_f)
+    x = np.concatenate([np.asarray(solution.values, float),
+                        buckets.pad_rows(np.asarray(solution.poses, float), size).ravel()])
+    buckets.note("rig_camera_poses", (problem, k, n_g), tag=(problem, k, n_g))
+    y, lin = (np.asarray(a) for a in _camera_poses_fn(problem, k, n_g, size)(x))
+    m = len(names) + 6 * n_f
+    y, lin = y[:m], lin[:m, :n_g + 6 * n_f]
+    return names, y[len(names):].reshape(n_f, 6), lin @ cov @ lin.T
+
+
+@functools.lru_cache(maxsize=None)
+def _camera_poses_fn(problem: Problem, k: int, n_g: int, n_f: int):
+    """Compiled: x = [shared vector, frame poses] -> (camera k's intrinsics and poses T_k_board, their Jacobian)."""
+    sl = problem.intrinsic_slices()[k]
 
     def of(x):
         g, frames = x[:n_g], x[n_g:].reshape(n_f, 6)
@@ -68,9 +102,7 @@ def camera_poses(solution, cov: np.ndarray, k: int):
         t = frames[:, 3:] @ r_k.T + e[3:]
         return jnp.concatenate([intr, jnp.concatenate([rot, t], axis=1).ravel()])
 
-    x = jnp.concatenate([jnp.asarray(solution.values, float), jnp.asarray(solution.poses, float).ravel()])
-    y, lin = np.asarray(of(x)), np.asarray(jax.jacfwd(of)(x))
-    return names, y[len(names):].reshape(n_f, 6), lin @ cov @ lin.T
+    return jax.jit(lambda x: (of(x), jax.jacfwd(of)(x)))
 
 
 def rig_camera_map(solution, obj, obs, inliers, k: int, range_: float, grid=(32, 24), cov=None):

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.final_solution import surviving_views
 from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, as_solved, solve_view_subsets
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
+from dstereo.runtime import buckets
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.calib.stereo import STEP_COLUMNS
 from dstereo.config.steps import Step, is_absolute
@@ -68,10 +69,17 @@ def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs
                          np.stack([np.asarray(c.dist.coeffs) for c in start.cameras]))
     residual = batched_residuals(problem)
     out = []
+    # one program for every plan: blocks of RESIDUAL_BLOCK subsets (the last one padded with copies of its first)
+    # and m frames padded to their bucket (runtime/buckets.py; copies of the first frame); the padding is cut off
+    size = buckets.views(subs.index.shape[1])
+    buckets.note("rig_residuals", (problem, shared, g.shape[1]), tag=(problem, g.shape[1], obs.shape[1:]))
+    pad = lambda a: buckets.pad_axis(buckets.pad_rows(a, RESIDUAL_BLOCK), size, 1)  # noqa: E731
     for c in range(0, len(g), RESIDUAL_BLOCK):
         rows = subs.index[c:c + RESIDUAL_BLOCK]
         w = weights[rows]  # (C, m, K 2n)
-        r = np.asarray(residual(g[c:c + RESIDUAL_BLOCK], subs.poses[c:c + RESIDUAL_BLOCK], obs[rows], shared)) * w
+        r = np.asarray(residual(buckets.pad_rows(g[c:c + RESIDUAL_BLOCK], RESIDUAL_BLOCK),
+                                pad(subs.poses[c:c + RESIDUAL_BLOCK]), pad(obs[rows]), shared))
+        r = r[:len(rows), :rows.shape[1]] * w
         sq = np.sum((r ** 2).reshape(*r.shape[:2], k, 2 * n), axis=-1)  # (C, m, K)
         seen = np.sum(w.reshape(*w.shape[:2], k, 2 * n), axis=-1) / 2  # inlier corners
         per = []
@@ -139,7 +147,8 @@ def run_rig_subsets(config, start: MultiviewSolution, obj, obs, visible, inliers
     """Solve the rig's frame subsets from `start` (the held solve), filter them by the configuration's stereo
     steps on every adjacent pair, and find the frames that survive. Raises DstereoError when no subset converges
     or a step would leave none."""
-    from dstereo.calib.subset_runs import check_subset_run
+    from dstereo.calib.subset_runs import NOTE_ABOVE, check_subset_run, solve_in_blocks
+    from dstereo.calib.subset_solve import chunk_size
     from dstereo.calib.subsets import plan_subsets
 
     t0 = time.perf_counter()
@@ -150,9 +159,21 @@ def run_rig_subsets(config, start: MultiviewSolution, obj, obs, visible, inliers
                      getattr(progress, "note", None), label="rig ")
     plan = plan_subsets(n_frames, config.per_set, cap=config.max_subsets, seed=config.seed)
     report = None if progress is None else (lambda d, n: progress("rig subsets", d, n))
-    subs = solve_view_subsets(obj, obs, visible, plan.index, start, progress=report, inliers=inliers)
-    table = subset_table(subs, start, obj, obs, visible, inliers, pairs)
-    usable = subs.converged & np.all(np.isfinite(table), axis=1)
+
+    def solve_block(block, block_progress):
+        subs = solve_view_subsets(obj, obs, visible, block.index, start, progress=block_progress, inliers=inliers)
+        return subset_table(subs, start, obj, obs, visible, inliers, pairs), subs.status, None
+
+    # block by block (calib/subset_runs.py): bounded memory, and on a Dask cluster where the command says so
+    table, _ = solve_in_blocks(plan, columns, solve_block,
+                               chunk_size(n_frames, plan.per_set, int(np.prod(obs.shape[1:3])), len(plan)),
+                               scratch, progress=report,
+                               note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None,
+                               key=(obj, obs, visible, "all" if inliers is None else inliers, start.values,
+                                    start.poses, tuple(start.names)))
+    usable = table.status > 0
+    for j in range(len(columns)):
+        usable &= np.isfinite(table.column(j))
     warnings = []
     if not usable.any():
         raise DstereoError(f"none of the {len(plan)} rig subset solves converged (m = {plan.per_set} frames); raise "

@@ -78,11 +78,12 @@ def _rig_matrices(rig, k_left, k_right):
 
 @functools.lru_cache(maxsize=None)
 def _normalised_points():
-    from dstereo.runtime import aot  # kept on disk: a new process skips tracing it (the final solution's start)
+    from dstereo.runtime import aot, buckets  # kept on disk: a new process skips tracing it (the final solution's start)
 
     one = jax.vmap(undistort, in_axes=(None, 0))
-    return aot.jit(lambda k, coeffs, q: jax.vmap(one, in_axes=(None, 0))(coeffs, (q - k[2:4]) / k[0:2]),
-                   "calib.stereo.normalised_points", ())
+    # one program per bucket of view counts (runtime/buckets.py): the views padded with copies of the first
+    return buckets.per_row(aot.jit(lambda k, coeffs, q: jax.vmap(one, in_axes=(None, 0))(coeffs, (q - k[2:4]) / k[0:2]),
+                                   "calib.stereo.normalised_points", ()), (2,), kind=("normalised_points", ()))
 
 
 # --- start ---------------------------------------------------------------------------------------------------

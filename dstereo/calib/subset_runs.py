@@ -138,29 +138,119 @@ def block_size(chunk: int, workers: int = 2) -> int:
 Block = Callable[[object, Callable[[int, int], None] | None], tuple[np.ndarray, np.ndarray, object]]
 
 
+def fingerprint(key, plan, columns: Sequence[str], size: int) -> str:
+    """sha256 naming a run's blocks: the caller's `key` (arrays and values its subsets are solved from), the plan
+    (count, total, sampling seed, m), the columns and the block size (a resumed run reuses blocks of the same cut)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for part in key if isinstance(key, (tuple, list)) else (key,):
+        if isinstance(part, np.ndarray):
+            h.update(f"{part.dtype}{part.shape}".encode() + np.ascontiguousarray(part).tobytes())
+        else:
+            h.update(repr(part).encode())
+        h.update(b"\0")
+    from dstereo.runtime.aot import source_digest  # blocks solved by other code are not reused
+
+    h.update(repr((len(plan), plan.total, plan.exhaustive, plan.seed, plan.per_set, tuple(columns), size,
+                   source_digest())).encode())
+    return h.hexdigest()
+
+
+def _solve_task(task):
+    """On a worker (or here): one block, (start, stop, rows, status, solutions or None). One compiled call at a time:
+    a worker has one core (`runtime.tasks`)."""
+    solve_block, block, start, keep = task
+    if os.environ.get("DSTEREO_WORKER_THREADS") == "1":
+        os.environ["DSTEREO_THREADS"] = "1"
+    rows, status, solutions = solve_block(block, None)
+    return start, np.asarray(rows, float), np.asarray(status), solutions if keep else None
+
+
 def solve_in_blocks(plan, columns: Sequence[str], solve_block: Block, chunk: int, folder: str | Path | None = None,
                     progress: Callable[[int, int], None] | None = None, note: Callable[[str], None] | None = None,
-                    memory_limit: int | None = None) -> tuple[SubsetTable, list]:
+                    memory_limit: int | None = None, key=None) -> tuple[SubsetTable, list]:
     """Solve `plan` block by block: `solve_block(block_plan, progress)` returns (rows (k, P), status (k,),
-    solutions). Returns the table and, up to KEEP_SOLUTIONS subsets, the blocks' solutions (else [])."""
+    solutions). Returns the table and, up to KEEP_SOLUTIONS subsets, the blocks' solutions (else []).
+
+    Where the blocks run is the command's placement (`runtime.placement`): here one after another (default), or on
+    a Dask cluster, every block a task (`solve_block` must then pickle: a closure over arrays does); the results are
+    the same, block for block (tests). With a store of finished blocks and the caller's `key` (what the subsets are
+    solved from: `fingerprint`), each finished block is kept as it arrives and a resumed run loads those instead of
+    solving them again; only runs of more than KEEP_SOLUTIONS subsets (the long ones, whose solutions are not kept)
+    use it."""
+    from dstereo.runtime import placement
+
+    where = placement.current()
     n = len(plan)
     table = SubsetTable(columns, n, folder=folder, memory_limit=memory_limit)
-    # Up to KEEP_SOLUTIONS the solutions are kept whole anyway: one block (each block ends with a round that waits
-    # for its slowest chunks and subsets, `subset_solve`: C = 4845 in blocks of 4080 + 765 took ~0.05 s longer)
-    size, kept = (block_size(chunk) if n > KEEP_SOLUTIONS else max(n, 1)), []
-    t0 = time.perf_counter()
+    keep = n <= KEEP_SOLUTIONS
+    workers = max(2, int(getattr(where.runner, "workers", 2) or 2))
+    # Up to KEEP_SOLUTIONS the solutions are kept whole anyway: one block here (each block ends with a round that waits
+    # for its slowest chunks and subsets, `subset_solve`: C = 4845 in blocks of 4080 + 765 took ~0.05 s longer); on
+    # a cluster blocks of the same size as above, each a task.
+    size = block_size(chunk, workers) if (not keep or where.parallel) else max(n, 1)
+    starts = list(range(0, n, size))
+    store = None
+    if where.store is not None and key is not None and not keep:
+        store = where.store(fingerprint(key, plan, columns, size))
+    kept: dict[int, object] = {}
+    t0, done = time.perf_counter(), 0
+
+    def finished(start, rows, status, solutions, new=True):
+        nonlocal done
+        table.put(start, rows, status)
+        if keep:
+            kept[start] = solutions
+        if store is not None and new:
+            store.save(f"block{start:012d}", {"rows": rows, "status": status}, {"start": start, "count": len(rows)})
+        done += len(rows)
+        if progress is not None:
+            progress(done, n)
+
     try:
-        for start in range(0, n, size):
-            stop = min(start + size, n)
-            sub = None if progress is None else (lambda d, _n, a=start: progress(a + d, n))
-            rows, status, solutions = solve_block(plan.block(start, stop), sub)
-            table.put(start, rows, status)
-            if n <= KEEP_SOLUTIONS:
-                kept.append(solutions)
-            if start == 0 and stop < n and note is not None:
-                rate = stop / max(time.perf_counter() - t0, 1e-9)
-                note(f"subsets: {rate:.0f} subsets/s on the first {stop}: about {_duration(n / rate)} for all {n}")
+        todo = []
+        for start in starts:
+            stored = None if store is None else store.load(f"block{start:012d}")
+            if stored is not None and len(stored[0]["rows"]) == min(start + size, n) - start:
+                finished(start, stored[0]["rows"], stored[0]["status"], None, new=False)
+            else:
+                todo.append(start)
+        if todo and done and note is not None:
+            note(f"subsets: {done} of {n} resumed from the blocks kept in {getattr(store, 'folder', 'the store')}")
+        if where.parallel and todo:
+            _on_cluster(where.runner, plan, solve_block, todo, size, n, keep, finished)
+        else:
+            for start in todo:
+                stop = min(start + size, n)
+                sub = None if progress is None else (lambda d, _n, a=done: progress(a + d, n))
+                rows, status, solutions = solve_block(plan.block(start, stop), sub)
+                finished(start, np.asarray(rows, float), np.asarray(status), solutions)
+                if start == todo[0] and stop < n and note is not None:
+                    rate = (stop - start) / max(time.perf_counter() - t0, 1e-9)
+                    left = "all" if done == stop - start else f"the other {n - done + stop - start} of"
+                    note(f"subsets: {rate:.0f} subsets/s on the first {stop - start}: about "
+                         f"{_duration((n - done + stop - start) / rate)} for {left} {n}")
     except BaseException:
         table.close()
         raise
-    return table, kept
+    return table, [kept[s] for s in sorted(kept)]
+
+
+def _on_cluster(runner, plan, solve_block, starts, size, n, keep, finished) -> None:
+    """Every block of `starts` a task of `runner` (a parallel `tasks.FrameRunner`), handed to `finished` as it
+    comes back; a block whose task failed (its workers died `retries` + 1 times) ends the run with the reason."""
+    failed = []
+
+    def on_done(task):
+        if task.failed:
+            failed.append(task.failed)
+            return
+        start, rows, status, solutions = task.value
+        finished(start, rows, status, solutions)
+
+    items = [(i, (solve_block, plan.block(s, min(s + size, n)), s, keep)) for i, s in enumerate(starts)]
+    runner.map(_solve_task, items, on_done, stage="subset blocks")
+    if failed:
+        raise DstereoError(f"subsets: {len(failed)} block(s) of {size} subsets failed on the cluster ({failed[0]}); "
+                           "rerun with --resume to solve them again")

@@ -21,7 +21,8 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from dstereo.calib.problem import Problem, chunk_rows, run, threads
+from dstereo.calib.problem import Problem, chunk_rows, frame_bucket, run, threads
+from dstereo.runtime import buckets
 from dstereo.solver.lm import LMOptions, LMResult
 
 # Subsets stop once the Gauss-Newton model puts every parameter within sqrt(2 eps) = 1e-2 of its own standard
@@ -79,12 +80,15 @@ def solve_frame_subsets(problem: Problem, obs: np.ndarray, r_weight: np.ndarray,
     if not gathered:
         # Every chunk of a masked plan shares the start, frames and linearisation; only the weights differ.
         # Put them on the device once, at the full chunk size, instead of copying them for every chunk.
-        full_rows = chunk_rows(n_frames, n_obs, problem)
+        # At the frames' bucket (`problem.run`): padded frames unseen (NaN), of residual weight 0, at frame 0's pose.
+        bucket = frame_bucket(n_frames)
+        full_rows = chunk_rows(bucket, n_obs, problem)
+        pad = lambda a, fill=None: buckets.pad_axis(a, bucket, 0, fill)  # noqa: E731 - one problem's frames
         put = lambda a: jax.device_put(np.ascontiguousarray(np.broadcast_to(a, (full_rows, *np.shape(a)))))  # noqa: E731
-        common = (put(start.values), put(poses), put(obs))
+        common = (put(start.values), put(pad(poses)), put(pad(obs, np.nan)))
         lam_all = put(np.float64(options.lambda0))
-        normal_all = None if normal is None else tuple(put(a) for a in normal)
-        r_weight_all = put(r_weight)
+        normal_all = None if normal is None else tuple(put(pad(a, 0.0)) for a in normal)
+        r_weight_all = put(pad(r_weight, 0.0))
 
     def chunk_args(rows):
         c = len(rows)

@@ -112,6 +112,13 @@ CALIBRATE = OptionTable("calibrate", (
     _opt("cross_validate", (), "--cross-validate", type=int, in_config=False),
     _opt("cameras", (), "--cameras", in_config=False),
     _opt("pair", (), "--pair", in_config=False),
+    _opt("workers", (), "--workers", "Subsets: solve their blocks on a local Dask cluster of this many processes (one "
+         "core each; default and 1: here, in this process; at most 4 x the cores). The results are the same.", int,
+         in_config=False),
+    _opt("scheduler", (), "--scheduler", "Subsets: solve their blocks on the workers of a running Dask scheduler "
+         "(tcp://host:8786); they need dstereo installed.", in_config=False),
+    _opt("resume", (), "--resume", "Subsets: continue an interrupted run of more than 20000 subsets from the blocks "
+         "kept in OUT.partial (same inputs and options required).", bool, in_config=False),
 ))
 
 RECONSTRUCT = OptionTable("reconstruct", (

@@ -312,7 +312,8 @@ def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
     table, kept = solve_in_blocks(
         plan, columns, solve_block, chunk_size(n_views, m, obs.shape[1], len(plan)), scratch,
         progress=None if progress is None else (lambda i, n: progress("subsets", i, n)),
-        note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None)
+        note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None,
+        key=(obj, obs, full.values, full.poses, "all" if full.inliers is None else full.inliers, tuple(full.free)))
     if not kept:
         return None, table
     cat = lambda name: np.concatenate([getattr(s, name) for s in kept])  # noqa: E731

@@ -124,9 +124,15 @@ _log_many = jax.jit(jax.vmap(log_rotation))
 
 
 def rotation_vectors(rmats) -> np.ndarray:
-    """Host side: `log_rotation` of (..., 3, 3) matrices at once, as a writable numpy (..., 3)."""
+    """Host side: `log_rotation` of (..., 3, 3) matrices at once, as a writable numpy (..., 3). The matrices are
+    padded with identities to a power of two (a program per size compiled ~0.1-0.5 s each, and a calibration
+    passes a few counts: views, frames, subsets), numpy in (jnp.asarray compiles a staging program per shape)."""
     rmats = np.asarray(rmats, float)
-    return np.array(_log_many(jnp.asarray(rmats.reshape(-1, 3, 3))), float).reshape(*rmats.shape[:-2], 3)
+    flat = rmats.reshape(-1, 3, 3)
+    n = len(flat)
+    size = 1 << max(n - 1, 0).bit_length()
+    padded = np.concatenate([flat, np.broadcast_to(np.eye(3), (size - n, 3, 3))]) if size > n else flat
+    return np.array(_log_many(np.ascontiguousarray(padded)), float)[:n].reshape(*rmats.shape[:-2], 3)
 
 
 def transform(rvec: Float[Array, "3"], tvec: Float[Array, "3"], p: Float[Array, "3"]) -> Float[Array, "3"]:

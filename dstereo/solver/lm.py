@@ -156,12 +156,13 @@ def _scaled_solve(a, b):
     return x_s[..., 0] * d if vector else x_s * d[..., None]
 
 
-def _damped_step(ne: _Blocks, lam):
-    """Solve (A + lam diag(A)) dx = -J'r by eliminating the per-view blocks."""
+def _damped_step(ne: _Blocks, lam, used=None):
+    """Solve (A + lam diag(A)) dx = -J'r by eliminating the per-view blocks. `used` (V, 1): the views taking part
+    (the damping's floor is taken over them alone: a left-out view's identity block leaves it unchanged)."""
     bg, bp = ne.bg, ne.bp
     du = jnp.diag(ne.u)
     dv = jnp.diagonal(ne.v, axis1=1, axis2=2)
-    floor = 1e-12 * jnp.maximum(jnp.max(du), jnp.max(dv))
+    floor = 1e-12 * jnp.maximum(jnp.max(du), jnp.max(dv if used is None else dv * used))
     u_d = ne.u + jnp.diag(lam * jnp.maximum(du, floor))
     v_d = ne.v + jax.vmap(jnp.diag)(lam * jnp.maximum(dv, floor))
     both = _scaled_solve(v_d, jnp.concatenate([jnp.swapaxes(ne.w, 1, 2), bp[..., None]], axis=2))  # one factor
@@ -217,7 +218,7 @@ def _pass(linearize, data, shared, options: LMOptions, active, r_weight, s: _Sta
     grad_cos = jnp.maximum(cosine(cur.bg, jnp.diag(cur.u)),
                            cosine(cur.bp, jnp.diagonal(cur.v, axis1=1, axis2=2) * used))
     g_conv = ~first & (grad_cos <= options.gtol)  # the current point is a solution: the trial is not taken
-    dg, dp, pred = _damped_step(cur, s.lam)
+    dg, dp, pred = _damped_step(cur, s.lam, used)
     dg, dp, pred = jnp.where(first, 0.0, dg), jnp.where(first | ~used, 0.0, dp), jnp.where(first, 0.0, pred)
     g_t, p_t = s.g + dg, s.p + dp
     ne_t = _normal_equations(linearize, g_t, p_t, data, shared, r_weight)

@@ -137,9 +137,12 @@ def pixel_covariance(params, index: tuple[int, ...], cov, q, range_, model: str 
     return jac @ cov @ jac.T, ok
 
 
-def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, range_, model: str = "pinhole"):
+def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, range_, model: str = "pinhole",
+                                view_weight=None):
     """Pose-compensated: as `pixel_covariance` with `cov` the joint (G + 6V) covariance of the intrinsics
-    (`index`) and the V poses (rvec, tvec of T_cam_board, rows of `poses`) in that order."""
+    (`index`) and the V poses (rvec, tvec of T_cam_board, rows of `poses`) in that order. `view_weight` (V,) 1 for
+    the calibration's views, 0 for padding (`runtime/buckets.py`: out of the mean over views, and its rows and
+    columns of `cov` 0); default all 1."""
     k, coeffs = params[:4], params[4:]
     p, ok = _point(k, coeffs, q, range_, model)
     rot = jax.vmap(rodrigues)(poses[:, :3])
@@ -150,14 +153,16 @@ def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, r
     # (G + 6V tangents through V views: 85 ms of the results folder's map for 20 views, measured; this ~10x less).
     back = lambda pv, pb: rodrigues(pv[:3]) @ pb + pv[3:]  # noqa: E731
     d_back = jax.vmap(jax.jacfwd(back))(poses, p_board)  # (V, 3, 6)
-    p_mean = jnp.mean(jax.vmap(back)(poses, p_board), axis=0)
+    w = jnp.ones(len(poses)) if view_weight is None else view_weight
+    share = w / jnp.sum(w)  # each view's share of the mean
+    p_mean = jnp.sum(share[:, None] * jax.vmap(back)(poses, p_board), axis=0)
 
     def q_of(theta, point):
         full = params.at[idx].set(theta)
         return _project(full[:4], full[4:], point, model)
 
     j_int, j_point = jax.jacfwd(q_of, argnums=(0, 1))(params[idx], p_mean)  # (2, G), (2, 3)
-    j_pose = jnp.einsum("ij,vjk->ivk", j_point, d_back).reshape(2, -1) / len(poses)
+    j_pose = jnp.einsum("ij,vjk->ivk", j_point, d_back * share[:, None, None]).reshape(2, -1)
     jac = jnp.concatenate([j_int, j_pose], axis=1)
     return jac @ cov @ jac.T, ok
 
@@ -165,14 +170,29 @@ def pose_compensated_covariance(params, index: tuple[int, ...], poses, cov, q, r
 @functools.lru_cache(maxsize=None)
 def _map_fn(index: tuple[int, ...], method: str = "intrinsics-only", model: str = "pinhole"):
     if method == "intrinsics-only":
-        one = lambda params, poses, cov, q, r: pixel_covariance(params, index, cov, q, r, model)  # noqa: E731
+        one = lambda params, poses, w, cov, q, r: pixel_covariance(params, index, cov, q, r, model)  # noqa: E731
     else:
-        one = lambda params, poses, cov, q, r: pose_compensated_covariance(  # noqa: E731
-            params, index, poses, cov, q, r, model)
+        one = lambda params, poses, w, cov, q, r: pose_compensated_covariance(  # noqa: E731
+            params, index, poses, cov, q, r, model, w)
     from dstereo.runtime import aot  # kept on disk: a new process skips tracing it (~1 s, the most of any program)
 
-    return aot.jit(jax.vmap(one, in_axes=(None, None, None, 0, None)), "uncertainty.projection.map",
+    return aot.jit(jax.vmap(one, in_axes=(None, None, None, None, 0, None)), "uncertainty.projection.map",
                    (index, method, model))
+
+
+def _padded_views(poses, cov, n_params: int):
+    """(poses, view weights, joint covariance) with the views padded to their bucket (`runtime/buckets.py`, one
+    compiled map for every view count of a bucket): copies of the first pose, weight 0, zero rows and columns."""
+    from dstereo.runtime import buckets
+
+    n = len(poses)
+    size = buckets.views(n)
+    weight = np.r_[np.ones(n), np.zeros(size - n)]
+    if size == n:
+        return poses, weight, cov
+    full = np.zeros((n_params + 6 * size,) * 2)
+    full[:len(cov), :len(cov)] = cov
+    return buckets.pad_rows(poses, size), weight, full
 
 
 @dataclass
@@ -251,13 +271,19 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
         if cov.shape != (len(index) + 6 * len(poses),) * 2:
             raise DstereoError(f"pose-compensated projection uncertainty: covariance {cov.shape} does not match "
                                f"{len(index)} intrinsics + {len(poses)} poses (joint covariance expected)")
+        poses, weight, cov = _padded_views(poses, cov, len(index))
     else:
-        poses = np.zeros((1, 6))
+        poses, weight = np.zeros((1, 6)), np.ones(1)
     # numpy in: an eager jnp.concatenate or jnp.asarray compiles (or fetches) a small program per shape in a new
     # process (jax 0.10's `stage`), ~10-30 ms each
     params = np.concatenate([np.asarray(k, float), np.asarray(coeffs, float)])
     u, v, q = _grid(image_size, grid)
-    cov_q, ok = _map_fn(index, method, model)(params, np.asarray(poses, float), cov, np.asarray(q, float),
+    if method == "pose-compensated":
+        from dstereo.runtime import buckets  # what jobs/prebuild.py builds ahead: this map at every view count
+
+        buckets.note("projection_map", (index, method, model, params, np.asarray(q, float), float(range_)),
+                     tag=(index, method, model, len(q)))
+    cov_q, ok = _map_fn(index, method, model)(params, np.asarray(poses, float), weight, cov, np.asarray(q, float),
                                               float(range_))
     cov_q, ok = np.array(cov_q), np.asarray(ok) & np.all(np.isfinite(np.asarray(cov_q)), axis=(1, 2))
     cov_q[~ok] = np.nan

@@ -175,3 +175,115 @@ def test_csv_lines_are_what_csv_writer_writes(tmp_path):
     assert (tmp_path / "ours.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
 
 
+
+
+def test_a_stopped_run_resumes_from_its_kept_blocks(tmp_path, monkeypatch):
+    """With a store (runtime.placement), each finished block is kept; a run stopped in its third block (Ctrl-C)
+    resumes: the kept blocks are read back, only the others solved, and the table is the uninterrupted run's."""
+    from dstereo.io.partial_store import PartialStore
+    from dstereo.runtime.placement import Placement, placed
+
+    monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", 100)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
+    plan = plan_subsets(12, 6)  # 924 subsets: 15 blocks of 64
+    solved = []
+
+    def solve_block(block, report, stop_at=None):
+        if stop_at is not None and len(solved) == stop_at:
+            raise KeyboardInterrupt
+        solved.append(int(block.index[0, 0] * 1000 + block.index[0, -1]))
+        return block.index[:, :2] + 0.5, np.where(block.index[:, 0] == 0, 1, -1), None
+
+    key = (np.arange(5.0), "model")
+    stores = {}
+
+    def store(k):
+        stores.setdefault(k, PartialStore(tmp_path / k[:16], k).open(resume=True, force=False))
+        return stores[k]
+
+    whole, _ = solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8)
+    solved.clear()
+    with placed(Placement(store=store)), pytest.raises(KeyboardInterrupt):
+        solve_in_blocks(plan, ("a", "b"), lambda b, r: solve_block(b, r, stop_at=2), chunk=8, key=key)
+    assert len(solved) == 2 and next(iter(stores.values())).count() == 2 and len(stores) == 1
+    solved.clear()
+    notes = []
+    with placed(Placement(store=store)):
+        table, kept = solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8, key=key, note=notes.append)
+    assert len(solved) == 15 - 2 and "resumed" in notes[0]
+    assert np.array_equal(table.rows(0, len(plan)), whole.rows(0, len(plan)))
+    assert np.array_equal(table.status, whole.status)
+    with placed(Placement(store=store)):  # other inputs: a store of their own, nothing reused
+        solved.clear()
+        solve_in_blocks(plan, ("a", "b"), solve_block, chunk=8, key=(np.arange(6.0), "model"))
+    assert len(solved) == 15
+
+
+def test_blocks_on_a_dask_cluster_give_the_serial_files(tmp_path, left_images, monkeypatch):
+    """`--workers 2`: the subset blocks are tasks of a local Dask cluster (two processes); the run's files are the
+    serial run's, byte for byte (the blocks are the same problems in the same compiled program)."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in left_images:
+        (images / src.name).symlink_to(src)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "serial")
+    assert code == 0, err
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "dask", "--workers", "2")
+    assert code == 0, err
+    for name in ("subsets.csv", "camera.yml", "stats/step_2.txt", "stats/parameter_fx.txt"):
+        assert (tmp_path / "serial" / name).read_bytes() == (tmp_path / "dask" / name).read_bytes(), name
+    assert not (tmp_path / "dask.partial").exists()
+
+
+def test_resume_without_an_earlier_run_and_blocks_without_resume_are_refused_first(tmp_path, left_images):
+    """--resume with no OUT.partial, and an OUT.partial without --resume or --force: one line, exit 1, before any
+    work (no results folder)."""
+    code, _, err = run_cli("calibrate", "--images", left_images[0].parent, "--glob", "left*.jpg", *FLAGS,
+                           "--out", tmp_path / "res", "--resume")
+    assert code == 1 and "--resume" in err and "does not exist" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "res.partial").mkdir()
+    code, _, err = run_cli("calibrate", "--images", left_images[0].parent, "--glob", "left*.jpg", *FLAGS,
+                           "--out", tmp_path / "res")
+    assert code == 1 and "holds the subset blocks of an earlier run" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "res").exists()
+
+
+def test_a_stopped_calibration_resumes_and_writes_the_uninterrupted_files(tmp_path, left_images, monkeypatch):
+    """The command: a run of streamed blocks (as above) stopped by Ctrl-C in its third block keeps two blocks in
+    OUT.partial and no results folder; `--resume` solves only the others and writes the uninterrupted run's files,
+    then removes OUT.partial."""
+    from dstereo.calib import mono
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for src in left_images:
+        (images / src.name).symlink_to(src)
+    monkeypatch.setattr(subset_table, "MEMORY_LIMIT_BYTES", 0)
+    monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 40)
+    monkeypatch.setattr(subset_runs, "KEEP_SOLUTIONS", 0)
+    solve, calls, stop = mono.solve_subsets, [], []
+
+    def counted(*a, **k):  # one call per block of subsets
+        calls.append(1)
+        if stop and len(calls) == 3:
+            raise KeyboardInterrupt
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mono, "solve_subsets", counted)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "whole")
+    assert code == 0, err
+    blocks, calls[:] = len(calls), []
+    assert blocks > 3
+    stop.append(True)
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "res")
+    assert code != 0 and not (tmp_path / "res").exists()
+    assert len(list((tmp_path / "res.partial").glob("*/frames/*.json"))) == 2
+    stop.clear()
+    calls[:] = []
+    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "res", "--resume")
+    assert code == 0, err
+    assert len(calls) == blocks - 2  # the kept blocks read back, not solved again
+    for name in ("subsets.csv", "camera.yml", "stats/step_2.txt"):
+        assert (tmp_path / "whole" / name).read_bytes() == (tmp_path / "res" / name).read_bytes(), name
+    assert not (tmp_path / "res.partial").exists()

@@ -372,3 +372,89 @@ def test_a_flat_board_rig_checks_its_assumption_on_each_cameras_views():
     assert len(found) == 1 and found[0] in warnings[0]
     warnings = []
     assert flat_board_check({"left": cam((0.0, 0.0), 12)}, warnings) == [] and warnings == []
+
+
+# --- shape buckets: a problem of V frames solved as one of buckets.views(V), the extra frames weighted 0 ----------
+
+
+def _bucket_case(n_frames=13, seed=8):
+    """Three cameras (their own views: partial visibility) and the board's sag, noisy corners, the start near the
+    truth: (problem, g0, p0, obs, shared)."""
+    obj, obs, vis, poses = _rig_frames(n_frames, seed)
+    rng = np.random.default_rng(seed)
+    obs = np.where(vis[:, :, None, None], obs + rng.normal(0, 0.2, obs.shape), np.nan)
+    problem = Problem.of([FIVE] * 3, board_warp=True)
+    truth = np.concatenate([EXT[1:].ravel(), *[np.asarray(c.free_vector()) for c in CAMERAS], np.zeros(2)])
+    g0 = truth * (1 + 1e-4 * rng.normal(size=truth.shape))
+    p0 = poses + np.r_[[1e-3] * 3, [0.3] * 3] * rng.normal(size=poses.shape)
+    shared = shared_data(obj, np.stack([c.k for c in CAMERAS]), np.stack([c.dist.coeffs for c in CAMERAS]))
+    return problem, g0, p0, obs, shared
+
+
+def _solve_both(monkeypatch, solve):
+    """solve() with exact shapes and with shapes padded to their bucket."""
+    out = {}
+    for flag in ("0", "1"):
+        monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", flag)
+        out[flag] = solve()
+    return out["0"], out["1"]
+
+
+def test_a_solve_padded_to_its_bucket_is_the_unpadded_solve(monkeypatch):
+    """13 frames of three cameras solved as 14 (the bucket): the padded frame takes no part, so the same problem is
+    solved by another program; both end within the stopping rule's reach of the optimum (conftest.lm_agreement),
+    every count (residuals, frames) is the same, and the per-frame outputs come back at 13 frames."""
+    from conftest import lm_agreement
+    from dstereo.calib.problem import run
+    from dstereo.runtime import buckets
+    from dstereo.solver.lm import LMOptions
+
+    problem, g0, p0, obs, shared = _bucket_case()
+    monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", "1")
+    assert buckets.views(len(obs)) > len(obs)  # really padded
+
+    def solve():
+        return run(problem, LMOptions(), g0[None], p0[None], obs[None], np.ones((1, len(obs))), np.array([1e-3]),
+                   shared, rows=1)
+
+    exact, padded = _solve_both(monkeypatch, solve)
+    assert exact.status[0] == 1 and padded.status[0] == 1
+    assert int(exact.n_residuals[0]) == int(padded.n_residuals[0]) == 2 * int(np.isfinite(obs[..., 0]).sum())
+    assert padded.p.shape == exact.p.shape and padded.normal.shape == exact.normal.shape
+    assert padded.residuals.shape == exact.residuals.shape
+    n_par = len(g0) + 6 * len(obs)
+    sigma2 = float(exact.sse[0]) / (int(exact.n_residuals[0]) - n_par)
+    std = np.sqrt(sigma2 * np.diag(np.linalg.inv(exact.schur[0])))
+    assert np.all(np.abs(padded.g[0] - exact.g[0]) <= lm_agreement(std, int(exact.n_residuals[0]), n_par))
+    # SSE at two points within lm_agreement of the optimum: each within ftol S of S*, so of each other
+    assert abs(float(padded.sse[0]) / float(exact.sse[0]) - 1) <= 2 * LMOptions().ftol * 10
+    # the Schur complement (the covariance's inverse) at two such points: J'J moves with the point by the change
+    # relative to the parameters' scales, (std / |value|) x lm_agreement's ~1e-4 std << 1e-6
+    np.testing.assert_allclose(padded.schur[0], exact.schur[0], rtol=1e-6, atol=1e-9 * np.abs(exact.schur[0]).max())
+
+
+def test_a_new_view_count_within_a_bucket_compiles_nothing(monkeypatch):
+    """After a solve of 13 frames, one of 14 (the same bucket) traces no program: the compiled one serves it."""
+    import jax
+
+    from dstereo.calib.problem import run
+    from dstereo.solver.lm import LMOptions
+
+    monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", "1")
+    traces = []
+
+    def listen(event, duration, **_):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            traces.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for n in (13, 14):
+            problem, g0, p0, obs, shared = _bucket_case(n)
+            before = len(traces)
+            out = run(problem, LMOptions(), g0[None], p0[None], obs[None], np.ones((1, n)), np.array([1e-3]), shared,
+                      rows=1)
+            assert out.status[0] > 0 and out.p.shape == (1, n, 6)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert len(traces) == before  # the second count: nothing traced (so nothing compiled)

@@ -108,3 +108,22 @@ def test_a_pose_compensated_map_without_normal_equations_is_refused_not_downgrad
         solution_map(replace(mc.nominal, normal=None), SIZE, mc.range_, "pose-compensated", grid=(6, 4))
     assert solution_map(replace(mc.nominal, normal=None), SIZE, mc.range_, "intrinsics-only",
                         grid=(6, 4)).method == "intrinsics-only"
+
+
+def test_a_map_of_views_padded_to_their_bucket_is_the_unpadded_map(monkeypatch):
+    """13 views, solved as 14 (the bucket, runtime/buckets.py): the padded view takes no part in the mean over the
+    views and has no covariance, so the map is the same computation in another compiled program: equal to float64
+    rounding of sums over 13 or 14 terms (1e-12 relative; 1e-9 leaves room)."""
+    from dstereo.runtime import buckets
+
+    cam, poses, obj, corners = scene(n_views=13)
+    sol = calibrate_full(obj, corners + np.random.default_rng(3).normal(0, SIGMA, corners.shape), SIZE, FREE)
+    monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", "1")
+    assert buckets.views(13) > 13
+    maps = {}
+    for flag in ("0", "1"):
+        monkeypatch.setenv("DSTEREO_SHAPE_BUCKETS", flag)
+        maps[flag] = solution_map(sol, SIZE, mean_board_distance(poses, obj), "pose-compensated", grid=(6, 4))
+    assert np.array_equal(maps["0"].mask, maps["1"].mask)
+    np.testing.assert_allclose(maps["1"].std, maps["0"].std, rtol=1e-9)
+    np.testing.assert_allclose(maps["1"].cov, maps["0"].cov, rtol=1e-9, atol=1e-12 * np.nanmax(np.abs(maps["0"].cov)))
