@@ -46,12 +46,15 @@ bench-check: $(STAMP)
 	$(BIN)/python -m experiments.rig_consistency_seeds --check
 
 # The spot checks, the solver alone (bench_subsets), then whole runs in new processes against the thesis approach
-# and cv2 (bench_end_to_end), a data set of a new size against its repeat (bench_new_size, shape buckets); all write
-# experiments/results/
+# and cv2 (bench_end_to_end), a data set of a new size against its repeat (bench_new_size, shape buckets) and, served,
+# against mrcal-calibrate-cameras where Debian's mrcal is installed (bench_vs_mrcal, skipped with the reason where
+# not); all write experiments/results/
 bench: bench-check
 	$(BIN)/python -m experiments.bench_subsets
 	$(BIN)/python -m experiments.bench_end_to_end
 	$(BIN)/python -m experiments.bench_new_size
+	@if command -v mrcal-calibrate-cameras >/dev/null; then $(BIN)/python -m experiments.bench_vs_mrcal; \
+	else echo "make bench: bench_vs_mrcal skipped: mrcal-calibrate-cameras is absent (apt-get install mrcal)"; fi
 
 # Refresh the lock from pyproject.toml (pip-tools in a throw-away venv; the project venv stays as locked).
 lock:
