@@ -95,14 +95,29 @@ def _colour_weights(channels: int) -> np.ndarray:
 
 def _fit_block(disp_pad, col_pad, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
     """Weighted robust plane at each (ys, xs) (padded coordinates) from the samples at offsets (oy, ox):
-    (prediction px, sigma px, support). `sm_pad`: the matched pixels' disparity noise (px), padded alike. The
-    normal equations are sums of w, w du, ... over the window: matrix products with the fixed offset vectors.
-    float32 sums over at most a few hundred samples of disparities below a few thousand px keep ~1e-4 px, far
-    below any sigma."""
-    d = disp_pad[ys[:, None] + oy, xs[:, None] + ox]  # (n, k) float32
-    c = col_pad[ys[:, None] + oy, xs[:, None] + ox]  # (n, k, ch) int16
+    (prediction px, sigma px, support). `sm_pad`: the matched pixels' disparity noise (px), padded alike. A pixel
+    whose colour weights alone (before the biweight, which only lowers them) miss MIN_SUPPORT or MIN_SIDE_SUPPORT
+    is not fitted (NaN, inf, 0: it could not be filled), so the fits are spent on pixels that can be."""
+    width = disp_pad.shape[1]
+    flat = (ys[:, None] + oy) * width + (xs[:, None] + ox)  # (n, k) indices into the padded maps
+    d = disp_pad.ravel()[flat]  # (n, k) float32
+    c = col_pad.reshape(-1, col_pad.shape[2])[flat]  # (n, k, ch) int16
     ok = np.isfinite(d)
     w0 = _colour_weights(c.shape[2])[np.abs(c - centre_col[:, None, :]).sum(axis=2)] * ok
+    side_masks = np.stack([ox < 0, ox > 0, oy < 0, oy > 0], axis=1).astype(np.float32)
+    can = (w0.sum(axis=1) >= MIN_SUPPORT) & ((w0 @ side_masks).min(axis=1) >= MIN_SIDE_SUPPORT)
+    pred, sigma, support = np.full(len(ys), np.nan), np.full(len(ys), np.inf), np.zeros(len(ys))
+    if can.any():
+        sm = sm_pad.ravel()[flat[can]]
+        pred[can], sigma[can], support[can] = _fit(d[can], ok[can], w0[can], sm, oy, ox, side_masks, kappa2)
+    return pred, sigma, support
+
+
+def _fit(d, ok, w0, sm, oy, ox, side_masks, kappa2):
+    """The robust plane fit of `_fit_block` on samples d (n, k) px with colour weights w0 and matched noise sm.
+    The normal equations are sums of w, w du, ... over the window: matrix products with the fixed offset vectors.
+    float32 sums over at most a few hundred samples of disparities below a few thousand px keep ~1e-4 px, far
+    below any sigma."""
     d = np.where(ok, d, np.float32(0.0))
     basis = np.stack([np.ones_like(ox), ox, oy]).astype(np.float32)  # (3, k)
     products = np.stack([basis[i] * basis[j] for i in range(3) for j in range(3)], axis=1)  # (k, 9)
@@ -123,7 +138,6 @@ def _fit_block(disp_pad, col_pad, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
     s2 = (w * r * r).sum(axis=1, dtype=np.float64) / np.maximum(support, 1e-300) * n_eff / np.maximum(n_eff - 3.0, 1e-3)
     a_inv = np.linalg.inv(A)
     hat = w * (a_inv[:, 0, :].astype(np.float32) @ basis)  # the intercept's row: prediction = sum hat d
-    sm = sm_pad[ys[:, None] + oy, xs[:, None] + ox]
     sm = np.where(ok & np.isfinite(sm), sm, np.float32(0.0))
     carried = (hat * sm).sum(axis=1, dtype=np.float64)  # the matched noise, common to the window, through the fit
     noise2 = (w * sm * sm).sum(axis=1, dtype=np.float64) / np.maximum(support, 1e-300)
@@ -133,21 +147,39 @@ def _fit_block(disp_pad, col_pad, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
     # surrounded: support on each side (left, right, above, below), so a fill interpolates a hole and never
     # extends a surface past its rim into what lies beyond it (measured: a rendered fisheye plane's rim
     # extended into the background put its RMS at 12 mm against 7.5 allowed)
-    sides = w @ np.stack([ox < 0, ox > 0, oy < 0, oy > 0], axis=1).astype(np.float32)
-    support = np.where(sides.min(axis=1) >= MIN_SIDE_SUPPORT, support, 0.0)
+    support = np.where((w @ side_masks).min(axis=1) >= MIN_SIDE_SUPPORT, support, 0.0)
     return coef[:, 0], sigma, support
+
+
+def _lattice_counts(matched: np.ndarray, half: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """(fewest matched samples on any side, matched samples in all) of each pixel's window of offsets
+    -half..half step stride (the centre left out), sides as in `_fit` (left, right, above, below). A sample's
+    weight is at most 1, so a pixel with fewer than MIN_SUPPORT samples, or none on a side, cannot be filled."""
+    from scipy.ndimage import correlate1d
+
+    lattice = np.zeros(2 * half + 1, np.float32)
+    lattice[::stride] = 1.0
+    before, after, centre = lattice.copy(), lattice.copy(), np.zeros_like(lattice)
+    before[half:], after[:half + 1], centre[half] = 0.0, 0.0, 1.0
+    m = matched.astype(np.float32)
+    count = lambda x, k, axis: correlate1d(x, k, axis=axis, mode="constant", cval=0.0)  # noqa: E731
+    rows, cols = count(m, lattice, 0), count(m, lattice, 1)
+    sides = [count(rows, before, 1), count(rows, after, 1), count(cols, before, 0), count(cols, after, 0)]
+    column = count(count(m, lattice - centre, 0), centre, 1)
+    return np.minimum.reduce(sides), sides[0] + sides[1] + column
 
 
 def _predict(disparity: np.ndarray, cols: np.ndarray, matched_sigma: np.ndarray, kappa2: float, ys: np.ndarray,
              xs: np.ndarray, max_sigma: float):
     """(prediction px, sigma px) at the pixels (ys, xs) from the matched (finite) pixels of `disparity`, each from
     the smallest window of PASSES whose fit has a sigma of at most `max_sigma` and MIN_SUPPORT (NaN, inf where
-    none has)."""
+    none has). A pass skips the pixels whose window could not reach MIN_SUPPORT or MIN_SIDE_SUPPORT even at full
+    weight (`_lattice_counts`)."""
     pred, sigma = np.full(len(ys), np.nan), np.full(len(ys), np.inf)
     todo = np.arange(len(ys))
     for half, stride in PASSES:
-        if not len(todo):
-            break
+        fewest, total = _lattice_counts(np.isfinite(disparity), half, stride)
+        tried = todo[(fewest[ys[todo], xs[todo]] >= 1.0) & (total[ys[todo], xs[todo]] >= MIN_SUPPORT)]
         r = np.arange(-half, half + 1, stride)
         oy, ox = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
         keep = (oy != 0) | (ox != 0)
@@ -155,17 +187,17 @@ def _predict(disparity: np.ndarray, cols: np.ndarray, matched_sigma: np.ndarray,
         disp_pad = np.pad(disparity.astype(np.float32), half, constant_values=np.nan)
         col_pad = np.pad(cols, ((half, half), (half, half), (0, 0)), mode="edge")
         sm_pad = np.pad(matched_sigma.astype(np.float32), half, constant_values=np.nan)
-        taken = np.zeros(len(todo), bool)
-        for start in range(0, len(todo), CHUNK):
-            i = todo[start:start + CHUNK]
+        taken = np.zeros(len(ys), bool)
+        for start in range(0, len(tried), CHUNK):
+            i = tried[start:start + CHUNK]
             y, x = ys[i], xs[i]
             with np.errstate(invalid="ignore", divide="ignore"):  # an empty window: NaN sigma, never accepted
                 p, sig, support = _fit_block(disp_pad, col_pad, sm_pad, y + half, x + half, oy, ox, cols[y, x],
                                              kappa2)
             good = (sig <= max_sigma) & (support >= MIN_SUPPORT)
             pred[i[good]], sigma[i[good]] = p[good], sig[good]
-            taken[start:start + CHUNK] = good
-        todo = todo[~taken]
+            taken[i[good]] = True
+        todo = todo[~taken[todo]]
     return pred, sigma
 
 
