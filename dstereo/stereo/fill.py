@@ -93,17 +93,20 @@ def _colour_weights(channels: int) -> np.ndarray:
     return np.exp(-np.arange(255 * channels + 1) / channels / COLOUR_SCALE).astype(np.float32)
 
 
-def _fit_block(disp_pad, col_pad, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
+def _fit_block(disp_pad, col_planes, sm_pad, ys, xs, oy, ox, centre_col, kappa2):
     """Weighted robust plane at each (ys, xs) (padded coordinates) from the samples at offsets (oy, ox):
-    (prediction px, sigma px, support). `sm_pad`: the matched pixels' disparity noise (px), padded alike. A pixel
+    (prediction px, sigma px, support). `col_planes`: the padded image's channels, each flattened (int16);
+    `sm_pad`: the matched pixels' disparity noise (px), padded as `disp_pad`. A pixel
     whose colour weights alone (before the biweight, which only lowers them) miss MIN_SUPPORT or MIN_SIDE_SUPPORT
     is not fitted (NaN, inf, 0: it could not be filled), so the fits are spent on pixels that can be."""
     width = disp_pad.shape[1]
     flat = (ys[:, None] + oy) * width + (xs[:, None] + ox)  # (n, k) indices into the padded maps
     d = disp_pad.ravel()[flat]  # (n, k) float32
-    c = col_pad.reshape(-1, col_pad.shape[2])[flat]  # (n, k, ch) int16
     ok = np.isfinite(d)
-    w0 = _colour_weights(c.shape[2])[np.abs(c - centre_col[:, None, :]).sum(axis=2)] * ok
+    difference = np.zeros(flat.shape, np.int16)  # summed |colour difference| to the centre, channel by channel
+    for ch, plane in enumerate(col_planes):
+        difference += np.abs(plane[flat] - centre_col[:, ch, None])
+    w0 = _colour_weights(len(col_planes))[difference] * ok
     side_masks = np.stack([ox < 0, ox > 0, oy < 0, oy > 0], axis=1).astype(np.float32)
     can = (w0.sum(axis=1) >= MIN_SUPPORT) & ((w0 @ side_masks).min(axis=1) >= MIN_SIDE_SUPPORT)
     pred, sigma, support = np.full(len(ys), np.nan), np.full(len(ys), np.inf), np.zeros(len(ys))
@@ -185,14 +188,14 @@ def _predict(disparity: np.ndarray, cols: np.ndarray, matched_sigma: np.ndarray,
         keep = (oy != 0) | (ox != 0)
         oy, ox = oy[keep], ox[keep]
         disp_pad = np.pad(disparity.astype(np.float32), half, constant_values=np.nan)
-        col_pad = np.pad(cols, ((half, half), (half, half), (0, 0)), mode="edge")
+        col_planes = [np.pad(cols[..., ch], half, mode="edge").ravel() for ch in range(cols.shape[2])]
         sm_pad = np.pad(matched_sigma.astype(np.float32), half, constant_values=np.nan)
         taken = np.zeros(len(ys), bool)
         for start in range(0, len(tried), CHUNK):
             i = tried[start:start + CHUNK]
             y, x = ys[i], xs[i]
             with np.errstate(invalid="ignore", divide="ignore"):  # an empty window: NaN sigma, never accepted
-                p, sig, support = _fit_block(disp_pad, col_pad, sm_pad, y + half, x + half, oy, ox, cols[y, x],
+                p, sig, support = _fit_block(disp_pad, col_planes, sm_pad, y + half, x + half, oy, ox, cols[y, x],
                                              kappa2)
             good = (sig <= max_sigma) & (support >= MIN_SUPPORT)
             pred[i[good]], sigma[i[good]] = p[good], sig[good]
