@@ -114,7 +114,8 @@ def test_no_fill_and_intensity_cost_is_the_matching_before_issue_30(sphere_rig):
     from dstereo.stereo.disparity import SGBMParams
 
     direct = compute_disparity(grey(plain.left_rect), grey(plain.right_rect), SGBMParams(**params))
-    assert plain.filled is None and plain.summary["fill"] == {"enabled": False, "filled_pixels": 0}
+    assert plain.filled is None and plain.summary["fill"] == {"enabled": False, "why": "given (--no-fill)",
+                                                              "filled_pixels": 0}
     had = np.isfinite(plain.disparity)
     assert np.array_equal(plain.disparity[had], direct[had])
     # the pipeline also drops the rectified border whose source lies outside the image (a band of a few px)
