@@ -289,10 +289,11 @@ def fill_wanted(config, summary: dict) -> tuple[bool, str]:
     """(fill?, why) for `config.fill`: True / False as given (`--fill` / `--no-fill`); None (the default): fill the
     rank cost's maps (`summary['search_range']['matching_cost']`), not the grey levels'. Why, measured on the five
     shared Middlebury scenes as they are and relit (experiments/results/middlebury_lighting.md): the rank cost
-    leaves weak texture unmatched (density 73-91 % against 82-96 % on the grey levels) with its holes bounded by
-    right matches, and the fill's sigma holds there (observed / predicted 0.81-1.36); the grey levels' holes
-    border their own false matches (a blank wall, SGBM's fattening at occlusions), which no window sees: filled,
-    observed / predicted up to 4.7 (Piano) even from the pixels both costs agree on, so they are left empty."""
+    leaves weak texture unmatched (density 73-91 %, the grey levels 81-96 %) with its holes bounded by right
+    matches, and the fill's sigma holds there (observed / predicted 0.71-1.36 on all 10 rows); the grey levels'
+    holes border their own false matches (a blank wall, SGBM's fattening at occlusions), which no window sees:
+    filled, observed / predicted 0.83-5.97 (Piano 5.97, Pipes 4.33), and still 1.2-3.9 when filled from only the
+    pixels both costs agree on, so they are left empty."""
     if config.fill is not None:
         return bool(config.fill), "given (--fill)" if config.fill else "given (--no-fill)"
     cost = ((summary.get("search_range") or {}).get("matching_cost") or {}).get("cost")
