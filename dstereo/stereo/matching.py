@@ -95,7 +95,7 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
         ra, rb = rank_transform(grey(left_rect)), rank_transform(grey(right_rect))
         other = sgbm_disparity(ra, rb, kept.params, Q, True)
         other[outside] = np.nan
-        disparity, cost["cross_check"] = cross_checked(disparity, other, ~outside)
+        disparity, cost["cross_check"] = cross_checked(disparity, other, ~outside, kept.params.speckle_window_size)
     if kept.sat.saturated:
         warnings.append(sr.saturation_warning(name, kept.rng, kept.sat, Q) + refusal_note(matcher, kept))
     summary = kept.rng.as_dict(Q) | {
