@@ -31,3 +31,31 @@ def search_range_tries(search: dict | None) -> list[str]:
         lines.append(f"try {t['min_disparity']}..{t['max_disparity']} px: {100 * t['valid_share']:.1f}% valid{lr_text}"
                      f" ({t['verdict']})")
     return lines
+
+
+def matching_cost_lines(search: dict | None) -> list[str]:
+    """Console lines for summary['search_range']['matching_cost']: the cost SGBM matched and why (with its figure),
+    and what the rank cost's check dropped (`dstereo.stereo.cost_check`)."""
+    cost = (search or {}).get("matching_cost")
+    if not cost:
+        return []
+    lines = [f"matching cost: {cost['cost']} ({cost['why']})"]
+    check = cost.get("cross_check")
+    if check:
+        lines.append(f"rank check: {100 * check['disagree_share']:.1f}% of the pixels disagree by more than "
+                     f"{check['agreement_px']:g} px; {100 * check['dropped_share']:.1f}% dropped in regions where most "
+                     f"disagree ({check['region_px']} px windows), {100 * check['kept_share']:.1f}% kept")
+    return lines
+
+
+def fill_line(fill: dict | None) -> str | None:
+    """One console line for summary['fill']: whether the fill ran and why, and what it filled."""
+    if not fill or "why" not in fill:
+        return None
+    if not fill.get("enabled"):
+        return f"fill: off, {fill['why']}"
+    total = fill.get("filled_points", 0) + fill.get("matched_points", 0)
+    sigma = fill.get("sigma_px")
+    what = (f"{fill.get('filled_points', 0)} of {total} points filled (flag `filled`)" if total else
+            f"{fill['filled_pixels']} pixels filled")
+    return (f"fill: on, {fill['why']}: {what}" + (f", sigma_d median {sigma['median']:.3g} px" if sigma else ""))

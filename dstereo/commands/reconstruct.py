@@ -48,7 +48,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     force: bool = RECONSTRUCT.option("force", False),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
-    from dstereo.commands.matching_options import search_range_line, search_range_tries
+    from dstereo.commands.matching_options import (fill_line, matching_cost_lines, search_range_line,
+                                                   search_range_tries)
     from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
     from dstereo.jobs.reconstruct import run_reconstruction
@@ -104,11 +105,10 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
             typer.echo(f"    {line}")
         if s.get("refine", {}).get("enabled"):
             typer.echo(f"  sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f}% of SGBM's pixels dropped")
-        fill_done = s.get("fill") or {}
-        if fill_done.get("filled_points"):
-            total = fill_done["filled_points"] + fill_done["matched_points"]
-            typer.echo(f"  fill: {fill_done['filled_points']} of {total} points filled (flag `filled`), sigma_d "
-                       f"median {fill_done['sigma_px']['median']:.3g} px")
+        for line in matching_cost_lines(s.get("search_range")):
+            typer.echo(f"  {line}")
+        if (line := fill_line(s.get("fill"))) is not None:
+            typer.echo(f"  {line}")
         unc = s.get("uncertainty") or {}
         if unc.get("sigma_z_mm"):
             split = unc["median_point"]

@@ -23,9 +23,10 @@ class ReconstructionConfig:
     2.6x, but on Middlebury 2014 (slanted, occluding, real images) it drops 4-10 % of the pixels and does not
     improve the good ones (experiments/results/middlebury.md). matching_cost: 'rank' (SGBM on the rank transform:
     survives a lighting change between the views), 'intensity' (on the grey levels, as before issue 30) or 'auto'
-    (default: rank where the views' grey levels differ, `stereo.matching.LIGHTING_MISMATCH`). fill:
-    unmatched pixels filled by an edge-aware plane fit where its sigma is at most fill_max_sigma px, each
-    carrying its own sigma and the flag `filled` (`dstereo.stereo.fill`); fill=False leaves them empty.
+    (default: rank where the views' grey levels differ, `stereo.matching.LIGHTING_MISMATCH`; else the grey levels
+    checked by the rank cost, `stereo.cost_check`). fill: unmatched pixels filled by an edge-aware plane fit where
+    its sigma is at most fill_max_sigma px, each carrying its own sigma and the flag `filled` (`dstereo.stereo.fill`);
+    False leaves them empty, None (default) fills the rank cost's maps only (`stereo.fill.fill_wanted`).
     """
 
     sgbm: SGBMParams = PRESETS["default"]
@@ -38,13 +39,9 @@ class ReconstructionConfig:
     undistort: str = "opencv"
     color_matching: bool = False
     matching_cost: str = "auto"  # auto | rank | intensity (`dstereo.stereo.matching.chosen_cost`)
-    # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged. Off by default: with the
-    # grey-level cost that auto takes for views lit alike, a fill extends SGBM's own false matches around its holes
-    # (Middlebury Piano, Pipes as they are: observed / predicted 6.6 / 4.4, experiments/results/middlebury_lighting.md),
-    # it costs 6-97 s per quarter-size Middlebury pair on the shared machine (SGBM 0.1-1.3 s), and the earlier fill
-    # added 10-14 % of points beyond the demo's and the sphere reference's samples; with `--cost rank` its sigma
-    # holds (observed / predicted 0.71-1.36 on all 10 Middlebury rows)
-    fill: bool = False
+    # fill unmatched pixels where the fit is confident (`dstereo.stereo.fill`), flagged: True / False force it; None
+    # (the default) fills the rank cost's maps and not the grey levels' (`stereo.fill.fill_wanted`: the measured why)
+    fill: bool | None = None
     fill_max_sigma: float = 0.7  # px: a pixel whose fill sigma would exceed this stays unmatched (`stereo.fill`: why)
     roi: tuple[int, int, int, int] | None = None
     outlier_neighbours: int = 0

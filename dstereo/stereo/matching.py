@@ -87,6 +87,15 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
         warnings.append(f"{name}: disparity search range {rng.min_disparity}..{rng.max_disparity} px is the default "
                         f"({rng.detail}); set --z-min/--z-max to the scene's depth range")
     kept = search(matcher, rng)
+    disparity = kept.disparity
+    if cost.get("checked_by") == "rank":  # views lit alike: the grey levels' map checked by the rank cost's
+        from dstereo.stereo.cost_check import cross_checked
+        from dstereo.stereo.rank_transform import rank_transform
+
+        ra, rb = rank_transform(grey(left_rect)), rank_transform(grey(right_rect))
+        other = sgbm_disparity(ra, rb, kept.params, Q, True)
+        other[outside] = np.nan
+        disparity, cost["cross_check"] = cross_checked(disparity, other, ~outside, kept.params.speckle_window_size)
     if kept.sat.saturated:
         warnings.append(sr.saturation_warning(name, kept.rng, kept.sat, Q) + refusal_note(matcher, kept))
     summary = kept.rng.as_dict(Q) | {
@@ -97,7 +106,7 @@ def match_in_range(name: str, left_rect, right_rect, config: ReconstructionConfi
                   "consistent = the right image's map agrees within 1 px (measured only when a widening is tried)"}
     if kept.rng.user:
         summary["sparse_check"] = _sparse_check(name, kept.rng, left_rect, right_rect, matcher.sign, Q, warnings)
-    return kept.disparity, kept.params, summary, warnings
+    return disparity, kept.params, summary, warnings
 
 
 def _sparse_check(name: str, rng, left_rect, right_rect, sign: float, Q: np.ndarray, warnings: list) -> dict:
@@ -140,18 +149,22 @@ def lighting_mismatch(left, right) -> float:
 
 
 def chosen_cost(left, right, config: ReconstructionConfig) -> dict:
-    """{'cost': 'rank' | 'intensity', 'why': ...} for `matching_cost` ('auto': by `lighting_mismatch`)."""
+    """{'cost': 'rank' | 'intensity', 'why': ...} for `matching_cost` ('auto': by `lighting_mismatch`; where it
+    takes the grey levels, also 'checked_by': 'rank': `match_in_range` drops the regions where SGBM on the rank
+    transforms mostly disagrees, `dstereo.stereo.cost_check`)."""
     if config.matching_cost not in MATCHING_COSTS:
         raise DstereoError(f"`matching_cost` {config.matching_cost!r}: use one of {list(MATCHING_COSTS)}")
     if config.matching_cost != "auto":
         return {"cost": config.matching_cost, "why": "given"}
     gap = lighting_mismatch(left, right)
-    cost = "rank" if gap > LIGHTING_MISMATCH else "intensity"
-    return {"cost": cost, "lighting_mismatch": gap, "why": (
-        f"the views' brightness or contrast differ (|log ratio| {gap:.3f} > {LIGHTING_MISMATCH:g}: lit or exposed "
-        "differently): SGBM on their rank transforms" if cost == "rank" else
+    if gap > LIGHTING_MISMATCH:
+        return {"cost": "rank", "lighting_mismatch": gap, "why": (
+            f"the views' brightness or contrast differ (|log ratio| {gap:.3f} > {LIGHTING_MISMATCH:g}: lit or "
+            "exposed differently): SGBM on their rank transforms")}
+    return {"cost": "intensity", "checked_by": "rank", "lighting_mismatch": gap, "why": (
         f"the views' brightness and contrast agree (|log ratio| {gap:.3f} <= {LIGHTING_MISMATCH:g}): SGBM on the "
-        "grey levels, the more precise cost for views lit alike")}
+        "grey levels, the more precise cost for views lit alike, checked by SGBM on the rank transforms (regions "
+        "where the two mostly disagree dropped: dstereo.stereo.cost_check)")}
 
 
 def matched_images(left, right, config: ReconstructionConfig, cost: str | None = None):

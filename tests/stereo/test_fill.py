@@ -28,7 +28,7 @@ from dstereo.synth.texture import Speckle
 W, H, F, B = 320, 240, 400.0, 60.0
 MAD_TO_STD = 1.4826
 TODAY = ReconstructionConfig(matching_cost="intensity", fill=False, uncertainty=False)
-NEW = ReconstructionConfig(uncertainty=False, fill=True)  # the fill is asked for (off by default)
+NEW = ReconstructionConfig(uncertainty=False, fill=True)  # the fill forced on (by default it runs on rank-cost maps)
 
 
 def relit(image: np.ndarray, gain: float, gamma: float) -> np.ndarray:
@@ -114,7 +114,8 @@ def test_no_fill_and_intensity_cost_is_the_matching_before_issue_30(sphere_rig):
     from dstereo.stereo.disparity import SGBMParams
 
     direct = compute_disparity(grey(plain.left_rect), grey(plain.right_rect), SGBMParams(**params))
-    assert plain.filled is None and plain.summary["fill"] == {"enabled": False, "filled_pixels": 0}
+    assert plain.filled is None and plain.summary["fill"] == {"enabled": False, "why": "given (--no-fill)",
+                                                              "filled_pixels": 0}
     had = np.isfinite(plain.disparity)
     assert np.array_equal(plain.disparity[had], direct[had])
     # the pipeline also drops the rectified border whose source lies outside the image (a band of a few px)
@@ -230,14 +231,17 @@ def test_filled_points_are_flagged_and_carry_their_own_sigma(sphere_rig, tmp_pat
 
 @pytest.mark.parametrize("scene", ["Piano"])
 def test_middlebury_relit_right_view(scene):
-    """Piano with its right view relit (gain 0.7, gamma 1.3), `--fill` (the cost auto takes the rank transform
-    here): median <= 1 %, p90 <= 5 %, density >= 80 % (the grey-level cost without fill: p90 54 % measured); the
-    filled pixels' error scatter within 0.67..1.5 x their predicted sigma (measured: density 81.2 %, obs / pred
-    1.36)."""
+    """Piano with its right view relit (gain 0.7, gamma 1.3), no flags (the cost auto takes the rank transform
+    here, and so the fill runs): median <= 1 %, p90 <= 5 %, density >= 80 % (the grey-level cost without fill: p90
+    54 % measured; the rank cost without fill: density 73.0 %); the filled pixels' error scatter within 0.67..1.5 x
+    their predicted sigma (measured: density 81.2 %, obs / pred 1.36)."""
     folder = require_data("middlebury2014q") / scene
     calib = read_middlebury_calib(folder / "calib.txt")
     right = relit(read_image(folder / "im1.png"), 0.7, 1.3)
-    result = reconstruct_calibrated(calib, read_image(folder / "im0.png"), right, NEW, scene)
+    result = reconstruct_calibrated(calib, read_image(folder / "im0.png"), right,
+                                    ReconstructionConfig(uncertainty=False), scene)
+    assert result.summary["search_range"]["matching_cost"]["cost"] == "rank"
+    assert result.summary["fill"]["enabled"] and result.summary["fill"]["why"].startswith("auto")
     gt = read_pfm(folder / "disp0GT.pfm").astype(float)
     nocc = (cv2.imread(str(folder / "mask0nocc.png"), cv2.IMREAD_GRAYSCALE) == 255) & np.isfinite(gt)
     z_gt = calib.K1[0, 0] * calib.baseline / (gt + calib.extras["doffs"])
@@ -261,6 +265,7 @@ def test_auto_cost_takes_the_rank_transform_only_where_the_views_are_lit_differe
     calib, left, right, depth = sphere_rig
     alike, relit_ = chosen_cost(left, right, NEW), chosen_cost(left, relit(right, 0.7, 1.3), NEW)
     assert alike["cost"] == "intensity" and relit_["cost"] == "rank", (alike, relit_)
+    assert alike["checked_by"] == "rank" and "checked_by" not in relit_  # the grey levels get the rank cost's check
     assert lighting_mismatch(left, right) < LIGHTING_MISMATCH / 3 < 3 * LIGHTING_MISMATCH < \
         lighting_mismatch(left, relit(right, 0.7, 1.3))  # far from the line on either side
     assert chosen_cost(left, right, replace(NEW, matching_cost="rank"))["cost"] == "rank"  # a given cost is kept
