@@ -139,7 +139,7 @@ def _check(obj, obs, visible, image_sizes) -> None:
 
 
 def _own_poses(cam: Camera, obj, obs_k, own_poses=None) -> np.ndarray:
-    from dstereo.calib.stereo import board_poses
+    from dstereo.calib.board_poses import board_poses
 
     return own_poses if own_poses is not None else board_poses(cam, obj, obs_k)
 
