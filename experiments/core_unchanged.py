@@ -30,7 +30,6 @@ def measure(out: Path) -> None:
     from dstereo.calib.multiview import calibrate_views, solve_view_subsets
     from dstereo.calib.rig_subsets import STEP_COLUMNS, subset_table
     from dstereo.calib.subsets import plan_subsets
-    from dstereo.models.camera import Camera
     from dstereo.models.distortion import PRESETS
 
     print("dstereo from", Path(dstereo.__file__).parent)
@@ -52,8 +51,7 @@ def measure(out: Path) -> None:
                 res[f"std:{key}.subsets{m}"] = sub.std
                 res[f"dof:{key}.subsets{m}"] = np.array([2 * m * d.object_points.shape[0] - sub.values.shape[1] - 6 * m])
             if model == "default":
-                cams[(folder, prefix)] = (Camera.create(*map(float, full.values[:4]), full.coeffs, full.free,
-                                                        full.image_size), d, names)
+                cams[(folder, prefix)] = (full.camera(), d, names)
     for folder in ("opencv_stereo", "rig640"):
         (left, dl, nl), (right, dr, nr) = cams[(folder, "left")], cams[(folder, "right")]
         common = sorted(set(n.replace("left", "") for n in nl) & set(n.replace("right", "") for n in nr))

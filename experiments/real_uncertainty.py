@@ -83,13 +83,12 @@ def stereo_study(pairs, mode: str, cap: int, boot: int) -> dict:
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.multiview import calibrate_views, solve_view_subsets
     from dstereo.calib.subsets import plan_subsets
-    from dstereo.models.camera import Camera
 
     obj, obs, sizes = pairs
     n = len(obs)
     m = n - 3
     sols = [calibrate_full(obj, obs[:, k], sizes[k], FREE) for k in range(2)]
-    cams = [Camera.create(*map(float, s.values[:4]), s.coeffs, s.free, s.image_size) for s in sols]
+    cams = [s.camera() for s in sols]
     vis = np.ones((n, 2), bool)
     full = calibrate_views(obj, obs, vis, sizes, mode=mode, cameras=cams)
     plan = plan_subsets(n, m, cap=cap, seed=0)

@@ -19,7 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.calib.final_solution import surviving_views
-from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, as_solved, solve_view_subsets
+from dstereo.calib.multiview import MultiviewSolution, as_solved, solve_view_subsets
+from dstereo.calib.subsets import SubsetSolutions
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
 from dstereo.calib.robust_steps import FilterResult, run_steps
 from dstereo.config.steps import Step, is_absolute
@@ -58,7 +59,7 @@ def _relative(values: np.ndarray, k: int, a: int, b: int) -> tuple[np.ndarray, n
     return rotation_vectors(r.as_matrix()), ext[:, b, 3:] - r.apply(ext[:, a, 3:])  # the one rotation log
 
 
-def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:
+def _pair_rms(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:
     """(C, P) each pair's stereo_re in every subset (module docstring); held-sag columns are not parameters."""
     k, n = obs.shape[1], obs.shape[2]
     sag = start.board_sag
@@ -84,7 +85,7 @@ def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs
     return np.concatenate(out)
 
 
-def subset_table(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs, visible, inliers,
+def subset_table(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, visible, inliers,
                  pairs) -> np.ndarray:
     """(C, 9 P) the stereo columns of every pair in `column_names` order."""
     k = visible.shape[1]

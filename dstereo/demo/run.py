@@ -102,12 +102,12 @@ def thesis_config(board: dict, settings: DemoSettings, seed: int):
 def calibrate_thesis(images: Path, folder: Path, board: dict, settings: DemoSettings, seed: int, report):
     """`dstereo calibrate`'s stereo job on images/images_left + images_right; writes its results folder."""
     from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
-    from dstereo.io.cameras_files import write_multiview_results
+    from dstereo.io.cameras_files import write_results
 
     config = thesis_config(board, settings, seed)
     job = calibrate_stereo_project(stereo_sources(images, config), config, progress=report, use_cache=False)
     report("write calibration", 0, 1)
-    write_multiview_results(folder, job)
+    write_results(folder, job)
     return job
 
 

@@ -214,7 +214,6 @@ def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
     from conftest import require_data
     from dstereo.calib.multiview import calibrate_views
     from dstereo.io.corners import detect_folder
-    from dstereo.models.camera import Camera
 
     root = require_data("opencv_stereo")
     dets = [detect_folder(root, (9, 6), 1.0, files=sorted(root.glob(f"{s}*.jpg"))) for s in ("left", "right")]
@@ -223,7 +222,7 @@ def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
     obs_r = np.stack([dets[1].corners["right" + n] for n in common])
     obj = dets[0].object_points
     sols = [mono.calibrate_full(obj, o, (640, 480), FIVE) for o in (obs_l, obs_r)]
-    cams = [Camera.create(*map(float, m.values[:4]), m.coeffs, m.free, m.image_size) for m in sols]
+    cams = [m.camera() for m in sols]
     every = np.ones((len(common), 2), bool)
 
     def calibrate_stereo(left, right, inliers=None):  # the rig of two cameras held at their own calibrations

@@ -70,7 +70,7 @@ def _real(name: str):
         for det in dets:
             names = [n for n in det.names if n in det.corners]
             m = calibrate_full(det.object_points, np.stack([det.corners[n] for n in names]), det.image_size)
-            cams.append(Camera.create(*map(float, m.values[:4]), m.coeffs, m.free, m.image_size))
+            cams.append(m.camera())
         pairs = [(a.name, b.name) for a, b in pair_by_name(left, right).pairs
                  if a.name in dets[0].corners and b.name in dets[1].corners]
         obs = np.stack([np.stack([dets[0].corners[a], dets[1].corners[b]]) for a, b in pairs])
