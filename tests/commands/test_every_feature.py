@@ -2,7 +2,7 @@
 stereo rig (K = 2) and three cameras (K = 3) on one small render (issue 29): each built cell must show its output,
 present and sane, and no run may answer "not available"; a cell that is a refusal must be refused with the table's
 own line. The render is the K = 3 ring rig of `synth.multiview` (different cameras, one hung upside down), 16 frames,
-one of which the two non-reference cameras exposed with the board moved 2 mm (a frame the rig cannot explain).
+one of which the two non-reference cameras exposed with the board moved 1 mm (a frame the rig cannot explain).
 
 Seven runs in all (each in a process of its own, as `dstereo calibrate` runs: --model auto compiles a program per
 candidate lens and camera, which would stay in the suite's process): per kind of rig, (a) the defaults (outlier
@@ -23,9 +23,12 @@ import pytest
 from conftest import release_compiled_programs
 from dstereo.config.capabilities import CAPABILITIES, KINDS, RIGHT_LENS, SPLINED, NotApplicable, refusal
 
-FRAMES, MOVED_MM, SEED = 16, 2.0, 3
+# 12 frames, one exposed 1 mm away by the cameras but the reference: on exact corners with 0.03 px of noise the
+# rig of two then removes it and is consistent after (3 of 3 seeds; 10 frames at 2 mm: 2 of 3)
+FRAMES, MOVED_MM, SEED = 12, 1.0, 3
 BOARD = ("--pattern", "9x6", "--square", "20")
-SUBSETS = ("--per-set", "6", "--max-subsets", "8")
+PER_SET, SUBSETS = 5, 4
+SUBSET_FLAGS = ("--per-set", str(PER_SET), "--max-subsets", str(SUBSETS))
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +61,7 @@ def _cli(*args) -> tuple[int, str]:
     release_compiled_programs()
     env = dict(os.environ, DSTEREO_SERVE="0")
     done = subprocess.run([sys.executable, "-m", "dstereo.cli", "calibrate", *map(str, args)], env=env,
-                          capture_output=True, text=True, timeout=900)
+                          capture_output=True, text=True, timeout=1800)
     return done.returncode, done.stdout + done.stderr
 
 
@@ -94,9 +97,9 @@ def runs(rig, tmp_path_factory):
     for kind in KINDS:
         stereo_steps = () if kind == "one camera" else ("--step", "stereo_re=3")
         fisheye = ("--model-right", "fisheye") if kind == "--left/--right" else ("--model", "fisheye")
-        for name, extra in (("a", (*SUBSETS, "--step", "re=2", *stereo_steps, "--cross-validate", "4",
+        for name, extra in (("a", (*SUBSET_FLAGS, "--step", "re=2", *stereo_steps, "--cross-validate", "2",
                                    "--model", "auto")),
-                            ("b", (*fisheye, *SUBSETS, "--final", "mean", "--no-board-sag"))):
+                            ("b", (*fisheye, *SUBSET_FLAGS, "--final", "mean", "--no-board-sag"))):
             folder = out / f"{KINDS.index(kind)}{name}"
             code, text = _cli(*_sources(kind, root), *BOARD, *extra, "--out", folder, "-q")
             assert code == 0, (kind, name, text)
@@ -113,15 +116,15 @@ def runs(rig, tmp_path_factory):
 def _subsets_and_camera_steps(runs, kind, rig):
     for summary in runs[kind, "a"].summaries().values():
         sub = summary["subsets"]
-        assert sub["per_set"] == 6 and sub["solved"] == 8 and 0 < sub["final_count"] <= 8, sub
-        assert sub["steps"] and "re" in json.dumps(sub["steps"][0]), sub["steps"]
+        assert sub["per_set"] == PER_SET and sub["solved"] == SUBSETS and 0 < sub["final_count"] <= SUBSETS, sub
+        assert sub["steps"][0]["parameters"] == ["re"] and sub["steps"][0]["max_error"] == [2.0], sub["steps"]
     for folder in runs[kind, "a"].cameras.values():
         assert (folder / "subsets.csv").is_file() and any((folder / "stats").iterdir())
 
 
 def _stereo_steps(runs, kind, rig):
     rs = runs[kind, "a"].rig["rig_subsets"]
-    assert rs["subsets"] == 8 and rs["usable"] >= 1 and rs["steps"][0].startswith("step 1 (stereo_re@"), rs
+    assert rs["subsets"] == SUBSETS and rs["usable"] >= 1 and rs["steps"][0].startswith("step 1 (stereo_re@"), rs
     assert (runs[kind, "a"].out / "rig_subsets.csv").is_file()
 
 
@@ -151,11 +154,11 @@ def _cross_validation(runs, kind, rig):
     run = runs[kind, "a"]
     if run.rig is None:
         cv = run.summaries()["."]["cross_validation"]
-        assert cv["splits"] == 4 and (run.out / "cross_validation.npz").is_file(), cv
+        assert cv["splits"] == 2 and (run.out / "cross_validation.npz").is_file(), cv
         assert 0.2 < cv["ratio_geometric_mean"] < 5, cv  # predicted against observed: the same order
     else:
         cv = run.rig["rig_cross_validation"]
-        assert cv["splits"] == 4 and "trusted" in cv, cv
+        assert cv["splits"] == 2 and "trusted" in cv, cv
 
 
 def _model_auto(runs, kind, rig):
