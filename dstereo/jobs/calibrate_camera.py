@@ -142,7 +142,10 @@ def calibrate_camera(
     from dstereo.calib.subset_solve import gathers
 
     alone = plan is None or gathers(plan.per_set, len(used), len(plan))
-    full = choice.chosen_candidate.solution if choice is not None else \
+    # --model auto compares the candidates on a flat board; the chosen one is solved again with the board's sag when
+    # that is asked (the default): before, its flat solve was kept and the sag silently dropped (found by
+    # tests/commands/test_every_feature.py)
+    full = choice.chosen_candidate.solution if choice is not None and not config.board_sag else \
         calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model), board_warp=config.board_sag,
                        alone=alone)
     if progress is not None:

@@ -238,7 +238,9 @@ def _stereo_files(runs, kind, rig):
     for name in run.rig["stereo_files"]:
         extras = read_stereo_calibration(run.out / name).extras
         cov = extras["cov"]
-        assert "left.fx" in extras["cov_names"] and cov.shape[0] > 6 and np.all(np.linalg.eigvalsh(cov) > 0)
+        # both cameras' intrinsics and the pair's rig, with a positive variance each
+        assert "left.fx" in extras["cov_names"] and "right.fx" in extras["cov_names"], extras["cov_names"]
+        assert cov.shape[0] > 6 and np.allclose(cov, cov.T) and np.all(np.diag(cov) > 0)
 
 
 REQUEST = {SPLINED: ("--model", "splined"), RIGHT_LENS: ("--model-right", "fisheye")}  # a refused cell's flags
