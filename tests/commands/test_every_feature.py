@@ -229,7 +229,7 @@ def _frame_rejection(runs, kind, rig):
     """The moved frame is the one the consistency test finds worst, and the rule takes it out of the rig: it leaves,
     or, where the other frames still read inconsistent without it, it was taken out in a round and every frame kept
     (the rule's own note; rendered rigs read T/c 1.5-3.3 in 6 of 20 simultaneous takes, docs/validation.md "Frame
-    rejection", and these renders did: 12 frames, the moved one 60000 of 6 dof)."""
+    rejection", and these renders did: 12 frames, the moved one ~60000 of its 6 dof)."""
     _, moved = rig
     c = runs[kind, "a"].rig["rig_consistency"]
     assert c["worst_frames"][0]["frame"] == moved, c["worst_frames"][:3]
