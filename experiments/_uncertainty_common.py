@@ -112,11 +112,18 @@ def real_views(name: str, side: str):
 
 
 def real_pairs(name: str):
-    """StereoDetection of the pairs of ../shared/data/<name> (square = 1)."""
-    from dstereo.io.stereo_files import detect_pairs
+    """(obj, obs (V, 2, n, 2), [left size, right size]) of the pairs of ../shared/data/<name> (square = 1): the
+    images paired by name, the pairs where both cameras found the board."""
+    from dstereo.io.corners import detect_folder
+    from dstereo.io.pairing import pair_by_name
 
     folder = DATA / name
-    return detect_pairs(sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg")), PATTERN, 1.0)
+    left, right = sorted(folder.glob("left*.jpg")), sorted(folder.glob("right*.jpg"))
+    dets = [detect_folder(folder, PATTERN, 1.0, files=files) for files in (left, right)]
+    pairs = [(a.name, b.name) for a, b in pair_by_name(left, right).pairs
+             if a.name in dets[0].corners and b.name in dets[1].corners]
+    obs = np.stack([np.stack([dets[0].corners[a], dets[1].corners[b]]) for a, b in pairs])
+    return dets[0].object_points, obs, [dets[0].image_size, dets[1].image_size]
 
 
 # --- spreads and their scalings -----------------------------------------------------------------------------------
@@ -166,7 +173,7 @@ def sandwich_std(sol, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
 
 
 def solve_subsets_safe(solver, *args, chunk: int | None = None):
-    """`solver(*args)` (mono.solve_subsets or stereo.solve_stereo_subsets) on one thread and, where the engine
+    """`solver(*args)` (mono.solve_subsets or multiview.solve_view_subsets) on one thread and, where the engine
     version still takes it, with `chunk` subsets per call. jaxlib 0.10.2's CPU runtime deadlocked (0 % CPU for
     minutes) on rig640 (25 views, m = 22) when the reworked mono solver ran two chunks on two threads, and with
     the older solver at 32 subsets x 22-25 views per call; one thread, and 16 per call, ran through."""

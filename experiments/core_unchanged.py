@@ -27,8 +27,8 @@ def _views(folder, prefix, ext):
 def measure(out: Path) -> None:
     import dstereo
     from dstereo.calib import mono
-    from dstereo.calib import stereo as st
-    from dstereo.calib.stereo import camera_from_solution
+    from dstereo.calib.multiview import calibrate_views, solve_view_subsets
+    from dstereo.calib.rig_subsets import STEP_COLUMNS, subset_table
     from dstereo.calib.subsets import plan_subsets
     from dstereo.models.distortion import PRESETS
 
@@ -51,21 +51,23 @@ def measure(out: Path) -> None:
                 res[f"std:{key}.subsets{m}"] = sub.std
                 res[f"dof:{key}.subsets{m}"] = np.array([2 * m * d.object_points.shape[0] - sub.values.shape[1] - 6 * m])
             if model == "default":
-                cams[(folder, prefix)] = (camera_from_solution(full), d, names)
+                cams[(folder, prefix)] = (full.camera(), d, names)
     for folder in ("opencv_stereo", "rig640"):
         (left, dl, nl), (right, dr, nr) = cams[(folder, "left")], cams[(folder, "right")]
         common = sorted(set(n.replace("left", "") for n in nl) & set(n.replace("right", "") for n in nr))
-        ql = np.stack([dl.corners["left" + c] for c in common])
-        qr = np.stack([dr.corners["right" + c] for c in common])
-        for mode in ("fixed", "joint"):
-            sol = st.calibrate_stereo(dl.object_points, ql, qr, left, right, mode)
+        obs = np.stack([np.stack([dl.corners["left" + c], dr.corners["right" + c]]) for c in common])
+        vis = np.ones(obs.shape[:2], bool)
+        for mode in ("fixed", "joint"):  # the K = 2 rig (calib/multiview.py), which --left/--right runs
+            sol = calibrate_views(dl.object_points, obs, vis, [dl.image_size, dr.image_size], mode=mode,
+                                  cameras=[left, right])
             res[f"{folder}.stereo.{mode}"] = sol.values
             res[f"{folder}.stereo.{mode}.rms"] = np.array([sol.rms])
             for m in (4, len(common) - 3):
                 plan = plan_subsets(len(common), m, cap=40, seed=0)
-                sub = st.solve_stereo_subsets(dl.object_points, ql, qr, plan, sol)
+                sub = solve_view_subsets(dl.object_points, obs, vis, plan.index, sol)
+                table = subset_table(sub, sol, dl.object_points, obs, vis, None, [(0, 1)])
                 res[f"{folder}.stereo.{mode}.subsets{m}"] = sub.values
-                res[f"{folder}.stereo.{mode}.subsets{m}.re"] = sub.stereo_re
+                res[f"{folder}.stereo.{mode}.subsets{m}.re"] = table[:, STEP_COLUMNS.index("stereo_re")]
                 res[f"std:{folder}.stereo.{mode}.subsets{m}"] = sub.std
                 res[f"dof:{folder}.stereo.{mode}.subsets{m}"] = np.array([4 * m * dl.object_points.shape[0]
                                                                           - sub.values.shape[1] - 6 * m])

@@ -1,5 +1,6 @@
 """Does a code move change any result a user sees? Runs the commands on the shared real rig (one camera, the
-stereo rig with subsets, the same rig as `--cameras`, a reconstruction from its stereo.yml) in the checkout it is
+stereo rig with subsets, the same rig as `--cameras`, a reconstruction from its stereo.yml; one camera with subsets,
+steps and cross-validation on rig640's left, opencv_stereo's left and fisheye640) in the checkout it is
 started from, then compares two such runs file by file: every number in the JSON, YAML, CSV and text files and
 every array in the .npz and .ply files, timings and paths left out.
 
@@ -21,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "rig640"
+OTHER = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = OTHER / "rig640"
 LIMIT = 1e-9  # relative; rounding between two builds of one computation is ~1e-12, a changed result >= 1e-6
 SKIP_WORDS = ("time", "second", "elapsed", "date", "version", "/", "took", "host", "cpu", "thread", "pid")
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
@@ -46,6 +48,15 @@ def run(out: Path) -> None:
             (cams / label / f.name.replace(side, "frame")).symlink_to(f.resolve())
     board = ("--pattern", "9x6", "--square", "10")
     _cli("calibrate", "--images", str(DATA), "--glob", "left*.jpg", *board, "--out", str(out / "one"), "-q")
+    # one camera with every stage: subsets, steps, the survivors' solve, cross-validation (rig640, opencv_stereo's
+    # left camera, the fisheye640 lens)
+    steps = ("--step", "re=1", "--step", "fx=1.5,fy=1.5")
+    _cli("calibrate", "--images", str(DATA), "--glob", "left*.jpg", *board, "--per-set", "12", "--max-subsets", "60",
+         *steps, "--cross-validate", "4", "--out", str(out / "one_subsets"), "-q")
+    _cli("calibrate", "--images", str(OTHER / "opencv_stereo"), "--glob", "left*.jpg", *board, "--per-set", "8",
+         "--max-subsets", "40", *steps, "--out", str(out / "one_opencv_left"), "-q")
+    _cli("calibrate", "--images", str(OTHER / "fisheye640"), *board, "--model", "fisheye", "--per-set", "10",
+         "--max-subsets", "40", *steps, "--out", str(out / "one_fisheye"), "-q")
     _cli("calibrate", "--left", str(DATA / "left*.jpg"), "--right", str(DATA / "right*.jpg"), *board,
          "--per-set", "12", "--max-subsets", "60", "--out", str(out / "rig"), "-q")
     _cli("calibrate", "--cameras", str(cams), *board, "--out", str(out / "cameras"), "-q")

@@ -73,25 +73,31 @@ def _rig_columns(values: np.ndarray) -> np.ndarray:
                             np.linalg.norm(values[:, 3:6], axis=1)])
 
 
-def stereo_study(det, mode: str, cap: int, boot: int) -> dict:
-    from dstereo.calib import stereo as st
+def _norm_std(v: np.ndarray, cov: np.ndarray) -> float:
+    grad = v / np.linalg.norm(v)
+    return float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+
+
+def stereo_study(pairs, mode: str, cap: int, boot: int) -> dict:
+    """The rig of two cameras (calib/multiview.py, K = 2) on a set's pairs, its frame subsets and bootstrap."""
     from dstereo.calib.mono import calibrate_full
+    from dstereo.calib.multiview import calibrate_views, solve_view_subsets
     from dstereo.calib.subsets import plan_subsets
 
-    obj = det.object_points
-    obs_l, obs_r = det.observations()
-    n = len(obs_l)
+    obj, obs, sizes = pairs
+    n = len(obs)
     m = n - 3
-    cams = [st.camera_from_solution(calibrate_full(obj, obs, d.image_size, FREE))
-            for obs, d in ((obs_l, det.left), (obs_r, det.right))]
-    full = st.calibrate_stereo(obj, obs_l, obs_r, cams[0], cams[1], mode)
+    sols = [calibrate_full(obj, obs[:, k], sizes[k], FREE) for k in range(2)]
+    cams = [s.camera() for s in sols]
+    vis = np.ones((n, 2), bool)
+    full = calibrate_views(obj, obs, vis, sizes, mode=mode, cameras=cams)
     plan = plan_subsets(n, m, cap=cap, seed=0)
-    sub = uc.solve_subsets_safe(st.solve_stereo_subsets, obj, obs_l, obs_r, plan, full, chunk=CHUNK)
-    bsub = uc.solve_subsets_safe(st.solve_stereo_subsets, obj, obs_l, obs_r, uc.bootstrap_plan(n, boot, seed=0),
-                                    full, chunk=CHUNK)
+    sub = solve_view_subsets(obj, obs, vis, plan.index, full)
+    bsub = solve_view_subsets(obj, obs, vis, uc.bootstrap_plan(n, boot, seed=0).index, full)
     ok, bok = sub.converged, bsub.converged
     raw = uc.spread(_rig_columns(sub.values[ok]))
-    jac = np.concatenate([full.std[:6], [full.angle_std, full.baseline_std]])
+    jac = np.concatenate([full.std_jacobian[:6], [_norm_std(full.values[:3], full.cov[:3, :3]),
+                                                  _norm_std(full.values[3:6], full.cov[3:6, 3:6])]])
     return {
         "mode": mode, "n": n, "m": m, "plan": plan.describe(), "rms": full.rms,
         "values": _rig_columns(full.values[None])[0], "jacobian": jac, "raw": raw,
@@ -241,9 +247,9 @@ def main() -> None:
             r["view_names"] = names
             res["mono"][f"{name}/{side}"] = r
             print(f"  {name} {side}: {r['time_s']:.0f} s")
-        det = uc.real_pairs(name)
+        pairs = uc.real_pairs(name)
         for mode in ("fixed", "joint"):
-            r = stereo_study(det, mode, args.cap, boot)
+            r = stereo_study(pairs, mode, args.cap, boot)
             res["stereo"][f"{name}/{mode}"] = r
             print(f"  {name} rig [{mode}]: {r['time_s']:.0f} s")
     md = tables(res)

@@ -287,10 +287,7 @@ def test_checker_reports_same_rank_and_unranked_rooms(planted):
 
 COMPUTE_ROOMS = ("solver", "uncertainty", "calib", "stereo", "reference", "recession", "optics")
 # Functions of a compute room that io may call, each with why it is reading or writing, not computing a result.
-IO_MAY_CALL = {
-    ("io.stereo_files", "calib.view_checks", "align_order"): "renumbers a right detection's corners to the left's "
-    "order: part of reading the detections into corresponding pairs (as io/corner_order.py for one camera)",
-}
+IO_MAY_CALL: dict[tuple[str, str, str], str] = {}
 
 
 def io_imports_from_compute_rooms(package: Path) -> list[tuple[str, str, str]]:

@@ -1,6 +1,7 @@
-"""What a calibration run produced, for one camera, a stereo rig and N cameras: the types the jobs (`dstereo.jobs`)
-fill and the writers (`dstereo.io`) read. They live here, below both, so that io reads finished results by their
-type without importing the jobs that make them."""
+"""What a calibration run produced, for one camera, a stereo rig and N cameras (one `MultiviewJob` for any K, each
+camera's `CameraCalibration` in it): the types the job (`dstereo.jobs`) fills and the writers (`dstereo.io`)
+read. They live here, below both, so that io reads finished results by their type without importing the jobs that
+make them."""
 
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ class CameraCalibration:
     observations: np.ndarray  # (V, n, 2) px
     full: object  # dstereo.calib.mono.CameraSolution
     plan: object | None  # dstereo.calib.subsets.SubsetPlan
-    subsets: object | None  # dstereo.calib.mono.SubsetSolutions; None above KEEP_SOLUTIONS subsets (the
+    subsets: object | None  # dstereo.calib.subsets.SubsetSolutions; None above KEEP_SOLUTIONS subsets (the
     # per-subset values and status are then only in `filtering.table`)
     filtering: FilterResult | None
     columns: tuple[str, ...]  # ("re", fx, fy, cx, cy, free coefficients...)
@@ -95,6 +96,10 @@ class StereoSources:
 
 @dataclass
 class MultiviewJob:
+    """What the calibration job (`jobs.calibrate_cameras.calibrate_rig`) returns for any K: each camera's own
+    calibration and, for K >= 2, the rig. One camera (K = 1) has no rig: `held` and `solution` are None, its frames
+    are its views and `cameras[0]` is the whole result."""
+
     config: Config
     root: Path
     labels: tuple[str, ...]  # subfolder names, the reference first
@@ -102,8 +107,8 @@ class MultiviewJob:
     frames: list[str]  # frame names (image stems) seen by at least one camera
     visible: np.ndarray  # (F, K)
     observations: np.ndarray  # (F, K, n, 2), NaN where not seen
-    held: MultiviewSolution  # every camera held at its own calibration
-    solution: MultiviewSolution  # the joint solve: cameras.yml
+    held: MultiviewSolution | None  # every camera held at its own calibration (None: one camera)
+    solution: MultiviewSolution | None  # the joint solve: cameras.yml (None: one camera)
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all
@@ -120,6 +125,11 @@ class MultiviewJob:
     sources: str | None = None  # where the images came from, in words (a stereo rig's flags or layout)
     # each camera's pose-compensated projection-uncertainty map of the joint solve (calib/rig_projection.py)
     projection: list | None = None
+
+    @property
+    def is_rig(self) -> bool:
+        """K >= 2: a rig solve, its checks and files beside the cameras'."""
+        return self.solution is not None
 
     def pairs(self, chosen: tuple[str, str] | None = None) -> list[tuple[int, int]]:
         """Camera index pairs that get a stereo.yml: `chosen` (two labels), else every adjacent pair."""

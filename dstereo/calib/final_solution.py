@@ -108,7 +108,7 @@ def _refit(free: tuple[str, ...] = ()):
 def _homography_poses(k, coeffs, obj, obs) -> np.ndarray | None:
     """(V, 6) board poses from the homography of the corners undistorted by this camera (OpenCV's solvePnP
     start), or None where that fails."""
-    from dstereo.calib.stereo import board_poses
+    from dstereo.calib.board_poses import board_poses
     from dstereo.models.camera import Camera
 
     try:

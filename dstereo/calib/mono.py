@@ -17,7 +17,7 @@ import numpy as np
 from dstereo.calib.init_fisheye import initial_guess_fisheye
 from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
-from dstereo.calib.subsets import SubsetPlan
+from dstereo.calib.subsets import SubsetPlan, SubsetSolutions
 from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.calib.problem import (WARP_NAMES, WARP_SIZE, Problem, chunk_rows, frame_linearize, frame_residual, lens_functions,  # noqa: F401
@@ -107,6 +107,12 @@ class CameraSolution:
     def as_dict(self) -> dict[str, float]:
         return dict(zip(self.names, map(float, self.values)))
 
+    def camera(self):
+        """The `models.camera.Camera` this solve describes, with its free set (what a rig's joint solve refines)."""
+        from dstereo.models.camera import Camera
+
+        return Camera.create(*map(float, self.values[:4]), self.coeffs, self.free, self.image_size)
+
 
 def _check_views(obj: np.ndarray, obs: np.ndarray) -> None:
     if obs.ndim != 3 or obs.shape[2] != 2 or obs.shape[1] != obj.shape[0]:
@@ -186,24 +192,6 @@ def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
         free=free, image_size=tuple(image_size), inliers=None if mask.all() else mask,
         board_sag=g[-WARP_SIZE:].copy() if warp else None,
     )
-
-
-@dataclass
-class SubsetSolutions:
-    """Per-subset results, rows aligned with `plan.index`."""
-
-    plan: SubsetPlan
-    names: tuple[str, ...]
-    values: np.ndarray  # (C, G)
-    std: np.ndarray  # (C, G) Jacobian standard deviations of each subset's own solve
-    rms: np.ndarray  # (C,)
-    iterations: np.ndarray  # (C,)
-    status: np.ndarray  # (C,)
-    timings: dict = field(default_factory=dict)
-
-    @property
-    def converged(self) -> np.ndarray:
-        return self.status > 0
 
 
 def solve_subsets(

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.mono import calibrate_full
 from dstereo.calib.problem import POSE_SIZE, WARP_NAMES, WARP_SIZE, Problem, residual_weights, run, shared_data
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
+from dstereo.calib.subsets import SubsetSolutions
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
 from dstereo.models.distortion import PRESETS
@@ -139,7 +140,7 @@ def _check(obj, obs, visible, image_sizes) -> None:
 
 
 def _own_poses(cam: Camera, obj, obs_k, own_poses=None) -> np.ndarray:
-    from dstereo.calib.stereo import board_poses
+    from dstereo.calib.board_poses import board_poses
 
     return own_poses if own_poses is not None else board_poses(cam, obj, obs_k)
 
@@ -281,7 +282,7 @@ def cameras_alone(obj, obs, visible, image_sizes, free=PRESETS["default"], inlie
                                  inliers=None if inliers is None else inliers[rows, c])
         except DstereoError as exc:
             raise DstereoError(f"multiview: camera {labels[c]} calibrated alone: {exc}") from None
-        cameras.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, tuple(image_sizes[c])))
+        cameras.append(sol.camera())
         own.append(sol.poses)
     return cameras, own
 
@@ -371,27 +372,8 @@ def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iter
 # --- subsets of frames ------------------------------------------------------------------------------------
 
 
-@dataclass
-class MultiviewSubsetSolutions:
-    """Per-subset results, rows aligned with `index` (frame indices)."""
-
-    index: np.ndarray  # (C, m)
-    names: tuple[str, ...]
-    values: np.ndarray  # (C, G)
-    std: np.ndarray  # (C, G)
-    rms: np.ndarray  # (C,)
-    iterations: np.ndarray
-    status: np.ndarray
-    timings: dict = field(default_factory=dict)
-    poses: np.ndarray | None = None  # (C, m, 6) each subset's frame poses, in its `index` order
-
-    @property
-    def converged(self) -> np.ndarray:
-        return self.status > 0
-
-
 def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, options: LMOptions = LMOptions(lambda0=1e-6),
-                       progress=None, inliers=None) -> MultiviewSubsetSolutions:
+                       progress=None, inliers=None) -> SubsetSolutions:
     """Solve every subset of frames (rows of `index`) with the one subset runner, from the full-set `start`
     (same mode and cameras). A subset in which a camera sees no frame leaves that camera's parameters
     undetermined: its solve is reported, not hidden (status, and NaN or huge std).
@@ -422,7 +404,7 @@ def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, optio
     if sag is not None:
         g = np.c_[g, np.repeat(sag[None], len(g), 0)]
         std = np.c_[std, np.zeros((len(std), WARP_SIZE))]
-    return MultiviewSubsetSolutions(
+    return SubsetSolutions(
         index=index, names=start.names, values=g, std=std,
         rms=np.sqrt(out.sse / (out.n_residuals / 2)), iterations=out.iterations, status=out.status,
         timings={"solve_s": time.perf_counter() - t0}, poses=np.asarray(poses))

@@ -3,7 +3,7 @@
 With images per set m, the rig with every camera held at its own calibration (the stereo job's subsets hold the
 intrinsics too) is solved on every C(F, m) subset of frames, or the capped sample, by the one subset runner
 (`multiview.solve_view_subsets`). Each adjacent pair (a, b) gets the thesis's stereo columns
-(`stereo.STEP_COLUMNS`) of b's pose relative to a in every subset: Tnorm, Tx, ..., RVz, and stereo_re, the mean over
+(`STEP_COLUMNS`) of b's pose relative to a in every subset: Tnorm, Tx, ..., RVz, and stereo_re, the mean over
 the subset's frames of each frame's RMS over the two cameras' inlier corners; the columns are named `NAME@a-b`. A
 stereo step NAME=MAX filters on NAME of every pair at once: a subset leaves when any pair's value lies outside, so
 with two cameras it is the stereo job's step. The frames in no surviving subset then leave the rig solve: the
@@ -19,15 +19,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.calib.final_solution import surviving_views
-from dstereo.calib.multiview import MultiviewSolution, MultiviewSubsetSolutions, as_solved, solve_view_subsets
+from dstereo.calib.multiview import MultiviewSolution, as_solved, solve_view_subsets
+from dstereo.calib.subsets import SubsetSolutions
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
 from dstereo.runtime import buckets
 from dstereo.calib.robust_steps import FilterResult, run_steps
-from dstereo.calib.stereo import STEP_COLUMNS
 from dstereo.config.steps import Step, is_absolute
 from dstereo.errors import DstereoError
 from dstereo.models.pose import rotation_vectors
 
+# Thesis Figure 5.14's stereo step parameters, the named columns of a pair in a subset table.
+STEP_COLUMNS: tuple[str, ...] = ("stereo_re", "Tnorm", "Tx", "Ty", "Tz", "RVnorm", "RVx", "RVy", "RVz")
 SEP = "@"
 RESIDUAL_BLOCK = 256  # subsets whose residuals are evaluated at once (C x m x K x 2n floats)
 
@@ -58,7 +60,7 @@ def _relative(values: np.ndarray, k: int, a: int, b: int) -> tuple[np.ndarray, n
     return rotation_vectors(r.as_matrix()), ext[:, b, 3:] - r.apply(ext[:, a, 3:])  # the one rotation log
 
 
-def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:
+def _pair_rms(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:
     """(C, P) each pair's stereo_re in every subset (module docstring); held-sag columns are not parameters."""
     k, n = obs.shape[1], obs.shape[2]
     sag = start.board_sag
@@ -91,7 +93,7 @@ def _pair_rms(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs
     return np.concatenate(out)
 
 
-def subset_table(subs: MultiviewSubsetSolutions, start: MultiviewSolution, obj, obs, visible, inliers,
+def subset_table(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, visible, inliers,
                  pairs) -> np.ndarray:
     """(C, 9 P) the stereo columns of every pair in `column_names` order."""
     k = visible.shape[1]

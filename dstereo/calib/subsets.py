@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -120,3 +121,24 @@ def plan_subsets(n_images: int, per_set: int, cap: int = 2000, seed: int = 0) ->
         return SubsetPlan(np.array(sorted(chosen), dtype=np.int32), total, False, seed)
     ranks = np.sort(rng.choice(total, size=cap, replace=False).astype(np.int64))
     return SubsetPlan(None, total, False, seed, ranks=ranks, n_images=n_images, per_set=per_set)
+
+
+@dataclass
+class SubsetSolutions:
+    """The subsets' solves of any rig (one camera's views: `mono.solve_subsets`; a rig's frames:
+    `multiview.solve_view_subsets`), rows aligned with the subsets solved."""
+
+    names: tuple[str, ...]
+    values: np.ndarray  # (C, G)
+    std: np.ndarray  # (C, G) Jacobian standard deviations of each subset's own solve
+    rms: np.ndarray  # (C,)
+    iterations: np.ndarray  # (C,)
+    status: np.ndarray  # (C,)
+    timings: dict = field(default_factory=dict)
+    plan: SubsetPlan | None = None  # the plan whose subsets these are (one camera's)
+    index: np.ndarray | None = None  # (C, m) each subset's frames (a rig's)
+    poses: np.ndarray | None = None  # (C, m, 6) each subset's frame poses, in its `index` order (a rig's)
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status > 0

@@ -1,5 +1,6 @@
-"""`dstereo calibrate`'s runs (one camera; a rig: a stereo pair or N cameras, both through the K-camera job): call the
-job, write its folder, print its console text."""
+"""`dstereo calibrate`'s runs (one camera, a stereo pair or N cameras, all through the one job
+`jobs.calibrate_cameras.calibrate_rig`): call the job, write its folder (`io.cameras_files.write_results`), print
+its console text."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, 
     """Stereo mode (thesis 4.2.2.2): the K-camera job on the two cameras; see dstereo.jobs.calibrate_stereo."""
     from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
     from dstereo.errors import DstereoError
-    from dstereo.io.cameras_files import write_multiview_results
+    from dstereo.io.cameras_files import write_results
 
     if left is not None and right is not None and left.is_dir() and left.resolve() == Path(right).resolve():
         raise DstereoError(f"--left and --right are the same folder {left}; give each camera's images, e.g. "
@@ -29,7 +30,7 @@ def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, 
     with progress_bars(quiet) as progress:
         job = calibrate_stereo_project(sources, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                        cross_validate=cross_validate, projection_range=projection_range)
-        write_multiview_results(out, job, force)
+        write_results(out, job, force)
     _print_rig(job, out, quiet, started)
 
 
@@ -37,7 +38,7 @@ def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started,
                  cross_validate: int = 0) -> None:
     """N cameras (--cameras DIR): see dstereo.jobs.calibrate_cameras."""
     from dstereo.jobs.calibrate_cameras import calibrate_cameras_project, camera_folders
-    from dstereo.io.cameras_files import write_multiview_results
+    from dstereo.io.cameras_files import write_results
 
     folders = camera_folders(root, cfg)
     out = results_folder(out, project, force, cfg, inputs=[root, *folders])
@@ -46,7 +47,7 @@ def run_cameras(root, cfg, pair, project, out, force, quiet, use_cache, started,
         job = calibrate_cameras_project(root, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                         cross_validate=cross_validate, projection_range=projection_range,
                                         pairs=pair)
-        write_multiview_results(out, job, force)
+        write_results(out, job, force)
     _print_rig(job, out, quiet, started)
 
 
@@ -112,17 +113,18 @@ def run_camera(images: Path, cfg, out: Path, force: bool, quiet: bool, use_cache
 
 def _run_and_write(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method,
                    cross_validate, early) -> None:
-    from dstereo.jobs.calibrate_camera import calibrate_camera
-    from dstereo.io.results import write_camera_results
+    from dstereo.jobs.calibrate_cameras import calibrate_images
+    from dstereo.io.cameras_files import write_results
 
     with progress_bars(quiet) as progress:
-        cal = calibrate_camera(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
+        job = calibrate_images(images, cfg, progress=progress, use_cache=use_cache, scratch=Path(out).parent,
                                after_steps=early.parameters, cross_validate=cross_validate,
                                projection_range=projection_range, projection_method=projection_method)
+        cal = job.cameras[0]
         t0 = time.perf_counter()
         if progress is not None:
             progress("writing results", 0, 1)
-        write_camera_results(out, cal, force, early=early)
+        write_results(out, job, force, early=early)
         if progress is not None:
             progress("writing results", 1, 1)
     cal.timings["write_s"] = time.perf_counter() - t0

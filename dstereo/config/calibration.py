@@ -68,8 +68,8 @@ class Config:
     # Iterative k-sigma rejection of outlier corners and views before the subsets (calib/outliers.py)
     outlier_rejection: bool = True
     # solve the board's two sag parameters with the rest (calib/problem.py). On by default: every real board
-    # measured sags 3-22 sigma and fits 4-22 % better (experiments/results/board_sag_real.md); a --left/--right
-    # rig does not solve it yet and runs flat (jobs/calibrate_stereo.py says so)
+    # measured sags 3-22 sigma and fits 4-22 % better (experiments/results/board_sag_real.md); every camera and rig
+    # solves it (--model auto too: the chosen lens is solved again with it)
     board_sag: bool = True
     # a lens mrcal has no twin for (fisheye, splined): also write the nearest mrcal model, with its fit error
     # (calib/mrcal_convert.py)

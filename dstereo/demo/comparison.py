@@ -104,7 +104,7 @@ def compare(rig, job, s, cov: np.ndarray, surface: dict, settings: DemoSettings)
             "subsets": subsets, "surface": surface, "surface_bound": bound, "bounds": BOUNDS,
             "disparity_noise_px": DISPARITY_NOISE_PX,
             "stereo": {"pairs": int(both.sum()), "dropped": int((~both).sum()),
-                       "thesis_rms_px": float(job.held.rms), "joint_rms_px": s.rms, "joint_status": s.status_text}}
+                       "thesis_rms_px": float(job.held.rms), "joint_rms_px": s.rms, "joint_status": s.solution.status_text}}
 
 
 PAIR = "@left-right"  # the stereo job's one pair in the rig subsets' column names (calib/rig_subsets.py)

@@ -15,7 +15,7 @@ with C(N, m) subsets, the rig with those intrinsics held, its frame subsets filt
 thesis's Figure 5.14; the thesis's answer is each camera's subset mean and the rig's mean over the surviving
 subsets (what the comparison's "thesis path" shows; calibration/stereo.yml holds the job's joint solve on the
 surviving frames, as every rig's `dstereo calibrate` writes). Then the demo's own joint refinement: both
-cameras' intrinsics and the rig solved together on all pairs (`calib.stereo`, mode "joint"). The reduced rig
+cameras' intrinsics and the rig solved together on all pairs (`calib.multiview`, mode "joint", a flat board). The reduced rig
 sees 80 x 60 mm at 600 mm, a 7.6 deg field in which perspective barely shows on the board: one camera alone
 pins its focal length to ~0.1 % and its principal point to ~10 px, while the two cameras together (the board's
 distance triangulated by the rig) reach ~0.02 % and a few px. The joint refinement is the one held to the
@@ -29,7 +29,7 @@ prints.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -106,12 +106,12 @@ def thesis_config(board: dict, settings: DemoSettings, seed: int):
 def calibrate_thesis(images: Path, folder: Path, board: dict, settings: DemoSettings, seed: int, report):
     """`dstereo calibrate`'s stereo job on images/images_left + images_right; writes its results folder."""
     from dstereo.jobs.calibrate_stereo import calibrate_stereo_project, stereo_sources
-    from dstereo.io.cameras_files import write_multiview_results
+    from dstereo.io.cameras_files import write_results
 
     config = thesis_config(board, settings, seed)
     job = calibrate_stereo_project(stereo_sources(images, config), config, progress=report, use_cache=False)
     report("write calibration", 0, 1)
-    write_multiview_results(folder, job)
+    write_results(folder, job)
     return job
 
 
@@ -124,10 +124,63 @@ def pair_corners(job) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
             [f for f, b in zip(job.frames, both) if b])
 
 
+@dataclass(frozen=True)
+class JointRig:
+    """The demo's joint refinement read as a stereo pair: the K = 2 joint solve (`calib.multiview.calibrate_views`,
+    both cameras and the rig refined) with its values under stereo.yml's names (RVx..Tz of the right camera in the
+    left's, then left.*, right.*: the solve's own order)."""
+
+    solution: object  # calib.multiview.MultiviewSolution
+    names: tuple[str, ...]
+    R: np.ndarray
+    T: np.ndarray
+    E: np.ndarray
+    F: np.ndarray
+
+    @property
+    def values(self) -> np.ndarray:
+        return self.solution.values
+
+    @property
+    def poses(self) -> np.ndarray:
+        return self.solution.poses
+
+    @property
+    def left(self):
+        return self.solution.cameras[0]
+
+    @property
+    def right(self):
+        return self.solution.cameras[1]
+
+    @property
+    def rms(self) -> float:
+        return self.solution.rms
+
+    @property
+    def baseline(self) -> float:
+        return float(np.linalg.norm(self.T))
+
+
+def joint_rig(obj: np.ndarray, obs_left: np.ndarray, obs_right: np.ndarray, cameras) -> JointRig:
+    """Both cameras (started at `cameras`) and the rig refined together on pairs seen by both (V, n, 2) each, on a
+    flat board with every corner."""
+    from dstereo.calib.multiview import calibrate_views
+    from dstereo.calib.rig_pairs import pair_calibration
+    from dstereo.models.rig import RIG_NAMES
+
+    sol = calibrate_views(obj, np.stack([obs_left, obs_right], axis=1), np.ones((len(obs_left), 2), bool),
+                          [c.image_size for c in cameras], mode="joint", cameras=list(cameras),
+                          labels=("left", "right"))
+    pair = pair_calibration(sol, 0, 1, obj)
+    names = RIG_NAMES + sol.names[len(RIG_NAMES):]  # right.RVx.. -> RVx..: the right camera's pose is the rig
+    return JointRig(sol, names, pair.R, pair.T, pair.E, pair.F)
+
+
 def calibrate_joint(job, folder: Path, report):
-    """Refine both cameras and the rig together on the job's pairs, from its cameras; write stereo.yml and
-    stereo.json (with `joint_covariance`'s standard deviations). Returns the solution and that covariance."""
-    from dstereo.calib.stereo import calibrate_stereo
+    """Refine both cameras and the rig together on the job's pairs (a flat board, every corner), from its cameras;
+    write stereo.yml and stereo.json (with `joint_covariance`'s standard deviations). Returns the `JointRig` and
+    that covariance."""
     from dstereo.uncertainty.rig import JOINT_STRUCTURE
     from dstereo.io.results import atomic_folder, write_json
     from dstereo.io.stereo_files import write_stereo_yml
@@ -136,17 +189,19 @@ def calibrate_joint(job, folder: Path, report):
 
     report("joint refinement", 0, 1)
     obj, obs_l, obs_r, frames = pair_corners(job)
-    s = calibrate_stereo(obj, obs_l, obs_r, camera_of(job.cameras[0]), camera_of(job.cameras[1]), "joint")
+    s = joint_rig(obj, obs_l, obs_r, [camera_of(c) for c in job.cameras])
+    sol = s.solution
     cov = joint_covariance(s, obj, obs_l, obs_r)
     with atomic_folder(folder, False) as tmp:
         write_stereo_yml(tmp / "stereo.yml", s.left.matrix(), s.left.coeffs(), s.right.matrix(), s.right.coeffs(),
                          s.R, s.T, s.E, s.F, s.left.image_size, s.right.image_size, rms=s.rms, cov=cov,
-                         cov_names=tuple(s.names), cov_structure=JOINT_STRUCTURE + "; demo.joint_covariance",
+                         cov_names=s.names, cov_structure=JOINT_STRUCTURE + "; demo.joint_covariance",
                          unit="mm")  # the demo's board is in mm (demo_config)
         write_json(tmp / "stereo.json", {
-            "mode": s.mode, "status": s.status_text, "names": s.names, "values": s.values,
+            "mode": sol.mode, "status": sol.status_text, "names": s.names, "values": s.values,
             "std": np.sqrt(np.diag(cov)), "covariance": cov, "R": s.R, "T": s.T, "E": s.E, "F": s.F,
-            "rms_px": s.rms, "stereo_re_px": s.stereo_re, "pairs": frames,
+            "rms_px": s.rms, "stereo_re_px": float(np.mean(np.sqrt(np.nanmean(sol.per_view_rms ** 2, axis=1)))),
+            "pairs": frames,
             "std_note": "sigma^2 (J^T J)^-1 with J's columns scaled to unit norm, board poses as nuisance "
                         "parameters (demo.joint_covariance)"})
     report("joint refinement", 1, 1)

@@ -1,5 +1,6 @@
-"""The results folder of every rig's `dstereo calibrate` (`--cameras DIR`, `--left/--right`, the thesis's stereo
-layout: a finished `calib.calibrations.MultiviewJob`):
+"""The results folder of every `dstereo calibrate` (`write_results`, a finished `calib.calibrations.MultiviewJob`).
+One camera (`--images`): the camera's folder (`io.results.fill_camera_folder`). A rig (`--cameras DIR`,
+`--left/--right`, the thesis's stereo layout):
 
     <camera>/                    each camera alone, as `dstereo calibrate` writes one camera (corners.npz, ...)
     cameras.yml, cameras.json    per camera i: K_i, D_i, R_i, T_i (x_cam_i = R_i x_ref + T_i), image size; the
@@ -214,12 +215,17 @@ def _rig_figures(plots: Path, job: MultiviewJob) -> None:
         consistency_figure(job.consistency, plots / "rig_consistency.png")
 
 
-def write_multiview_results(out, job: MultiviewJob, force: bool = False) -> Path:
-    """Write the folder of the module docstring under a temporary name, renamed into place at the end; the pair
-    files are `job.pair_files` (`MultiviewJob.choose_pairs`)."""
+def write_results(out, job: MultiviewJob, force: bool = False, early=None) -> Path:
+    """The results folder of any calibration (`calib.calibrations.MultiviewJob`), written under a temporary name and
+    renamed into place at the end: one camera's folder (`io.results.fill_camera_folder`; `early`: its parameter
+    figures drawn already, `io.results.EarlyFigures`) for one camera, the folder of the module docstring for a rig
+    (the pair files are `job.pair_files`, `MultiviewJob.choose_pairs`)."""
     out = Path(out)
     try:
         with atomic_folder(out, force) as tmp:
+            if not job.is_rig:  # one camera: its folder is the results folder
+                fill_camera_folder(tmp, job.cameras[0], early=early)
+                return out
             for label, cal in zip(job.labels, job.cameras):
                 (tmp / label).mkdir()
                 fill_camera_folder(tmp / label, cal)

@@ -7,7 +7,7 @@ of a longer word: `L_05`, `img_R5`), and the camera number of `im0`/`im1`, `img0
 `im0.png` with `im1.png`, `cam0_0007.png` with `cam1_0007.png`, and `0003.png` with `0003.png` in two folders.
 That common rest of the name is the pair's *key*; digits are compared as written (`05` and `5` differ).
 
-Used by the stereo calibration (`io.stereo_files.detect_pairs`) and by the recession sequence.
+Used by the stereo calibration (`jobs.rig_sources.stereo_pair_sources`) and by the recession sequence.
 """
 
 from __future__ import annotations

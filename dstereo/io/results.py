@@ -1,6 +1,8 @@
-"""The calibration results folder (the thesis's "Results" folder), written atomically.
+"""A camera's results folder (the thesis's "Results" folder): `fill_camera_folder`. The one writer of every
+calibration (`io.cameras_files.write_results`) fills the results folder itself so for one camera, and one such
+folder per camera of a rig.
 
-Layout of `write_camera_results(out, cal)`:
+Layout of `fill_camera_folder(folder, cal)`:
     report.md            what was done and what came out, with links to everything below
     report.html          the same in one page a browser opens: figures embedded, summary at the top
     summary.json         machine-readable: full_set, subsets (steps, survivors), final, images, coverage, ...
@@ -322,19 +324,6 @@ def summary_dict(cal: CameraCalibration) -> dict:
             if cal.final_solution.choice == "survivors":
                 summary["final"]["re"] = float(cal.final_solution.solution.rms)
     return summary
-
-
-def write_camera_results(out: str | Path, cal: CameraCalibration, force: bool = False, early: "EarlyFigures | None" = None) -> Path:
-    """Write the whole results folder of one camera's `CameraCalibration` (see the module docstring); `early`: the
-    parameter figures already drawn (`EarlyFigures`), taken in instead of drawn again."""
-    out = Path(out)
-    try:
-        with atomic_folder(out, force) as tmp:
-            fill_camera_folder(tmp, cal, early=early)
-    finally:
-        if cal.filtering is not None:
-            cal.filtering.table.close()  # a huge run's per-subset file (now in subsets.csv) goes
-    return out
 
 
 def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=None) -> dict:

@@ -1,7 +1,8 @@
-"""One camera's calibration job: detect -> full-set solve -> subsets -> robust steps -> a results object.
+"""A camera's stage of the calibration job (`jobs.calibrate_cameras.calibrate_rig`, which runs it for every camera;
+for one camera it is the whole job): detect -> full-set solve -> outliers -> subsets -> robust steps -> the
+survivors' solve -> a `CameraCalibration`.
 
-Nothing here prints or writes files; `dstereo.io.results` writes the results folder and the CLI renders the
-console. The stereo pipeline runs `calibrate_camera` once per camera.
+Nothing here prints or writes files; `dstereo.io` writes the results folder and the CLI renders the console.
 
 Each subset's reprojection error `re` is its RMS over all its points, sqrt(SSE / points): the number
 cv2.calibrateCamera returns (the thesis calls it the mean reprojection error).
@@ -141,7 +142,10 @@ def calibrate_camera(
     from dstereo.calib.subset_solve import gathers
 
     alone = plan is None or gathers(plan.per_set, len(used), len(plan))
-    full = choice.chosen_candidate.solution if choice is not None else \
+    # --model auto compares the candidates on a flat board; the chosen one is solved again with the board's sag when
+    # that is asked (the default): before, its flat solve was kept and the sag silently dropped (found by
+    # tests/commands/test_every_feature.py)
+    full = choice.chosen_candidate.solution if choice is not None and not config.board_sag else \
         calibrate_full(det.object_points, obs, det.image_size, free=tuple(config.model), board_warp=config.board_sag,
                        alone=alone)
     if progress is not None:
@@ -299,7 +303,8 @@ def _final_solution(config, filtering, plan, det, obs, full, subset_mean, warnin
 def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
     """(SubsetSolutions or None, SubsetTable): every subset solved block by block (`subset_runs`); the whole
     SubsetSolutions only up to KEEP_SOLUTIONS subsets (above, the table holds what the steps need)."""
-    from dstereo.calib.mono import SubsetSolutions, solve_subsets
+    from dstereo.calib.mono import solve_subsets
+    from dstereo.calib.subsets import SubsetSolutions
     from dstereo.calib.subset_solve import chunk_size
     from dstereo.calib.subset_runs import NOTE_ABOVE, solve_in_blocks
 

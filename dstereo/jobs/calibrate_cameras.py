@@ -1,4 +1,8 @@
-"""The K-camera calibration job (`calibrate_rig`), and `dstereo calibrate --cameras DIR` through it.
+"""The calibration job for any K (`calibrate_rig`): `dstereo calibrate --images DIR` (K = 1, `calibrate_images`),
+`--cameras DIR` (`calibrate_cameras_project`) and a stereo rig (`jobs/calibrate_stereo.py`) all run it.
+
+One camera (K = 1) is its camera stage alone (`jobs/calibrate_camera.py`: detection, the full-set solve, outliers,
+`--model auto`, subsets and steps, the survivors' solve, cross-validation): there is no rig to solve.
 
 The cameras come as sources (`jobs.rig_sources`): each camera's own images and its image of each rig frame. For
 `--cameras DIR`, DIR's subfolders (sorted by name; the first is the reference) each hold one camera's images; an
@@ -135,6 +139,17 @@ def frame_detections(cams: list[CameraCalibration], sources: list[CameraSource],
     return out
 
 
+def calibrate_images(folder: Path, config: Config, progress=None, use_cache: bool = True, scratch: Path | None = None,
+                     after_steps=None, cross_validate: int = 0, projection_range: float | None = None,
+                     projection_method: str = "pose-compensated") -> MultiviewJob:
+    """`--images DIR` (or PROJECT/images): the job (`calibrate_rig`) on a rig of one camera, DIR's images."""
+    folder = Path(folder)
+    files = tuple(list_camera_images(folder, config))
+    source = CameraSource(folder.name or "camera", files, (), str(folder))
+    return calibrate_rig([source], config, folder, progress, use_cache, scratch, cross_validate, projection_range,
+                         after_steps=after_steps, projection_method=projection_method)
+
+
 def calibrate_cameras_project(root: Path, config: Config, progress=None, use_cache: bool = True,
                               scratch: Path | None = None, cross_validate: int = 0,
                               projection_range: float | None = None,
@@ -155,12 +170,20 @@ def _check_steps(config: Config) -> None:
 def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, progress=None, use_cache: bool = True,
                   scratch: Path | None = None, cross_validate: int = 0, projection_range: float | None = None,
                   pairs: tuple[str, str] | None = None, warnings: list[str] | None = None,
-                  pair_file: str | None = None) -> MultiviewJob:
+                  pair_file: str | None = None, after_steps=None,
+                  projection_method: str = "pose-compensated") -> MultiviewJob:
     """Run the job of the module docstring on K camera sources (`jobs.rig_sources`; `where`: the rig's folder, for
     messages). Raises DstereoError for folders, boards or frames that cannot make one rig. `cross_validate`: that
     many random halvings of the frames (`calib/rig_cross_validation.py`). `pairs`: the two cameras (labels) that
     get a stereo file, else every adjacent pair (`choose_pairs`). `warnings`: the sources' own, reported first.
-    `pair_file`: the one pair's file name (a stereo rig's `stereo.yml`), else stereo_<a>_<b>.yml."""
+    `pair_file`: the one pair's file name (a stereo rig's `stereo.yml`), else stereo_<a>_<b>.yml.
+
+    K = 1 (`calibrate_images`): the camera's stage is the whole job, with the one-camera settings: `cross_validate`
+    halves its views (`calib/cross_validation.py`), its projection-uncertainty map by `projection_method`, and
+    `after_steps(filtering, full)` once its subsets' steps are done (`calibrate_camera`)."""
+    if len(sources) == 1:
+        return _one_camera(sources[0], config, where, progress, use_cache, scratch, cross_validate,
+                           projection_range, after_steps, projection_method)
     t0 = time.perf_counter()
     _check_steps(config)
     labels = tuple(s.label for s in sources)
@@ -259,6 +282,18 @@ def calibrate_rig(sources: list[CameraSource], config: Config, where: Path, prog
     job.choose_pairs(pairs)
     timings["total_s"] = time.perf_counter() - t0
     return job
+
+
+def _one_camera(source: CameraSource, config: Config, where: Path, progress, use_cache: bool, scratch,
+                cross_validate: int, projection_range, after_steps, projection_method: str) -> MultiviewJob:
+    """A rig of one camera: its calibration (`calibrate_camera`) and no rig (`MultiviewJob.solution` None)."""
+    cal = calibrate_camera(Path(source.where), config, files=list(source.images), progress=progress,
+                           use_cache=use_cache, scratch=scratch, after_steps=after_steps,
+                           cross_validate=cross_validate, projection_range=projection_range,
+                           projection_method=projection_method)
+    return MultiviewJob(config, Path(where), (source.label,), [cal], list(cal.used),
+                        np.ones((len(cal.used), 1), bool), cal.observations[:, None], None, None,
+                        warnings=cal.warnings, timings=cal.timings)
 
 
 @dataclass

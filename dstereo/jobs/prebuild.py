@@ -45,7 +45,7 @@ def _refit(*args):
 
 
 def _normalised_points(*args):
-    from dstereo.calib.stereo import _normalised_points as make
+    from dstereo.calib.board_poses import normalised_points as make
 
     return make(*args)
 

@@ -43,7 +43,7 @@ def folder_sources(folders: list[Path], list_images) -> list[CameraSource]:
 def stereo_pair_sources(sources, config) -> tuple[list[CameraSource], list[str]]:
     """([left, right] sources, warnings) of a stereo rig's `calib.calibrations.StereoSources`: the pairs matched by
     name, an image without a partner left out with a warning, too few pairs or one file as both partners refused
-    (as `io.stereo_files.detect_pairs`). The right camera's own lens model (`model_right`) goes in its source."""
+    before any detection. The right camera's own lens model (`model_right`) goes in its source."""
     from dstereo.config.calibration import validate
     from dstereo.io.pairing import check_enough_pairs, pair_by_name, pair_key
 

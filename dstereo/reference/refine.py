@@ -28,7 +28,7 @@ def _scale_for(free: tuple[int, ...], nuisance_scale: np.ndarray) -> np.ndarray:
 
 
 def _board_problem(calib, board: Board, q_left, q_right, base, free):
-    from dstereo.calib.stereo import board_poses
+    from dstereo.calib.board_poses import board_poses
     from dstereo.models.camera import Camera
 
     obj = board.object_points()

@@ -11,15 +11,16 @@ JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-se
 
 
 def rig_sensitivity(obj, obs_left, obs_right, solution) -> np.ndarray:
-    """A = d rig / d (left, right intrinsics) (6, G_l + G_r) of a fixed-intrinsics stereo solve: how the rig
-    that fits the pairs moves when the held intrinsics move, -S_rr^-1 S_rk with S the Schur complement of
-    J^T J (board poses eliminated) of the pairs' residuals, at the solution."""
+    """A = d rig / d (left, right intrinsics) (6, G_l + G_r) of a fixed-intrinsics solve of two cameras (a
+    `calib.multiview.MultiviewSolution`, mode "fixed", K = 2, every frame seen by both): how the rig that fits the
+    pairs moves when the held intrinsics move, -S_rr^-1 S_rk with S the Schur complement of J^T J (board poses
+    eliminated) of the pairs' residuals, at the solution."""
     import jax
     import jax.numpy as jnp
 
     from dstereo.models.rig import pair_residual
 
-    left, right, n_l = solution.left, solution.right, len(solution.left.free_vector())
+    (left, right), n_l = solution.cameras, len(solution.cameras[0].free_vector())
     per_pair = jax.vmap(pair_residual, in_axes=(None, None, None, None, None, 0, None, 0, 0))
     obj, obs_l, obs_r = (jnp.asarray(a, float) for a in (obj, obs_left, obs_right))
 

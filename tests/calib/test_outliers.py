@@ -212,7 +212,7 @@ def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
     optimum; 1e-7 relative allows the ftol = 1e-12 stopping rule), its RMS over the inliers only, and its
     residual count (the dof) the inliers'."""
     from conftest import require_data
-    from dstereo.calib.stereo import calibrate_stereo, camera_from_solution
+    from dstereo.calib.multiview import calibrate_views
     from dstereo.io.corners import detect_folder
 
     root = require_data("opencv_stereo")
@@ -221,15 +221,22 @@ def test_stereo_rig_solve_ignores_masked_corners_whatever_their_values():
     obs_l = np.stack([dets[0].corners["left" + n] for n in common])
     obs_r = np.stack([dets[1].corners["right" + n] for n in common])
     obj = dets[0].object_points
-    cams = [camera_from_solution(mono.calibrate_full(obj, o, (640, 480), FIVE)) for o in (obs_l, obs_r)]
+    sols = [mono.calibrate_full(obj, o, (640, 480), FIVE) for o in (obs_l, obs_r)]
+    cams = [m.camera() for m in sols]
+    every = np.ones((len(common), 2), bool)
+
+    def calibrate_stereo(left, right, inliers=None):  # the rig of two cameras held at their own calibrations
+        return calibrate_views(obj, np.stack([left, right], axis=1), every, [(640, 480)] * 2, mode="fixed",
+                               cameras=cams, inliers=inliers)
+
     rng = np.random.default_rng(2)
     mask = rng.random((len(common), 2, obj.shape[0])) > 0.02
     bad_l, bad_r = obs_l.copy(), obs_r.copy()
     bad_l[~mask[:, 0]] += 25.0
     bad_r[~mask[:, 1]] -= 25.0
-    a = calibrate_stereo(obj, obs_l, obs_r, *cams, inliers=mask)
-    b = calibrate_stereo(obj, bad_l, bad_r, *cams, inliers=mask)
-    plain = calibrate_stereo(obj, bad_l, bad_r, *cams)
+    a = calibrate_stereo(obs_l, obs_r, inliers=mask)
+    b = calibrate_stereo(bad_l, bad_r, inliers=mask)
+    plain = calibrate_stereo(bad_l, bad_r)
     np.testing.assert_allclose(b.values, a.values, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(b.rms, a.rms, rtol=1e-7)
     np.testing.assert_allclose(b.std, a.std, rtol=1e-6)

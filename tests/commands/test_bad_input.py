@@ -134,17 +134,17 @@ def test_unrelated_names_do_not_pair():
 
 def test_stereo_pairs_follow_names_not_order(tmp_path):
     """left01..06 with right02..07: the same count on each side, so pairing by order would match left01 with
-    right02; by name five pairs remain, and the two strays are named in a warning."""
-    from dstereo.io.stereo_files import detect_pairs
+    right02; by name five pairs remain (the rig's frames), and the two strays are named in a warning."""
+    from dstereo.calib.calibrations import StereoSources
+    from dstereo.config.calibration import Config
+    from dstereo.jobs.rig_sources import stereo_pair_sources
 
-    data = require_data("opencv_stereo")
-    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
-    for i in range(1, 7):
-        (tmp_path / "L" / f"left{i:02d}.jpg").symlink_to(data / f"left{i:02d}.jpg")
-        (tmp_path / "R" / f"right{i + 1:02d}.jpg").symlink_to(data / f"right{i + 1:02d}.jpg")
-    det = detect_pairs(tmp_path / "L", tmp_path / "R", (9, 6), 1.0, use_cache=False)
-    assert det.pairs == [(f"left{i:02d}.jpg", f"right{i:02d}.jpg") for i in range(2, 7)]
-    assert len(det.warnings) == 1 and "left01.jpg" in det.warnings[0] and "right07.jpg" in det.warnings[0]
+    left = tuple(tmp_path / f"left{i:02d}.jpg" for i in range(1, 7))
+    right = tuple(tmp_path / f"right{i + 1:02d}.jpg" for i in range(1, 7))
+    sources, warnings = stereo_pair_sources(StereoSources(left, right, left, right, "test"), Config(pattern=(9, 6)))
+    assert [(f, p.name) for f, p in sources[0].frames] == [(f"{i:02d}", f"left{i:02d}.jpg") for i in range(2, 7)]
+    assert [p.name for _, p in sources[1].frames] == [f"right{i:02d}.jpg" for i in range(2, 7)]
+    assert len(warnings) == 1 and "left01.jpg" in warnings[0] and "right07.jpg" in warnings[0]
 
 
 @pytest.mark.parametrize("layout", ["flags", "thesis folders"])
@@ -354,20 +354,6 @@ def test_wrong_way_round_pattern_flags_the_bad_view(tmp_path):
     flagged = [w for w in summary["warnings"] if w.startswith("view left02.jpg")]
     assert flagged and all(w in err for w in flagged)
     assert any("did you mean 9x6" in w for w in flagged)
-
-
-def test_stereo_pairs_numbered_from_opposite_corners_are_renumbered(tmp_path):
-    from dstereo.io.stereo_files import _align_right_order, detect_pairs
-
-    data = require_data("opencv_stereo")
-    det = detect_pairs([data / f"left0{i}.jpg" for i in (1, 3, 4)], [data / f"right0{i}.jpg" for i in (1, 3, 4)],
-                       (9, 6), 1.0)
-    assert det.warnings == []
-    truth = det.right.corners["right03.jpg"].copy()
-    det.right.corners["right03.jpg"] = truth[::-1].copy()  # as if OpenCV had started at the opposite corner
-    warnings = _align_right_order(det.left, det.right, det.pairs, (9, 6))
-    assert len(warnings) == 1 and "left03.jpg / right03.jpg (180 deg)" in warnings[0]
-    assert np.array_equal(det.right.corners["right03.jpg"], truth)
 
 
 # --- found walking the commands as a hostile user ----------------------------------------------------------------

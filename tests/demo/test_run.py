@@ -24,7 +24,6 @@ from typer.testing import CliRunner
 from dstereo.demo import run as demo
 from dstereo.demo.comparison import rotation_error_deg
 from dstereo.demo.surface import rigid_fit, surface_errors
-from dstereo.calib.stereo import calibrate_stereo
 from dstereo.cli import app
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import read_stereo_calibration
@@ -75,7 +74,7 @@ def test_joint_sigma_matches_the_scatter_of_repeated_calibrations(run):
     draws, sigma = [], None
     for _ in range(12):
         ql, qr = (truth[k] + rng.normal(0.0, 0.02, truth[k].shape) for k in ("corners_left", "corners_right"))
-        s = calibrate_stereo(obj, ql, qr, left, right, "joint")
+        s = demo.joint_rig(obj, ql, qr, [left, right])
         draws.append(s.values)
         if sigma is None:
             sigma = np.sqrt(np.diag(demo.joint_covariance(s, obj, ql, qr)))

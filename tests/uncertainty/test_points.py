@@ -15,8 +15,8 @@ import trimesh
 
 from conftest import run_cli
 from dstereo.uncertainty import points as pu
-from dstereo.calib import stereo as st
-from dstereo.calib.problem import run
+from dstereo.calib.multiview import calibrate_views
+from dstereo.calib.problem import Problem, run, shared_data
 from dstereo.uncertainty.covariance import scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.io.calib_files import StereoCalibration, read_stereo_calibration, write_opencv_stereo
@@ -24,7 +24,8 @@ from dstereo.io.stereo_files import write_stereo_yml
 from dstereo.models.camera import Camera
 from dstereo.models.distortion import Distortion
 from dstereo.models.distortion import undistort
-from dstereo.models.rig import Rig
+from dstereo.models.camera import INTRINSIC_NAMES
+from dstereo.models.rig import RIG_NAMES, Rig
 from dstereo.uncertainty.projection import mean_board_distance, projection_uncertainty_map
 from dstereo.stereo.rectify import stereo_rectify
 from dstereo.solver.lm import LMOptions
@@ -127,9 +128,9 @@ def mc():
     obj = object_points(PATTERN, SQUARE)
     data = np.stack([np.stack([true_corners(left, p, PATTERN, SQUARE) for p in poses]),
                      np.stack([true_corners(right, compose(rig_rt, p), PATTERN, SQUARE) for p in poses])], axis=1)
-    spec = st._spec_for("joint", left, right)  # the joint solve, batched by the one runner
+    spec = Problem.of([FREE, FREE], refined=True)  # the joint solve of K = 2, batched by the one runner
     truth = np.concatenate([rig_rt, np.asarray(left.free_vector()), np.asarray(right.free_vector())])
-    shared = st._shared(obj, left, right)
+    shared = shared_data(obj, np.stack([left.k, right.k]), np.stack([left.dist.coeffs, right.dist.coeffs]))
     options = LMOptions(lambda0=1e-6)
     rng = np.random.default_rng(0)
     values, covs = [], []
@@ -143,7 +144,7 @@ def mc():
         values.append(out.g)
         covs.append(scaled_inverse(out.schur) * sigma2[:, None, None])
     values, covs = np.concatenate(values), np.concatenate(covs)
-    names = st._names(spec)
+    names = RIG_NAMES + tuple(f"{side}.{n}" for side in ("left", "right") for n in INTRINSIC_NAMES + FREE)
     index = pu.theta_index(names)
     base = pu.parameter_vector(StereoCalibration(left.matrix(), left.coeffs(), right.matrix(), right.coeffs(), R0, T0))
     # test points: pixels across the left image, depths 460..540 mm, seen by both cameras
@@ -285,7 +286,9 @@ def test_fixed_mode_rig_sensitivity_is_the_central_difference_of_re_solved_rigs(
     from dstereo.uncertainty.rig import rig_sensitivity
 
     ql, qr = mc.data[:, 0], mc.data[:, 1]
-    fixed = st.calibrate_stereo(mc.obj, ql, qr, mc.left, mc.right, "fixed")
+    every = np.ones(mc.data.shape[:2], bool)
+    solve = lambda cams: calibrate_views(mc.obj, mc.data, every, [SIZE, SIZE], mode="fixed", cameras=cams)  # noqa: E731
+    fixed = solve([mc.left, mc.right])
     a = rig_sensitivity(mc.obj, ql, qr, fixed)
     n_l = len(mc.left.free_vector())
     for j, h in ((2, 0.5), (n_l + 4, 1e-3)):  # left.cx, right.k1
@@ -294,7 +297,7 @@ def test_fixed_mode_rig_sensitivity_is_the_central_difference_of_re_solved_rigs(
             cams = [mc.left, mc.right]
             side, k = (0, j) if j < n_l else (1, j - n_l)
             cams[side] = cams[side].with_free_vector(cams[side].free_vector().at[k].add(sign * h))
-            rigs.append(st.calibrate_stereo(mc.obj, ql, qr, *cams, "fixed").values)
+            rigs.append(solve(cams).values)
         fd = (rigs[0] - rigs[1]) / (2 * h)
         np.testing.assert_allclose(a[:, j], fd, rtol=1e-3, atol=1e-3 * np.abs(fd).max())
     assert np.abs(a[1, 2]) > 1e-4  # a principal point shift turns the rig (RVy): the compensation that matters
@@ -367,7 +370,7 @@ def _disparity_only(points, disparity, Q, sigma_d):
 
 def test_reconstruct_cli_writes_sigma_maps_and_ply_attributes(tmp_path):
     (left, right), calib = _shifted_pair(tmp_path)
-    names = ("left.fx", "left.fy", "left.cx", "left.cy", "right.fx", "right.fy", "right.cx", "right.cy") + st.RIG_NAMES
+    names = ("left.fx", "left.fy", "left.cx", "left.cy", "right.fx", "right.fy", "right.cx", "right.cy") + RIG_NAMES
     std = np.array([0.8, 0.8, 0.5, 0.5, 0.8, 0.8, 0.5, 0.5, 2e-4, 2e-4, 1e-4, 0.05, 0.05, 0.05])
     write_stereo_yml(tmp_path / "stereo.yml", calib.K1, calib.D1, calib.K2, calib.D2, calib.R, calib.T, np.eye(3),
                      np.eye(3), (W, H), cov=np.diag(std ** 2), cov_names=names, cov_structure="joint: test")
