@@ -1,5 +1,6 @@
-"""`dstereo calibrate`: one camera, a stereo pair (--left/--right, the thesis layout) or N cameras (--cameras): parse,
-check the request (calibrate_checks.py), run the job and print (calibrate_runs.py)."""
+"""`dstereo calibrate`: one camera, a stereo pair (--left/--right, the thesis layout) or N cameras (--cameras): parse
+the flags, check them as one request (calibrate_request.py), run the one job and print (calibrate_runs.py); where
+its subset blocks run: calibrate_placement.py."""
 
 from __future__ import annotations
 
@@ -85,137 +86,19 @@ def calibrate(
 ) -> None:
     """Calibrate one camera (or a stereo rig: --left/--right, or images/images_left + images_right): full-set
     solve, subset analysis and the thesis's robust optimisation steps."""
-    started = time.perf_counter()
-    with _subset_placement(workers, scheduler, resume, force, out, project):
-        _calibrate(project, config, images, glob, image_format, pattern, square, unit, model, model_right, per_set,
-                   max_subsets, seed, step, min_subsets, final, no_outlier_rejection, board_sag, mrcal_convert, out,
-                   force, quiet, no_cache, left, right, cameras, pair, projection_range, projection_method,
-                   cross_validate, started)
-
-
-def _subset_placement(workers, scheduler, resume, force, out, project):
-    """Where subset blocks run (`runtime.placement`): on a Dask cluster with --workers N (N > 1) or --scheduler, else
-    here; with the blocks of long runs kept in OUT.partial (--resume continues from them; removed once the run has
-    ended with its results). Refuses bad values and an earlier run's blocks without --resume or --force, first."""
-    import contextlib
-
-    from dstereo.errors import DstereoError
-    from dstereo.runtime.placement import Placement, placed
-
-    runner = None
-    if workers is not None or scheduler is not None:
-        from dstereo.runtime.tasks import FrameRunner
-
-        runner = FrameRunner(workers if workers is not None else 1, scheduler)
-    target = out if out is not None else (project / "results" if project is not None else None)
-    store = None
-    if target is not None:
-        from dstereo.io.partial_store import PartialStore, partial_folder
-
-        folder = partial_folder(target)
-        if folder.exists() and not resume and not force:
-            raise DstereoError(f"{folder} holds the subset blocks of an earlier run; pass --resume to continue it, or "
-                               "--force to start afresh")
-        if resume and not folder.exists():
-            raise DstereoError(f"--resume: {folder} does not exist: no earlier run of {target} to continue; run "
-                               "without --resume")
-        opened: dict = {}
-
-        def store(key):
-            """The blocks of one subset stage (a run may have several: each camera's, the rig's) in a folder of
-            their own in OUT.partial, named by the stage's inputs."""
-            if key not in opened:
-                opened[key] = PartialStore(folder / key[:16], key).open(resume, force)
-            return opened[key]
-
-    @contextlib.contextmanager
-    def around():
-        with placed(Placement(runner, store)):
-            yield
-        _build_ahead()
-        if target is not None:  # the run ended with its results: its kept blocks are done with
-            from dstereo.io.partial_store import PartialStore
-
-            PartialStore(target, "").remove()
-
-    return around()
-
-
-def _build_ahead() -> None:
-    """The programs this run used whose shapes follow the view count, built for the other view buckets in the
-    background (`runtime/prebuild.py`); said once per executables folder."""
-    from dstereo.runtime import buckets, prebuild
-
-    records, sizes = buckets.noted(), buckets.noted_sizes()
-    buckets.clear_noted()
-    if prebuild.start(records, sizes):
-        told = prebuild.folder() / "told"
-        if not told.exists():
-            told.touch()
-            typer.echo("dstereo: note: building this calibration's programs for other view counts (5-60) in the "
-                       "background, one core at low priority, so that a data set of another size starts without "
-                       "compiling; off: DSTEREO_PREBUILD=0 (this note is shown once)", err=True)
-
-
-def _calibrate(project, config, images, glob, image_format, pattern, square, unit, model, model_right, per_set,
-               max_subsets, seed, step, min_subsets, final, no_outlier_rejection, board_sag, mrcal_convert, out,
-               force, quiet, no_cache, left, right, cameras, pair, projection_range, projection_method,
-               cross_validate, started) -> None:
-    from dstereo.config.calibration import build_config, file_layer, find_project_config, parse_step_flags, validate
-    from dstereo.config.calibration_flags import flag_layer
-    from dstereo.commands.calibrate_checks import as_given, check_run_options, pair_of, \
-        refuse_splined_where_unsupported, results_folder, stereo_layout
-    from dstereo.commands.calibrate_runs import run_camera, run_cameras, run_stereo
-    from dstereo.config.capabilities import RIGHT_LENS, STEREO_STEPS, refuse
-    from dstereo.errors import DstereoError
+    from dstereo.commands.calibrate_placement import subset_placement
     from dstereo.runtime import figure_pool
 
-    # One figure worker now, before JAX is imported (next line): its imports (matplotlib, its fonts) then run on the
-    # core that JAX's single-threaded import leaves idle; the others once that is done (`figure_pool.start`)
-    figure_pool.start(now=1)
-    check_run_options(projection_method, cross_validate, projection_range, pair, cameras)
-    config_path = config if config is not None else (find_project_config(project) if project is not None else None)
-    flags = flag_layer(dict(  # parameter -> flag value (dstereo.config.options.CALIBRATE)
-        pattern=pattern, square=square, unit=unit, images=images, image_format=image_format, glob=glob, model=model,
-        model_right=model_right, per_set=per_set, max_subsets=max_subsets, seed=seed, min_subsets=min_subsets,
-        final=final, outlier_rejection=no_outlier_rejection, board_sag=board_sag, steps=step,
-        mrcal_convert=mrcal_convert))
-    cfg = build_config(*([file_layer(config_path)] if config_path is not None else []), flags)
-    stereo_steps = flags.get("stereo_steps")
-    cfg = validate(cfg)
-    use_cache = not no_cache  # checked once the inputs and the results folder are (`corner_cache_usable`)
-    figure_pool.start_rest()  # JAX is imported: the other workers warm up on the core the full-set solve leaves
-    refuse_splined_where_unsupported(cfg, cameras is not None or left is not None or right is not None,
-                                     cross_validate)
-    if cameras is not None:
-        if left is not None or right is not None or images is not None:
-            raise DstereoError("--cameras: give the cameras' folder alone, without --images/--left/--right")
-        if cfg.model_right is not None:
-            refuse(RIGHT_LENS, "--cameras", as_given(cfg, "model_right", "--model-right"))
-        run_cameras(cameras, cfg, pair_of(pair), project, out, force, quiet, use_cache, started, projection_range,
-                    cross_validate)
-        return
-    stereo_images = images if images is not None else (project / cfg.images if project is not None else None)
-    if left is not None or right is not None or (stereo_images is not None and stereo_layout(stereo_images)):
-        refuse_splined_where_unsupported(cfg, True, cross_validate)  # a stereo layout found in the images folder
-        run_stereo(stereo_images, cfg, left, right, project, out, force, quiet, use_cache, started,
-                   projection_range, cross_validate)
-        return
-    if cfg.model_right is not None:
-        refuse(RIGHT_LENS, "one camera", as_given(cfg, "model_right", "--model-right"))
-    if stereo_steps:
-        refuse(STEREO_STEPS, "one camera", f"--step {', '.join(s for s in step if parse_step_flags([s])[1])}")
-    if cfg.mode != "individual":
-        raise DstereoError(f"{cfg.source or 'configuration'}: a stereo configuration needs the stereo images: put them "
-                           "in images/images_left and images/images_right, or give --left DIR --right DIR")
-    base = project if project is not None else (config_path.parent if config_path is not None else None)
-    if images is None:
-        if base is None:
-            raise DstereoError("no images: give a PROJECT folder (with images/) or --images DIR")
-        images = base / cfg.images
-    from dstereo.jobs.calibrate_camera import list_camera_images
-    from dstereo.io.pairing import check_one_camera
+    started = time.perf_counter()
+    with subset_placement(workers, scheduler, resume, force, out, project):
+        # One figure worker now, before JAX is imported (by the request's checks): its imports (matplotlib, its
+        # fonts) then run on the core that JAX's single-threaded import leaves idle; the others once that is done
+        figure_pool.start(now=1)
+        from dstereo.commands.calibrate_request import calibrate_request
+        from dstereo.commands.calibrate_runs import run_request
 
-    check_one_camera(list_camera_images(images, cfg), str(images))
-    out = results_folder(out, project, force, cfg, inputs=[images, config_path])
-    run_camera(images, cfg, out, force, quiet, use_cache, started, projection_range, projection_method, cross_validate)
+        request = calibrate_request(project, config, images, glob, image_format, pattern, square, unit, model,
+                                    model_right, per_set, max_subsets, seed, step, min_subsets, final,
+                                    no_outlier_rejection, board_sag, mrcal_convert, out, force, quiet, no_cache, left,
+                                    right, cameras, pair, projection_range, projection_method, cross_validate)
+        run_request(request, started)

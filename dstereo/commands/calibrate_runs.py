@@ -13,6 +13,20 @@ from dstereo.commands.calibrate_checks import corner_cache_usable, results_folde
 from dstereo.commands.progress import progress_bars
 
 
+def run_request(request, started: float) -> None:
+    """The one job on a checked request (calibrate_request.py), its folder written and its console text printed."""
+    r = request
+    if r.rig == "cameras":
+        run_cameras(r.cameras, r.cfg, r.pair, r.project, r.out, r.force, r.quiet, r.use_cache, started,
+                    r.projection_range, r.cross_validate)
+    elif r.rig == "stereo":
+        run_stereo(r.images, r.cfg, r.left, r.right, r.project, r.out, r.force, r.quiet, r.use_cache, started,
+                   r.projection_range, r.cross_validate)
+    else:
+        run_camera(r.images, r.cfg, r.out, r.force, r.quiet, r.use_cache, started, r.projection_range,
+                   r.projection_method, r.cross_validate)
+
+
 def run_stereo(images, cfg, left, right, project, out, force, quiet, use_cache, started,
                 projection_range=None, cross_validate: int = 0) -> None:
     """Stereo mode (thesis 4.2.2.2): the K-camera job on the two cameras; see dstereo.jobs.calibrate_stereo."""

@@ -2,8 +2,9 @@
 compile cache are): in this process (the default), or on a Dask cluster (`tasks.FrameRunner`: a local one of N
 processes, or a running one at an address), and where finished blocks are kept so that a stopped run resumes.
 
-`dstereo calibrate --workers N / --scheduler ADDRESS / --resume` sets it (commands/calibrate.py); the subset runner
-(calib/subset_runs.py) reads it. The job between them is unchanged: what it computes does not depend on where.
+`dstereo calibrate --workers N / --scheduler ADDRESS / --resume` sets it (commands/calibrate_placement.py); the
+subset runner (calib/subset_runs.py) reads it. The job between them is unchanged: what it computes does not depend
+on where.
 """
 
 from __future__ import annotations
