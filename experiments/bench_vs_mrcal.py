@@ -122,6 +122,8 @@ def main() -> None:
     finally:
         subprocess.run([*DSTEREO, "serve", "--stop"], env=env, capture_output=True)
         server.wait(timeout=60)
+        # the private cache's background builder (detached, its own session) would go on for up to an hour
+        subprocess.run(["pkill", "-f", f"dstereo.jobs.prebuild {work}"], capture_output=True)
     load.append(f"after: {uptime()}")
     out["load"] = load
     best_mrcal = min(out["mrcal_s"])
