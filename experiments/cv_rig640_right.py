@@ -157,6 +157,7 @@ def camera(label, folder, glob, quick=False) -> dict:
         rand.append((np.sort(p[: n // 2]), np.sort(p[n // 2:])))
     x = run_splits(full, obj, obs, size, rand, range_)
     out["random"] = summary_of(x)
+    out["random"]["diagnosis"] = x.diagnosis()  # pooled inside / outside the corners' field, per-parameter excess
     lr = np.log(out["random"]["ratios"])
     g4 = np.exp([np.mean(rng.choice(lr, 4, replace=False)) for _ in range(2000)])
     out["random"]["four_split_gm_5_95"] = list(map(float, np.percentile(g4, [5, 95])))
@@ -199,6 +200,11 @@ def table(data) -> str:
                  + ", ".join(f"{p['view']} {p['score_chi2_per_g']:.2f} ({p['rms_px']:.3f} px)" for p in pv[:5])
                  + f"; median {np.median([p['score_chi2_per_g'] for p in pv]):.2f}; per-view RMS "
                  f"{min(p['rms_px'] for p in pv):.3f}-{max(p['rms_px'] for p in pv):.3f} px\n")
+        dg = c["random"]["diagnosis"]
+        text += (f"{c['label']}: {MANY} random splits pooled inside the corners' field "
+                 f"{dg['ratio_pooled_inside_corner_field']:.2f}, outside {dg['ratio_pooled_outside_corner_field']:.2f}; "
+                 "each lens parameter's squared difference / predicted variance, mean over splits (1 if right): "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in dg["parameter_variance_ratio"].items()) + "\n")
         text += f"{c['label']}: per-split ratios (random): " + ", ".join(f"{v:.2f}" for v in c["random"]["ratios"]) + "\n"
         keys = [k for k in c["windows"][0] if k not in ("frames",) and not k.startswith("board")][:9]
         text += f"\n{c['label']}: windows of 8 consecutive frames (value +- std)\n\n| frames | " + " | ".join(keys) + \
