@@ -185,6 +185,8 @@ class SplitResult:
     modes: float = float("nan")  # effective number of modes of C, sum(lambda)^2 / sum(lambda^2)
     projection: ProjectionDiff | None = None
     weight: np.ndarray | None = None  # (gh, gw) each pixel's weight in the fit and the ratio (`camera_diff`)
+    # (G,) each lens parameter's squared difference over its predicted variance, d_i^2 / (C_A + C_B)_ii (1 if right)
+    parameter_excess: np.ndarray | None = None
 
 
 def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
@@ -203,8 +205,9 @@ def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: 
     dp = a.values[: len(a.cov)] - b.values[: len(b.cov)]  # the lens parameters lead the shared vector
     # scaled first: fx and k3 differ by 10^6, and a plain pseudo-inverse of the sum loses the small directions
     chi2 = float(dp @ scaled_inverse(a.cov + b.cov) @ dp / len(dp))
+    excess = dp ** 2 / np.maximum(np.diag(a.cov + b.cov), 1e-300)
     return SplitResult(d.diff, d.cov, d.mahalanobis, d.ratio, d.ratio_vs_maps, d.transform, covered, chi2,
-                       d.ratio_raw, d.modes, d, d.weight)
+                       d.ratio_raw, d.modes, d, d.weight, excess)
 
 
 @dataclass(frozen=True)
@@ -309,6 +312,41 @@ class CrossValidation:
         return {"pixels": int(c.sum()), "ratio_pooled_rms": self._pooled(c),
                 "mahalanobis_median": float(np.nanmedian(np.concatenate([s.mahalanobis[c] for s in self.splits])))}
 
+    def diagnosis(self) -> dict | None:
+        """Where and in what the halves differ beyond the prediction, from the splits alone (no further solve):
+        the pooled ratio inside the corners' field and outside it (where the lens model is extrapolated), and each
+        lens parameter's d_i^2 / (C_A + C_B)_ii averaged over the splits (1 if right), largest first. None without
+        the covered-field mask."""
+        if self.splits[0].covered is None or not self.splits[0].covered.any():
+            return None
+        c = self.splits[0].covered
+        out = {"ratio_pooled_inside_corner_field": self._pooled(c),
+               "ratio_pooled_outside_corner_field": self._pooled(~c) if (~c).any() else float("nan")}
+        if self.splits[0].parameter_excess is not None and self.names:
+            mean = np.mean([s.parameter_excess for s in self.splits], axis=0)
+            order = np.argsort(-mean)
+            out["parameter_variance_ratio"] = {self.names[i]: float(mean[i]) for i in order}
+        return out
+
+    def _diagnosis_text(self) -> str:
+        """The figures that name an out-of-band prediction's likely cause (`diagnosis`), as a clause."""
+        d = self.diagnosis()
+        if d is None:
+            return ""
+        inside, outside = d["ratio_pooled_inside_corner_field"], d["ratio_pooled_outside_corner_field"]
+        text = (f"; pooled over the splits the halves read {inside:.2f} inside the corners' field and {outside:.2f} "
+                "outside it")
+        if np.isfinite(outside) and outside > inside:
+            text += (" (larger where the lens model is extrapolated: the likely cause is the model's shape beyond the "
+                     "views, e.g. a radial profile the coefficients follow only where the corners are; add views "
+                     "that reach the image corners, or compare another `model`)")
+        top = list(d.get("parameter_variance_ratio", {}).items())[:3]
+        if top:
+            text += ("; the lens parameters differ most beyond their +- in " + ", ".join(
+                f"{n} {v:.2g}x" for n, v in top) + " (squared difference / predicted variance, mean over splits, 1 if "
+                "right)")
+        return text
+
     def median_maps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(observed |difference|, predicted rms difference, Mahalanobis) per grid pixel, medians over the splits
         (px, px, 1): the three maps of plots/cross_validation.png."""
@@ -369,12 +407,13 @@ class CrossValidation:
                     self.mahalanobis_median > b.mahalanobis[1]  # the statistic that left its band, and to which side
                 lean = "optimistic" if beyond else "pessimistic"
                 return (head + ": the uncertainty can be trusted within the acceptance band, though it leans "
-                        f"{lean}: beyond where a right prediction falls on these views")
+                        f"{lean}: beyond where a right prediction falls on these views"
+                        + (self._diagnosis_text() if beyond else ""))
             return head + ": the uncertainty can be trusted"
         if self.ratio > 1 or self.mahalanobis_median > MAHALANOBIS_MAX:
             return (head + ": the uncertainty can NOT be trusted, it is optimistic (errors larger than predicted); "
                     "likely causes: outlier corners, a non-flat board, a distortion model that does not fit the lens, "
-                    "or too few views per half")
+                    "or too few views per half" + self._diagnosis_text())
         return (head + ": the uncertainty can NOT be trusted, it is pessimistic (the halves agree better than the +- "
                 "says: it errs on the safe side; the views' effects, fitted from few views, may be overestimated)")
 
@@ -388,7 +427,7 @@ class CrossValidation:
                 "parameter_chi2": [s.parameter_chi2 for s in self.splits],
                 "mahalanobis_median": self.mahalanobis_median,
                 "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
-                "inside_corner_field": self.covered_figures(),
+                "inside_corner_field": self.covered_figures(), "diagnosis": self.diagnosis(),
                 "trusted": self.trusted, "consistent_with_right_prediction": self.consistent,
                 "band_if_right": None if self.band is None else self.band.summary(),
                 "verdict": self.verdict(), "view_effects_std_ratios": self.std_ratios,

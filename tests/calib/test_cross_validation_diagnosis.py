@@ -1,0 +1,78 @@
+"""The cross-validation's diagnosis of an out-of-band prediction (`CrossValidation.diagnosis`): which lens parameters
+differ beyond their +- and whether the excess lies inside the corners' field or where the model is extrapolated.
+Each case plants a known excess and checks the figure against the definition (exact scalings)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dstereo.calib import cross_validation as cv
+from dstereo.calib.mono import calibrate_full
+from dstereo.synth.board_views import FREE, SIZE, scene
+
+
+@pytest.fixture(scope="module")
+def halves():
+    cam, poses, obj, corners = scene(n_views=16, seed=0)
+    obs = corners + np.random.default_rng(0).normal(0, 0.3, corners.shape)
+    full = calibrate_full(obj, obs, SIZE, FREE)
+    weights = np.zeros((2, len(obs)))
+    weights[0, ::2], weights[1, 1::2] = 1.0, 1.0
+    a, b = cv.solve_halves(full, obj, obs, weights)
+    return full, obs, a, b
+
+
+def _shrink(sol, index: int, factor: float):
+    """The half's covariance with parameter `index`'s std divided by `factor` (row and column scaled)."""
+    d = np.ones(len(sol.cov))
+    d[index] = 1.0 / factor
+    return dataclasses.replace(sol, cov=sol.cov * d[:, None] * d[None, :])
+
+
+def test_a_parameter_claimed_too_tight_is_named_first(halves):
+    """k1's std claimed 3x too small in both halves: its d^2 / (C_A + C_B)_ii grows 9x exactly (the others are
+    unchanged to rounding), it leads the diagnosis and the optimistic verdict names it."""
+    full, obs, a, b = halves
+    names = cv._lens_names(full)
+    corners = obs.reshape(-1, 2)
+    fine = cv.compare_halves(a, b, names, SIZE, 1000.0, corners=corners)
+    i = names.index("k1")
+    bad = cv.compare_halves(_shrink(a, i, 3.0), _shrink(b, i, 3.0), names, SIZE, 1000.0, corners=corners)
+    np.testing.assert_allclose(bad.parameter_excess[i], 9.0 * fine.parameter_excess[i], rtol=1e-12)
+    others = np.arange(len(names)) != i
+    np.testing.assert_allclose(bad.parameter_excess[others], fine.parameter_excess[others], rtol=1e-12)
+    # planted well above every other parameter's figure (a right prediction's d^2/var is chi^2_1: here 9 x its own)
+    xv = cv.CrossValidation([dataclasses.replace(bad, ratio=3.0)] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2),
+                            np.zeros(2), names=names)
+    assert fine.parameter_excess[i] * 9.0 > fine.parameter_excess[others].max()  # (measured 20.6 against 6.4)
+    assert next(iter(xv.diagnosis()["parameter_variance_ratio"])) == "k1"
+    assert "differ most beyond their +- in k1" in xv.verdict()
+    assert "can NOT be trusted" in xv.verdict() and "corners' field" in xv.verdict()
+
+
+def test_an_excess_outside_the_corner_field_is_said_to_be_where_the_model_extrapolates(halves):
+    """The split's differences tripled outside the corners' field: the pooled ratio there triples exactly (weights
+    and predictions unchanged), inside it stays, and the verdict says the excess lies where the lens model is
+    extrapolated; the same excess inside the field does not say so."""
+    full, obs, a, b = halves
+    names = cv._lens_names(full)
+    s = cv.compare_halves(a, b, names, SIZE, 1000.0, corners=obs[:, :20].reshape(-1, 2))  # a partial field
+    c = s.covered
+    assert c.any() and (~c).any()
+    base = cv.CrossValidation([s] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2), np.zeros(2), names=names)
+    for where, clause in ((~c, True), (c, False)):
+        diff = s.diff.copy()
+        diff[where] *= 3.0
+        planted = dataclasses.replace(s, diff=diff, ratio=3.0)
+        xv = cv.CrossValidation([planted] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2), np.zeros(2), names=names)
+        d, d0 = xv.diagnosis(), base.diagnosis()
+        key = "ratio_pooled_outside_corner_field" if clause else "ratio_pooled_inside_corner_field"
+        other = "ratio_pooled_inside_corner_field" if clause else "ratio_pooled_outside_corner_field"
+        assert d[key] == pytest.approx(3.0 * d0[key], rel=1e-12)
+        assert d[other] == pytest.approx(d0[other], rel=1e-12)
+        assert ("where the lens model is extrapolated" in xv.verdict()) == (d["ratio_pooled_outside_corner_field"]
+                                                                            > d["ratio_pooled_inside_corner_field"])
+        if clause:
+            assert d0[key] * 3.0 > d0[other]  # so the planted case must say it
+            assert "where the lens model is extrapolated" in xv.verdict()
