@@ -65,7 +65,7 @@ def test_the_files_give_the_statistic_computed_in_memory(folders):
     assert s["weighting"].startswith("uniform")  # no joint covariance: said, in a note too
     assert any("weights every pixel alike" in n for n in s["notes"])
     assert f"ratio {d.ratio:.2f}" in out and "wrote" in out
-    with np.load(root / "out" / "diff.npz") as z:
+    with np.load(root / "out" / "diff.npz") as z:  # the same program, run by the CLI and here, on one machine
         np.testing.assert_allclose(z["diff"], d.diff, rtol=1e-9, atol=1e-12)
         assert z["cov"].shape == (9, 12, 2, 2)
     assert (root / "out" / "diff.png").stat().st_size > 1000
@@ -119,6 +119,7 @@ def test_a_rig_camera_reads_its_block_of_the_pairs_covariance(folders, tmp_path)
         inp = read_diff_input(f"{path}:{side}", "A")
         got = _camera(inp, [])
         assert got.names == NAMES and np.array_equal(got.cov, cam.cov)
+        # written and read back as text (17 significant digits round-trip a float64): equal, 1e-12 for the decimal
         np.testing.assert_allclose(got.params, cam.params, rtol=1e-12)
     code, out, err = run_cli("diff", f"{tmp_path}:right", fb, "--distance", "500", "--grid", "12x9")
     assert code == 0 and "ratio" in out, err
