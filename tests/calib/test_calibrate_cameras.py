@@ -1,7 +1,9 @@
 """`dstereo calibrate --cameras DIR` end to end on a rendered K = 3 rig of different cameras with partial
 visibility (tests/calib/test_problem.py's rig, rendered, corners detected by OpenCV): the files, the recovered
 rig against the truth, and the refusals. The accuracy acceptance at 60 frames, and OpenCV's calibrateMultiview
-beside it, is tests/calib/test_multiview.py."""
+beside it, is tests/calib/test_multiview.py. The rig's features (board sag by default, subsets and the stereo
+steps, --model auto, --cross-validate) run for K = 1, 2 and 3 in tests/commands/test_every_feature.py, on one
+render, a run each (these tests ran three more calibrations of this rig for them, ~170 s of the suite)."""
 
 import json
 from pathlib import Path
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 
 import test_problem as rig
-from conftest import release_compiled_programs, run_cli
+from conftest import run_cli
 from dstereo.synth.board import Board
 from dstereo.synth.poses import compose
 from dstereo.synth.render import camera_rays, render_board
@@ -180,77 +182,3 @@ def test_frames_that_share_no_name_are_refused(rig_folder, tmp_path):
             (other / f"cam{k}" / f"c{k}_{p.name}").write_bytes(p.read_bytes())
     code, text = _cli("--cameras", other, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "r", "-q")
     assert code == 1 and "matched by file name" in text and not (tmp_path / "r").exists()
-
-
-def test_board_sag_rig_subsets_and_stereo_steps(rig_folder, tmp_path):
-    """The renders' board is flat: the solved sag must lie within 3.5 of its own sigma of zero, in cameras.json
-    for the rig and in summary.json for one camera, where it is solved by default (no flag). The same rig run has
-    subsets and the thesis's stereo steps (calib/rig_subsets.py, on each adjacent pair): in cameras.json, report.md
-    and the console; these renders have no bad frame, and a generous absolute stereo_re limit keeps every subset."""
-    root, _ = rig_folder
-    code, text = _cli("--cameras", root, "--pattern", "9x6", "--square", "20", "--out", tmp_path / "rig", "--board-sag",
-                      "--per-set", "6", "--max-subsets", "24", "--step", "stereo_re=3", "--step", "Tnorm=3")
-    assert code == 0, text
-    summary = json.loads((tmp_path / "rig" / "cameras.json").read_text())
-    rs = summary["rig_subsets"]
-    assert rs["subsets"] == 24 and rs["per_set"] == 6 and rs["usable"] == 24, rs
-    assert rs["steps"][0].startswith("step 1 (stereo_re@cam0-cam1 <= 3 px, stereo_re@cam1-cam2 <= 3 px): 24 -> 24")
-    assert "Tnorm@cam1-cam2 within 3 IQR" in rs["steps"][1] and rs["left_out_frames"] == []
-    assert "rig subsets: 24 of m = 6 frames, 24 converged" in text
-    assert "## Rig subsets and stereo steps" in (tmp_path / "rig" / "report.md").read_text()
-    joint = summary["joint"]
-    for name in ("board_sag_x", "board_sag_y"):
-        assert abs(joint["parameters"][name]) < 3.5 * joint["std"][name], (name, joint["parameters"][name])
-    code, text = _cli("--images", root / "cam1", "--pattern", "9x6", "--square", "20", "--out", tmp_path / "one",
-                      "-q")
-    assert code == 0, text
-    full = json.loads((tmp_path / "one" / "summary.json").read_text())["full_set"]
-    assert "board_sag_x" in full["std"] and "board_sag" not in (tmp_path / "one" / "config.toml").read_text()
-
-
-def _cli_in_a_child(*args):
-    """The command in a process of its own (DSTEREO_SERVE=0): --model auto compiles a program per candidate lens
-    and camera, a stereo job with its cross-validation a dozen more (~0.7-1 GB measured), which would stay in the
-    suite's process until the module ends (the suite's peak RSS must stay under 3 GB). This process first drops
-    the programs its earlier tests compiled (~1.3 GB here before), so the two peaks do not add up."""
-    import os
-    import subprocess
-    import sys
-
-    release_compiled_programs()
-    env = dict(os.environ, DSTEREO_SERVE="0")
-    done = subprocess.run([sys.executable, "-m", "dstereo.cli", "calibrate", *map(str, args)], env=env,
-                          capture_output=True, text=True, timeout=600)
-    return done.returncode, done.stdout + done.stderr
-
-
-def test_model_auto_and_cross_validation_in_a_rig(rig_folder, tmp_path):
-    """--model auto in a rig (issue 29): each camera chooses on its own views (its folder's summary has the
-    table), never the splined lens (`reconstruct` cannot rectify it), and the rig is solved with the chosen
-    models; the consistency test runs on it (simultaneous renders: consistent) and --cross-validate halves the
-    frames (calib/rig_cross_validation.py), in the summary and report.md. The --left/--right job runs the same
-    per-camera choice (`calibrate_camera(in_rig=True)`) and the same cross-validation (next test)."""
-    root, _ = rig_folder
-    code, text = _cli_in_a_child("--cameras", root, "--pattern", "9x6", "--square", "20", "--model", "auto",
-                                 "--cross-validate", "2", "--out", tmp_path / "r", "-q")
-    assert code == 0, text
-    for name in ("cam0", "cam1", "cam2"):
-        choice = json.loads((tmp_path / "r" / name / "summary.json").read_text())["model_choice"]
-        presets = [c["preset"] for c in choice["candidates"]]
-        assert "splined" not in presets and choice["chosen"] in presets, choice
-    summary = json.loads((tmp_path / "r" / "cameras.json").read_text())
-    assert summary["rig_consistency"]["consistent"], summary["rig_consistency"]
-    cv = summary["rig_cross_validation"]
-    assert cv["splits"] == 2 and cv["trusted"], cv
-    assert "## Rig cross-validation" in (tmp_path / "r" / "report.md").read_text()
-
-
-def test_cross_validation_of_a_left_right_rig(rig_folder, tmp_path):
-    root, _ = rig_folder
-    code, text = _cli_in_a_child("--left", root / "cam0", "--right", root / "cam1", "--pattern", "9x6", "--square",
-                                 "20", "--cross-validate", "2", "--out", tmp_path / "r", "-q")
-    assert code == 0, text
-    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
-    assert summary["rig_cross_validation"]["trusted"] and summary["rig_consistency"]["consistent"], summary
-    assert "board_sag_x" in summary["joint"]["parameters"]  # the stereo rig solves the sag (the default)
-    assert "## Rig cross-validation" in (tmp_path / "r" / "report.md").read_text()

@@ -95,7 +95,7 @@ def runs(rig, tmp_path_factory):
     out = tmp_path_factory.mktemp("runs")
     done = {}
     for kind in KINDS:
-        stereo_steps = () if kind == "one camera" else ("--step", "stereo_re=3")
+        stereo_steps = () if kind == "one camera" else ("--step", "stereo_re=3", "--step", "Tnorm=3")
         fisheye = ("--model-right", "fisheye") if kind == "--left/--right" else ("--model", "fisheye")
         for name, extra in (("a", (*SUBSET_FLAGS, "--step", "re=2", *stereo_steps, "--cross-validate", "2",
                                    "--model", "auto")),
@@ -123,9 +123,14 @@ def _subsets_and_camera_steps(runs, kind, rig):
 
 
 def _stereo_steps(runs, kind, rig):
-    rs = runs[kind, "a"].rig["rig_subsets"]
-    assert rs["subsets"] == SUBSETS and rs["usable"] >= 1 and rs["steps"][0].startswith("step 1 (stereo_re@"), rs
-    assert (runs[kind, "a"].out / "rig_subsets.csv").is_file()
+    """Each adjacent pair's stereo_re (a generous absolute limit) and Tnorm (within 3 IQR), in the order given."""
+    run = runs[kind, "a"]
+    rs = run.rig["rig_subsets"]
+    assert rs["subsets"] == SUBSETS and rs["per_set"] == PER_SET and rs["usable"] >= 1, rs
+    assert rs["steps"][0].startswith("step 1 (stereo_re@cam0-cam1 <= 3 px"), rs["steps"]
+    assert "Tnorm@cam0-cam1 within 3 IQR" in rs["steps"][1], rs["steps"]
+    assert (run.out / "rig_subsets.csv").is_file()
+    assert "## Rig subsets and stereo steps" in (run.out / "report.md").read_text()
 
 
 def _outlier_rejection(runs, kind, rig):
@@ -148,6 +153,9 @@ def _board_sag(runs, kind, rig):
         assert "board_sag_x" not in runs[kind, "b"].rig["joint"]["parameters"]
     for summary in runs[kind, "b"].summaries().values():
         assert "board_sag_x" not in summary["full_set"]
+    # solved by default, so no flag in each camera's record of its run's configuration
+    for folder in runs[kind, "a"].cameras.values():
+        assert "board_sag" not in (folder / "config.toml").read_text()
 
 
 def _cross_validation(runs, kind, rig):
@@ -157,8 +165,11 @@ def _cross_validation(runs, kind, rig):
         assert cv["splits"] == 2 and (run.out / "cross_validation.npz").is_file(), cv
         assert 0.2 < cv["ratio_geometric_mean"] < 5, cv  # predicted against observed: the same order
     else:
+        # both halves of the frames solved with the chosen models, the verdict in the summary and the report (the
+        # band's reading on renders: tests/calib/test_rig_cross_validation.py)
         cv = run.rig["rig_cross_validation"]
-        assert cv["splits"] == 2 and "trusted" in cv, cv
+        assert cv["splits"] == 2 and "trusted" in cv and cv["cameras"] == list(run.cameras), cv
+        assert "## Rig cross-validation" in (run.out / "report.md").read_text()
 
 
 def _model_auto(runs, kind, rig):
