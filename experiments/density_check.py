@@ -283,12 +283,14 @@ def main() -> None:
         print(table(rows[-1:]).splitlines()[-1], flush=True)
     existing = [r for r in rows if r[1].startswith(("as is", "relit"))]
     harder = [r for r in rows if not r[1].startswith(("as is", "relit"))]
-    text = (table(rows) + "\n" + totals(existing, "Existing Middlebury rows") + "\n\n"
-            + totals(harder, "Harder cases (texture weakened; renders)") + "\n\n"
+    text = (table(rows) + "\n" + (totals(existing, "Existing Middlebury rows") + "\n\n" if existing else "")
+            + totals(harder, "Harder cases (texture weakened; renders)" if not args.held_out else
+                     "Held-out cases (run after the check's threshold was set)") + "\n\n"
             f"before: the default without the density check; after: the default (no flags); rank fill: `--cost rank "
             f"--fill`. grey levels' map density: the check's own figure (share of the pixels with a source in both "
             f"images the grey levels matched, after the rank check and before any fill; not the scored mask). "
-            f"check ratio: the rank try's fills against the grey levels' matches (1.5 at most to be kept). "
+            f"check ratio: the rank try's fills against the grey levels' matches ({density_check.FILL_CHECK_MAX:g} at "
+            f"most to be kept; '-': not made, the rank try was not denser, or the check did not run). "
             f"s: seconds per reconstruction, one BLAS thread, under `nice` on a shared 2-core machine (load "
             f"average at the start {load[0]:.2f}, at the end {os.getloadavg()[0]:.2f}).\n")
     print(text)
