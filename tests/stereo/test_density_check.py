@@ -99,3 +99,36 @@ def test_the_fill_check_compares_fills_with_matches_by_both_sigmas():
     few = np.zeros(truth.shape, bool)
     few[0, :50] = True
     assert fill_check(honest, few, fill_sigma, matched, matched_sigma)["ratio"] is None
+
+
+def test_a_denser_rank_try_whose_fills_disagree_with_the_grey_levels_is_not_kept():
+    """A rendered outdoor scene (`synth.outdoor`, seed 1, 320 x 224) with its contrast pulled to a quarter in both
+    views: the grey levels' map is under the line and the rank try with the fill is denser, but its fills disagree
+    with the grey levels' matches by more than both sigmas say, so the default keeps the grey levels' map unfilled
+    and warns with the figures. Declining was right: forced (`--cost rank --fill`), those fills' error against the
+    render's truth is more than 1.5 times their sigma."""
+    from dstereo.synth.outdoor import OutdoorRig, outdoor_pair, true_disparity, visible_in_right
+
+    rig = OutdoorRig(size=(320, 224), focal_px=333.0, baseline_mm=150.0)  # as tests/stereo/test_outdoor_renders.py
+    render = outdoor_pair(rig, 1)
+
+    def faint(image):
+        m = image.astype(float).mean()
+        return np.clip(np.rint(m + 0.25 * (image.astype(float) - m)), 0, 255).astype(np.uint8)
+
+    left, right = faint(render.left), faint(render.right)
+    result = reconstruct_calibrated(rig.calibration(), left, right, DEFAULT)
+    check = result.summary["density_check"]
+    first, second = check["tries"]
+    assert first["density"] < DENSE_ENOUGH < second["density"], check  # only the fill check can decline it
+    assert second["fill_check"]["ratio"] > FILL_CHECK_MAX and check["kept"] == "intensity", check
+    assert result.summary["search_range"]["matching_cost"]["cost"] == "intensity"
+    assert result.filled is None and not result.summary["fill"]["enabled"]
+    assert any("sparse map" in w and "may not hold" in w for w in result.warnings), result.warnings
+    forced = reconstruct_calibrated(rig.calibration(), left, right, replace(DEFAULT, matching_cost="rank", fill=True))
+    seen, d_true = visible_in_right(render, rig), true_disparity(render, rig)
+    filled = seen & forced.filled & np.isfinite(forced.disparity)
+    assert filled.sum() >= 100
+    err = forced.disparity[filled].astype(np.float64) - d_true[filled]
+    ratio = MAD_TO_STD * np.median(np.abs(err - np.median(err))) / np.sqrt(np.mean(forced.fill_sigma[filled] ** 2))
+    assert ratio > 1.5, ratio
