@@ -20,7 +20,7 @@ cases. Held out from it (experiments/results/density_check_held_out.md: contrast
 two more renders): kept 2 (truth 1.06, and 1.51 on a render's 2.1 % filled), declined 4 (truth 1.63-2.25 on
 three; 1.32 on Adirondack, a dense map lost). The cost of the margin: an honest fill that reads 1.0-1.5 is
 declined (Pipes at contrast x0.25: 1.06, truth 1.34; its grey levels' map already met the 80 % line on the scored
-pixels).
+pixels)."""
 
 from __future__ import annotations
 
