@@ -44,6 +44,17 @@ def _robust_std(x: np.ndarray) -> float:
     return float(MAD_TO_STD * np.median(np.abs(x - np.median(x))))
 
 
+def varied(grey_image: np.ndarray, block: int) -> np.ndarray:
+    """True where the block x block window around the pixel (SGBM's block, the window the grey levels' cost
+    compares) holds two grey levels or more. A window of one level (a clipped or featureless background, a
+    render's sky) gives neither cost anything to bind to: the density is measured without those pixels, so that
+    a map is not called sparse for leaving them empty, nor a try denser for filling them (the module)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    g = np.asarray(grey_image)
+    return maximum_filter(g, size=block, mode="nearest") > minimum_filter(g, size=block, mode="nearest")
+
+
 def fill_check(disparity, filled, fill_sigma, matched, matched_sigma) -> dict:
     """The rank try's fills against the grey levels' matches at the same pixels (see the module): pixels, robust
     spread of the difference (px), the RMS predicted spread (px), their ratio (None: fewer than
@@ -77,14 +88,22 @@ def checked_density(name, left, right, left_rect, right_rect, maps, disparity, p
     if not applies(config, summary):
         return disparity, filled, sigma, exact
     usable = ~outside
-    n = max(int(usable.sum()), 1)
-    density = int((np.isfinite(disparity) & usable).sum()) / n
+    scene = usable & varied(grey(left_rect), summary["sgbm"]["block_size"])  # where a match can bind
+    n = max(int(scene.sum()), 1)
+    density = int((np.isfinite(disparity) & scene).sum()) / n
     first = {"cost": "intensity", "fill": False, "density": density}
     record = {"threshold": DENSE_ENOUGH, "tries": [first],
-              "density": "estimated share (matched or filled) of the pixels with a source in both images"}
+              "density": "estimated share (matched or filled) of the pixels with a source in both images whose "
+                         "SGBM block is not blank (two grey levels or more: where a match can bind)",
+              "not_blank_share": int(scene.sum()) / max(int(usable.sum()), 1)}
+    if not scene.any():
+        summary["density_check"] = record | {"kept": "intensity", "why": (
+            "every SGBM block of the left view is blank (one grey level): nothing to match, kept, unfilled")}
+        return disparity, filled, sigma, exact
     if density >= DENSE_ENOUGH:
         summary["density_check"] = record | {"kept": "intensity", "why": (
-            f"the grey levels' map is {100 * density:.1f}% dense >= {100 * DENSE_ENOUGH:.0f}%: kept, unfilled")}
+            f"the grey levels' map is {100 * density:.1f}% dense >= {100 * DENSE_ENOUGH:.0f}% over the "
+            f"{100 * record['not_blank_share']:.1f}% of the view whose blocks are not blank: kept, unfilled")}
         return disparity, filled, sigma, exact
 
     t0 = time.perf_counter()
@@ -98,25 +117,34 @@ def checked_density(name, left, right, left_rect, right_rect, maps, disparity, p
     d_r, filled_r, sigma_r = fill_unmatched(name, left_rect, right_rect, other, outside, config, scratch,
                                             scratch_timings, exact_r)
     d_r = np.where(usable, d_r, np.nan)
-    density_r = int((np.isfinite(d_r) & usable).sum()) / n
-    filled_share = int(((filled_r if filled_r is not None else False) & usable).sum()) / n
+    density_r = int((np.isfinite(d_r) & scene).sum()) / n
+    fills = (filled_r if filled_r is not None else np.zeros(d_r.shape, bool)) & usable
+    filled_share = int((fills & scene).sum()) / n
     second = {"cost": "rank", "fill": True, "density": density_r, "matched_share": density_r - filled_share,
               "filled_share": filled_share, "fill_sigma_px": (scratch.get("fill") or {}).get("sigma_px")}
     record["tries"].append(second)
     check = {"pixels": 0, "max_ratio": FILL_CHECK_MAX, "ratio": None}  # made only where the try is denser
-    if density_r > density and filled_r is not None and filled_r.any() and np.isfinite(disparity).any():
+    if density_r > density and fills.any() and np.isfinite(disparity).any():
         sigma_q = matched_noise(left_rect, right_rect, disparity, summary["sgbm"]["block_size"], exact)[0]
         check = fill_check(d_r, filled_r, sigma_r, disparity, sigma_q)
     second["fill_check"] = check
     timings["density_check_s"] = time.perf_counter() - t0
-    figures = (f"grey levels {100 * density:.1f}% dense (< {100 * DENSE_ENOUGH:.0f}%); rank cost with the fill "
-               f"{100 * density_r:.1f}% ({100 * filled_share:.1f}% filled)")
+    figures = (f"grey levels {100 * density:.1f}% dense (< {100 * DENSE_ENOUGH:.0f}%) over the "
+               f"{100 * record['not_blank_share']:.1f}% of the view whose blocks are not blank; rank cost with the "
+               f"fill {100 * density_r:.1f}% ({100 * filled_share:.1f}% filled)")
     if check["ratio"] is not None:
         figures += (f"; its fills against the grey levels' matches at {check['pixels']} pixels: spread "
                     f"{check['observed_px']:.3g} px = {check['ratio']:.2f}x predicted")
     if density_r <= density:  # said in the summary and the console; no better map to offer, so no warning
         summary["density_check"] = record | {"kept": "intensity", "why": (
             f"{figures}: the rank try is not denser, the grey levels' map kept")}
+        return disparity, filled, sigma, exact
+    if fills.any() and check["ratio"] is None:
+        why = (f"{figures}; only {check['pixels']} of its {int(fills.sum())} filled pixels have a grey-level match "
+               f"(< {FILL_CHECK_MIN_PIXELS}): its fills cannot be checked, the grey levels' map kept (--cost rank "
+               "--fill forces the denser one)")
+        summary["density_check"] = record | {"kept": "intensity", "why": why}
+        warnings.append(f"{name}: sparse map: {why}")
         return disparity, filled, sigma, exact
     if check["ratio"] is not None and check["ratio"] > FILL_CHECK_MAX:
         why = (f"{figures} > {FILL_CHECK_MAX:g}: its fills' sigma may not hold, the grey levels' map kept "
