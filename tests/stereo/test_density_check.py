@@ -197,3 +197,22 @@ def test_a_denser_rank_try_whose_fills_disagree_with_the_grey_levels_is_not_kept
     err = forced.disparity[filled].astype(np.float64) - gt[filled]
     ratio = MAD_TO_STD * np.median(np.abs(err - np.median(err))) / np.sqrt(np.mean(forced.fill_sigma[filled] ** 2))
     assert ratio > 1.5, ratio
+
+
+def test_a_rank_try_whose_fills_cannot_be_checked_is_not_kept(demo_sample, monkeypatch):
+    """The demo's scene with the density line raised to 100 % (so that the rank try is made): the rank try is
+    denser over the blocks that are not blank, but almost all its fills lie on the blank background, where the grey
+    levels matched nothing, so the fill check has fewer than FILL_CHECK_MIN_PIXELS pixels to compare (47 of ~10,000
+    measured). A check that cannot be made is not passed: the grey levels' map is kept and a warning says why."""
+    from dstereo.stereo import density_check
+
+    monkeypatch.setattr(density_check, "DENSE_ENOUGH", 1.0)
+    rig, calib, left, right, depth, config = demo_sample
+    result = reconstruct_calibrated(calib, left, right, config, name="demo sample")
+    check = result.summary["density_check"]
+    first, second = check["tries"]
+    assert second["density"] > first["density"] and second["filled_share"] > 0, check
+    assert second["fill_check"]["pixels"] < density_check.FILL_CHECK_MIN_PIXELS, check
+    assert second["fill_check"]["ratio"] is None and check["kept"] == "intensity", check
+    assert result.filled is None and result.summary["search_range"]["matching_cost"]["cost"] == "intensity"
+    assert any("cannot be checked" in w for w in result.warnings), result.warnings
