@@ -14,7 +14,7 @@ Where a match can bind: both densities are measured over the pixels whose SGBM b
 levels' cost compares) holds two grey levels or more (`varied`); a block of one level (a clipped or featureless
 background, a render's sky) gives neither cost anything to bind to. Measured over the whole view, `dstereo demo`'s
 scene (the speckled cork sample, 39 % of the view, on a background of one level) read 41.1 % dense and the rank try
-45.8 %, "denser" only by matches fattened off the sample's rim and fills on the background (3.3 % of the view, 0.5 %
+45.8 %, "denser" only by matches fattened off the sample's rim and fills on the background (3.3 % of the view, 0.6 %
 of them on blocks that are not blank; 47 shared with the grey levels' matches, too few for the fill check, so it
 was kept): the demo's bounds failed (85.6 % of the points on the sample, >= 90 % asked; the refinement dropping
 2.05 %, < 1 % asked). Over the blocks that are not blank the grey levels' map is 99.0 % dense: no try. Rules
