@@ -59,3 +59,11 @@ def fill_line(fill: dict | None) -> str | None:
     what = (f"{fill.get('filled_points', 0)} of {total} points filled (flag `filled`)" if total else
             f"{fill['filled_pixels']} pixels filled")
     return (f"fill: on, {fill['why']}: {what}" + (f", sigma_d median {sigma['median']:.3g} px" if sigma else ""))
+
+
+def density_check_line(check: dict | None) -> str | None:
+    """One console line for summary['density_check'] (`dstereo.stereo.density_check`): the map kept and why, with
+    each try's figures; None where the check did not run (a cost or fill given, or the rank cost chosen)."""
+    if not check or "why" not in check:
+        return None
+    return f"density check: kept the {check['kept']} cost's map ({check['why']})"

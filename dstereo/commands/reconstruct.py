@@ -48,8 +48,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
     force: bool = RECONSTRUCT.option("force", False),
 ) -> None:
     """Reconstruct stereo pairs: rectified pair, disparity, depth, point cloud, mesh and summary.json."""
-    from dstereo.commands.matching_options import (fill_line, matching_cost_lines, search_range_line,
-                                                   search_range_tries)
+    from dstereo.commands.matching_options import (density_check_line, fill_line, matching_cost_lines,
+                                                   search_range_line, search_range_tries)
     from dstereo.config import reconstruction as settings
     from dstereo.errors import DstereoError
     from dstereo.jobs.reconstruct import run_reconstruction
@@ -108,6 +108,8 @@ def reconstruct(  # flags and help: dstereo.config.options.RECONSTRUCT
         for line in matching_cost_lines(s.get("search_range")):
             typer.echo(f"  {line}")
         if (line := fill_line(s.get("fill"))) is not None:
+            typer.echo(f"  {line}")
+        if (line := density_check_line(s.get("density_check"))) is not None:
             typer.echo(f"  {line}")
         unc = s.get("uncertainty") or {}
         if unc.get("sigma_z_mm"):

@@ -153,13 +153,16 @@ RECONSTRUCT = OptionTable("reconstruct", (
     _opt("color_matching", "reconstruct.color_matching", type=bool),
     _opt("matching_cost", "reconstruct.matching_cost", "--cost",
          "SGBM's cost: auto (default: rank where the two views' grey levels differ, as lit or exposed "
-         "differently, else intensity checked by the rank cost, regions where the two mostly disagree dropped; "
-         "said with its figures in summary.json search_range.matching_cost), rank (SGBM on each view's 7x7 rank "
+         "differently, else intensity checked by the rank cost, regions where the two mostly disagree dropped, "
+         "and where that map is under 80 % dense (over the pixels whose block is not blank) the rank cost with the "
+         "fill tried and kept if denser with fills that hold (summary.json density_check); said with its figures "
+         "in summary.json search_range.matching_cost), rank (SGBM on each view's 7x7 rank "
          "transform, which survives a brightness or contrast change) or intensity (the grey levels unchecked, "
          "the matching before issue 30)."),
     _opt("fill", "reconstruct.fill", "--fill/--no-fill",
          "Fill unmatched pixels by an edge-aware plane fit where confident (default: auto, the rank cost's maps "
-         "only; said in summary.json fill.why): filled points carry their own, larger sigma and the flag "
+         "only, including the one the density check keeps for a sparse grey-level map; said in summary.json "
+         "fill.why): filled points carry their own, larger sigma and the flag "
          "`filled` (filled.npy, points.ply); --fill always, --no-fill never.",
          bool),
     _opt("fill_max_sigma", "reconstruct.fill_max_sigma", "--fill-max-sigma",

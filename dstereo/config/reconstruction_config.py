@@ -26,7 +26,9 @@ class ReconstructionConfig:
     (default: rank where the views' grey levels differ, `stereo.matching.LIGHTING_MISMATCH`; else the grey levels
     checked by the rank cost, `stereo.cost_check`). fill: unmatched pixels filled by an edge-aware plane fit where
     its sigma is at most fill_max_sigma px, each carrying its own sigma and the flag `filled` (`dstereo.stereo.fill`);
-    False leaves them empty, None (default) fills the rank cost's maps only (`stereo.fill.fill_wanted`).
+    False leaves them empty, None (default) fills the rank cost's maps only (`stereo.fill.fill_wanted`), including the
+    one the density check keeps where the grey levels' map is under 80 % dense over the pixels whose SGBM block is
+    not blank (`stereo.density_check`).
     """
 
     sgbm: SGBMParams = PRESETS["default"]

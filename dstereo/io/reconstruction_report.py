@@ -43,6 +43,9 @@ def report_markdown(summary: dict, files: list[str]) -> str:
     if (s.get("refine") or {}).get("enabled"):
         lines += [f"Sub-pixel refinement: {100 * s['refine']['dropped_fraction']:.2f} % of SGBM's pixels dropped "
                   f"({s['refine'].get('method', '')}).", ""]
+    density = s.get("density_check") or {}
+    if density.get("why"):  # the default's density check (`dstereo.stereo.density_check`): what it kept and why
+        lines += [f"Density check: kept the {density['kept']} cost's map ({density['why']}).", ""]
     fill = s.get("fill") or {}
     if fill.get("filled_points"):
         lines += [f"Filled (not matched, flag `filled` in points.ply): {fill['filled_points']} points.", ""]

@@ -293,7 +293,9 @@ def fill_wanted(config, summary: dict) -> tuple[bool, str]:
     matches, and the fill's sigma holds there (observed / predicted 0.71-1.36 on all 10 rows); the grey levels'
     holes border their own false matches (a blank wall, SGBM's fattening at occlusions), which no window sees:
     filled, observed / predicted 0.83-5.97 (Piano 5.97, Pipes 4.33), and still 1.2-3.9 when filled from only the
-    pixels both costs agree on, so they are left empty."""
+    pixels both costs agree on, so they are left empty. Where that leaves the default sparse (the grey levels' map
+    under 80 % dense), `stereo.density_check` also matches the rank transforms and fills them, and keeps that map
+    when denser and its fills hold against the grey levels' matches: the fill still runs on rank-cost maps only."""
     if config.fill is not None:
         return bool(config.fill), "given (--fill)" if config.fill else "given (--no-fill)"
     cost = ((summary.get("search_range") or {}).get("matching_cost") or {}).get("cost")

@@ -20,8 +20,8 @@ import numpy as np
 from dstereo.errors import DstereoError
 from dstereo.models.stereo_calibration import StereoCalibration
 from dstereo.stereo.disparity import SGBMParams
-from dstereo.stereo.fill import fill_unmatched
-from dstereo.stereo.matching import initial_range, match_in_range, refine_subpixel, sized_sgbm, user_sgbm_names
+from dstereo.stereo.density_check import checked_density
+from dstereo.stereo.matching import initial_range, match_in_range, sized_sgbm, user_sgbm_names
 from dstereo.stereo.pair_result import PairResult, calibration_size_check, check_pair, check_rig, grey
 from dstereo.stereo.points_from_disparity import LOW_DENSITY, points_and_summary
 from dstereo.config.reconstruction_config import ReconstructionConfig
@@ -126,11 +126,9 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
 
         summary |= {"lenses": list(calib.models), "rectified_field_of_view_deg": field_of_view(rect),
                     "balance": config.alpha if config.alpha >= 0 else 0.0}
-    exact = None
-    if config.refine:
-        disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
-    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, right_rect, disparity, outside, config, summary,
-                                                   timings, exact)
+    disparity, filled, fill_sigma, exact = checked_density(name, left, right, left_rect, right_rect, exact_maps,
+                                                           disparity, params, Q, outside, config, summary, timings,
+                                                           warnings)  # refined, filled, the density check
     result = points_and_summary(name, left_rect, right_rect, disparity, Q, np.asarray(rect.R1), config, matrices, summary,
                                 timings, warnings, filled, fill_sigma)
     result.exact_rect = exact

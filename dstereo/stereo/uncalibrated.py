@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from dstereo.errors import DstereoError
-from dstereo.stereo.matching import match_in_range, refine_subpixel
+from dstereo.stereo.matching import match_in_range
 from dstereo.stereo.pair_result import PairResult, check_pair
 from dstereo.stereo.points_from_disparity import points_and_summary
 from dstereo.config.reconstruction_config import ReconstructionConfig
@@ -94,13 +94,10 @@ def reconstruct_uncalibrated(left: np.ndarray, right: np.ndarray, config: Recons
                "focal_px": f, "sgbm": params.as_dict(), "search_range": search_range,
                "uncertainty": {"computed": False, "note": "uncalibrated path: no calibration covariance or Q to "
                                "propagate; point uncertainties need --calib"}, "refine": {"enabled": False}}
-    if config.refine:
-        disparity, exact = refine_subpixel(name, left, right, exact_maps, disparity, summary, timings, warnings)
-    else:
-        exact = None
-    from dstereo.stereo.fill import fill_unmatched
+    from dstereo.stereo.density_check import checked_density
 
-    disparity, filled, fill_sigma = fill_unmatched(name, left_rect, right_rect, disparity,
-                                                   np.zeros(disparity.shape, bool), config, summary, timings, exact)
+    disparity, filled, fill_sigma, _ = checked_density(name, left, right, left_rect, right_rect, exact_maps, disparity,
+                                                       params, Q, np.zeros(disparity.shape, bool), config, summary,
+                                                       timings, warnings)  # refined, filled, the density check
     return points_and_summary(name, left_rect, right_rect, disparity, Q, np.eye(3), config, matrices, summary, timings,
                               warnings, filled, fill_sigma)
