@@ -127,8 +127,9 @@ def _stereo_steps(runs, kind, rig):
     run = runs[kind, "a"]
     rs = run.rig["rig_subsets"]
     assert rs["subsets"] == SUBSETS and rs["per_set"] == PER_SET and rs["usable"] >= 1, rs
-    assert rs["steps"][0].startswith("step 1 (stereo_re@cam0-cam1 <= 3 px"), rs["steps"]
-    assert "Tnorm@cam0-cam1 within 3 IQR" in rs["steps"][1], rs["steps"]
+    first_pair = "-".join(list(run.cameras)[:2])  # left-right, or cam0-cam1
+    assert rs["steps"][0].startswith(f"step 1 (stereo_re@{first_pair} <= 3 px"), rs["steps"]
+    assert f"Tnorm@{first_pair} within 3 IQR" in rs["steps"][1], rs["steps"]
     assert (run.out / "rig_subsets.csv").is_file()
     assert "## Rig subsets and stereo steps" in (run.out / "report.md").read_text()
 
