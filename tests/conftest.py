@@ -114,7 +114,29 @@ def pytest_xdist_make_scheduler(config, log):
             module = nodeid.split("::", 1)[0]
             return "memory-heavy" if module in MEMORY_HEAVY else module
 
+        def _assign_work_unit(self, node) -> None:
+            # the first hand-out puts the longest units first (xdist's queue: most tests first); the queue is
+            # reordered, not the collections, whose positions the workers are sent
+            if not getattr(self, "_longest_first", False):
+                self._longest_first = True
+                order = longest_first(list(self.workqueue))
+                self.workqueue = type(self.workqueue)((scope, self.workqueue[scope]) for scope in order)
+            super()._assign_work_unit(node)
+
     return MemoryAwareScheduling(config, log)
+
+
+# Units of work that take longest, handed out first (the longest-processing-time rule: a long unit started last
+# leaves the other worker idle while it runs): the memory-heavy unit (~10 min of the suite), then the one test
+# that runs seven calibrations (every feature for K = 1, 2, 3; 2-6 min). xdist's own order is by number of tests,
+# which sent that one-test module last: the whole suite waited on it, one worker idle (2026-12-06, 318 s).
+LONGEST_FIRST = ("memory-heavy", "tests/commands/test_every_feature.py")
+
+
+def longest_first(units: list[str]) -> list[str]:
+    """Units of work in the order handed out: LONGEST_FIRST's, then the others in their given order."""
+    rank = {unit: i for i, unit in enumerate(LONGEST_FIRST)}
+    return sorted(units, key=lambda unit: rank.get(unit, len(rank)))  # stable: the others keep their order
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -53,3 +53,13 @@ def test_a_numerics_mark_outside_its_file_is_found(tmp_path):
 
     items = [Item(plain, object()), Item(marked, object()), Item(plain, None)]
     assert conftest.marked_outside_their_file(items) == ["test_plain.py::t"]
+
+
+def test_the_longest_units_are_handed_out_first():
+    """LONGEST_FIRST's units lead (a renamed module would silently go back to the end), the others keep xdist's
+    order (most tests first)."""
+    root = Path(__file__).resolve().parents[1]
+    assert all(u == "memory-heavy" or (root / u).is_file() for u in conftest.LONGEST_FIRST), conftest.LONGEST_FIRST
+    queue = ["tests/b.py", "memory-heavy", "tests/a.py", "tests/commands/test_every_feature.py", "tests/c.py"]
+    assert conftest.longest_first(queue) == [
+        "memory-heavy", "tests/commands/test_every_feature.py", "tests/b.py", "tests/a.py", "tests/c.py"]
