@@ -232,13 +232,31 @@ def test_a_free_set_mrcal_cannot_hold_fixed_is_said_in_the_file(tmp_path):
     read_cameramodel(tmp_path / "c.cameramodel")  # still a plain camera file
 
 
-MRCAL_UNCERTAINTY = """
+# mrcal's worst-direction projection std of each camera file at pixels q and range r (one Debian python for
+# several files: its start and mrcal's import, ~0.7 s, paid once)
+MRCAL_UNCERTAINTIES = """
 import json, sys, numpy as np, mrcal
-m = mrcal.cameramodel(sys.argv[1]); q = np.array(json.loads(sys.argv[2])); r = float(sys.argv[3])
-p = mrcal.unproject(q, *m.intrinsics(), normalize=True) * r
-c = mrcal.projection_uncertainty(p, model=m, atinfinity=False, what='covariance')
-print(json.dumps(np.sqrt(np.linalg.eigvalsh(c)[:, -1]).tolist()))
+out = []
+for path, q, r in json.loads(sys.argv[1]):
+    m = mrcal.cameramodel(path)
+    p = mrcal.unproject(np.array(q), *m.intrinsics(), normalize=True) * r
+    c = mrcal.projection_uncertainty(p, model=m, atinfinity=False, what='covariance')
+    out.append(np.sqrt(np.linalg.eigvalsh(c)[:, -1]).tolist())
+print(json.dumps(out))
 """
+
+
+def _mrcal_stds(jobs) -> list[np.ndarray]:
+    """mrcal's worst-direction projection std at pixels q of each camera file, for `jobs` = [(path, q, range)]:
+    every file in one process (MRCAL_UNCERTAINTIES)."""
+    import json
+    import subprocess
+
+    arg = json.dumps([[str(path), np.asarray(q).tolist(), float(range_)] for path, q, range_ in jobs])
+    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTIES, arg], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return [np.array(x) for x in json.loads(done.stdout)]
 
 
 @pytest.mark.numerics
@@ -252,7 +270,6 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
     import base64
     import io
     import json
-    import subprocess
 
     from dstereo.calib.mono import calibrate_full
     from dstereo.models.board import Board
@@ -281,10 +298,7 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
                                       joint[np.ix_(keep, keep)], size, range_, (8, 6), poses=sol.poses,
                                       method="pose-compensated")
     q = np.stack(np.meshgrid(ours.u, ours.v), axis=-1).reshape(-1, 2)
-    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTY, str(out / "camera.cameramodel"),
-                           json.dumps(q.tolist()), repr(range_)], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    theirs = np.array(json.loads(done.stdout))
+    (theirs,) = _mrcal_stds([(out / "camera.cameramodel", q, range_)])
     n, p = 2 * int(inliers.sum()), len(sol.values) + 6 * views
     # both at one optimum (the re-solve stops within ~1e-6 px of the file's): the linearisation moves the ratio by
     # ~1e-7; 1e-4 holds that and fails any change of the propagation far below the 3.4 % convention it tests
@@ -463,24 +477,15 @@ def test_a_real_stereo_rigs_files_carry_the_joint_solve_mrcal_reevaluates(tmp_pa
     # mrcal's noise convention: sqrt(N / (N - p)), N the inlier measurements, p the shared vector and the poses
     frames = json.loads((out / "cameras.json").read_text())["frames"]
     n, p = got[0]["n_inlier_measurements"], len(value) + 6 * frames
+    ours, jobs = [], []
     for side, path in zip(("left", "right"), files):
         with np.load(out / f"rig_{side}_projection_uncertainty.npz") as z:
             u, v, std, range_ = z["u"], z["v"], z["std"], float(z["range"])
         pick = (slice(None, None, 4), slice(None, None, 4))  # every 4th grid pixel: 48 of the 768
-        q = np.stack(np.meshgrid(u[pick[1]], v[pick[0]]), axis=-1).reshape(-1, 2)
-        theirs = _mrcal_std(path, q, range_)
-        np.testing.assert_allclose(std[pick].ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-5, atol=0)
-
-
-def _mrcal_std(path, q: np.ndarray, range_: float) -> np.ndarray:
-    """mrcal's worst-direction projection std at pixels q of the camera file at `path` (MRCAL_UNCERTAINTY)."""
-    import json
-    import subprocess
-
-    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTY, str(path), json.dumps(np.asarray(q).tolist()),
-                           repr(float(range_))], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    return np.array(json.loads(done.stdout))
+        ours.append(std[pick].ravel())
+        jobs.append((path, np.stack(np.meshgrid(u[pick[1]], v[pick[0]]), axis=-1).reshape(-1, 2), range_))
+    for mine, theirs in zip(ours, _mrcal_stds(jobs), strict=True):
+        np.testing.assert_allclose(mine / theirs, np.sqrt(n / (n - p)), rtol=1e-5, atol=0)
 
 
 @pytest.mark.numerics
@@ -496,10 +501,9 @@ def test_mrcals_projection_uncertainty_of_each_rig_camera_is_dstereos_in_mrcals_
     sol, obj, solved, inliers = r.sol, r.obj, r.solved, r.inliers
     cov, n, p = frames_covariance(sol, obj, solved, inliers)
     assert n == 2 * int(r.visible.sum()) * len(obj) and p == len(sol.values) + 6 * len(sol.poses)
-    for k, path in enumerate(r.files):
-        ours = rig_camera_map(sol, obj, solved, inliers, k, 900.0, grid=(8, 6), cov=cov)
-        q = np.stack(np.meshgrid(ours.u, ours.v), axis=-1).reshape(-1, 2)
-        theirs = _mrcal_std(path, q, 900.0)
+    maps = [rig_camera_map(sol, obj, solved, inliers, k, 900.0, grid=(8, 6), cov=cov) for k in range(len(r.files))]
+    jobs = [(path, np.stack(np.meshgrid(m.u, m.v), axis=-1).reshape(-1, 2), 900.0) for path, m in zip(r.files, maps)]
+    for ours, theirs in zip(maps, _mrcal_stds(jobs), strict=True):
         # one optimum, one linearisation: float rounding of two inversions; 1e-6 fails any change of the
         # propagation far below the 2 % convention it tests
         np.testing.assert_allclose(np.asarray(ours.std).ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-6, atol=0)
