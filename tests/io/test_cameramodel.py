@@ -232,13 +232,31 @@ def test_a_free_set_mrcal_cannot_hold_fixed_is_said_in_the_file(tmp_path):
     read_cameramodel(tmp_path / "c.cameramodel")  # still a plain camera file
 
 
-MRCAL_UNCERTAINTY = """
+# mrcal's worst-direction projection std of each camera file at pixels q and range r (one Debian python for
+# several files: its start and mrcal's import, ~0.7 s, paid once)
+MRCAL_UNCERTAINTIES = """
 import json, sys, numpy as np, mrcal
-m = mrcal.cameramodel(sys.argv[1]); q = np.array(json.loads(sys.argv[2])); r = float(sys.argv[3])
-p = mrcal.unproject(q, *m.intrinsics(), normalize=True) * r
-c = mrcal.projection_uncertainty(p, model=m, atinfinity=False, what='covariance')
-print(json.dumps(np.sqrt(np.linalg.eigvalsh(c)[:, -1]).tolist()))
+out = []
+for path, q, r in json.loads(sys.argv[1]):
+    m = mrcal.cameramodel(path)
+    p = mrcal.unproject(np.array(q), *m.intrinsics(), normalize=True) * r
+    c = mrcal.projection_uncertainty(p, model=m, atinfinity=False, what='covariance')
+    out.append(np.sqrt(np.linalg.eigvalsh(c)[:, -1]).tolist())
+print(json.dumps(out))
 """
+
+
+def _mrcal_stds(jobs) -> list[np.ndarray]:
+    """mrcal's worst-direction projection std at pixels q of each camera file, for `jobs` = [(path, q, range)]:
+    every file in one process (MRCAL_UNCERTAINTIES)."""
+    import json
+    import subprocess
+
+    arg = json.dumps([[str(path), np.asarray(q).tolist(), float(range_)] for path, q, range_ in jobs])
+    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTIES, arg], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return [np.array(x) for x in json.loads(done.stdout)]
 
 
 @pytest.mark.numerics
@@ -252,7 +270,6 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
     import base64
     import io
     import json
-    import subprocess
 
     from dstereo.calib.mono import calibrate_full
     from dstereo.models.board import Board
@@ -281,20 +298,17 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
                                       joint[np.ix_(keep, keep)], size, range_, (8, 6), poses=sol.poses,
                                       method="pose-compensated")
     q = np.stack(np.meshgrid(ours.u, ours.v), axis=-1).reshape(-1, 2)
-    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTY, str(out / "camera.cameramodel"),
-                           json.dumps(q.tolist()), repr(range_)], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    theirs = np.array(json.loads(done.stdout))
+    (theirs,) = _mrcal_stds([(out / "camera.cameramodel", q, range_)])
     n, p = 2 * int(inliers.sum()), len(sol.values) + 6 * views
     # both at one optimum (the re-solve stops within ~1e-6 px of the file's): the linearisation moves the ratio by
     # ~1e-7; 1e-4 holds that and fails any change of the propagation far below the 3.4 % convention it tests
     np.testing.assert_allclose(np.asarray(ours.std).ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-4, atol=0)
 
 
-def test_mrcal_show_projection_diff_runs_on_two_halves_with_their_uncertainties(tmp_path):
-    """mrcal's own comparison tool on two dstereo calibrations of one camera (alternate views of OpenCV's left
-    samples): it fits the implied transform and weighs it by both files' uncertainties (their optimization
-    inputs), and draws both valid-intrinsics regions."""
+def test_mrcal_show_projection_diff_runs_on_two_calibrations_with_their_uncertainties(tmp_path, left_results):
+    """mrcal's own comparison tool on two dstereo calibrations of one camera (OpenCV's left samples: every view,
+    the module's `left_results`, and every other view, calibrated here): it fits the implied transform and weighs
+    it by both files' uncertainties (their optimization inputs), and draws both valid-intrinsics regions."""
     import shutil
     import subprocess
 
@@ -303,16 +317,14 @@ def test_mrcal_show_projection_diff_runs_on_two_halves_with_their_uncertainties(
     if tool is None:
         pytest.skip("mrcal-show-projection-diff (Debian's mrcal package) is not installed")
     images = sorted(require_data("opencv_stereo").glob("left*.jpg"))
-    models = []
-    for half in (0, 1):
-        folder = tmp_path / f"half{half}"
-        folder.mkdir()
-        for image in images[half::2]:
-            (folder / image.name).symlink_to(image)  # the shared data are read in place, never copied
-        code, _, err = run_cli("calibrate", "--images", folder, "--pattern", "9x6", "--model", "default", "--out",
-                               tmp_path / f"out{half}", "-q")
-        assert code == 0, err
-        models.append(str(tmp_path / f"out{half}" / "camera.cameramodel"))
+    folder = tmp_path / "half"
+    folder.mkdir()
+    for image in images[1::2]:
+        (folder / image.name).symlink_to(image)  # the shared data are read in place, never copied
+    code, _, err = run_cli("calibrate", "--images", folder, "--pattern", "9x6", "--model", "default", "--out",
+                           tmp_path / "out", "-q")
+    assert code == 0, err
+    models = [str(left_results / "camera.cameramodel"), str(tmp_path / "out" / "camera.cameramodel")]
     figure = tmp_path / "diff.png"
     done = subprocess.run([tool, "--distance", "300", "--valid-intrinsics-region", "--hardcopy", str(figure), *models],
                           capture_output=True, text=True, timeout=300)
@@ -346,16 +358,17 @@ print(json.dumps(out))
 """
 
 
-def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevaluates(tmp_path):
+@pytest.fixture(scope="module")
+def ring_rig_files(tmp_path_factory):
     """A ring rig of three cameras (synth.ring_rig) over 14 frames, 0.1 px corner noise, a sagging board, one
-    camera's view read in reversed corner order: the rig files of `calibrate --cameras`
-    (io.cameras_files) each hold the joint solve as mrcal's optimization inputs, that camera its intrinsics k;
-    mrcal evaluates them to dstereo's RMS and, re-solving from them, moves no parameter by 1e-6 of its sigma."""
-    import json
-    import subprocess
+    camera's view read in reversed corner order, solved jointly once for the module (the solve is the costly part:
+    ~15 s of tracing), and its rig files as `calibrate --cameras` (io.cameras_files) writes them: each holds the
+    joint solve as mrcal's optimization inputs, camera k its intrinsics k. Both tests below read this one solve:
+    the reversed view is re-read by `as_solved` before anything is written, so the files and the covariance are
+    those of an ordinary solve (measured: the uncertainty ratio below holds to 4e-10 with it, as without it)."""
     from types import SimpleNamespace
 
-    from dstereo.calib.multiview import EXTRINSIC_NAMES, as_solved, calibrate_views
+    from dstereo.calib.multiview import as_solved, calibrate_views
     from dstereo.io.cameramodel import write_cameramodels_of_rig
     from dstereo.io.cameras_files import _rig_solve
     from dstereo.models.board import Board
@@ -372,16 +385,30 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     obs[seen, 2] = obs[seen, 2][::-1]  # a detection that numbered the corners from the other end
     sizes = [c.image_size for c in rig.cameras]
     sol = calibrate_views(obj, obs, visible, sizes, mode="joint", board_warp=True)
-    assert (seen, 2) in sol.flipped
     solved_obs, solved_inliers = as_solved(obs, None, sol.flipped)  # as calibrate --cameras keeps them
     job = SimpleNamespace(solution=sol, solved_observations=solved_obs, solved_inliers=solved_inliers,
                           cameras=[SimpleNamespace(detection=SimpleNamespace(board=board))])
     solve, why = _rig_solve(job)
     assert solve is not None, why
+    folder = tmp_path_factory.mktemp("ring")
     names = ["rig_a", "rig_b", "rig_c"]
-    write_cameramodels_of_rig(tmp_path, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
+    write_cameramodels_of_rig(folder, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
                               names, np.concatenate([sol.rvecs, sol.T], axis=1), solve)
-    files = [str(tmp_path / f"{n}.cameramodel") for n in names]
+    return SimpleNamespace(sol=sol, obj=obj, visible=visible, seen=seen, solved=solved_obs, inliers=solved_inliers,
+                           files=[folder / f"{n}.cameramodel" for n in names])
+
+
+def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevaluates(ring_rig_files):
+    """The ring rig's files (`ring_rig_files`): mrcal evaluates them to dstereo's RMS and, re-solving from them,
+    moves no parameter by 1e-6 of its sigma; the reversed view was found and re-read."""
+    import json
+    import subprocess
+
+    from dstereo.calib.multiview import EXTRINSIC_NAMES
+
+    sol, visible = ring_rig_files.sol, ring_rig_files.visible
+    assert (ring_rig_files.seen, 2) in sol.flipped
+    files = [str(f) for f in ring_rig_files.files]
     done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_RIG_CHECK, *files], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     got = json.loads(done.stdout)
@@ -450,64 +477,33 @@ def test_a_real_stereo_rigs_files_carry_the_joint_solve_mrcal_reevaluates(tmp_pa
     # mrcal's noise convention: sqrt(N / (N - p)), N the inlier measurements, p the shared vector and the poses
     frames = json.loads((out / "cameras.json").read_text())["frames"]
     n, p = got[0]["n_inlier_measurements"], len(value) + 6 * frames
+    ours, jobs = [], []
     for side, path in zip(("left", "right"), files):
         with np.load(out / f"rig_{side}_projection_uncertainty.npz") as z:
             u, v, std, range_ = z["u"], z["v"], z["std"], float(z["range"])
         pick = (slice(None, None, 4), slice(None, None, 4))  # every 4th grid pixel: 48 of the 768
-        q = np.stack(np.meshgrid(u[pick[1]], v[pick[0]]), axis=-1).reshape(-1, 2)
-        theirs = _mrcal_std(path, q, range_)
-        np.testing.assert_allclose(std[pick].ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-5, atol=0)
-
-
-def _mrcal_std(path, q: np.ndarray, range_: float) -> np.ndarray:
-    """mrcal's worst-direction projection std at pixels q of the camera file at `path` (MRCAL_UNCERTAINTY)."""
-    import json
-    import subprocess
-
-    done = subprocess.run([SYSTEM_PYTHON, "-c", MRCAL_UNCERTAINTY, str(path), json.dumps(np.asarray(q).tolist()),
-                           repr(float(range_))], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    return np.array(json.loads(done.stdout))
+        ours.append(std[pick].ravel())
+        jobs.append((path, np.stack(np.meshgrid(u[pick[1]], v[pick[0]]), axis=-1).reshape(-1, 2), range_))
+    for mine, theirs in zip(ours, _mrcal_stds(jobs), strict=True):
+        np.testing.assert_allclose(mine / theirs, np.sqrt(n / (n - p)), rtol=1e-5, atol=0)
 
 
 @pytest.mark.numerics
-def test_mrcals_projection_uncertainty_of_each_rig_camera_is_dstereos_in_mrcals_noise_convention(tmp_path):
-    """Issue 35 for rigs: a ring rig of three cameras (14 frames, 0.1 px, a sagging board): mrcal's
-    projection_uncertainty of each rig_<camera>.cameramodel against dstereo's map of that camera in the joint solve
-    (`calib/rig_projection.py`: pose-compensated over every frame). mrcal's noise is sqrt(SSE / N), dstereo's
-    sqrt(SSE / (N - p)) with p = the shared vector and every frame's pose, so every pixel of every camera reads
-    sqrt(N / (N - p)) (2.1 % here; measured equal to 2e-10)."""
-    from types import SimpleNamespace
-
-    from dstereo.calib.multiview import as_solved, calibrate_views
+def test_mrcals_projection_uncertainty_of_each_rig_camera_is_dstereos_in_mrcals_noise_convention(ring_rig_files):
+    """Issue 35 for rigs: the ring rig of three cameras (`ring_rig_files`: 14 frames, 0.1 px, a sagging board):
+    mrcal's projection_uncertainty of each rig_<camera>.cameramodel against dstereo's map of that camera in the
+    joint solve (`calib/rig_projection.py`: pose-compensated over every frame). mrcal's noise is sqrt(SSE / N),
+    dstereo's sqrt(SSE / (N - p)) with p = the shared vector and every frame's pose, so every pixel of every camera
+    reads sqrt(N / (N - p)) (2.1 % here; measured equal to 4e-10)."""
     from dstereo.calib.rig_projection import frames_covariance, rig_camera_map
-    from dstereo.io.cameramodel import write_cameramodels_of_rig
-    from dstereo.io.cameras_files import _rig_solve
-    from dstereo.models.board import Board
-    from dstereo.synth import multiview_corners, multiview_poses, ring_rig
-    from dstereo.synth.multiview import MULTIVIEW_BOARD
 
-    _mrcal_or_skip()
-    rig = ring_rig(3)
-    poses, visible, _ = multiview_poses(rig, MULTIVIEW_BOARD, 14, 5)
-    board = Board(*MULTIVIEW_BOARD.pattern, MULTIVIEW_BOARD.square)
-    obj = board.object_points()
-    obs = multiview_corners(rig, MULTIVIEW_BOARD, poses, visible, sag=(0.3, -0.2), noise_px=0.1, seed=5)
-    sol = calibrate_views(obj, obs, visible, [c.image_size for c in rig.cameras], mode="joint", board_warp=True)
-    solved, inliers = as_solved(obs, None, sol.flipped)
-    job = SimpleNamespace(solution=sol, solved_observations=solved, solved_inliers=inliers,
-                          cameras=[SimpleNamespace(detection=SimpleNamespace(board=board))])
-    solve, why = _rig_solve(job)
-    assert solve is not None, why
-    names = ["rig_a", "rig_b", "rig_c"]
-    write_cameramodels_of_rig(tmp_path, [(c.matrix(), c.coeffs(), c.dist.free, c.image_size) for c in sol.cameras],
-                              names, np.concatenate([sol.rvecs, sol.T], axis=1), solve)
+    r = ring_rig_files
+    sol, obj, solved, inliers = r.sol, r.obj, r.solved, r.inliers
     cov, n, p = frames_covariance(sol, obj, solved, inliers)
-    assert n == 2 * int(visible.sum()) * len(obj) and p == len(sol.values) + 6 * len(sol.poses)
-    for k, name in enumerate(names):
-        ours = rig_camera_map(sol, obj, solved, inliers, k, 900.0, grid=(8, 6), cov=cov)
-        q = np.stack(np.meshgrid(ours.u, ours.v), axis=-1).reshape(-1, 2)
-        theirs = _mrcal_std(tmp_path / f"{name}.cameramodel", q, 900.0)
+    assert n == 2 * int(r.visible.sum()) * len(obj) and p == len(sol.values) + 6 * len(sol.poses)
+    maps = [rig_camera_map(sol, obj, solved, inliers, k, 900.0, grid=(8, 6), cov=cov) for k in range(len(r.files))]
+    jobs = [(path, np.stack(np.meshgrid(m.u, m.v), axis=-1).reshape(-1, 2), 900.0) for path, m in zip(r.files, maps)]
+    for ours, theirs in zip(maps, _mrcal_stds(jobs), strict=True):
         # one optimum, one linearisation: float rounding of two inversions; 1e-6 fails any change of the
         # propagation far below the 2 % convention it tests
         np.testing.assert_allclose(np.asarray(ours.std).ravel() / theirs, np.sqrt(n / (n - p)), rtol=1e-6, atol=0)

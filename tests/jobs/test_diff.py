@@ -50,13 +50,22 @@ def folders(tmp_path_factory):
     return root, _write_folder(root / "a", a), _write_folder(root / "b", b), a, b
 
 
-def test_the_files_give_the_statistic_computed_in_memory(folders):
+@pytest.fixture(scope="module")
+def diffed(folders):
+    """`dstereo diff A B --out OUT` on the module's two folders, run once: (OUT, stdout); read by the statistic's
+    test and the browser's."""
+    root, fa, fb, _, _ = folders
+    code, out, err = run_cli("diff", fa, fb, "--out", root / "out")
+    assert code == 0, err
+    return root / "out", out
+
+
+def test_the_files_give_the_statistic_computed_in_memory(folders, diffed):
     """camera.yml holds K and D to OpenCV's 16 significant digits and the covariance file the covariance
     exactly: the ratio read from the files equals the in-memory one to 1e-9 (measured 1e-14); the distance and
     grid are the covariance file's (A's map)."""
     root, fa, fb, a, b = folders
-    code, out, err = run_cli("diff", fa, fb, "--out", root / "out")
-    assert code == 0, err
+    out = diffed[1]
     s = json.loads((root / "out" / "diff.json").read_text())
     d = cd.projection_diff(a, b, 500.0, (12, 9))
     assert s["distance"] == 500.0 and s["grid"] == [12, 9] and "A's projection-uncertainty map" in s["distance_source"]
@@ -77,16 +86,13 @@ def test_the_files_give_the_statistic_computed_in_memory(folders):
     assert code == 0
 
 
-def test_the_report_renders_in_a_browser(folders, tmp_path):
+def test_the_report_renders_in_a_browser(diffed):
     """diff's report.html, as every results folder's: no console error, no request outside the file, its figure
-    decoded (issue 34: every kind of report passes the browser test)."""
+    decoded (issue 34: every kind of report passes the browser test). The module's run (`diffed`): the same
+    command as a run of its own, which this test made before."""
     from conftest import assert_reports_render
 
-    root, fa, fb, _, _ = folders
-    out = tmp_path / "d"
-    code, _, err = run_cli("diff", fa, fb, "--out", out)
-    assert code == 0, err
-    (page,) = assert_reports_render([out])
+    (page,) = assert_reports_render([diffed[0]])
     assert len(page["images"]) >= 1
 
 

@@ -200,6 +200,10 @@ def _pairs_index(out):
 
 
 def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_path, monkeypatch):
+    """Three pairs serially; the same run interrupted after its first pair and resumed on a 2-worker cluster, which
+    computes the two remaining pairs at once: the index and every pair's arrays equal the serial run's bit for bit.
+    The resumed run is the parallel run too (its two pairs ran on the workers, --workers 2 sends every task there:
+    `FrameRunner.map`), so one cluster checks both; a separate uninterrupted parallel run repeated it."""
     _before_a_cluster()
     from dstereo.jobs import reconstruct_pairs as pairs
 
@@ -215,30 +219,29 @@ def test_reconstruct_pairs_in_parallel_and_resumed_equal_serial(sequence, tmp_pa
     assert all((serial / n / "report.html").is_file() for n in names)
 
     real = pairs.reconstruct_pair
+    ran = []
 
-    def interrupt_at_pair_2(job, *args, **kwargs):
-        if job[0] == "left_002":
+    def interrupt_at_pair_1(job, *args, **kwargs):
+        if job[0] == "left_001":
             raise KeyboardInterrupt
+        ran.append(job[0])
         return real(job, *args, **kwargs)
 
     out = tmp_path / "out"
-    monkeypatch.setattr(pairs, "reconstruct_pair", interrupt_at_pair_2)
+    monkeypatch.setattr(pairs, "reconstruct_pair", interrupt_at_pair_1)
     code, _, err = _reconstruct(sequence, out, "--workers", "1")
-    assert code == 130 and "2 finished pair(s)" in err and not out.exists()
+    assert code == 130 and "1 finished pair(s)" in err and not out.exists() and ran == ["left_000"]
     monkeypatch.setattr(pairs, "reconstruct_pair", real)
-    code, _, err = _reconstruct(sequence, out, "--workers", "2", "--resume")  # the last pair on a 2-worker cluster
+    code, _, err = _reconstruct(sequence, out, "--workers", "2", "--resume")  # the last two pairs on the cluster
     assert code == 0, err
     assert not (tmp_path / "out.partial").exists()
-    parallel = tmp_path / "parallel"
-    code, _, err = _reconstruct(sequence, parallel, "--workers", "2")
-    assert code == 0, err
-    for other in (out, parallel):
-        assert _pairs_index(other) == _pairs_index(serial)
-        for name in names:
-            for f in ("points.npy", "disparity.npy", "depth.npy"):
-                a, b = np.load(serial / name / f), np.load(other / name / f)
-                assert np.array_equal(a, b, equal_nan=True), (other.name, name, f)  # same computation: bitwise
-            assert not (other / name / "pair_done.json").exists()
+    index = _pairs_index(out)
+    assert index == _pairs_index(serial)
+    for name in names:
+        for f in ("points.npy", "disparity.npy", "depth.npy"):
+            a, b = np.load(serial / name / f), np.load(out / name / f)
+            assert np.array_equal(a, b, equal_nan=True), (name, f)  # same computation: bitwise
+        assert not (out / name / "pair_done.json").exists()
 
 
 def test_default_runner_stays_serial_when_a_cluster_would_not_pay(monkeypatch):

@@ -46,9 +46,15 @@ def _status(path: str) -> dict | None:
     return ask(path, "status")
 
 
+@pytest.fixture(scope="module")
+def views(tmp_path_factory) -> Path:
+    """16 rendered board views, made once for the module's two served calibrations: read-only to them (both detect
+    with --no-cache, and a corner cache lives outside the folder), so sharing changes nothing they see."""
+    return render_views(tmp_path_factory.mktemp("views") / "images", 16)
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
-def test_a_served_command_stopped_by_sigterm_ends_the_client_and_its_processes_not_the_server(tmp_path):
-    views = render_views(tmp_path / "images", 16)
+def test_a_served_command_stopped_by_sigterm_ends_the_client_and_its_processes_not_the_server(tmp_path, views):
     run_dir = tmp_path / "run"
     env = _env(run_dir)
     server = subprocess.Popen([sys.executable, "-c", ENTRY, "serve"], env=env, stdout=subprocess.DEVNULL,
@@ -170,14 +176,13 @@ def test_status_shows_memory_age_commands_and_what_differs():
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
-def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_path):
+def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_path, views):
     """A signal while the served command compiles (native code: no Python handler runs until it returns): after
     serve_server.STUCK_S the server tells the client the command's line and code and ends itself. Found by
     experiments/signal_stages.py: the server's exit there went through the os._exit a served command runs with
     (a stand-in that raises), and the server lived on, deadlocked on the client's stream, holding its socket's
     lock. A cold cache (its own JAX cache folder, no executables) makes the first solve a compile. Which way it
     goes depends on the machine; the exit itself is tested deterministically in tests/runtime/test_signals.py."""
-    views = render_views(tmp_path / "images", 16)
     env = _env(tmp_path / "run", DSTEREO_JAX_CACHE=str(tmp_path / "jax"), DSTEREO_AOT="0")
     server = subprocess.Popen([sys.executable, "-c", ENTRY, "serve"], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True)
