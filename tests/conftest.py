@@ -99,6 +99,7 @@ MEMORY_HEAVY = frozenset({
     "tests/jobs/test_frame_tasks.py", "tests/runtime/test_serve.py", "tests/runtime/test_serve_signals.py",
     "tests/runtime/test_serve_autostart.py", "tests/runtime/test_signals.py", "tests/runtime/test_aot.py",
     "tests/solver/test_concurrent_solves.py", "tests/commands/test_hostile_reconstruct.py",
+    "tests/commands/test_every_feature.py",
 })
 
 
@@ -127,10 +128,11 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 # Units of work that take longest, handed out first (the longest-processing-time rule: a long unit started last
-# leaves the other worker idle while it runs): the memory-heavy unit (~10 min of the suite), then the one test
-# that runs seven calibrations (every feature for K = 1, 2, 3; 2-6 min). xdist's own order is by number of tests,
-# which sent that one-test module last: the whole suite waited on it, one worker idle (2026-12-06, 318 s).
-LONGEST_FIRST = ("memory-heavy", "tests/commands/test_every_feature.py")
+# leaves the other worker idle while it runs): the memory-heavy unit, a third to a half of the suite. xdist's own
+# order is by number of tests, which sent the one-test module test_every_feature (seven calibrations, 2-6 min)
+# last, one worker idle while it ran (2026-12-06, 318 s); handed out first beside the unit, its calibration child
+# (1.3 GB) and the unit's heaviest module took the process tree to 3284 MiB: it is in the unit now.
+LONGEST_FIRST = ("memory-heavy",)
 
 
 def longest_first(units: list[str]) -> list[str]:
