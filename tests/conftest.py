@@ -359,7 +359,28 @@ def open_reports(folders, screenshot: Path | None = None) -> list[dict]:
     release_compiled_programs()
     from report_browser import browse
 
-    return browse([Path(f) / "report.html" for f in folders], BROWSER, BROWSER_ARGS, screenshot)
+    with _one_browser_at_a_time():
+        return browse([Path(f) / "report.html" for f in folders], BROWSER, BROWSER_ARGS, screenshot)
+
+
+@contextlib.contextmanager
+def _one_browser_at_a_time():
+    """An exclusive lock across the suite's processes while a browser runs: the two workers' browser tests met
+    (2026-12-06), two chromiums beside the two workers, and the process tree's summed RSS peaked at 3535 MiB
+    (25 processes). The other worker waits its turn (a browser test takes 5-20 s). No fcntl (not POSIX): no lock."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    import tempfile
+
+    with open(Path(tempfile.gettempdir()) / "dstereo-suite-browser.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def assert_reports_render(folders) -> list[dict]:
