@@ -36,3 +36,11 @@ def compare(label: str, recomputed: float, documented: str) -> bool:
     print(f"{label}: recomputed {recomputed:.{decimals(documented) + 2}f}, docs/validation.md {documented}, "
           f"ratio {ratio:.4f}{'' if ok else '  DIFFERS'}", flush=True)
     return ok
+
+
+def report(text: str, out: Path | None) -> None:
+    """A script's result: printed, and written to `out` (its folder made) when given."""
+    print(text)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)

@@ -49,6 +49,7 @@ from dstereo.io.calib_files import read_middlebury_calib
 from dstereo.io.images import read_image
 from dstereo.stereo import density_check
 from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+from experiments._validation import report
 from experiments.middlebury import ground_truth
 from experiments.middlebury_lighting import relit
 
@@ -294,10 +295,7 @@ def main() -> None:
             f"most to be kept; '-': not made, the rank try was not denser, or the check did not run). "
             f"s: seconds per reconstruction, one BLAS thread, under `nice` on a shared 2-core machine (load "
             f"average at the start {load[0]:.2f}, at the end {os.getloadavg()[0]:.2f}).\n")
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from dstereo.stereo.disparity import SGBMParams
 from dstereo.io.calib_files import read_middlebury_calib, read_pfm
 from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 from dstereo.io.images import read_image
+from experiments._validation import report
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "middlebury2014q"
@@ -126,10 +127,7 @@ def main() -> None:
         f"{'on' if args.refine else 'off'}; s: reconstruction time per scene.\n"
         f"{passed} of {len(rows)} scenes meet median relative depth error <= 1 % and density >= 80 %.\n"
     )
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    report(text, args.out)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ import numpy as np
 from dstereo.io.calib_files import read_middlebury_calib
 from dstereo.io.images import read_image
 from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
+from experiments._validation import report
 from experiments.middlebury import ground_truth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -132,10 +133,7 @@ def main() -> None:
             "no flags (`--cost auto`, fill auto); no fill: `--no-fill`; fill: `--fill`; rank fill: `--cost rank "
             "--fill`. s: reconstruction time with one BLAS thread as the CLI runs (a shared 2-core machine under "
             "load: compare within a row only).\n")
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    report(text, args.out)
 
 
 if __name__ == "__main__":

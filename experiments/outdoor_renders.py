@@ -37,6 +37,7 @@ import numpy as np
 
 from dstereo.stereo.reconstruct import ReconstructionConfig, reconstruct_calibrated
 from dstereo.synth.outdoor import OutdoorRig, exposed, outdoor_pair, true_disparity, visible_in_right
+from experiments._validation import report
 
 DEFAULT = ReconstructionConfig(uncertainty=False)
 CONFIGS = {"before": replace(DEFAULT, matching_cost="intensity", fill=False), "default": DEFAULT,
@@ -122,10 +123,7 @@ def main() -> None:
             "no fill (the matching before issue 30); default: no flags; fill: `--fill`; rank fill: "
             "`--cost rank --fill`.\n\n"
             + table(rows))
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    report(text, args.out)
 
 
 if __name__ == "__main__":
