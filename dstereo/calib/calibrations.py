@@ -15,7 +15,7 @@ import numpy as np
 from dstereo.errors import DstereoError
 
 if TYPE_CHECKING:  # annotations only: importing the solvers here would load scipy for every reader of a result
-    from dstereo.calib.multiview import MultiviewSolution
+    from dstereo.calib.solution import Solution
     from dstereo.calib.rig_consistency import RigConsistency
     from dstereo.calib.rig_cross_validation import RigCrossValidation
     from dstereo.calib.rig_subsets import RigSubsets
@@ -36,7 +36,7 @@ class CameraCalibration:
     detection: object  # dstereo.io.corners.Detection
     used: list[str]  # usable image names, in the order of `observations`
     observations: np.ndarray  # (V, n, 2) px
-    full: object  # dstereo.calib.mono.CameraSolution
+    full: object  # dstereo.calib.solution.Solution of the camera alone (K = 1)
     plan: object | None  # dstereo.calib.subsets.SubsetPlan
     subsets: object | None  # dstereo.calib.subsets.SubsetSolutions; None above KEEP_SOLUTIONS subsets (the
     # per-subset values and status are then only in `filtering.table`)
@@ -107,8 +107,8 @@ class MultiviewJob:
     frames: list[str]  # frame names (image stems) seen by at least one camera
     visible: np.ndarray  # (F, K)
     observations: np.ndarray  # (F, K, n, 2), NaN where not seen
-    held: MultiviewSolution | None  # every camera held at its own calibration (None: one camera)
-    solution: MultiviewSolution | None  # the joint solve: cameras.yml (None: one camera)
+    held: Solution | None  # every camera held at its own calibration (None: one camera)
+    solution: Solution | None  # the joint solve: cameras.yml (None: one camera)
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     inliers: np.ndarray | None = None  # (F, K, n) the corners the rig counted (each camera's kept ones); None: all

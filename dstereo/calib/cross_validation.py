@@ -86,7 +86,8 @@ def _lens_names(full) -> tuple[str, ...]:
 
 def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOptions()) -> list[HalfSolution]:
     """Solve the problems given by view `weights` (K, V) (1 = used, 0 = left out) from the full-set solution
-    `full` (a `CameraSolution`), in the full set's compiled solver (same shapes: no second compile). `obs` is
+    `full` (a one-camera `calib.solution.Solution`), in the full set's compiled solver (same shapes: no second
+    compile). `obs` is
     (V, n, 2), shared by all problems, or (K, V, n, 2), one set of corners per problem (a Monte Carlo)."""
     from dstereo.calib.mono import _residual_weights, _shared, chunk_rows
 
@@ -94,16 +95,17 @@ def solve_halves(full, obj, obs, weights: np.ndarray, options: LMOptions = LMOpt
     n_views, n_pts = obs.shape[-3:-1]
     rows = chunk_rows(n_views, n_pts)
     # The halves fit the corners the full set fitted: outliers rejected there weigh 0 here too.
-    inliers = np.ones((n_views, n_pts), bool) if getattr(full, "inliers", None) is None else np.asarray(full.inliers)
+    inliers = np.ones((n_views, n_pts), bool) if full.inliers is None else full.camera_inliers()
     shared = _shared(obj)
     lens = _lens_names(full)
-    free_idx = [_names_of(lens_model(tuple(full.free))).index(n) for n in lens]
+    free = tuple(full.camera().dist.free)
+    free_idx = [_names_of(lens_model(free)).index(n) for n in lens]
     keep = np.arange(len(lens))  # the lens parameters lead the shared vector; a board sag (last) is marginalised
     out = []
     for c in range(0, len(weights), rows):
         w = np.asarray(weights[c: c + rows], float)
         k = len(w)
-        res = _run(full.free, options, np.repeat(full.values[None], k, 0), np.repeat(full.poses[None], k, 0),
+        res = _run(free, options, np.repeat(full.values[None], k, 0), np.repeat(full.poses[None], k, 0),
                    obs[c: c + k] if obs.ndim == 4 else np.repeat(obs[None], k, 0), w, np.full(k, options.lambda0), shared,
                    r_weight=np.repeat(_residual_weights(inliers)[None], k, 0))
         for i in range(k):
@@ -438,9 +440,7 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
                    grid: tuple[int, int] = GRID) -> CrossValidation:
     """`splits` random halvings of the views of the full-set solve `full`, each half calibrated from the
     full-set start; see the module docstring."""
-    from dstereo.models.distortion import lens_model
-
-    if lens_model(tuple(full.free)) == "splined":
+    if full.camera().lens == "splined":
         raise DstereoError("`cross_validate`: not available for the splined model yet; use it with the pinhole or "
                            "fisheye models")
     n_views = len(obs)

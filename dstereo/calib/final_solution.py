@@ -188,7 +188,7 @@ class FinalSolution:
 
     choice: str  # "survivors" or "mean"
     views: np.ndarray  # (V,) bool: the surviving views
-    solution: object  # CameraSolution on the surviving views (the full-set solve when all survive)
+    solution: object  # calib.solution.Solution on the surviving views (the full-set solve when all survive)
     subset_mean: dict[str, float]
     check: MeanCheck
     survival: tuple[np.ndarray, np.ndarray] | None = None  # `view_survival`
@@ -231,25 +231,26 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
 
     survival = view_survival(filtering, plan, len(obs))
     views = survival[0] > 0
-    inliers = None if full.inliers is None else full.inliers[views]  # the full set's outlier mask carries over
-    solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=tuple(full.free),
+    inliers = None if full.inliers is None else full.camera_inliers()[views]  # the full set's outlier mask carries
+    free = tuple(full.camera().dist.free)
+    solution = full if views.all() else calibrate_full(obj, obs[views], image_size, free=free,
                                                        inliers=inliers, board_warp=full.board_sag is not None,
                                                        alone=True)  # after the subsets: no program to share
     names = full.names
     k = np.array([subset_mean[n] for n in names[:4]])
-    coeffs = np.array(solution.coeffs, float)
+    coeffs = np.array(solution.camera().coeffs(), float)
     from dstereo.models.distortion import coeff_slots
 
     from dstereo.calib.problem import WARP_NAMES, sagged_board
 
-    free = tuple(full.free)
     for n in names[4:]:
         if n not in WARP_NAMES:  # the board's sag is the board's, not the camera's
             coeffs[coeff_slots(free).index(n)] = subset_mean[n]
     # both cameras refitted on the board the solution found (its sag, when solved): the mean is judged as a camera
     board = sagged_board(obj, solution.board_sag)
     rms_mean, _ = refit_rms(k, coeffs, board, obs[views], solution.poses, free, inliers)
-    rms_sol, _ = refit_rms(solution.values[:4], solution.coeffs, board, obs[views], solution.poses, free, inliers)
+    rms_sol, _ = refit_rms(solution.values[:4], solution.camera().coeffs(), board, obs[views], solution.poses, free,
+                           inliers)
     # The solution's own refit equals its RMS to the solver's tolerance; the refitted figure is compared so that
     # both sides are measured the same way.
     return FinalSolution(choice, views, solution, dict(subset_mean), MeanCheck(int(views.sum()), rms_sol, rms_mean),
@@ -257,6 +258,7 @@ def camera_final(choice: str, filtering, plan, obj, obs, full, image_size, subse
 
 
 def written_camera_solution(cal):
-    """The CameraSolution whose covariance goes with the written camera: the survivors' solve, or the full set."""
+    """The `calib.solution.Solution` whose covariance goes with the written camera: the survivors' solve, or the
+    full set."""
     fs = getattr(cal, "final_solution", None)
     return cal.full if fs is None else fs.solution

@@ -31,14 +31,14 @@ class LensCovariance:
 
 
 def lens_covariance(sol) -> LensCovariance:
-    """`LensCovariance` of a `CameraSolution` (a full-set solve)."""
+    """`LensCovariance` of a one-camera `calib.solution.Solution` (a full-set solve)."""
     from dstereo.uncertainty.projection import solution_joint
     from dstereo.uncertainty.view_effects import reported_covariance, solution_effects
 
     lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
     effects = solution_effects(sol)
     keep = np.ix_(lens, lens)
-    joint = None if getattr(sol, "normal", None) is None else solution_joint(sol, effects)
+    joint = None if sol.normal is None else solution_joint(sol, effects)
     return LensCovariance(tuple(sol.names[i] for i in lens), np.asarray(sol.values, float)[lens],
                           np.asarray(reported_covariance(sol), float)[keep], np.asarray(sol.cov, float)[keep],
                           "per-view random effects" if effects is not None and effects.fitted else "jacobian",
@@ -70,7 +70,7 @@ def projection_of(cal, projection_range: float | None = None, method: str = "pos
     source = "given" if projection_range is not None else "mean board distance of the full-set solve"
     if projection_range is None:
         projection_range = mean_board_distance(full.poses, det.object_points)
-    fallback = method == "pose-compensated" and getattr(full, "normal", None) is None
+    fallback = method == "pose-compensated" and full.normal is None
     pmap = solution_map(full, det.image_size, projection_range, "intrinsics-only" if fallback else method)
     return FinishedProjection(pmap, source, fallback)
 
@@ -86,12 +86,12 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
     full, det = cal.full, cal.detection
     sag = getattr(written_camera_solution(cal), "board_sag", None)
     spans = None
-    if full.lens_model == "splined":
+    if full.camera().lens == "splined":
         from dstereo.models import splined
 
         K = cal.final_camera_matrix
         k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
-        spans = splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.free)))
+        spans = splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.camera().dist.free)))
     from dstereo.calib.valid_region import valid_region
 
     projection = projection_of(cal, projection_range, method)
@@ -111,7 +111,7 @@ def _conversion(cal, region, pmap):
     from dstereo.uncertainty.projection import model_key
 
     full = cal.full
-    if not getattr(cal.config, "mrcal_convert", False) or full.lens_model not in ("fisheye", "splined") or \
+    if not getattr(cal.config, "mrcal_convert", False) or full.camera().lens not in ("fisheye", "splined") or \
             region is None:
         return None
     K = cal.final_camera_matrix

@@ -112,12 +112,14 @@ def residual_pattern(obs: np.ndarray, residuals: np.ndarray, image_size: tuple[i
 
 
 def solution_pattern(obs: np.ndarray, sol) -> ResidualPattern:
-    """`residual_pattern` of a `mono.CameraSolution` on its views `obs`, sigma from its inlier residuals."""
+    """`residual_pattern` of a one-camera `calib.solution.Solution` on its views `obs`, sigma from its inlier
+    residuals."""
     from dstereo.calib.outliers import noise_sigma
 
-    mask = np.ones(obs.shape[:2], bool) if sol.inliers is None else sol.inliers
-    sigma = noise_sigma(sol.residuals, mask, len(sol.values) + 6 * int(mask.any(axis=1).sum()))
-    return residual_pattern(obs, sol.residuals, sol.image_size, sigma, mask)
+    mask = np.ones(obs.shape[:2], bool) if sol.inliers is None else sol.camera_inliers()
+    residuals = sol.residuals[:, 0]
+    sigma = noise_sigma(residuals, mask, len(sol.values) + 6 * int(mask.any(axis=1).sum()))
+    return residual_pattern(obs, residuals, sol.camera().image_size, sigma, mask)
 
 
 def neighbour_correlation(obs: np.ndarray, residuals: np.ndarray, inliers: np.ndarray | None = None

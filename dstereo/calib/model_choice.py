@@ -66,7 +66,7 @@ class Candidate:
     diff_mse: float = float("nan")  # mean paired held-out MSE minus the best's, px^2
     diff_se: float = float("nan")  # its standard error
     note: str = ""
-    solution: object = field(default=None, repr=False)  # mono.CameraSolution of the full set
+    solution: object = field(default=None, repr=False)  # calib.solution.Solution of the full set
 
     def identifiability_text(self) -> str:
         cond = f"cond {self.condition_number:.1e}"
@@ -264,7 +264,7 @@ def _spline_not_needed(rows: list[Candidate], obs) -> str | None:
     best = min(usable, key=lambda c: c.heldout_rms)
     sol = best.solution
     pattern = solution_pattern(obs, sol)
-    rho, z = neighbour_correlation(obs, sol.residuals, sol.inliers)
+    rho, z = neighbour_correlation(obs, sol.residuals[:, 0], sol.camera_inliers())
     if pattern.p_value < SPLINE_GATE_P or not z <= SPLINE_GATE_Z:
         return None
     return (f"not evaluated: the best parametric model ({best.preset}) leaves residuals like noise (no pattern "

@@ -8,8 +8,6 @@ per free set and shapes) serves the full set and every subset.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,13 +15,14 @@ import numpy as np
 from dstereo.calib.init_fisheye import initial_guess_fisheye
 from dstereo.calib.init_zhang import initial_guess
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
+from dstereo.calib.solution import Solution, per_view_rms
 from dstereo.calib.subsets import SubsetPlan, SubsetSolutions
-from dstereo.uncertainty.covariance import Conditioning, conditioning, covariance, scaled_inverse
+from dstereo.uncertainty.covariance import conditioning, covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.calib.problem import (WARP_NAMES, WARP_SIZE, Problem, chunk_rows, frame_linearize, frame_residual, lens_functions,  # noqa: F401
                                    residual_weights, run, shared_data)
-from dstereo.models.camera import INTRINSIC_NAMES
-from dstereo.models.distortion import coeff_slots, lens_model
+from dstereo.models.camera import INTRINSIC_NAMES, Camera
+from dstereo.models.distortion import Distortion, coeff_slots, lens_model
 from dstereo.solver.lm import STATUS_TEXT, LMOptions
 
 
@@ -63,57 +62,6 @@ def _run(free, options, g0, p0, obs, weight, lambda0, shared, normal0=None, r_we
                np.ones(np.shape(weight) + (2 * np.shape(obs)[3],)) if r_weight is None else r_weight, rows)
 
 
-@dataclass
-class CameraSolution:
-    """A solve on one set of views. Values and standard deviations are keyed by parameter name."""
-
-    names: tuple[str, ...]
-    values: np.ndarray  # (G,) shared parameters in `names` order
-    std: np.ndarray  # (G,) Jacobian standard deviations
-    cov: np.ndarray  # (G, G)
-    coeffs: np.ndarray  # (8,) all distortion coefficients, OpenCV order (fisheye: cv2.fisheye's D in [:4]); a
-    # splined lens: its knots (2 NX NY,), `splined.knot_names` order
-    poses: np.ndarray  # (V, 6) rvec, tvec per view
-    rms: float  # sqrt(SSE / points), OpenCV's reprojection error, over the inlier corners
-    per_view_rms: np.ndarray  # (V,) over each view's inlier corners
-    residuals: np.ndarray  # (V, n, 2) projected - observed, outliers' included
-    iterations: int
-    status: int
-    conditioning: Conditioning
-    free: tuple[str, ...]
-    image_size: tuple[int, int]
-    timings: dict = field(default_factory=dict)
-    normal: np.ndarray | None = None  # (V, P+1, P+1) per view [J r]'[J r] at the solution: subsets start from it
-    inliers: np.ndarray | None = None  # (V, n) bool: corners the solve used (None: all); subsets use the same
-    board_sag: np.ndarray | None = None  # (2,) the board's sag (x, y) in the board unit when solved (`problem`)
-
-    @property
-    def converged(self) -> bool:
-        return self.status > 0
-
-    @property
-    def lens_model(self) -> str:
-        return lens_model(self.free)
-
-    @property
-    def status_text(self) -> str:
-        return STATUS_TEXT[self.status]
-
-    @property
-    def camera_matrix(self) -> np.ndarray:
-        fx, fy, cx, cy = self.values[:4]
-        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-    def as_dict(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.values)))
-
-    def camera(self):
-        """The `models.camera.Camera` this solve describes, with its free set (what a rig's joint solve refines)."""
-        from dstereo.models.camera import Camera
-
-        return Camera.create(*map(float, self.values[:4]), self.coeffs, self.free, self.image_size)
-
-
 def _check_views(obj: np.ndarray, obs: np.ndarray) -> None:
     if obs.ndim != 3 or obs.shape[2] != 2 or obs.shape[1] != obj.shape[0]:
         raise DstereoError(f"corners: expected (views, {obj.shape[0]}, 2) image points, got {obs.shape}")
@@ -134,7 +82,7 @@ def calibrate_full(
     start: tuple[np.ndarray, np.ndarray] | None = None,
     board_warp: bool = False,
     alone: bool = False,
-) -> CameraSolution:
+) -> Solution:
     """Calibrate from all views: closed-form start, then the structured LM to convergence.
 
     `inliers` (V, n) bool: corners to fit (the others, outliers, weigh 0; default all). `start`: (shared vector,
@@ -173,7 +121,8 @@ def calibrate_full(
     return sol  # may be unconverged (sol.status < 0): callers report it, never hide it
 
 
-def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
+def _solution_from(out, obj, obs, free, image_size, mask) -> Solution:
+    """The K = 1 `Solution`: the camera's views as frames of one camera, its names without a camera label."""
     warp = len(out.g) == 4 + len(free) + WARP_SIZE
     names = INTRINSIC_NAMES + tuple(free) + (WARP_NAMES if warp else ())
     g = out.g
@@ -181,16 +130,18 @@ def _solution_from(out, obj, obs, free, image_size, mask) -> CameraSolution:
     coeffs[[coeff_slots(free).index(n) for n in free]] = g[4:4 + len(free)]
     n_params = len(g) + 6 * int(mask.any(axis=1).sum())
     cov = covariance(out.schur, float(out.sse), int(out.n_residuals), n_params)
-    resid = np.asarray(out.residuals).reshape(obs.shape)
-    n_in = np.maximum(mask.sum(axis=1), 1)
-    return CameraSolution(
-        names=names, values=g, std=np.sqrt(np.maximum(np.diag(cov), 0.0)), cov=cov, coeffs=coeffs, poses=out.p,
-        rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
-        per_view_rms=np.sqrt(np.sum(np.sum(resid ** 2, axis=2) * mask, axis=1) / n_in),
-        residuals=resid, iterations=int(out.iterations), status=int(out.status), normal=np.asarray(out.normal),
-        conditioning=conditioning(out.schur, names, g, np.sqrt(np.maximum(np.diag(cov), 0.0)), image_size),
-        free=free, image_size=tuple(image_size), inliers=None if mask.all() else mask,
-        board_sag=g[-WARP_SIZE:].copy() if warp else None,
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    resid = np.asarray(out.residuals).reshape(obs.shape)[:, None]  # (V, 1, n, 2)
+    visible = np.ones((len(obs), 1), bool)
+    camera = Camera(jax.device_put(np.array(g[:4], float)), Distortion(jax.device_put(coeffs), tuple(free)),
+                    tuple(image_size))
+    return Solution(
+        names=names, values=g, std=std, cov=cov, cameras=[camera], rvecs=np.zeros((1, 3)), T=np.zeros((1, 3)),
+        poses=out.p, visible=visible, rms=float(np.sqrt(out.sse / max(int(mask.sum()), 1))),
+        per_view_rms=per_view_rms(resid, mask[:, None], visible), residuals=resid, iterations=int(out.iterations),
+        status=int(out.status), normal=np.asarray(out.normal),
+        conditioning=conditioning(out.schur, names, g, std, image_size),
+        inliers=None if mask.all() else mask[:, None], std_jacobian=std,
     )
 
 
@@ -198,7 +149,7 @@ def solve_subsets(
     obj: np.ndarray,
     obs: np.ndarray,
     plan: SubsetPlan,
-    start: CameraSolution,
+    start: Solution,
     options: LMOptions = LMOptions(lambda0=1e-6),
     progress=None,
     n_threads: int | None = None,
@@ -221,8 +172,9 @@ def solve_subsets(
     m = index.shape[1]
     obs = np.asarray(obs, float)
     # The full set's outlier mask: a corner rejected there is left out of every subset too
-    r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers)
+    r_weight = _residual_weights(np.ones(obs.shape[:2], bool) if start.inliers is None else start.inliers[:, 0])
     normal = None if start.normal is None else (start.residuals.reshape(len(obs), -1), start.normal)
+    free = tuple(start.camera().dist.free)
     values, sag = np.asarray(start.values, float), start.board_sag
     if sag is not None:
         from dstereo.calib.problem import sagged_board
@@ -233,7 +185,7 @@ def solve_subsets(
         normal = None if normal is None else (normal[0], normal[1][:, keep][:, :, keep])
         values = values[:-WARP_SIZE]
     t0 = time.perf_counter()
-    out = solve_frame_subsets(_problem(start.free), obs[:, None], r_weight, _shared(obj), index,
+    out = solve_frame_subsets(_problem(free), obs[:, None], r_weight, _shared(obj), index,
                               SubsetStart(values, start.poses, normal), options, progress, n_threads, plan_size)
     n_points = out.n_residuals / 2  # inlier corners, views counted with their weights
     n_params = len(values) + 6 * m

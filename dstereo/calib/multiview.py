@@ -12,7 +12,6 @@ the one structured LM with all intrinsics held; in joint mode a second solve ove
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import jax
 import numpy as np
@@ -21,14 +20,15 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.mono import calibrate_full
 from dstereo.calib.problem import POSE_SIZE, WARP_NAMES, WARP_SIZE, Problem, residual_weights, run, shared_data
 from dstereo.calib.subset_solve import SubsetStart, solve_frame_subsets
+from dstereo.calib.solution import Solution, per_view_rms
 from dstereo.calib.subsets import SubsetSolutions
 from dstereo.errors import DstereoError
 from dstereo.models.camera import INTRINSIC_NAMES, Camera
 from dstereo.models.distortion import PRESETS
 from dstereo.models.pose import rotation_vectors
 from dstereo.models.rig import RIG_NAMES
-from dstereo.solver.lm import STATUS_TEXT, LMOptions
-from dstereo.uncertainty.covariance import Conditioning, conditioning, scaled_inverse
+from dstereo.solver.lm import LMOptions
+from dstereo.uncertainty.covariance import conditioning, scaled_inverse
 from dstereo.uncertainty.view_effects import solve_covariance
 
 EXTRINSIC_NAMES = RIG_NAMES  # a camera's pose in the reference: the rig of (reference, camera)
@@ -36,61 +36,6 @@ MODES = ("fixed", "joint")
 # A frame's pose implied through one camera that differs from the consensus by more than this is read as a
 # corner-order flip (a flip is a 180-degree turn, far above any calibration's disagreement of a degree or two).
 FLIP_ANGLE_DEG = 30.0
-
-
-@dataclass
-class MultiviewSolution:
-    """A solve of K cameras over F frames. Camera 0 is the reference: x_cam_k = R_k x_ref + T_k."""
-
-    mode: str
-    labels: tuple[str, ...]
-    names: tuple[str, ...]
-    values: np.ndarray  # (G,) in `names` order
-    std: np.ndarray  # (G,) standard deviations with the frames' effects (`view_effects`)
-    cov: np.ndarray  # (G, G) the same
-    cameras: list[Camera]
-    rvecs: np.ndarray  # (K, 3), row 0 zero
-    T: np.ndarray  # (K, 3), row 0 zero
-    poses: np.ndarray  # (F, 6) T_ref_board
-    visible: np.ndarray  # (F, K) bool
-    rms: float  # over every seen inlier corner of every camera
-    per_view_rms: np.ndarray  # (F, K), NaN where not seen
-    residuals: np.ndarray  # (F, K, n, 2) projected - observed, 0 where not seen
-    iterations: int
-    status: int
-    conditioning: Conditioning
-    flipped: list[tuple[int, int]] = field(default_factory=list)  # (frame, camera) read in reversed corner order
-    timings: dict = field(default_factory=dict)
-    std_jacobian: np.ndarray | None = None  # (G,) the Jacobian's alone (independent corner noise)
-
-    @property
-    def converged(self) -> bool:
-        return self.status > 0
-
-    @property
-    def status_text(self) -> str:
-        return STATUS_TEXT[self.status]
-
-    @property
-    def board_sag(self) -> np.ndarray | None:
-        """(2,) the board's sag (x, y) in the board unit when solved, else None."""
-        return self.values[-WARP_SIZE:] if self.names[-1] == WARP_NAMES[-1] else None
-
-    @property
-    def R(self) -> np.ndarray:
-        return Rotation.from_rotvec(self.rvecs).as_matrix()
-
-    def relative(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """(R, T) of camera b relative to camera a: x_b = R x_a + T (a stereo pair with a on the left)."""
-        r_a, r_b = Rotation.from_rotvec(self.rvecs[a]), Rotation.from_rotvec(self.rvecs[b])
-        r = r_b * r_a.inv()
-        return r.as_matrix(), self.T[b] - r.apply(self.T[a])
-
-    def camera_rms(self) -> np.ndarray:
-        """(K,) each camera's RMS over its seen inlier corners."""
-        sq = np.sum(self.residuals ** 2, axis=-1)  # (F, K, n)
-        counts = np.sum(np.abs(self.residuals).sum(-1) > 0, axis=(0, 2))
-        return np.sqrt(sq.sum(axis=(0, 2)) / np.maximum(counts, 1))
 
 
 # --- poses as (rvec, t) 6-vectors: x_a = R x_b + t for T_a_b --------------------------------------------------
@@ -299,7 +244,7 @@ def calibrate_views(
     inliers: np.ndarray | None = None,
     labels: tuple[str, ...] | None = None,
     board_warp: bool = False,
-) -> MultiviewSolution:
+) -> Solution:
     """Calibrate K cameras from frames of one board: obj (n, 3), obs (F, K, n, 2), visible (F, K) bool.
 
     `free`: one free-coefficient set for every camera or a list of K (each camera its own lens model).
@@ -346,7 +291,7 @@ def _cameras_from(problem: Problem, g, cameras) -> list[Camera]:
             for cam, sl in zip(cameras, problem.intrinsic_slices())]
 
 
-def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iterations) -> MultiviewSolution:
+def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iterations) -> Solution:
     g = out.g
     names = _names(problem, labels)
     n_params = len(g) + POSE_SIZE * len(out.p)
@@ -354,25 +299,26 @@ def _solution(out, problem, mode, labels, cameras, obj, data, r_w, visible, iter
     cov, jac, _ = solve_covariance(out, n_params)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     k, n = visible.shape[1], obj.shape[0]
-    resid = (out.residuals * r_w).reshape(len(out.p), k, n, 2)
-    w = r_w.reshape(len(out.p), k, n, 2)[..., 0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        per_view = np.sqrt(np.sum(resid ** 2, axis=-1).sum(-1) / w.sum(-1))
-    per_view[~visible] = np.nan
+    # every seen corner's residual, outliers' included (their weight is 0 in the solve); 0 where not seen
+    seen = np.broadcast_to(visible[:, :, None, None], (len(out.p), k, n, 2))
+    resid = np.where(seen, np.asarray(out.residuals).reshape(len(out.p), k, n, 2), 0.0)
+    fitted = r_w.reshape(len(out.p), k, n, 2)[..., 0] > 0
     ext = np.vstack([np.zeros(6), g[:problem.n_extrinsic].reshape(-1, 6)])
-    return MultiviewSolution(
+    return Solution(
         mode=mode, labels=labels, names=names, values=g, std=std, cov=cov, cameras=_cameras_from(problem, g, cameras),
         std_jacobian=np.sqrt(np.maximum(np.diag(jac), 0.0)),
         rvecs=ext[:, :3], T=ext[:, 3:], poses=out.p, visible=visible,
-        rms=float(np.sqrt(out.sse / max(float(w.sum()), 1.0))), per_view_rms=per_view, residuals=resid,
-        iterations=iterations, status=int(out.status), conditioning=conditioning(out.schur, names),
+        rms=float(np.sqrt(out.sse / max(float(fitted.sum()), 1.0))), per_view_rms=per_view_rms(resid, fitted, visible),
+        residuals=resid, inliers=None if (fitted == visible[:, :, None]).all() else fitted,
+        iterations=iterations, status=int(out.status),
+        conditioning=conditioning(out.schur, names),
     )
 
 
 # --- subsets of frames ------------------------------------------------------------------------------------
 
 
-def solve_view_subsets(obj, obs, visible, index, start: MultiviewSolution, options: LMOptions = LMOptions(lambda0=1e-6),
+def solve_view_subsets(obj, obs, visible, index, start: Solution, options: LMOptions = LMOptions(lambda0=1e-6),
                        progress=None, inliers=None) -> SubsetSolutions:
     """Solve every subset of frames (rows of `index`) with the one subset runner, from the full-set `start`
     (same mode and cameras). A subset in which a camera sees no frame leaves that camera's parameters

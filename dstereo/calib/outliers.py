@@ -103,7 +103,8 @@ def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: floa
     sol, mask, rounds = first, np.ones(obs.shape[:2], bool), 0
     seen = {mask.tobytes()}
     while rounds < MAX_ROUNDS:
-        new = inlier_mask(sol.residuals, noise_sigma(sol.residuals, mask, n_params(mask)), k)
+        residuals = sol.residuals[:, 0]  # one camera: its views are the frames
+        new = inlier_mask(residuals, noise_sigma(residuals, mask, n_params(mask)), k)
         # A view that loses too many corners is out whole, for good: its bad corners must not steer the fit
         gone = (1.0 - new.mean(axis=1) > VIEW_FRACTION) | ~mask.any(axis=1)
         new[gone] = False
@@ -123,9 +124,9 @@ def reject_outliers(obj, obs, image_size, free, names: list[str], first, k: floa
     if len(keep) < len(obs):  # the rest without the rejected views (their shape: one more compile)
         sol = calibrate_full(obj, obs[keep], image_size, free=free, inliers=mask[keep],
                              start=(sol.values, sol.poses[keep]), alone=alone)
-    sigma = noise_sigma(sol.residuals, mask[keep], len(sol.values) + 6 * len(keep))
+    sigma = noise_sigma(sol.residuals[:, 0], mask[keep], len(sol.values) + 6 * len(keep))
     dropped = sorted(set(range(len(obs))) - set(keep.tolist()))
-    norm = np.linalg.norm(sol.residuals, axis=2)
+    norm = np.linalg.norm(sol.residuals[:, 0], axis=2)
     corners = [(names[keep[v]], int(c), float(norm[v, c]), float(norm[v, c] / sigma))
                for v, c in zip(*np.nonzero(~mask[keep]))]  # the rejected views are listed as views
     report = OutlierReport(True, k, sigma, rounds, int(obs.shape[0] * obs.shape[1]), corners,

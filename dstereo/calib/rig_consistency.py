@@ -212,14 +212,15 @@ def rig_consistency(obj, obs, mask, cameras: list[Camera], rig_sse: np.ndarray, 
 
 
 def of_multiview(joint, obj, obs, inliers=None, frames=None) -> RigConsistency:
-    """The test on a `multiview.MultiviewSolution` solved in "joint" mode (obs as given to it, (F, K, n, 2))."""
+    """The test on a `calib.solution.Solution` of K >= 2 cameras solved in "joint" mode (obs as given to it,
+    (F, K, n, 2))."""
     from dstereo.calib.multiview import as_solved
 
     obs, inliers = as_solved(obs, inliers, joint.flipped)  # as the solve read them
     mask = joint.visible[:, :, None] & np.isfinite(obs[..., 0])
     if inliers is not None:
         mask &= np.asarray(inliers, bool)
-    rig_sse = np.sum(np.asarray(joint.residuals) ** 2, axis=(2, 3))
+    rig_sse = np.sum(np.where(joint.fitted()[..., None], joint.residuals, 0.0) ** 2, axis=(2, 3))
     extrinsics = np.concatenate([joint.rvecs, joint.T], axis=1)
     frames = frames if frames is not None else [f"frame {f}" for f in range(len(obs))]
     return rig_consistency(obj, obs, mask, joint.cameras, rig_sse, extrinsics, joint.poses, joint.board_sag,

@@ -49,7 +49,7 @@ def _norm_std(v: np.ndarray, cov: np.ndarray) -> float:
 
 
 def pair_calibration(solution, a: int, b: int, obj: np.ndarray) -> PairCalibration:
-    """Cameras a (left) and b (right) of a `calib.multiview.MultiviewSolution` (mode "joint") as one stereo rig;
+    """Cameras a (left) and b (right) of a `calib.solution.Solution` (mode "joint") as one stereo rig;
     `obj` (n, 3) the flat board."""
     from scipy.spatial.transform import Rotation
 

@@ -32,7 +32,7 @@ def _problem(solution) -> Problem:
 
 def frames_covariance(solution, obj: np.ndarray, obs: np.ndarray, inliers: np.ndarray | None = None):
     """(covariance of (shared vector, every frame's pose (F, 6) row by row), residual count N, parameter count p)
-    of a `multiview.MultiviewSolution`; `obs` (F, K, n, 2) and `inliers` (F, K, n) as the solve read them
+    of a `calib.solution.Solution`; `obs` (F, K, n, 2) and `inliers` (F, K, n) as the solve read them
     (`multiview.as_solved`)."""
     from dstereo.uncertainty.covariance import covariance
 

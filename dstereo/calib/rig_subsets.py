@@ -19,7 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dstereo.calib.final_solution import surviving_views
-from dstereo.calib.multiview import MultiviewSolution, as_solved, solve_view_subsets
+from dstereo.calib.multiview import as_solved, solve_view_subsets
+from dstereo.calib.solution import Solution
 from dstereo.calib.subsets import SubsetSolutions
 from dstereo.calib.problem import Problem, WARP_SIZE, batched_residuals, residual_weights, sagged_board, shared_data
 from dstereo.runtime import buckets
@@ -60,7 +61,7 @@ def _relative(values: np.ndarray, k: int, a: int, b: int) -> tuple[np.ndarray, n
     return rotation_vectors(r.as_matrix()), ext[:, b, 3:] - r.apply(ext[:, a, 3:])  # the one rotation log
 
 
-def _pair_rms(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, weights, pairs) -> np.ndarray:
+def _pair_rms(subs: SubsetSolutions, start: Solution, obj, obs, weights, pairs) -> np.ndarray:
     """(C, P) each pair's stereo_re in every subset (module docstring); held-sag columns are not parameters."""
     k, n = obs.shape[1], obs.shape[2]
     sag = start.board_sag
@@ -93,7 +94,7 @@ def _pair_rms(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, weights
     return np.concatenate(out)
 
 
-def subset_table(subs: SubsetSolutions, start: MultiviewSolution, obj, obs, visible, inliers,
+def subset_table(subs: SubsetSolutions, start: Solution, obj, obs, visible, inliers,
                  pairs) -> np.ndarray:
     """(C, 9 P) the stereo columns of every pair in `column_names` order."""
     k = visible.shape[1]
@@ -144,7 +145,7 @@ class RigSubsets:
         return out + [f"  rig {s.message}" for s in self.filtering.steps]
 
 
-def run_rig_subsets(config, start: MultiviewSolution, obj, obs, visible, inliers, labels, frame_names,
+def run_rig_subsets(config, start: Solution, obj, obs, visible, inliers, labels, frame_names,
                     scratch=None, progress=None) -> RigSubsets:
     """Solve the rig's frame subsets from `start` (the held solve), filter them by the configuration's stereo
     steps on every adjacent pair, and find the frames that survive. Raises DstereoError when no subset converges

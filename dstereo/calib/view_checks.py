@@ -115,5 +115,5 @@ def view_warnings(used: list[str], full, corners: dict, pattern) -> list[str]:
     """A calibration's view warnings from its full-set solve: views far off the rest, stray corners (the rejected
     ones too: a corner far off may mean a wrong --pattern, whose hint this warning carries), and views in another
     corner order."""
-    return (outlying_views(used, full.per_view_rms) + stray_corners(used, full.residuals, pattern)
+    return (outlying_views(used, full.per_view_rms[:, 0]) + stray_corners(used, full.residuals[:, 0], pattern)
             + mirrored_views(corners, pattern))

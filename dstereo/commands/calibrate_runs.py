@@ -163,7 +163,7 @@ def _render(cal, out: Path) -> None:
     full = cal.full
     mean = cal.subset_mean if cal.subset_mean is not None else cal.final
     rows = [(n, _pm(float(v), float(s)), _pm(mean[n], cal.spread[n]))
-            for n, v, s in zip(full.names, full.values, reported_std(full)) if full.lens_model != "splined" or
+            for n, v, s in zip(full.names, full.values, reported_std(full)) if full.camera().lens != "splined" or
             n[:3] not in ("sx_", "sy_")]  # a splined lens's knots (~160) are in camera.yml's splined section
     subsets = "subset mean +- spread"
     if cal.filtering is not None:

@@ -130,7 +130,7 @@ class JointRig:
     both cameras and the rig refined) with its values under stereo.yml's names (RVx..Tz of the right camera in the
     left's, then left.*, right.*: the solve's own order)."""
 
-    solution: object  # calib.multiview.MultiviewSolution
+    solution: object  # calib.solution.Solution
     names: tuple[str, ...]
     R: np.ndarray
     T: np.ndarray

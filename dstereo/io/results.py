@@ -265,7 +265,7 @@ def summary_dict(cal: CameraCalibration) -> dict:
         "image_size": list(det.image_size),
         "pattern": {"columns": det.board.cols, "rows": det.board.rows, "square": det.board.square,
                     "unit": cal.config.unit},
-        "model": list(full.free),
+        "model": list(full.camera().dist.free),
         "images": {"folder": str(cal.folder), "used": list(cal.used), "rejected": dict(det.rejected),
                    "considered": list(det.names)},
         "full_set": {**dict(zip(names, map(float, full.values))), "rms": float(full.rms),
@@ -273,7 +273,7 @@ def summary_dict(cal: CameraCalibration) -> dict:
                      "std_jacobian": dict(zip(names, map(float, full.std))),
                      "view_scatter": None if scatter is None else scatter.summary(names),
                      "view_effects": None if effects is None else effects.summary(names),
-                     "per_image_rms": dict(zip(cal.used, map(float, full.per_view_rms))),
+                     "per_image_rms": dict(zip(cal.used, map(float, full.per_view_rms[:, 0]))),
                      "iterations": int(full.iterations), "status": full.status_text, "converged": bool(full.converged),
                      "conditioning": {"identifiable": bool(full.conditioning.identifiable),
                                       "condition_number": float(full.conditioning.condition_number),
@@ -472,19 +472,20 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     from dstereo.runtime.figure_pool import Figures
 
     full, det = cal.full, cal.detection
+    camera = full.camera()  # the full-set solve's
     summary = summary_dict(cal)
     figures = Figures()  # drawn in the figure workers (when started) while this process writes the rest
-    K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, full.free)
-    names = distortion_names(full.free, len(D))
+    K, D = cal.final_camera_matrix, distortion_vector(cal.final_coefficients, camera.dist.free)
+    names = distortion_names(camera.dist.free, len(D))
     section = None
-    if full.lens_model == "splined":
-        section = (cal.final_coefficients, full.free, finished(cal).splined_spans)
+    if camera.lens == "splined":
+        section = (cal.final_coefficients, camera.dist.free, finished(cal).splined_spans)
     sag, solved_board, comment = _solved_board(cal)
-    write_camera_files(folder, K, D, det.image_size, model=full.lens_model, splined=section, comment=comment,
+    write_camera_files(folder, K, D, det.image_size, model=camera.lens, splined=section, comment=comment,
                        unit=cal.config.unit, extra={
         "distortion_names": names, "source": summary["final_source"],
-        "full_set": {"camera_matrix": full.camera_matrix.tolist(),
-                     "distortion_coefficients": distortion_vector(full.coeffs, full.free).tolist(),
+        "full_set": {"camera_matrix": camera.matrix().tolist(),
+                     "distortion_coefficients": distortion_vector(camera.coeffs(), camera.dist.free).tolist(),
                      "rms": float(full.rms), "std": summary["full_set"]["std"]}, **sag})
     summary["cameramodel"] = _write_mrcal(folder, cal, K)
     converted = _write_mrcal_conversion(folder, cal)
@@ -502,9 +503,10 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
     # The full-set figures first: the workers draw them while the parameter figures' data are reduced here.
     figures.draw(plots.coverage_heatmap, pts, det.image_size, cal.coverage.percent, plot_dir / "coverage.png",
                  cal.coverage.corner_percent, CORNER_MIN_PERCENT)
-    figures.draw(plots.residual_vectors, np.asarray(cal.observations), np.asarray(full.residuals), det.image_size,
+    figures.draw(plots.residual_vectors, np.asarray(cal.observations), np.asarray(full.residuals[:, 0]), det.image_size,
                  plot_dir / "residuals.png")
-    figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms), plot_dir / "per_image_rms.png")
+    figures.draw(plots.per_image_rms, list(cal.used), np.asarray(full.per_view_rms[:, 0]),
+                 plot_dir / "per_image_rms.png")
     # the map next (~10 ms here): its figure, the slowest to draw, is then not the last one the workers start
     projection = write_projection_uncertainty(folder, cal, figures)
     if getattr(finished(cal), "covariance", None) is not None:
@@ -512,7 +514,7 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
 
         pmap = finished(cal).projection.map
         summary["calibration_covariance"] = write_calibration_covariance(
-            folder, finished(cal).covariance, full.lens_model, pmap.range_, (len(pmap.u), len(pmap.v)),
+            folder, finished(cal).covariance, camera.lens, pmap.range_, (len(pmap.u), len(pmap.v)),
             det.image_size)
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
@@ -555,8 +557,9 @@ def _write_mrcal(folder: Path, cal: CameraCalibration, K: np.ndarray) -> str:
     from dstereo.io.cameramodel import write_cameramodel
 
     solve, why = _board_solve(cal)
-    return write_cameramodel(folder / "camera.cameramodel", cal.full.free, K[[0, 1, 0, 1], [0, 1, 2, 2]],
-                             cal.final_coefficients, cal.detection.image_size, note="written by dstereo calibrate",
+    return write_cameramodel(folder / "camera.cameramodel", cal.full.camera().dist.free,
+                             K[[0, 1, 0, 1], [0, 1, 2, 2]], cal.final_coefficients, cal.detection.image_size,
+                             note="written by dstereo calibrate",
                              solve=solve, no_solve_why=why, region=_region(cal))
 
 
@@ -566,7 +569,7 @@ def _write_mrcal_conversion(folder: Path, cal: CameraCalibration) -> str | None:
     from dstereo.io.cameramodel import cameramodel_text, NO_MODEL_CONVERSION
 
     conv = getattr(finished(cal), "mrcal_conversion", None)
-    if not getattr(cal.config, "mrcal_convert", False) or cal.full.lens_model not in ("fisheye", "splined"):
+    if not getattr(cal.config, "mrcal_convert", False) or cal.full.camera().lens not in ("fisheye", "splined"):
         return None
     if conv is None:
         return NO_MODEL_CONVERSION
@@ -594,8 +597,9 @@ def _board_solve(cal: CameraCalibration):
     if sol.poses.shape[0] != int(views.sum()):
         return None, "no optimization inputs: the solve's views could not be matched to the corners"
     board = cal.detection.board  # one square side: mrcal's calibration_object_spacing
-    return BoardSolve.one_camera(sol.free, sol.values[:4], sol.coeffs, sol.image_size, sol.poses,
-                                 np.asarray(cal.observations)[views], sol.inliers, (board.cols, board.rows),
+    camera = sol.camera()
+    return BoardSolve.one_camera(camera.dist.free, sol.values[:4], camera.coeffs(), camera.image_size, sol.poses,
+                                 np.asarray(cal.observations)[views], sol.camera_inliers(), (board.cols, board.rows),
                                  board.square, sol.board_sag), ""
 
 
@@ -604,7 +608,7 @@ def write_undistorted(folder: Path, cal: CameraCalibration, K: np.ndarray, coeff
     import cv2
 
     folder.mkdir()
-    if cal.full.lens_model == "splined":  # OpenCV cannot undistort this lens
+    if cal.full.camera().lens == "splined":  # OpenCV cannot undistort this lens
         return []
     w, h = cal.detection.image_size
     reach = np.max(np.linalg.norm(cal.observations - np.array([w / 2, h / 2]), axis=2), axis=1)
@@ -615,7 +619,7 @@ def write_undistorted(folder: Path, cal: CameraCalibration, K: np.ndarray, coeff
         image = cv2.imread(str(by_name[name]), cv2.IMREAD_COLOR)
         if image is None:
             continue
-        if cal.full.lens_model == "fisheye":  # same K for the view: the image circle's rim falls outside it
+        if cal.full.camera().lens == "fisheye":  # same K for the view: the image circle's rim falls outside it
             fixed = cv2.fisheye.undistortImage(image, K, np.asarray(coeffs8[:4], float), Knew=K)
         else:
             fixed = cv2.undistort(image, K, coeffs8)
@@ -670,14 +674,15 @@ def report_markdown(cal: CameraCalibration, summary: dict) -> str:
     from dstereo.models.distortion import model_label
 
     full, cfg, board = cal.full, cal.config, cal.detection.board  # the board summary.json reports, too
+    camera = full.camera()
     lines = [f"# Camera calibration: {cal.folder}", "",
              f"- board: {board.cols} x {board.rows} inner corners, square {board.square:g} {cfg.unit}",
              f"- images: {len(cal.used)} usable of {len(cal.detection.names)} "
              f"({len(cal.detection.rejected)} rejected), "
              f"{cal.detection.image_size[0]} x {cal.detection.image_size[1]} px",
-             f"- distortion model: {full.lens_model}, "
-             + (f"{model_label(full.free)} (knots in camera.yml's splined section)" if full.lens_model == "splined"
-                else f"{', '.join(full.free) or 'none'}"),
+             f"- distortion model: {camera.lens}, "
+             + (f"{model_label(camera.dist.free)} (knots in camera.yml's splined section)" if camera.lens == "splined"
+                else f"{', '.join(camera.dist.free) or 'none'}"),
              f"- full-set solve: RMS {full.rms:.4f} px, {full.status_text}; {full.conditioning.message()}", ""]
     if cal.model_advice:
         lines += [f"**Model:** {cal.model_advice}", ""]
@@ -735,7 +740,7 @@ def report_markdown(cal: CameraCalibration, summary: dict) -> str:
               f"For mrcal's tools: {summary.get('cameramodel', '-')}."]
     if "cameramodel_converted" in summary:
         lines += [f"Converted for mrcal (--mrcal-convert): {summary['cameramodel_converted']}."]
-    elif cal.full.lens_model in ("fisheye", "splined"):
+    elif cal.full.camera().lens in ("fisheye", "splined"):
         lines += ["`--mrcal-convert` writes the nearest mrcal model (OpenCV8) beside it, with its fit error."]
     lines += [""]
     cov = cal.coverage

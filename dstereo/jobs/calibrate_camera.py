@@ -68,8 +68,8 @@ def camera_of(cal: CameraCalibration):
     from dstereo.models.camera import Camera
 
     f = cal.final
-    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients, tuple(cal.full.free),
-                         cal.detection.image_size)
+    return Camera.create(f["fx"], f["fy"], f["cx"], f["cy"], cal.final_coefficients,
+                         tuple(cal.full.camera().dist.free), cal.detection.image_size)
 
 
 def calibrate_camera(
@@ -179,7 +179,7 @@ def calibrate_camera(
 
         advice = suggest_model(tuple(config.model), full.conditioning.identifiable,
                                full.conditioning.weak_parameters)
-        structure = residual_structure(obs, full.residuals, full.values[:4])
+        structure = residual_structure(obs, full.residuals[:, 0], full.values[:4])
         if structure:
             advice = structure if advice is None else f"{advice}; {structure}"
     if advice:
@@ -318,7 +318,8 @@ def _solve_subsets(obj, obs, plan, full, columns, scratch, progress):
         plan, columns, solve_block, chunk_size(n_views, m, obs.shape[1], len(plan)), scratch,
         progress=None if progress is None else (lambda i, n: progress("subsets", i, n)),
         note=getattr(progress, "note", None) if len(plan) > NOTE_ABOVE else None,
-        key=(obj, obs, full.values, full.poses, "all" if full.inliers is None else full.inliers, tuple(full.free)))
+        key=(obj, obs, full.values, full.poses, "all" if full.inliers is None else full.camera_inliers(),
+             tuple(full.camera().dist.free)))
     if not kept:
         return None, table
     cat = lambda name: np.concatenate([getattr(s, name) for s in kept])  # noqa: E731

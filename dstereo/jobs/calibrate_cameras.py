@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dstereo.calib.multiview import MultiviewSolution, as_solved, calibrate_views
+from dstereo.calib.multiview import as_solved, calibrate_views
+from dstereo.calib.solution import Solution
 from dstereo.calib.calibrations import CameraCalibration, MultiviewJob, pair_indices
 from dstereo.jobs.calibrate_camera import calibrate_camera, camera_of, list_camera_images
 from dstereo.calib.rig_consistency import MAX_FRAME_ROUNDS, RIG_RMS_FACTOR, RigConsistency, of_multiview
@@ -103,7 +104,7 @@ def frame_table(cams: list[CameraCalibration], sources: list[CameraSource],
                 if name in row:
                     i = row[name]
                     views[frame] = (cal.observations[i], np.ones(n, bool) if cal.full.inliers is None
-                                    else cal.full.inliers[i])
+                                    else cal.full.camera_inliers()[i])
             elif other is not None and Path(path).name in other.corners:
                 views[frame] = (other.corners[Path(path).name], np.ones(n, bool))
         seen.append(views)
@@ -300,7 +301,7 @@ def _one_camera(source: CameraSource, config: Config, where: Path, progress, use
 class RigFrames:
     """The joint rig solve, its consistency test and the frames it was solved on."""
 
-    joint: MultiviewSolution
+    joint: Solution
     consistency: RigConsistency
     frames: list[str]
     visible: np.ndarray

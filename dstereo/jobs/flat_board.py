@@ -18,10 +18,10 @@ def flat_board_check(cams: dict, warnings: list[str]) -> list[str]:
     found = []
     for label, cal in cams.items():
         flat = cal.full
-        if flat.lens_model == "splined":
+        if flat.camera().lens == "splined":
             continue
         sagged = calibrate_full(cal.detection.object_points, cal.observations, cal.detection.image_size,
-                                free=tuple(flat.free), inliers=flat.inliers, board_warp=True)
+                                free=tuple(flat.camera().dist.free), inliers=flat.camera_inliers(), board_warp=True)
         if not sagged.converged:
             continue
         std = reported_std(sagged)

@@ -130,7 +130,8 @@ def view_effects_monte_carlo(process: str, draws: int, seed: int = 0, views: int
     nominal = calibrate_full(obj, obs[0], SIZE, FREE)
     k, g = draws, len(nominal.values)
     opts = LMOptions()
-    res = _run(nominal.free, opts, np.repeat(nominal.values[None], k, 0), np.repeat(nominal.poses[None], k, 0), obs,
+    free = nominal.camera().dist.free
+    res = _run(free, opts, np.repeat(nominal.values[None], k, 0), np.repeat(nominal.poses[None], k, 0), obs,
                np.ones((k, views)), np.full(k, opts.lambda0), _shared(obj),
                r_weight=np.repeat(_residual_weights(np.ones((views, len(obj)), bool))[None], k, 0))
     est = np.asarray(res.g)

@@ -245,9 +245,9 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
                                method: str | None = None) -> ProjectionUncertaintyMap:
     """The map of the module docstring on a `grid` (columns, rows) of pixel centres spanning the image.
 
-    k (4,), coeffs (8,) the camera; `names` its intrinsics (fx fy cx cy + free coefficients, as
-    `CameraSolution.names`); `range_` > 0 in the board's length unit. Pose-compensated (default when `poses`
-    (V, 6) are given): `cov` is the joint (G + 6V) covariance of the intrinsics and poses; intrinsics-only:
+    k (4,), coeffs (8,) the camera; `names` its intrinsics (fx fy cx cy + free coefficients, as a one-camera
+    `calib.solution.Solution` names them); `range_` > 0 in the board's length unit. Pose-compensated (default
+    when `poses` (V, 6) are given): `cov` is the joint (G + 6V) covariance of the intrinsics and poses; intrinsics-only:
     `cov` is the (G, G) intrinsics covariance.
     """
     method = method or ("pose-compensated" if poses is not None else "intrinsics-only")
@@ -296,8 +296,9 @@ def projection_uncertainty_map(k, coeffs, names, cov, image_size: tuple[int, int
 
 def solution_map(sol, image_size, range_: float, method: str = "pose-compensated",
                  grid: tuple[int, int] = (32, 24)) -> ProjectionUncertaintyMap:
-    """The map of a `CameraSolution` (a full-set solve, which carries its per-view normal blocks). A solved board
-    sag is the board's, not the camera's: marginalised (its rows and columns dropped from the covariance)."""
+    """The map of a one-camera `calib.solution.Solution` (a full-set solve, which carries its per-view normal
+    blocks). A solved board sag is the board's, not the camera's: marginalised (its rows and columns dropped from
+    the covariance)."""
     lens = np.array([i for i, n in enumerate(sol.names) if not n.startswith("board_sag")], int)
     names = tuple(sol.names[i] for i in lens)
     scatter = solution_view_scatter(sol)
@@ -306,11 +307,11 @@ def solution_map(sol, image_size, range_: float, method: str = "pose-compensated
         if sol.normal is None:
             raise DstereoError("pose-compensated projection uncertainty: this solve kept no per-view normal "
                                "equations; use `projection_method` intrinsics-only")
-        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, solution_joint(sol, effects),
+        pmap = projection_uncertainty_map(sol.values[:4], sol.camera().coeffs(), names, solution_joint(sol, effects),
                                           image_size, range_, grid, poses=sol.poses, method=method)
     else:
         cov = reported_covariance(sol)
-        pmap = projection_uncertainty_map(sol.values[:4], sol.coeffs, names, cov[np.ix_(lens, lens)],
+        pmap = projection_uncertainty_map(sol.values[:4], sol.camera().coeffs(), names, cov[np.ix_(lens, lens)],
                                           image_size, range_, grid, method=method)
     return replace(pmap, view_scatter=scatter,
                    covariance="per-view random effects" if effects is not None and effects.fitted else "jacobian")

@@ -12,7 +12,7 @@ JOINT_STRUCTURE = "joint: both cameras and the rig from one joint solve (full-se
 
 def rig_sensitivity(obj, obs_left, obs_right, solution) -> np.ndarray:
     """A = d rig / d (left, right intrinsics) (6, G_l + G_r) of a fixed-intrinsics solve of two cameras (a
-    `calib.multiview.MultiviewSolution`, mode "fixed", K = 2, every frame seen by both): how the rig that fits the
+    `calib.solution.Solution`, mode "fixed", K = 2, every frame seen by both): how the rig that fits the
     pairs moves when the held intrinsics move, -S_rr^-1 S_rk with S the Schur complement of J^T J (board poses
     eliminated) of the pairs' residuals, at the solution."""
     import jax
@@ -60,7 +60,7 @@ def _relative(ext_a, ext_b):
 
 def pair_covariance(solution, a: int, b: int) -> tuple[tuple[str, ...], np.ndarray, str]:
     """(names, covariance, structure) of what a stereo file of cameras a (left) and b (right) of a K-camera joint
-    solve (`calib.multiview.MultiviewSolution`, mode "joint") carries, in stereo.yml's names (left.fx.., right..,
+    solve (`calib.solution.Solution`, mode "joint") carries, in stereo.yml's names (left.fx.., right..,
     RVx..Tz): the solve's covariance mapped through the linear map L from its parameters (intrinsics picked, the
     pair's rig d(R_ab, T_ab)/d(placements of a and b) by autodiff): L C L'. So a reconstruction from a `--cameras`
     pair file carries the intrinsics' and the rig's uncertainty, as one from `--left/--right`."""

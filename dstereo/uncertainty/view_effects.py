@@ -224,11 +224,11 @@ def solution_effects(sol) -> ViewEffects | None:
     moment equations above do not hold)."""
     from dstereo.models.distortion import lens_model
 
-    if getattr(sol, "normal", None) is None or lens_model(tuple(getattr(sol, "free", ()))) == "splined":
+    if sol.normal is None or any(lens_model(tuple(c.dist.free)) == "splined" for c in sol.cameras):
         return None
     # kept on the solve: its +-, summary, map and rig all ask (the significance simulation is ~0.05 s), keyed by
     # the arrays it is computed from, so a solve whose blocks or residuals are replaced gets a new one
-    key = (sol.normal, sol.residuals, getattr(sol, "inliers", None))
+    key = (sol.normal, sol.residuals, sol.inliers)
     cached = getattr(sol, "__dict__", {}).get("_view_effects")
     if cached is not None and all(a is b for a, b in zip(cached[0], key)):  # the same arrays, not equal ids
         return cached[1]

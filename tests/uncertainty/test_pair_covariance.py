@@ -16,7 +16,7 @@ def joint3():
 
 
 def test_the_relative_pose_matches_the_solutions_and_its_jacobian_finite_differences(joint3):
-    """_relative against MultiviewSolution.relative (scipy's rotations), and its autodiff Jacobian (used by
+    """_relative against Solution.relative (scipy's rotations), and its autodiff Jacobian (used by
     pair_covariance) against central differences: steps of 1e-6 rad / 1e-4 mm leave a truncation error ~1e-10 of
     the entries (second derivatives of order 1), the 1e-6 asked here."""
     import jax
