@@ -154,7 +154,7 @@ def sandwich_std(sol, obj: np.ndarray, obs: np.ndarray) -> np.ndarray:
     from dstereo.calib.mono import view_linearize_for
     from dstereo.uncertainty.covariance import scaled_inverse
 
-    lin = jax.jit(jax.vmap(view_linearize_for(sol.free), in_axes=(None, 0, 0, None)))
+    lin = jax.jit(jax.vmap(view_linearize_for(sol.camera().dist.free), in_axes=(None, 0, 0, None)))
     shared = (jnp.asarray(obj, float), jnp.zeros(8))
     r, jac = lin(jnp.asarray(sol.values), jnp.asarray(sol.poses), jnp.asarray(obs, float), shared)
     r, jac = np.asarray(r), np.swapaxes(np.asarray(jac), 1, 2)  # the solver's layout is (V, P, R)

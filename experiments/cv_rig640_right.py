@@ -122,8 +122,8 @@ def per_view(full):
     q = (e.sigma2 + e.tau) * s_views + np.einsum("vik,vjk->vij", s_views * e.omega, s_views)
     expected = _expected(q, s_views, s_inv)
     chi2 = [float(s @ np.linalg.pinv(c, rcond=1e-10, hermitian=True) @ s) / g for s, c in zip(scores, expected)]
-    inl = inliers_of(full)
-    r = np.asarray(full.residuals, float)
+    inl = inliers_of(full)[:, 0]
+    r = np.asarray(full.residuals[:, 0], float)
     rms = [float(np.sqrt(np.sum(r[v][inl[v]] ** 2) / max(inl[v].sum(), 1))) for v in range(len(r))]
     return chi2, rms
 

@@ -33,7 +33,7 @@ def calibrated(cam, n_views: int, seed: int):
     obj, obs = rendered_views(cam, n_views, seed)
     sol = calibrate_full(obj, obs, cam.image_size, ("k1", "k2", "p1", "p2", "k3"), board_warp=True)
     lc = lens_covariance(sol)
-    params = np.concatenate([sol.values[:4], sol.coeffs])
+    params = np.concatenate([sol.values[:4], sol.camera().coeffs()])
     return (LensCamera("pinhole", params, lc.names, lc.cov, cam.image_size, joint=lc.joint, poses=lc.poses),
             mean_board_distance(sol.poses, obj), lc.kind)
 

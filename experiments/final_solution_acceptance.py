@@ -83,7 +83,7 @@ def camera_study(folder: str, glob: str, cap: int) -> dict:
         obj[:, 2] += np.asarray(sag_basis(obj)) @ fs.solution.board_sag
     obs = cal.observations[fs.views]
     # the camera's own corners: those its solve kept (outlier rejection, on by default, drops stray corners)
-    inl = np.ones(obs.shape[:2], bool) if cal.full.inliers is None else np.asarray(cal.full.inliers)[fs.views]
+    inl = np.ones(obs.shape[:2], bool) if cal.full.inliers is None else cal.full.camera_inliers()[fs.views]
     mat = lambda f: np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1.0]])  # noqa: E731
     vec = lambda f: np.array([f.get(n, 0.0) for n in COEFF_NAMES])[:8 if "k4" in MODEL else 5]  # noqa: E731
     written = opencv_refit_rms(mat(cal.final), vec(cal.final), obj, obs, inl)
@@ -95,8 +95,8 @@ def camera_study(folder: str, glob: str, cap: int) -> dict:
                                      cal.detection.image_size, mat(cal.final), vec(cal.final), flags=flags,
                                      criteria=crit)  # on the solved board, held (OpenCV cannot solve a sag)
     sagged = fs.solution.board_sag is not None
-    own = calibrate_full(flat, obs, cal.detection.image_size, free=tuple(cal.full.free), board_warp=sagged,
-                         inliers=inl).rms
+    own = calibrate_full(flat, obs, cal.detection.image_size, free=tuple(cal.full.camera().dist.free),
+                         board_warp=sagged, inliers=inl).rms
     # for comparison: the flat-board world of OpenCV, its own solve against the written camera refitted flat
     cv_flat, *_ = cv2.calibrateCamera([flat[k].astype(np.float32) for k in inl],
                                       [o[k].astype(np.float32) for o, k in zip(obs, inl)],

@@ -52,7 +52,7 @@ def board_fixed(sol, p_board) -> np.ndarray:
     back = np.mean([_apply(pose, pb) for pose, pb in zip(sol.poses, p_board)], axis=0)
     k = sol.values[:4]
     K = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1.0]])
-    return cv2.projectPoints(back, np.zeros(3), np.zeros(3), K, np.asarray(sol.coeffs))[0].reshape(-1, 2)
+    return cv2.projectPoints(back, np.zeros(3), np.zeros(3), K, np.asarray(sol.camera().coeffs()))[0].reshape(-1, 2)
 
 
 def run(n_views: int, draws: int, seed: int = 0) -> dict:

@@ -40,9 +40,9 @@ from dstereo.uncertainty.covariance import joint_covariance
 from dstereo.uncertainty.projection import projection_uncertainty_map
 from dstereo.uncertainty.view_scatter import inliers_of, sse_of
 joint = joint_covariance(full.normal, len(full.values), sse_of(full), 2 * inliers_of(full).sum())
-maps["jacobian"] = projection_uncertainty_map(full.values[:4], full.coeffs, full.names, joint, tuple(s["image_size"]),
+maps["jacobian"] = projection_uncertainty_map(full.values[:4], full.camera().coeffs(), full.names, joint, tuple(s["image_size"]),
                                               rng, (gw, gh), poses=full.poses, method="pose-compensated")
-json.dump({"values": full.values.tolist(), "coeffs": full.coeffs.tolist(), "poses": full.poses.tolist(),
+json.dump({"values": full.values.tolist(), "coeffs": full.camera().coeffs().tolist(), "poses": full.poses.tolist(),
            "rms": full.rms, "effects": maps["pose-compensated"].covariance,
            **{m: np.where(np.isfinite(p.std), p.std, -1).tolist() for m, p in maps.items()},
            "u": maps["pose-compensated"].u.tolist(), "v": maps["pose-compensated"].v.tolist()}, sys.stdout)

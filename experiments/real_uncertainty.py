@@ -60,7 +60,7 @@ def mono_study(obj, obs, size, cap: int, boot: int) -> dict:
         "jacobian": full.std, "sandwich": uc.sandwich_std(full, obj, obs), "raw": raw,
         "raw_iqr": uc.spread(sub.values[kept]), "iqr_kept": int(kept.sum()), "subsets_ok": int(ok.sum()),
         "jack": uc.jackknife_factor(n, m) * raw, "boot": uc.spread(bsub.values[bok]), "boot_ok": int(bok.sum()),
-        "residuals": full.residuals, "per_view_rms": full.per_view_rms,
+        "residuals": full.residuals[:, 0], "per_view_rms": full.per_view_rms[:, 0],
         # per-coordinate noise estimate sigma^2 = SSE / (2 points - parameters), SSE = rms^2 points
         "sigma": full.rms * np.sqrt(obs.shape[0] * obs.shape[1] / (2 * obs.shape[0] * obs.shape[1]
                                                                   - len(full.values) - 6 * n)),

@@ -29,7 +29,6 @@ def one(k: int, seed: int, noise: float, frames: int = 24, board=None) -> dict:
     from dstereo.calib.mono import calibrate_full
     from dstereo.calib.multiview import EXTRINSIC_NAMES, calibrate_views
     from dstereo.calib.outliers import reject_outliers
-    from dstereo.models.camera import Camera
     from dstereo.synth.rig_corners import rig_corners
 
     case = rig_corners(k, frames, seed, noise, sag_mm=SAG, **({} if board is None else {"board": board}))
@@ -50,11 +49,12 @@ def one(k: int, seed: int, noise: float, frames: int = 24, board=None) -> dict:
         rows = np.flatnonzero(visible[:, c])
         size = case["image_sizes"][c]
         first = calibrate_full(obj, obs[rows, c], size, board_warp=True)
-        sol, kept, _ = reject_outliers(obj, obs[rows, c], size, first.free, [str(r) for r in rows], first)
-        mask = np.ones((len(rows), obs.shape[2]), bool) if sol.inliers is None else np.array(sol.inliers, bool)
+        sol, kept, _ = reject_outliers(obj, obs[rows, c], size, first.camera().dist.free, [str(r) for r in rows],
+                                       first)
+        mask = np.ones((len(rows), obs.shape[2]), bool) if sol.inliers is None else np.array(sol.camera_inliers())
         mask[np.setdiff1d(np.arange(len(rows)), kept)] = False  # a view rejected whole
         inliers[rows, c] = mask
-        cameras.append(Camera.create(*map(float, sol.values[:4]), sol.coeffs, sol.free, size))
+        cameras.append(sol.camera())
     joint = calibrate_views(obj, obs, visible, case["image_sizes"], mode="joint", cameras=cameras, board_warp=True,
                             inliers=inliers)
     truth = case["rig"].T_cam_ref

@@ -85,7 +85,7 @@ def test_equidistant_start_is_near_the_truth(corners):
 
 def test_recovers_the_truth(solution):
     sol = solution
-    assert sol.converged and sol.lens_model == "fisheye"
+    assert sol.converged and sol.camera().lens == "fisheye"
     # RMS per corner (both coordinates, OpenCV's): sigma sqrt(2) sqrt(dof / residuals) for a correct model;
     # with ~1300 residuals its sampling spread is ~2 %, so 10 % would catch a model that misfits
     n_res = sol.residuals.size
@@ -93,8 +93,8 @@ def test_recovers_the_truth(solution):
     assert abs(sol.rms / expected - 1) < 0.1
     assert np.all(np.abs(sol.values[:2] / K_TRUE[:2] - 1) < 1e-3)  # focal within 0.1 %
     assert np.all(np.abs(sol.values[2:4] - K_TRUE[2:4]) < 3 * sol.std[2:4])  # principal point within 3 sigma
-    np.testing.assert_allclose(sol.coeffs[:4], sol.values[4:])
-    assert np.all(sol.coeffs[4:] == 0)
+    np.testing.assert_allclose(sol.camera().coeffs()[:4], sol.values[4:])
+    assert np.all(sol.camera().coeffs()[4:] == 0)
 
 
 def test_equals_opencv_fisheye_calibrate(corners, solution):

@@ -85,7 +85,7 @@ def test_residual_structure_points_to_auto_only_where_the_model_misses(fisheye_c
     for (choice, obs), preset, expected in ((fisheye_choice, "default", True), (fisheye_choice, "fisheye", False),
                                             (pinhole_choice, "k1k2", False)):
         sol = _by_name(choice)[preset].solution
-        text = residual_structure(obs, sol.residuals, sol.values[:4])
+        text = residual_structure(obs, sol.residuals[:, 0], sol.values[:4])
         assert (text is not None) == expected, (preset, text)
         assert text is None or "--model auto" in text
 

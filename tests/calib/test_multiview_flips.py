@@ -26,10 +26,13 @@ def test_a_rejected_corner_of_a_reversed_view_stays_out_of_the_solve():
     assert (f, 2) in sol.flipped
     # the wrong corner, now at the other end, is left out: the fit is the noise's (the RMS of 2D residuals of
     # NOISE_PX per coordinate is ~NOISE_PX sqrt(2) less the fitted share; one 15 px corner among ~1600 inliers
-    # would raise it to ~0.4 px); the solve's residuals hold 0 where a corner does not count: at the other end
+    # would raise it to ~0.4 px); the solve's inlier flags follow the corner to the other end, where its residual
+    # (kept, not counted) is the outlier's offset
     n = obs.shape[2]
     assert sol.rms < 1.2 * NOISE_PX * np.sqrt(2), sol.rms
-    assert np.all(sol.residuals[f, 2, n - 1 - J] == 0) and np.all(sol.residuals[f, 2, J] != 0)
+    fitted = sol.fitted()
+    assert not np.any(fitted[f, 2, n - 1 - J]) and np.all(fitted[f, 2, J])
+    assert np.all(np.linalg.norm(sol.residuals[f, 2, n - 1 - J], axis=-1) > 0.5 * OUTLIER_PX)
     # the rig-consistency test reads the corners and flags as the solve did
     test = of_multiview(sol, obj, obs, inliers)
     assert np.isfinite(test.statistic)

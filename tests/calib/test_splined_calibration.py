@@ -53,7 +53,7 @@ def _heldout_rms(free, train, test, start) -> float:
     sol = calibrate_full(OBJ, train, LENS.image_size, free=free)
     n = len(test)
     sse = np.asarray(model_choice._pose_refit(free)(start, np.repeat(sol.values[None, :4], n, 0),
-                                                   np.repeat(sol.coeffs[None], n, 0), test, OBJ))
+                                                   np.repeat(sol.camera().coeffs()[None], n, 0), test, OBJ))
     return float(np.sqrt(np.mean(sse) / len(OBJ)))
 
 

@@ -294,7 +294,7 @@ def test_mrcals_projection_uncertainty_of_the_file_is_dstereos_jacobian_map_in_m
     joint = joint_covariance(sol.normal, len(sol.values), sse_of(sol), 2 * inliers_of(sol).sum())
     keep = np.r_[lens, np.arange(len(sol.values), len(joint))]
     range_ = json.loads((out / "summary.json").read_text())["projection_uncertainty"]["range"]
-    ours = projection_uncertainty_map(sol.values[:4], sol.coeffs, tuple(sol.names[i] for i in lens),
+    ours = projection_uncertainty_map(sol.values[:4], sol.camera().coeffs(), tuple(sol.names[i] for i in lens),
                                       joint[np.ix_(keep, keep)], size, range_, (8, 6), poses=sol.poses,
                                       method="pose-compensated")
     q = np.stack(np.meshgrid(ours.u, ours.v), axis=-1).reshape(-1, 2)

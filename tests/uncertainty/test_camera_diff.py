@@ -25,7 +25,7 @@ def calibrated():
     obs = corners + np.random.default_rng(0).normal(0, 0.3, corners.shape)
     full = calibrate_full(obj, obs, SIZE, FREE)
     lc = lens_covariance(full)
-    params = np.concatenate([full.values[:4], full.coeffs])
+    params = np.concatenate([full.values[:4], full.camera().coeffs()])
     return cd.LensCamera("pinhole", params, lc.names, lc.cov, SIZE, "A", joint=lc.joint, poses=lc.poses)
 
 
@@ -178,7 +178,7 @@ def test_two_calibrations_of_one_rendered_camera_read_inside_the_band_of_a_right
         obj, obs = rendered_views(cam, 10, seed)
         sol = calibrate_full(obj, obs, cam.image_size, FREE)
         lc = lens_covariance(sol)
-        return (cd.LensCamera("pinhole", np.concatenate([sol.values[:4], sol.coeffs]), lc.names, lc.cov,
+        return (cd.LensCamera("pinhole", np.concatenate([sol.values[:4], sol.camera().coeffs()]), lc.names, lc.cov,
                               cam.image_size, joint=lc.joint, poses=lc.poses), mean_board_distance(sol.poses, obj))
 
     diffs = []

@@ -82,11 +82,11 @@ def test_joint_shared_block_is_the_marginal_and_the_map_carries_it():
     # the same diagonal square-rooted on both sides: equal to rounding
     np.testing.assert_allclose(reported_std(sol), np.sqrt(np.diag(x.cov)), rtol=1e-12)
     pmap = solution_map(sol, bv.SIZE, 500.0, grid=(8, 6))
-    direct = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names, joint, bv.SIZE, 500.0, (8, 6),
+    direct = projection_uncertainty_map(sol.values[:4], sol.camera().coeffs(), sol.names, joint, bv.SIZE, 500.0, (8, 6),
                                         poses=sol.poses)
     # the same covariance through the same compiled map: equal to rounding
     np.testing.assert_allclose(pmap.std, direct.std, rtol=1e-10)
-    plain = projection_uncertainty_map(sol.values[:4], sol.coeffs, sol.names,
+    plain = projection_uncertainty_map(sol.values[:4], sol.camera().coeffs(), sol.names,
                                        joint_covariance(sol.normal, g, float(np.sum(sol.residuals ** 2)),
                                                         sol.residuals.size), bv.SIZE, 500.0, (8, 6), poses=sol.poses)
     assert np.nanmedian(pmap.std / plain.std) > 1.05  # the views' effects show in the map
