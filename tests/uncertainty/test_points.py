@@ -239,8 +239,14 @@ def test_projection_uncertainty_in_the_calibration_folder(mc, tmp_path):
     from dstereo.io.results import write_projection_uncertainty
 
     left = [i for i, n in enumerate(mc.names) if n.startswith("left.")]
-    full = SimpleNamespace(values=mc.truth[left], coeffs=np.asarray(mc.left.coeffs()), poses=mc.poses,
-                           names=tuple(mc.names[i][5:] for i in left), cov=np.mean(mc.covs[:, left][:, :, left], 0))
+    from dstereo.calib.solution import Solution
+
+    cov = np.mean(mc.covs[:, left][:, :, left], 0)
+    views = len(mc.poses)  # a solve of the left camera alone that kept no per-view blocks: the intrinsics-only map
+    full = Solution(names=tuple(mc.names[i][5:] for i in left), values=mc.truth[left], std=np.sqrt(np.diag(cov)),
+                    cov=cov, cameras=[mc.left], rvecs=np.zeros((1, 3)), T=np.zeros((1, 3)), poses=mc.poses,
+                    visible=np.ones((views, 1), bool), rms=float("nan"), per_view_rms=np.zeros((views, 1)),
+                    residuals=np.zeros((views, 1, len(mc.obj), 2)), iterations=0, status=1, conditioning=None)
     cal = SimpleNamespace(full=full, detection=SimpleNamespace(object_points=mc.obj, image_size=SIZE),
                           config=SimpleNamespace(unit="mm"))
     cal.finished = SimpleNamespace(projection=projection_of(cal))

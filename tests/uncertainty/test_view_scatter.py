@@ -3,7 +3,6 @@ rings; with errors that move together within each view (a per-view radial term n
 the views scatter the solve more than the corners' noise says, kappa is large and the alarm rings (the covariance
 the tool then reports is `view_effects`', tested there). Outliers' residuals are not corner noise."""
 
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -48,13 +47,27 @@ def test_errors_moving_together_within_views_raise_the_alarm_and_the_map(solves)
     assert pmap.summary()["covariance"] == "per-view random effects"
 
 
+def _one_camera(residuals, inliers=None, free=FREE, normal=None, values=np.zeros(1)):
+    """A one-camera `Solution` of these (V, 1, n, 2) residuals (the fields the view statistics read)."""
+    from dstereo.calib.solution import Solution
+    from dstereo.models.camera import Camera
+    from dstereo.models.distortion import Distortion
+
+    v = len(residuals)
+    camera = Camera(np.zeros(4), Distortion(np.zeros(max(len(free), 8)), tuple(free)), SIZE)
+    return Solution(names=("fx",) * len(values), values=values, std=np.ones(len(values)), cov=np.eye(len(values)),
+                    cameras=[camera], rvecs=np.zeros((1, 3)), T=np.zeros((1, 3)), poses=np.zeros((v, 6)),
+                    visible=np.ones((v, 1), bool), rms=0.0, per_view_rms=np.zeros((v, 1)), residuals=residuals,
+                    iterations=0, status=1, conditioning=None, inliers=inliers, normal=normal)
+
+
 def test_outlier_residuals_are_not_corner_noise():
-    res = np.ones((2, 3, 2))
-    res[1, 2] = [30.0, 40.0]  # a rejected corner: 50 px off
-    inl = np.ones((2, 3), bool)
-    inl[1, 2] = False
-    assert sse_of(SimpleNamespace(residuals=res, inliers=inl)) == pytest.approx(10.0)
-    assert sse_of(SimpleNamespace(residuals=res, inliers=None)) == pytest.approx(10.0 + 2500.0)
+    res = np.ones((2, 1, 3, 2))
+    res[1, 0, 2] = [30.0, 40.0]  # a rejected corner: 50 px off
+    inl = np.ones((2, 1, 3), bool)
+    inl[1, 0, 2] = False
+    assert sse_of(_one_camera(res, inl)) == pytest.approx(10.0)
+    assert sse_of(_one_camera(res)) == pytest.approx(10.0 + 2500.0)
 
 
 def test_a_solve_with_a_prior_has_no_view_scatter():
@@ -62,8 +75,7 @@ def test_a_solve_with_a_prior_has_no_view_scatter():
     independent noise (1.93 measured), so no scale is derived from it."""
     from dstereo.models.distortion import parse_model
 
-    sol = SimpleNamespace(normal=np.zeros((3, 8, 8)), free=parse_model("splined:5x4"), residuals=np.zeros((3, 4, 2)),
-                          values=np.zeros(1), poses=np.zeros((3, 6)), std=np.ones(1), inliers=None)
+    sol = _one_camera(np.zeros((3, 1, 4, 2)), free=parse_model("splined:5x4"), normal=np.zeros((3, 8, 8)))
     assert solution_view_scatter(sol) is None
     np.testing.assert_array_equal(reported_std(sol), sol.std)
 
