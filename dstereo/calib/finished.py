@@ -84,7 +84,7 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
     from dstereo.uncertainty.view_scatter import solution_view_scatter
 
     full, det = cal.full, cal.detection
-    sag = getattr(written_camera_solution(cal), "board_sag", None)
+    sag = written_camera_solution(cal).board_sag
     spans = None
     if full.camera().lens == "splined":
         from dstereo.models import splined

@@ -8,6 +8,7 @@ per free set and shapes) serves the full set and every subset.
 from __future__ import annotations
 
 import time
+
 import jax
 import jax.numpy as jnp
 import numpy as np
