@@ -17,6 +17,7 @@ Run: .venv/bin/python -m experiments.cv_extrapolation_rendered [SEEDS] [SPLITS] 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -54,8 +55,9 @@ def one_sided_views(cam, seed: int, n_views: int):
 
 def against_truth(full, cam, coeffs, obs, range_) -> dict:
     """The full-set solve against the truth by `camera_diff.projection_diff` (the truth's rays at `range_`, the
-    rigid transform fitted, uniformly weighted: no covariance on the truth), rms inside and outside the corners'
-    field, beside the rms of the solve's own pose-compensated map there (the written map's claim)."""
+    rigid transform fitted, weighted by the solve's own map as `dstereo diff` weights it: the truth is given the same
+    map, so each pixel weighs 1 / (2 sigma^2), and the pixels the solve knows hold the fit), rms inside and outside
+    the corners' field, beside the rms of the solve's own pose-compensated map there (the written map's claim)."""
     from dstereo.calib.finished import lens_covariance
     from dstereo.uncertainty.camera_diff import GRID, LensCamera, corner_field, grid_pixels, projection_diff
     from dstereo.uncertainty.projection import CAMERA_NAMES
@@ -64,22 +66,26 @@ def against_truth(full, cam, coeffs, obs, range_) -> dict:
     params = np.zeros(len(CAMERA_NAMES))
     params[[CAMERA_NAMES.index(n) for n in lc.names]] = lc.values
     fitted = LensCamera("pinhole", params, tuple(lc.names), lc.cov, SIZE, "fit", joint=lc.joint, poses=lc.poses)
+    trace = fitted.pose_compensated_trace(range_, GRID, SIZE)
     true = LensCamera("pinhole", np.r_[K, coeffs, np.zeros(len(CAMERA_NAMES) - 4 - len(coeffs))], (), None, SIZE,
-                      "truth")
-    d = projection_diff(true, fitted, range_, GRID, SIZE, weighted=False)
+                      "truth", map_trace=trace)
+    d = projection_diff(true, dataclasses.replace(fitted, joint=None, poses=None, map_trace=trace), range_, GRID,
+                        SIZE)
+    assert d.weighting == "pose-compensated maps"
     u, v, _ = grid_pixels(SIZE, GRID)
     field = corner_field(u, v, obs)
     err2 = np.sum(d.diff ** 2, axis=-1)
-    trace = fitted.pose_compensated_trace(range_, GRID, SIZE)
     out = {}
     for name, m in (("inside", field & d.ok), ("outside", ~field & d.ok)):
         out[f"{name}_rms_px"] = float(np.sqrt(np.mean(err2[m])))
+        out[f"{name}_pixels"] = int(m.sum())
         out[f"{name}_map_px"] = float(np.sqrt(np.nanmean(trace[m])))
     out["outside_max_px"] = float(np.sqrt(np.max(err2[~field & d.ok])))
     z = np.sqrt(err2 / trace)  # the error in units of the map's own rms claim, per pixel
     out["inside_error_over_map_max"] = float(np.nanmax(z[field & d.ok]))
     out["outside_error_over_map_max"] = float(np.nanmax(z[~field & d.ok]))
     out["field_share"] = float(field.mean())
+    out["pixels_without_ray"] = int((~d.ok).sum())
     return out
 
 

@@ -351,7 +351,8 @@ def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=N
 
     done = finished(cal).projection
     pmap = done.map
-    field = {} if finished(cal).field is None else {"field": finished(cal).field}
+    field = getattr(finished(cal), "field", None)
+    field = {} if field is None else {"field": field}
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
              range=pmap.range_, mask=pmap.mask, method=pmap.method, **field)
     drawing = figures if figures is not None else Figures()
@@ -527,7 +528,7 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
         pmap = finished(cal).projection.map
         summary["calibration_covariance"] = write_calibration_covariance(
             folder, finished(cal).covariance, full.lens_model, pmap.range_, (len(pmap.u), len(pmap.v)),
-            det.image_size, field=finished(cal).field)
+            det.image_size, field=getattr(finished(cal), "field", None))
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
         f = cal.filtering

@@ -193,3 +193,41 @@ def test_two_calibrations_of_one_rendered_camera_read_inside_the_band_of_a_right
           f"prediction {band.round(3)}")
     assert band[0] <= gm <= band[1]
     assert not band[0] <= 3.0 * gm <= band[1]  # stds claimed 3x too small: every ratio triples (scaling test above)
+
+
+def test_the_corner_field_is_the_grid_pixels_within_its_reach():
+    """`corner_field` against its definition on a hand-made case: one corner at (100, 50) on a 10 px grid marks
+    exactly the pixels strictly closer than 30 px (|d|^2 < 900: (100, 50) +- (20, 20) is in, +- 30 on one axis out);
+    NaN corners are ignored, and no corner marks nothing."""
+    u, v = np.arange(0.0, 200.0, 10.0), np.arange(0.0, 120.0, 10.0)
+    f = cd.corner_field(u, v, np.array([[100.0, 50.0], [np.nan, np.nan]]))
+    uu, vv = np.meshgrid(u, v)
+    np.testing.assert_array_equal(f, (uu - 100.0) ** 2 + (vv - 50.0) ** 2 < 900.0)
+    assert f[vv == 70.0][uu[vv == 70.0] == 120.0].all() and not f[vv == 50.0][uu[vv == 50.0] == 130.0].any()
+    assert not cd.corner_field(u, v, np.full((3, 2), np.nan)).any()
+
+
+def test_the_statistic_is_taken_inside_the_field_and_the_outside_read_apart(calibrated):
+    """With a field, the ratio and the Mahalanobis median are those of the field's pixels alone: the difference
+    planted 10x outside the field leaves them unchanged to rounding (the prediction and the weights do not move),
+    and the pooled ratio outside grows 10x exactly while inside stays; the field over the whole grid is the
+    statistic without one. The pooled ratios are sqrt(sum w |e|^2 / sum w trace C) by definition, checked by hand."""
+    b = _perturbed(calibrated, 0.5 * np.sqrt(np.diag(calibrated.cov)))
+    whole = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE)
+    field = np.zeros((GRID[1], GRID[0]), bool)
+    field[2:7, 3:10] = True
+    d = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE, field=field)
+    same = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE, field=np.ones_like(field))
+    assert same.ratio == pytest.approx(whole.ratio, rel=1e-12) and d.ratio != pytest.approx(whole.ratio, rel=1e-3)
+    m = d.ok & field
+    w, e2, tr = d.weight[m], np.sum(d.diff[m] ** 2, axis=-1), np.trace(d.cov[m], axis1=-2, axis2=-1)
+    assert d.ratio_raw == pytest.approx(np.sqrt(np.sum(w * e2) / np.sum(w * tr)), rel=1e-12)
+    assert d.mahalanobis_median == pytest.approx(np.median(d.mahalanobis[m]), rel=1e-12)
+    f0 = d.field_figures()
+    planted = dataclasses.replace(d, diff=np.where(field[..., None], d.diff, 10.0 * d.diff), bands={})
+    f1 = planted.field_figures()
+    assert f1["ratio_pooled_inside"] == pytest.approx(f0["ratio_pooled_inside"], rel=1e-12)
+    assert f1["ratio_pooled_outside"] == pytest.approx(10.0 * f0["ratio_pooled_outside"], rel=1e-12)
+    assert planted.mahalanobis_median == pytest.approx(d.mahalanobis_median, rel=1e-12)
+    lo, hi = f0["outside_over_inside_band_if_right"]
+    assert lo < 1.0 < hi < f1["outside_over_inside"]
