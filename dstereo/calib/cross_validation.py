@@ -8,6 +8,11 @@ pose-compensated map variances, so the fit is held by the pixels both calibratio
 image corners), projected by half B; against the first-order prediction from both halves' marginal lens
 covariances with what the fit absorbs removed. `cross_validation/split_<k>/a` and `/b` in the results folder hold
 each split's halves as camera files, so `dstereo diff` on them reads the split's figures (tests check to 1e-9).
+Every figure is taken over the grid pixels inside both halves' corners' fields (`camera_diff.corner_field` of each
+half's own corners, written with it as `field`): beyond them the maps are a lower bound, and no comparison of two
+calibrations sharing a lens model can check them (a misfit both share cancels in their difference; docs/validation.md,
+the render). The pixels outside are read apart (`diagnosis`): the pooled ratio there over the one inside, against
+the band a right prediction's quotient falls in (`band_if_right`, the same draws over the same pixels).
 
 A split's ratio is its weighted rms difference over the rms prediction, divided by the prediction's own typical
 value (`camera_diff.expected_log_ratio`: one dominant mode makes a right prediction's raw ratio typically 0.53):

@@ -231,3 +231,19 @@ def test_the_statistic_is_taken_inside_the_field_and_the_outside_read_apart(cali
     assert planted.mahalanobis_median == pytest.approx(d.mahalanobis_median, rel=1e-12)
     lo, hi = f0["outside_over_inside_band_if_right"]
     assert lo < 1.0 < hi < f1["outside_over_inside"]
+
+
+def test_the_simulated_statistic_over_the_field_is_the_observed_one_to_first_order(calibrated):
+    """`simulate` (what every band draws) against the observed statistic: camera B = A moved by a small parameter
+    step delta (1e-3 of each std: second-order terms ~1e-3 relative) has the difference F_B delta after the fit, so
+    simulating the lens errors (0, delta) must give B's observed ratio and Mahalanobis median over the field's pixels,
+    and the pooled numerators inside and outside; 1e-2 relative leaves 10x the second-order room."""
+    rng = np.random.default_rng(5)
+    delta = 1e-3 * np.sqrt(np.diag(calibrated.cov)) * rng.choice([-1.0, 1.0], len(calibrated.cov))
+    field = np.zeros((GRID[1], GRID[0]), bool)
+    field[1:6, 2:8] = True
+    d = cd.projection_diff(calibrated, _perturbed(calibrated, delta), 1000.0, GRID, SIZE, field=field)
+    ratio, maha, (n_in, n_out) = d.simulate(np.zeros((1, len(delta))), delta[None], pooled=True)
+    assert ratio[0] == pytest.approx(d.ratio, rel=1e-2) and maha[0] == pytest.approx(d.mahalanobis_median, rel=1e-2)
+    assert n_in[0] == pytest.approx(d.pooled(field)[0], rel=1e-2)
+    assert n_out[0] == pytest.approx(d.pooled(~field)[0], rel=1e-2)
