@@ -472,8 +472,8 @@ class CrossValidation:
                 "parameter_chi2_mean": self.parameter_chi2,
                 "parameter_chi2": [s.parameter_chi2 for s in self.splits],
                 "mahalanobis_median": self.mahalanobis_median,
-                "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis if s.covered is None else s.mahalanobis[s.covered]))
-                                        for s in self.splits],
+                "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis if s.covered is None
+                                                           else s.mahalanobis[s.covered])) for s in self.splits],
                 "inside_corner_field": self.covered_figures(), "diagnosis": self.diagnosis(),
                 "trusted": self.trusted, "consistent_with_right_prediction": self.consistent,
                 "band_if_right": None if self.band is None else self.band.summary(),
