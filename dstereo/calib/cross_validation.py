@@ -38,7 +38,7 @@ import numpy as np
 
 from dstereo.calib.mono import _run
 from dstereo.calib.problem import WARP_NAMES
-from dstereo.uncertainty.camera_diff import (FIELD_PX, GRID, LensCamera, ProjectionDiff,  # noqa: F401
+from dstereo.uncertainty.camera_diff import (GRID, LensCamera, ProjectionDiff,  # noqa: F401
                                              corner_field, expected_log_ratio, projection_diff)
 from dstereo.uncertainty.covariance import covariance, joint_covariance, scaled_inverse
 from dstereo.errors import DstereoError
@@ -54,7 +54,6 @@ MAHALANOBIS_MAX = 1.8
 # d'C^-1 d / G of the lens parameters, mean over splits: 1 if right; the real sets read 1.1-1.9 and synthetic right
 # predictions 0.86-1.24, so beyond 3 the parameters' own +- are not what the halves show
 PARAMETER_CHI2_MAX = 3.0
-COVERED_PX = FIELD_PX  # a grid pixel this close to an observed corner is inside the calibrated field
 NULL_DRAWS = 400  # simulated cross-validations for `band_if_right` (its 5 % and 95 % points to ~+-2 % in the log)
 NULL_BAND = (5.0, 95.0)  # percentiles of the band a right prediction reads
 MIN_HALF_VIEWS = 4  # fewer views than this per half do not constrain a camera with distortion
@@ -185,7 +184,7 @@ class SplitResult:
     ratio: float  # weighted rms observed / predicted, divided by its typical value if right (1 if right, in the log)
     ratio_vs_maps: float  # the same against the two halves' pose-compensated maps alone (blind to the fit)
     transform: np.ndarray  # (6,) rvec, t of T_BA
-    covered: np.ndarray | None = None  # (gh, gw) grid pixels within COVERED_PX of an observed corner
+    covered: np.ndarray | None = None  # (gh, gw) grid pixels inside its corners' field (`corner_field`)
     parameter_chi2: float = float("nan")  # d' (C_A + C_B)^-1 d / G of the lens parameters' difference d (1 if right)
     ratio_raw: float = float("nan")  # undivided: about 0.53-0.7 in the geometric mean of a right prediction
     modes: float = float("nan")  # effective number of modes of C, sum(lambda)^2 / sum(lambda^2)
@@ -204,7 +203,7 @@ def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: 
 
     u, v, _ = grid_pixels(image_size, grid)
     if corners is not None:
-        covered = corner_field(u, v, corners, COVERED_PX)
+        covered = corner_field(u, v, corners)
     elif a.field is not None and b.field is not None:
         covered = np.asarray(a.field, bool) & np.asarray(b.field, bool)
     else:
@@ -519,8 +518,8 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     u, v, _ = grid_pixels(image_size, grid)
     obs_arr = np.asarray(obs, float)
     for k, (a, b) in enumerate(halves):  # each half's own corners' field, as its written files carry it
-        sols[2 * k].field = corner_field(u, v, obs_arr[a], COVERED_PX)
-        sols[2 * k + 1].field = corner_field(u, v, obs_arr[b], COVERED_PX)
+        sols[2 * k].field = corner_field(u, v, obs_arr[a])
+        sols[2 * k + 1].field = corner_field(u, v, obs_arr[b])
     results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),

@@ -57,7 +57,7 @@ class FinishedCamera:
     valid_region: object | None = None  # calib.valid_region.ValidRegion: invertible and reached by the corners
     mrcal_conversion: object | None = None  # calib.mrcal_convert.Conversion (--mrcal-convert, a lens with no twin)
     covariance: LensCovariance | None = None  # the full-set solve's, for calibration_covariance.npz
-    # (gh, gw) bool on the map's grid: within camera_diff.FIELD_PX of an observed corner (where the map is a claim;
+    # (gh, gw) bool on the map's grid: within camera_diff.FIELD_STEPS grid steps of an observed corner (where the map is a claim;
     # beyond, the lens model is extrapolated and the map a lower bound)
     field: np.ndarray | None = None
 

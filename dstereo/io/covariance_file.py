@@ -21,7 +21,7 @@ calibration's uncertainty). Keys:
     poses       (V, 6)     the board poses (rvec, tvec of T_cam_board, the calibration's unit)
     range, grid, image_size   the distance (calibration unit), grid (columns, rows) and image of the folder's
                            projection_uncertainty.npz: `dstereo diff`'s defaults
-    field       (rows, columns) bool  the grid pixels within 30 px of a corner the solve saw: where the maps claim
+    field       (rows, columns) bool  the grid pixels within 1.5 grid steps of a corner the solve saw: where the maps claim
                            something (beyond, the lens model is extrapolated and the map is a lower bound);
                            `dstereo diff` takes its statistic inside both cameras' fields
 

@@ -339,7 +339,7 @@ def write_camera_results(out: str | Path, cal: CameraCalibration, force: bool = 
 
 def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=None) -> dict:
     """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method, field:
-    the grid pixels within 30 px of an observed corner, where the map is a claim; beyond, the lens model is
+    the grid pixels within 1.5 grid steps of an observed corner, where the map is a claim; beyond, the lens model is
     extrapolated and the map a lower bound) of the full-set solve's map (`calib.finished`); returns the summary
     entry. `figures`: a `figure_pool.Figures`
     that draws the PNG (else drawn here)."""

@@ -38,7 +38,8 @@ whose typical value exp(E ln|z|) = 0.53, not 1. `ratio` divides by the typical v
 prediction itself: where a right prediction's `ratio` and median Mahalanobis fall on this grid (5-95 %).
 
 Where the statistic is taken: the corners' field. A calibration's map claims something only where its corners were
-(within FIELD_PX of an observed corner: `corner_field`); beyond, its value comes from the lens model's shape,
+(within FIELD_STEPS grid steps of an observed corner: `corner_field`; in grid steps, so that the same views at
+another image resolution mark the same field); beyond, its value comes from the lens model's shape,
 extrapolated, and first order says nothing about a model that does not have the lens's shape there (the map is then
 a lower bound). Each written map carries that field (`field` in projection_uncertainty.npz and
 calibration_covariance.npz); given the two cameras' fields, the ratio, the Mahalanobis median, their typical value and
@@ -67,7 +68,10 @@ BAND = (5.0, 95.0)  # percentiles of `ProjectionDiff.band`
 BAND_DRAWS = 4000  # simulated right predictions for the bands (their 5 % and 95 % points to ~+-2 %)
 MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))  # median of sqrt(chi^2_2)
 GRID = (32, 24)  # columns, rows: the grid of a results folder's projection_uncertainty.npz
-FIELD_PX = 30.0  # a grid pixel this close to an observed corner is inside the calibrated field (`corner_field`)
+# A grid pixel within this many grid steps of an observed corner is inside the calibrated field (`corner_field`):
+# every grid pixel next to a corner (a corner lies within 0.71 steps of its nearest grid pixel) and the next ring,
+# so a board's inside is one field, not a lace; 31 px on GRID over a 640-pixel-wide image.
+FIELD_STEPS = 1.5
 
 
 def slot_names(model: str) -> tuple[str, ...]:
@@ -206,9 +210,13 @@ def grid_pixels(image_size, grid: tuple[int, int]):
     return u, v, np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
 
 
-def corner_field(u: np.ndarray, v: np.ndarray, corners: np.ndarray, reach: float = FIELD_PX) -> np.ndarray:
-    """(gh, gw) bool: the grid pixels (u (gw,), v (gh,) px) within `reach` px of an observed corner (m, 2) (NaN
-    corners ignored): where a calibration measured its lens rather than extrapolating its model (module docstring)."""
+def corner_field(u: np.ndarray, v: np.ndarray, corners: np.ndarray, reach: float | None = None) -> np.ndarray:
+    """(gh, gw) bool: the grid pixels (u (gw,), v (gh,) px) within `reach` px (default FIELD_STEPS of the grid's
+    larger step) of an observed corner (..., 2) (NaN corners ignored): where a calibration measured its lens rather
+    than extrapolating its model (module docstring)."""
+    if reach is None:
+        step = max(float(np.max(np.diff(u))) if len(u) > 1 else 0.0, float(np.max(np.diff(v))) if len(v) > 1 else 0.0)
+        reach = FIELD_STEPS * step
     corners = np.asarray(corners, float).reshape(-1, 2)
     corners = corners[np.all(np.isfinite(corners), axis=1)]
     q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)

@@ -197,14 +197,36 @@ def test_two_calibrations_of_one_rendered_camera_read_inside_the_band_of_a_right
 
 def test_the_corner_field_is_the_grid_pixels_within_its_reach():
     """`corner_field` against its definition on a hand-made case: one corner at (100, 50) on a 10 px grid marks
-    exactly the pixels strictly closer than 30 px (|d|^2 < 900: (100, 50) +- (20, 20) is in, +- 30 on one axis out);
-    NaN corners are ignored, and no corner marks nothing."""
+    exactly the pixels strictly closer than the reach, by default 1.5 grid steps = 15 px (|d|^2 < 225: (100, 50) +-
+    (10, 10) is in, +- 20 on one axis out; 30 px given: +- (20, 20) in, +- 30 out); NaN corners are ignored, and no
+    corner marks nothing."""
     u, v = np.arange(0.0, 200.0, 10.0), np.arange(0.0, 120.0, 10.0)
-    f = cd.corner_field(u, v, np.array([[100.0, 50.0], [np.nan, np.nan]]))
     uu, vv = np.meshgrid(u, v)
-    np.testing.assert_array_equal(f, (uu - 100.0) ** 2 + (vv - 50.0) ** 2 < 900.0)
-    assert f[vv == 70.0][uu[vv == 70.0] == 120.0].all() and not f[vv == 50.0][uu[vv == 50.0] == 130.0].any()
+    corners = np.array([[100.0, 50.0], [np.nan, np.nan]])
+    for reach, inside in ((None, 225.0), (30.0, 900.0)):
+        f = cd.corner_field(u, v, corners, reach)
+        np.testing.assert_array_equal(f, (uu - 100.0) ** 2 + (vv - 50.0) ** 2 < inside)
+    f = cd.corner_field(u, v, corners)
+    assert f[vv == 60.0][uu[vv == 60.0] == 110.0].all() and not f[vv == 50.0][uu[vv == 50.0] == 120.0].any()
     assert not cd.corner_field(u, v, np.full((3, 2), np.nan)).any()
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 3.0])
+def test_the_corner_field_of_the_same_views_at_another_resolution_is_the_same(scale):
+    """The field is where the views measured the lens, whatever the pixel size: the same corners on an image
+    `scale` times larger, on its own grid (`grid_pixels`, GRID), mark the same grid pixels (a reach in pixels
+    did not: at 3x, 30 px marked a lace of the board's inside)."""
+    rng = np.random.default_rng(5)
+    size = (640, 480)
+    corners = rng.uniform([300.0, 200.0], [620.0, 470.0], (40, 2))  # one side and the bottom, as rig640's right
+    u, v, _ = cd.grid_pixels(size, cd.GRID)
+    f = cd.corner_field(u, v, corners)
+    big = tuple(int(round(scale * s)) for s in size)
+    ub, vb, _ = cd.grid_pixels(big, cd.GRID)
+    # grid_pixels spans 0..w-1: the same grid pixel at the larger size sits at scale * (p + 0.5) - 0.5 relative to it
+    fb = cd.corner_field(ub, vb, (corners + 0.5) * np.array(big) / np.array(size) - 0.5)
+    assert 0.2 < f.mean() < 0.8
+    assert (f != fb).mean() <= 0.01, (f.mean(), fb.mean(), (f != fb).sum())
 
 
 def test_the_statistic_is_taken_inside_the_field_and_the_outside_read_apart(calibrated):
