@@ -8,6 +8,11 @@ pose-compensated map variances, so the fit is held by the pixels both calibratio
 image corners), projected by half B; against the first-order prediction from both halves' marginal lens
 covariances with what the fit absorbs removed. `cross_validation/split_<k>/a` and `/b` in the results folder hold
 each split's halves as camera files, so `dstereo diff` on them reads the split's figures (tests check to 1e-9).
+Every figure is taken over the grid pixels inside both halves' corners' fields (`camera_diff.corner_field` of each
+half's own corners, written with it as `field`): beyond them the maps are a lower bound, and no comparison of two
+calibrations sharing a lens model can check them (a misfit both share cancels in their difference; docs/validation.md,
+the render). The pixels outside are read apart (`diagnosis`): the pooled ratio there over the one inside, against
+the band a right prediction's quotient falls in (`band_if_right`, the same draws over the same pixels).
 
 A split's ratio is its weighted rms difference over the rms prediction, divided by the prediction's own typical
 value (`camera_diff.expected_log_ratio`: one dominant mode makes a right prediction's raw ratio typically 0.53):
@@ -33,8 +38,8 @@ import numpy as np
 
 from dstereo.calib.mono import _run
 from dstereo.calib.problem import WARP_NAMES
-from dstereo.uncertainty.camera_diff import (GRID, LensCamera, ProjectionDiff, expected_log_ratio,  # noqa: F401
-                                             projection_diff)
+from dstereo.uncertainty.camera_diff import (GRID, LensCamera, ProjectionDiff,  # noqa: F401
+                                             corner_field, expected_log_ratio, projection_diff)
 from dstereo.uncertainty.covariance import covariance, joint_covariance, scaled_inverse
 from dstereo.errors import DstereoError
 from dstereo.models.distortion import lens_model
@@ -49,7 +54,6 @@ MAHALANOBIS_MAX = 1.8
 # d'C^-1 d / G of the lens parameters, mean over splits: 1 if right; the real sets read 1.1-1.9 and synthetic right
 # predictions 0.86-1.24, so beyond 3 the parameters' own +- are not what the halves show
 PARAMETER_CHI2_MAX = 3.0
-COVERED_PX = 30.0  # a grid pixel this close to an observed corner is inside the calibrated field
 NULL_DRAWS = 400  # simulated cross-validations for `band_if_right` (its 5 % and 95 % points to ~+-2 % in the log)
 NULL_BAND = (5.0, 95.0)  # percentiles of the band a right prediction reads
 MIN_HALF_VIEWS = 4  # fewer views than this per half do not constrain a camera with distortion
@@ -72,6 +76,7 @@ class HalfSolution:
     # the lens rows of S^-1 (error = gain @ sum_v t_v), both at its own solution
     score_roots: np.ndarray | None = None
     lens_gain: np.ndarray | None = None
+    field: np.ndarray | None = None  # (gh, gw) bool: its corners' field on the cross-validation's grid (`corner_field`)
 
 
 def _names_of(model: str) -> tuple[str, ...]:
@@ -181,7 +186,7 @@ class SplitResult:
     ratio: float  # weighted rms observed / predicted, divided by its typical value if right (1 if right, in the log)
     ratio_vs_maps: float  # the same against the two halves' pose-compensated maps alone (blind to the fit)
     transform: np.ndarray  # (6,) rvec, t of T_BA
-    covered: np.ndarray | None = None  # (gh, gw) grid pixels within COVERED_PX of an observed corner
+    covered: np.ndarray | None = None  # (gh, gw) grid pixels inside its corners' field (`corner_field`)
     parameter_chi2: float = float("nan")  # d' (C_A + C_B)^-1 d / G of the lens parameters' difference d (1 if right)
     ratio_raw: float = float("nan")  # undivided: about 0.53-0.7 in the geometric mean of a right prediction
     modes: float = float("nan")  # effective number of modes of C, sum(lambda)^2 / sum(lambda^2)
@@ -194,16 +199,21 @@ class SplitResult:
 def compare_halves(a: HalfSolution, b: HalfSolution, names, image_size, range_: float,
                    grid: tuple[int, int] = GRID, corners: np.ndarray | None = None) -> SplitResult:
     """Half B's camera against half A's by `camera_diff.projection_diff` (the module docstring there), with the
-    halves' own covariances; `corners` (n, 2): every observed corner, for the grid pixels inside their field."""
+    halves' own covariances, over the pixels inside both halves' corners' fields (`HalfSolution.field`, as their
+    written files carry them); `corners` (n, 2) instead: one field for both (every observed corner)."""
+    from dstereo.uncertainty.camera_diff import grid_pixels
+
+    u, v, _ = grid_pixels(image_size, grid)
+    if corners is not None:
+        covered = corner_field(u, v, corners)
+    elif a.field is not None and b.field is not None:
+        covered = np.asarray(a.field, bool) & np.asarray(b.field, bool)
+    else:
+        covered = None
     d = projection_diff(half_camera(a, names, image_size, "half A"), half_camera(b, names, image_size, "half B"),
-                        range_, grid, tuple(image_size))
+                        range_, grid, tuple(image_size), field=covered)
     if d.cov is None:
         raise DstereoError("cross-validation: a half's covariance is missing")
-    covered = None
-    if corners is not None:
-        q = np.stack(np.meshgrid(d.u, d.v), axis=-1).reshape(-1, 2)
-        near = np.array([np.min(np.sum((np.asarray(corners) - p) ** 2, axis=1)) for p in q])
-        covered = (near < COVERED_PX ** 2).reshape(grid[1], grid[0])
     dp = a.values[: len(a.cov)] - b.values[: len(b.cov)]  # the lens parameters lead the shared vector
     # scaled first: fx and k3 differ by 10^6, and a plain pseudo-inverse of the sum loses the small directions
     chi2 = float(dp @ scaled_inverse(a.cov + b.cov) @ dp / len(dp))
@@ -222,6 +232,10 @@ class BandIfRight:
     mahalanobis_median: float
     pass_rate: float  # share of right predictions that the acceptance (RATIO_BAND, MAHALANOBIS_MAX) passes
     draws: int
+    # NULL_BAND percentiles of the pooled ratios outside the corners' fields over inside them (None: no field, or
+    # no pixel outside), and of the pooled ratio outside: what a right prediction reads where the model extrapolates
+    outside_over_inside: tuple[float, float] | None = None
+    outside: tuple[float, float] | None = None
 
     def contains(self, ratio: float, mahalanobis: float) -> bool:
         return self.ratio[0] <= ratio <= self.ratio[1] and self.mahalanobis[0] <= mahalanobis <= self.mahalanobis[1]
@@ -229,7 +243,9 @@ class BandIfRight:
     def summary(self) -> dict:
         return {"percentiles": list(NULL_BAND), "ratio": list(self.ratio), "mahalanobis": list(self.mahalanobis),
                 "ratio_median": self.ratio_median, "mahalanobis_median": self.mahalanobis_median,
-                "acceptance_pass_rate": self.pass_rate, "draws": self.draws}
+                "acceptance_pass_rate": self.pass_rate, "draws": self.draws,
+                "ratio_pooled_outside_corner_field": None if self.outside is None else list(self.outside),
+                "outside_over_inside": None if self.outside_over_inside is None else list(self.outside_over_inside)}
 
 
 def band_if_right(halves, sols: list[HalfSolution], splits: list[SplitResult], draws: int = NULL_DRAWS,
@@ -238,26 +254,37 @@ def band_if_right(halves, sols: list[HalfSolution], splits: list[SplitResult], d
     standard normal z_v (G,), shared by every half that holds it (so the splits are as correlated as the real
     ones); half H's score of v is t_v = R_v z_v with its claimed Q_v = R_v R_v' (`_model_of`: the view effects
     where fitted, sigma^2 S_v otherwise), its lens error [S_H^-1 sum_{v in H} t_v], and each split's difference,
-    ratio and Mahalanobis distances as `compare_halves` computes them. First order, as the prediction itself.
-    None where a half kept no model."""
+    ratio and Mahalanobis distances as `compare_halves` computes them (over the corners' fields), and the pooled
+    ratios inside and outside the fields from the same draws. First order, as the prediction itself. None where a
+    half kept no model."""
     if any(h.score_roots is None for h in sols) or any(x.projection is None for x in splits):
         return None
     n_views, g = max(int(max(a.max(), b.max())) for a, b in halves) + 1, sols[0].score_roots.shape[1]
     z = np.random.default_rng(seed).normal(size=(draws, n_views, g))
     log_ratio, maha = np.zeros((draws, len(splits))), []
+    num_in, num_out, den_in, den_out = np.zeros(draws), np.zeros(draws), 0.0, 0.0
     for k, ((a, b), x) in enumerate(zip(halves, splits)):
         err = [np.einsum("vij,dvj->di", h.score_roots, z[:, part]) @ h.lens_gain.T
                for h, part in ((sols[2 * k], a), (sols[2 * k + 1], b))]
-        ratio_k, maha_k = x.projection.simulate(*err, per_pixel=True)
+        ratio_k, maha_k, (n_in, n_out) = x.projection.simulate(*err, per_pixel=True, pooled=True)
         log_ratio[:, k] = np.log(ratio_k)
         maha.append(maha_k)
+        if x.covered is not None:
+            num_in, num_out = num_in + n_in, num_out + n_out
+            den_in += x.projection.pooled(x.covered)[1]
+            den_out += x.projection.pooled(~x.covered)[1]
     ratio = np.exp(log_ratio.mean(axis=1))
     median = np.median(np.concatenate(maha, axis=1), axis=1)
     passed = (ratio >= RATIO_BAND[0]) & (ratio <= RATIO_BAND[1]) & (median <= MAHALANOBIS_MAX)
     lo, hi = NULL_BAND
+    quotient = outside = None
+    if den_in > 0 and den_out > 0:
+        r_out = np.sqrt(num_out / den_out)
+        outside = tuple(map(float, np.percentile(r_out, [lo, hi])))
+        quotient = tuple(map(float, np.percentile(r_out / np.sqrt(num_in / den_in), [lo, hi])))
     return BandIfRight(tuple(map(float, np.percentile(ratio, [lo, hi]))),
                        tuple(map(float, np.percentile(median, [lo, hi]))), float(np.median(ratio)),
-                       float(np.median(median)), float(np.mean(passed)), draws)
+                       float(np.median(median)), float(np.mean(passed)), draws, quotient, outside)
 
 
 @dataclass
@@ -294,36 +321,46 @@ class CrossValidation:
         """sqrt(sum w |e|^2 / sum w trace C) over all splits' pixels (each split's weights): unbiased in the
         squares, where the geometric mean of per-split ratios of a few dominant modes sits below 1 even when the
         prediction is right."""
-        return self._pooled(None)
+        return self._pooled(True if self.splits[0].covered is not None else None)
 
-    def _pooled(self, where) -> float:
+    def _pooled(self, inside: bool | None) -> float:
+        """The pooled ratio over every valid pixel (None), inside each split's corners' field (True) or outside
+        it (False)."""
         num = den = 0.0
         for s in self.splits:
-            ok = np.isfinite(s.diff[..., 0]) & (np.ones(s.diff.shape[:2], bool) if where is None else where)
+            where = (np.ones(s.diff.shape[:2], bool) if inside is None or s.covered is None else
+                     s.covered if inside else ~s.covered)
+            ok = np.isfinite(s.diff[..., 0]) & where
             w = np.ones(ok.shape) if s.weight is None else s.weight
             num += float(np.sum(w[ok] * np.sum(s.diff[ok] ** 2, axis=-1)))
             den += float(np.sum(w[ok] * np.trace(s.cov[ok], axis1=-2, axis2=-1)))
         return float(np.sqrt(num / den)) if den > 0 else float("nan")
 
     def covered_figures(self) -> dict | None:
-        """Pooled ratio and median Mahalanobis over the grid pixels inside the corners' field only (where the
-        calibration has data; outside it the model is extrapolated and first order may fail)."""
+        """Pooled ratio and median Mahalanobis over the grid pixels inside both halves' corners' fields (where
+        the calibrations have data and the statistic is taken; outside them the model is extrapolated)."""
         if self.splits[0].covered is None or not self.splits[0].covered.any():
             return None
-        c = self.splits[0].covered
-        return {"pixels": int(c.sum()), "ratio_pooled_rms": self._pooled(c),
-                "mahalanobis_median": float(np.nanmedian(np.concatenate([s.mahalanobis[c] for s in self.splits])))}
+        return {"pixels": [int(s.covered.sum()) for s in self.splits], "ratio_pooled_rms": self._pooled(True),
+                "mahalanobis_median": self.mahalanobis_median}
 
     def diagnosis(self) -> dict | None:
         """Where and in what the halves differ beyond the prediction, from the splits alone (no further solve):
-        the pooled ratio inside the corners' field and outside it (where the lens model is extrapolated), and each
-        lens parameter's d_i^2 / (C_A + C_B)_ii averaged over the splits (1 if right), largest first. None without
-        the covered-field mask."""
+        the pooled ratio inside the corners' fields and outside them (where the lens model is extrapolated), their
+        quotient against the band a right prediction's falls in (`band_if_right`), and each lens parameter's
+        d_i^2 / (C_A + C_B)_ii averaged over the splits (1 if right), largest first. None without the fields."""
         if self.splits[0].covered is None or not self.splits[0].covered.any():
             return None
-        c = self.splits[0].covered
-        out = {"ratio_pooled_inside_corner_field": self._pooled(c),
-               "ratio_pooled_outside_corner_field": self._pooled(~c) if (~c).any() else float("nan")}
+        outside_any = any((~s.covered & np.isfinite(s.diff[..., 0])).any() for s in self.splits)
+        inside, outside = self._pooled(True), (self._pooled(False) if outside_any else float("nan"))
+        band = None if self.band is None else self.band.outside_over_inside
+        out = {"ratio_pooled_inside_corner_field": inside, "ratio_pooled_outside_corner_field": outside,
+               "outside_over_inside": outside / inside,
+               "outside_over_inside_band_if_right": None if band is None else list(band),
+               "ratio_pooled_outside_band_if_right": None if self.band is None or self.band.outside is None
+               else list(self.band.outside),
+               "extrapolation_excess": None if band is None or not np.isfinite(outside) else
+               bool(outside / inside > band[1])}
         if self.splits[0].parameter_excess is not None and self.names:
             mean = np.mean([s.parameter_excess for s in self.splits], axis=0)
             order = np.argsort(-mean)
@@ -336,12 +373,17 @@ class CrossValidation:
         if d is None:
             return ""
         inside, outside = d["ratio_pooled_inside_corner_field"], d["ratio_pooled_outside_corner_field"]
-        text = (f"; pooled over the splits the halves read {inside:.2f} inside the corners' field and {outside:.2f} "
-                "outside it")
-        if np.isfinite(outside) and outside > inside:
-            text += (" (larger where the lens model is extrapolated: the likely cause is the model's shape beyond the "
-                     "views, e.g. a radial profile the coefficients follow only where the corners are; add views "
-                     "that reach the image corners, or compare another `model`)")
+        text = (f"; pooled over the splits the halves read {inside:.2f} inside the corners' fields (where the "
+                f"statistic is taken) and {outside:.2f} outside them")
+        band = d["outside_over_inside_band_if_right"]
+        if np.isfinite(outside) and band is not None:
+            text += (f", outside / inside {outside / inside:.2f} (a right prediction {band[0]:.2f}-{band[1]:.2f} "
+                     "here)")
+            if d["extrapolation_excess"]:
+                text += (": larger where the lens model is extrapolated (the likely cause is the model's shape "
+                         "beyond the views, e.g. a radial profile the coefficients follow only where the corners are; "
+                         "the maps there are a lower bound; add views that reach the image corners, or compare "
+                         "another `model`)")
         top = list(d.get("parameter_variance_ratio", {}).items())[:3]
         if top:
             text += ("; the lens parameters differ most beyond their +- in " + ", ".join(
@@ -370,7 +412,10 @@ class CrossValidation:
 
     @property
     def mahalanobis_median(self) -> float:
-        return float(np.nanmedian(np.concatenate([s.mahalanobis.ravel() for s in self.splits])))
+        """Over the statistic's pixels (inside both halves' corners' fields where known)."""
+        return float(np.nanmedian(np.concatenate([
+            (s.mahalanobis if s.covered is None else np.where(s.covered, s.mahalanobis, np.nan)).ravel()
+            for s in self.splits])))
 
     @property
     def trusted(self) -> bool:
@@ -428,7 +473,8 @@ class CrossValidation:
                 "parameter_chi2_mean": self.parameter_chi2,
                 "parameter_chi2": [s.parameter_chi2 for s in self.splits],
                 "mahalanobis_median": self.mahalanobis_median,
-                "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis)) for s in self.splits],
+                "mahalanobis_medians": [float(np.nanmedian(s.mahalanobis if s.covered is None
+                                                           else s.mahalanobis[s.covered])) for s in self.splits],
                 "inside_corner_field": self.covered_figures(), "diagnosis": self.diagnosis(),
                 "trusted": self.trusted, "consistent_with_right_prediction": self.consistent,
                 "band_if_right": None if self.band is None else self.band.summary(),
@@ -467,8 +513,14 @@ def cross_validate(full, obj, obs, image_size, splits: int = 6, seed: int = 0, r
     if range_ is None:
         range_ = mean_board_distance(full.poses, obj)
     w, h = image_size
-    corners = np.asarray(obs, float).reshape(-1, 2)
-    results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid, corners)
+    from dstereo.uncertainty.camera_diff import grid_pixels
+
+    u, v, _ = grid_pixels(image_size, grid)
+    obs_arr = np.asarray(obs, float)
+    for k, (a, b) in enumerate(halves):  # each half's own corners' field, as its written files carry it
+        sols[2 * k].field = corner_field(u, v, obs_arr[a])
+        sols[2 * k + 1].field = corner_field(u, v, obs_arr[b])
+    results = [compare_halves(sols[2 * i], sols[2 * i + 1], _lens_names(full), image_size, range_, grid)
                for i in range(splits)]
     return CrossValidation(results, float(range_), halves, np.linspace(0.0, w - 1.0, grid[0]),
                            np.linspace(0.0, h - 1.0, grid[1]), [s.std_ratio for s in sols],

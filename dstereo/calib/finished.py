@@ -57,6 +57,9 @@ class FinishedCamera:
     valid_region: object | None = None  # calib.valid_region.ValidRegion: invertible and reached by the corners
     mrcal_conversion: object | None = None  # calib.mrcal_convert.Conversion (--mrcal-convert, a lens with no twin)
     covariance: LensCovariance | None = None  # the full-set solve's, for calibration_covariance.npz
+    # (gh, gw) bool on the map's grid: within camera_diff.FIELD_STEPS grid steps of an observed corner (where the map is a claim;
+    # beyond, the lens model is extrapolated and the map a lower bound)
+    field: np.ndarray | None = None
 
 
 def projection_of(cal, projection_range: float | None = None, method: str = "pose-compensated") -> FinishedProjection:
@@ -93,6 +96,7 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
         k4 = K[[0, 1, 0, 1], [0, 1, 2, 2]]
         spans = splined.valid_spans(k4, cal.observations, *splined.grid_of(tuple(full.camera().dist.free)))
     from dstereo.calib.valid_region import valid_region
+    from dstereo.uncertainty.camera_diff import corner_field
 
     projection = projection_of(cal, projection_range, method)
     pmap = projection.map
@@ -102,7 +106,8 @@ def finish_camera(cal, projection_range: float | None = None, method: str = "pos
         view_effects=solution_effects(full), projection=projection,
         board_sag=None if sag is None else np.asarray(sag),
         solved_board=None if sag is None else sagged_board(det.object_points, sag), splined_spans=spans,
-        valid_region=region, mrcal_conversion=_conversion(cal, region, pmap), covariance=lens_covariance(full))
+        valid_region=region, mrcal_conversion=_conversion(cal, region, pmap), covariance=lens_covariance(full),
+        field=corner_field(np.asarray(pmap.u), np.asarray(pmap.v), np.asarray(cal.observations, float)))
 
 
 def _conversion(cal, region, pmap):

@@ -21,6 +21,9 @@ calibration's uncertainty). Keys:
     poses       (V, 6)     the board poses (rvec, tvec of T_cam_board, the calibration's unit)
     range, grid, image_size   the distance (calibration unit), grid (columns, rows) and image of the folder's
                            projection_uncertainty.npz: `dstereo diff`'s defaults
+    field       (rows, columns) bool  the grid pixels within 1.5 grid steps of a corner the solve saw: where the maps claim
+                           something (beyond, the lens model is extrapolated and the map is a lower bound);
+                           `dstereo diff` takes its statistic inside both cameras' fields
 
 A file without it (written before it existed, or by another program) still diffs, without a prediction.
 """
@@ -37,10 +40,13 @@ NAME = "calibration_covariance.npz"
 
 
 def write_calibration_covariance(folder: Path, cov, lens_model: str, range_: float, grid, image_size,
-                                solve: str = "full set") -> dict:
+                                solve: str = "full set", field=None) -> dict:
     """Write `cov` (a `calib.finished.LensCovariance`) as NAME into `folder`, with the range, grid and image size
-    of its projection-uncertainty map; returns the summary entry."""
+    of its projection-uncertainty map and its corners' `field` on that grid (None: not written); returns the summary
+    entry."""
     joint = {} if cov.joint is None else {"joint": cov.joint, "poses": cov.poses}
+    if field is not None:
+        joint["field"] = np.asarray(field, bool)
     jacobian = {} if cov.jacobian is None else {"cov_jacobian": cov.jacobian}
     np.savez(Path(folder) / NAME, names=np.array(cov.names), values=cov.values, cov=cov.cov, **jacobian,
              kind=cov.kind, solve=solve, views=cov.views, lens_model=lens_model,
@@ -84,4 +90,16 @@ def read_calibration_covariance(path: Path) -> dict:
             "poses": None if poses is None else np.asarray(poses, float),
             "range": float(out["range"]) if "range" in out else None,
             "grid": None if grid is None else tuple(int(g) for g in np.ravel(grid)),
+            "field": _field(out.get("field"), grid, path),
             "image_size": tuple(int(x) for x in np.ravel(out["image_size"])) if "image_size" in out else None}
+
+
+def _field(field, grid, path: Path):
+    """The written corners' field (rows, columns) bool, checked against the grid; None when not written."""
+    if field is None:
+        return None
+    field = np.asarray(field)
+    if grid is None or field.dtype != bool or field.shape != (int(np.ravel(grid)[1]), int(np.ravel(grid)[0])):
+        raise DstereoError(f"{path}: field {field.shape} {field.dtype} does not match its grid; write it again with "
+                           "dstereo calibrate")
+    return field

@@ -58,7 +58,7 @@ def _write_halves(root: Path, xval: CrossValidation, unit: str, view_names, writ
                                   kind="the half's reported covariance (the views' effects where fitted)",
                                   views=len(views), joint=sol.joint, poses=sol.poses)
             write_calibration_covariance(where, cov, model, xval.range_, xval.grid, xval.image_size,
-                                         solve=f"cross-validation split {k + 1}, half {'AB'[h]}")
+                                         solve=f"cross-validation split {k + 1}, half {'AB'[h]}", field=sol.field)
             rel = where.relative_to(root.parent)
             written += [str(rel / "camera.yml"), str(rel / "camera.json"), str(rel / NAME)]
     return written

@@ -52,6 +52,7 @@ def _read_map(path: Path) -> dict | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             out = {k: np.asarray(z[k]) for k in ("u", "v", "cov", "range")}
+            out["field"] = np.asarray(z["field"], bool) if "field" in z.files else None
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the user's to replace
         raise DstereoError(f"{path}: not a readable projection-uncertainty map ({type(exc).__name__}); remove it or "
                            "write it again with dstereo calibrate") from None

@@ -327,8 +327,10 @@ def summary_dict(cal: CameraCalibration) -> dict:
 
 
 def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=None) -> dict:
-    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method) of
-    the full-set solve's map (`calib.finished`); returns the summary entry. `figures`: a `figure_pool.Figures`
+    """plots/projection_uncertainty.png and projection_uncertainty.npz (u, v, std, cov, range, mask, method, field:
+    the grid pixels within 1.5 grid steps of an observed corner, where the map is a claim; beyond, the lens model is
+    extrapolated and the map a lower bound) of the full-set solve's map (`calib.finished`); returns the summary
+    entry. `figures`: a `figure_pool.Figures`
     that draws the PNG (else drawn here)."""
     from types import SimpleNamespace
 
@@ -338,8 +340,10 @@ def write_projection_uncertainty(folder: Path, cal: CameraCalibration, figures=N
 
     done = finished(cal).projection
     pmap = done.map
+    field = getattr(finished(cal), "field", None)
+    field = {} if field is None else {"field": field}
     np.savez(folder / "projection_uncertainty.npz", u=pmap.u, v=pmap.v, std=pmap.std, cov=pmap.cov,
-             range=pmap.range_, mask=pmap.mask, method=pmap.method)
+             range=pmap.range_, mask=pmap.mask, method=pmap.method, **field)
     drawing = figures if figures is not None else Figures()
     # The map's arrays only, in a namespace: the worker then needs no JAX-importing class to unpickle it.
     plain = SimpleNamespace(u=np.asarray(pmap.u), v=np.asarray(pmap.v), std=np.asarray(pmap.std), range_=pmap.range_)
@@ -515,7 +519,7 @@ def fill_camera_folder(folder: Path, cal: CameraCalibration, early: EarlyFigures
         pmap = finished(cal).projection.map
         summary["calibration_covariance"] = write_calibration_covariance(
             folder, finished(cal).covariance, camera.lens, pmap.range_, (len(pmap.u), len(pmap.v)),
-            det.image_size)
+            det.image_size, field=getattr(finished(cal), "field", None))
     taken = cal.filtering is not None and early is not None and early.ready_for(cal.filtering)
     if cal.filtering is not None:
         f = cal.filtering

@@ -55,9 +55,12 @@ class DiffResult:
                 "inside_band": bool(inside and band["mahalanobis_median"][0] <= d.mahalanobis_median
                                     <= band["mahalanobis_median"][1]),
                 "ratio_vs_pose_compensated_maps": None if np.isnan(d.ratio_vs_maps) else d.ratio_vs_maps,
+                "corner_field": d.field_figures(),
                 "note": ("ratio: the weighted rms difference over the rms the two covariances predict after the "
                          "transform fit, divided by its typical value if right (1 if right, in the log); "
-                         "band_if_right: where a right prediction's ratio and median Mahalanobis fall on this grid")}
+                         "band_if_right: where a right prediction's ratio and median Mahalanobis fall on this grid; "
+                         "both over the pixels inside both cameras' corners' fields where the files give them "
+                         "(corner_field: the pooled ratio inside and outside, where the lens model is extrapolated)")}
         out["verdict"] = self.verdict()
         out["notes"] = self.notes
         return out
@@ -73,12 +76,22 @@ class DiffResult:
         text = (f"{head}, predicted {d.predicted_rms:.3g} px: ratio {d.ratio:.2f} (1 if right; a right prediction "
                 f"reads {lo:.2f}-{hi:.2f} here, {BAND_TEXT}), median Mahalanobis {d.mahalanobis_median:.2f} "
                 f"(1.18 if right; {band['mahalanobis_median'][0]:.2f}-{band['mahalanobis_median'][1]:.2f})")
+        f = d.field_figures()
+        if f is not None:
+            text += f" over the {f['pixels_inside']} pixels inside both corners' fields"
         if d.ratio > hi:
-            return text + ": the cameras differ more than their uncertainties allow (optimistic +-, or not the same " \
-                          "camera: a knock, a refocus, temperature)"
-        if d.ratio < lo:
-            return text + ": the cameras agree better than their uncertainties say (pessimistic +-)"
-        return text + ": consistent with their uncertainties"
+            text += (": the cameras differ more than their uncertainties allow (optimistic +-, or not the same "
+                     "camera: a knock, a refocus, temperature)")
+        elif d.ratio < lo:
+            text += ": the cameras agree better than their uncertainties say (pessimistic +-)"
+        else:
+            text += ": consistent with their uncertainties"
+        if f is not None and np.isfinite(f["ratio_pooled_outside"]) and "outside_over_inside_band_if_right" in f:
+            blo, bhi = f["outside_over_inside_band_if_right"]
+            text += (f"; outside the fields ({f['pixels_outside']} pixels, the lens model extrapolated: the maps there "
+                     f"are a lower bound) the pooled ratio reads {f['ratio_pooled_outside']:.2f}, "
+                     f"{f['outside_over_inside']:.2f}x inside (a right prediction {blo:.2f}-{bhi:.2f}x)")
+        return text
 
 
 BAND_TEXT = "5-95 %"
@@ -159,12 +172,36 @@ def compute_diff(a_spec: str, b_spec: str, distance: float | None = None,
         raise DstereoError(f"--grid {grid[0]}x{grid[1]}: give at least 2x2 pixels (columns x rows)")
     cams = [_camera(inp, notes) for inp in inputs]
     cams = [c if c.joint is not None else _with_written_map(c, inp, distance, grid) for c, inp in zip(cams, inputs)]
-    d = projection_diff(cams[0], cams[1], float(distance), tuple(grid), tuple(a_in.image_size))
+    field = _field(inputs, grid, notes)
+    d = projection_diff(cams[0], cams[1], float(distance), tuple(grid), tuple(a_in.image_size), field=field)
     notes += _check_written_maps(cams, inputs, distance, grid)
     if d.weighting != "pose-compensated maps":
         notes.append(f"the transform fit weights every pixel alike: {d.weighting}; image corners the calibrations "
                      "extrapolate then pull the fit (the ratio stays right, its band wider)")
     return DiffResult(d, inputs, source, notes)
+
+
+def _field_of(inp: DiffInput, grid) -> np.ndarray | None:
+    """(gh, gw) bool: the camera's corners' field as its files give it on this grid (its covariance file's, else
+    its written map's), or None."""
+    shape = (grid[1], grid[0])
+    for f in ((inp.covariance or {}).get("field"), (inp.written_map or {}).get("field")):
+        if f is not None and np.shape(f) == shape:
+            return np.asarray(f, bool)
+    return None
+
+
+def _field(inputs, grid, notes: list[str]) -> np.ndarray | None:
+    """The pixels inside both cameras' corners' fields, where the maps claim something and the statistic is taken
+    (`camera_diff` module docstring); None, with a note, when a camera's files carry no field on this grid."""
+    fields = [_field_of(inp, grid) for inp in inputs]
+    if any(f is None for f in fields):
+        missing = ", ".join(inp.label for inp, f in zip(inputs, fields) if f is None)
+        notes.append(f"no corners' field on this grid for {missing} (a folder written before it existed, another "
+                     "program's file, or another --grid): the statistic spans every grid pixel, including where the "
+                     "lens model is extrapolated")
+        return None
+    return fields[0] & fields[1]
 
 
 def _with_written_map(cam: LensCamera, inp: DiffInput, range_: float, grid) -> LensCamera:

@@ -137,7 +137,44 @@ def reconstruct_calibrated(calib: StereoCalibration, left: np.ndarray, right: np
     if config.uncertainty:
         add_uncertainty(result, calib, config, params, originals=(left, right),
                         disparity_only=not calib.rectified and (has_fisheye(calib) or rect.projection != "pinhole"))
+    reach = beyond_corner_reach(result.points, calib)
+    if reach is not None:
+        result.summary["corner_reach"] = reach
+        if reach["beyond"]:
+            result.warnings.append(
+                f"{name}: {reach['beyond']} of {reach['points']} points ({100 * reach['beyond_share']:.1f} %) lie "
+                f"beyond the widest angle the calibration's corners reached (left {_deg(reach['left_deg'])}, right "
+                f"{_deg(reach['right_deg'])} off each axis): there the lens model is extrapolated, not measured, and "
+                "their +- is a lower bound (summary corner_reach); add calibration views that reach those parts")
     return result
+
+
+def _deg(v) -> str:
+    return "unknown" if v is None else f"{v:.0f} deg"
+
+
+def beyond_corner_reach(points: np.ndarray, calib: StereoCalibration) -> dict | None:
+    """How many reconstructed points (left camera frame, (..., 3), NaN where none) lie farther off either camera's
+    axis than its calibration's corners reached (stereo.yml's corner_angle_max1/2, degrees; the right camera's
+    point R p + T): beyond, the lens model was extrapolated, not measured (the projection maps' corners' field, seen
+    as the cone it spans). None when the file records neither angle or no point was made."""
+    reach = [calib.extras.get(f"corner_angle_max{i}") for i in (1, 2)]
+    reach = [float(r) if isinstance(r, float) else None for r in reach]
+    p = np.asarray(points, float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if all(r is None for r in reach) or not len(p):
+        return None
+    beyond = np.zeros(len(p), bool)
+    out = {"left_deg": reach[0], "right_deg": reach[1], "points": int(len(p))}
+    for side, pts, r in (("left", p, reach[0]),
+                         ("right", p @ np.asarray(calib.R, float).T + np.asarray(calib.T, float).reshape(3), reach[1])):
+        if r is None:
+            continue
+        angle = np.degrees(np.arccos(np.clip(pts[:, 2] / np.linalg.norm(pts, axis=1), -1.0, 1.0)))
+        out[f"beyond_{side}"] = int(np.sum(angle > r))
+        beyond |= angle > r
+    out["beyond"], out["beyond_share"] = int(beyond.sum()), float(beyond.mean())
+    return out
 
 
 # Why a rig with a fisheye (or a spherical rectification) gets the disparity noise's sigmas alone.

@@ -36,6 +36,16 @@ standard normal): when one mode carries most of it, one comparison's raw ratio i
 whose typical value exp(E ln|z|) = 0.53, not 1. `ratio` divides by the typical value computed from the lambdas
 (`expected_log_ratio`): its log has mean 0 when the prediction is right. `band()` simulates differences from the
 prediction itself: where a right prediction's `ratio` and median Mahalanobis fall on this grid (5-95 %).
+
+Where the statistic is taken: the corners' field. A calibration's map claims something only where its corners were
+(within FIELD_STEPS grid steps of an observed corner: `corner_field`; in grid steps, so that the same views at
+another image resolution mark the same field); beyond, its value comes from the lens model's shape,
+extrapolated, and first order says nothing about a model that does not have the lens's shape there (the map is then
+a lower bound). Each written map carries that field (`field` in projection_uncertainty.npz and
+calibration_covariance.npz); given the two cameras' fields, the ratio, the Mahalanobis median, their typical value and
+their band are taken over the pixels inside both (the fit still spans the grid, weighted as above), and the pixels
+outside are read separately: the pooled ratio sqrt(sum w |e|^2 / sum w trace C) inside and outside, and the band a
+right prediction's outside / inside quotient falls in (simulated from the same draws, over the same pixels).
 """
 
 from __future__ import annotations
@@ -58,6 +68,10 @@ BAND = (5.0, 95.0)  # percentiles of `ProjectionDiff.band`
 BAND_DRAWS = 4000  # simulated right predictions for the bands (their 5 % and 95 % points to ~+-2 %)
 MAHALANOBIS_PERFECT = float(np.sqrt(2.0 * np.log(2.0)))  # median of sqrt(chi^2_2)
 GRID = (32, 24)  # columns, rows: the grid of a results folder's projection_uncertainty.npz
+# A grid pixel within this many grid steps of an observed corner is inside the calibrated field (`corner_field`):
+# every grid pixel next to a corner (a corner lies within 0.71 steps of its nearest grid pixel) and the next ring,
+# so a board's inside is one field, not a lace; 31 px on GRID over a 640-pixel-wide image.
+FIELD_STEPS = 1.5
 
 
 def slot_names(model: str) -> tuple[str, ...]:
@@ -196,6 +210,24 @@ def grid_pixels(image_size, grid: tuple[int, int]):
     return u, v, np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
 
 
+def corner_field(u: np.ndarray, v: np.ndarray, corners: np.ndarray, reach: float | None = None) -> np.ndarray:
+    """(gh, gw) bool: the grid pixels (u (gw,), v (gh,) px) within `reach` px (default FIELD_STEPS of the grid's
+    larger step) of an observed corner (..., 2) (NaN corners ignored): where a calibration measured its lens rather
+    than extrapolating its model (module docstring)."""
+    if reach is None:
+        step = max(float(np.max(np.diff(u))) if len(u) > 1 else 0.0, float(np.max(np.diff(v))) if len(v) > 1 else 0.0)
+        reach = FIELD_STEPS * step
+    corners = np.asarray(corners, float).reshape(-1, 2)
+    corners = corners[np.all(np.isfinite(corners), axis=1)]
+    q = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+    if not len(corners):
+        return np.zeros((len(v), len(u)), bool)
+    near = np.full(len(q), np.inf)
+    for c in np.array_split(corners, max(1, len(corners) // 2000)):  # (grid x 2000) at a time
+        near = np.minimum(near, np.min(np.sum((q[:, None, :] - c[None]) ** 2, axis=-1), axis=1))
+    return (near < reach ** 2).reshape(len(v), len(u))
+
+
 def _root(cov: np.ndarray) -> np.ndarray:
     """R with R R' = cov, Jacobi-scaled before the eigen-decomposition (fx and k3 differ by 10^6)."""
     cov = np.asarray(cov, float)
@@ -253,19 +285,52 @@ class ProjectionDiff:
     root_b: np.ndarray | None = None
     root_w: np.ndarray | None = None
     inv_blocks: np.ndarray | None = None
-    mean_trace_w: float = float("nan")  # mean over the valid pixels of w trace C (px^2)
+    mean_trace_w: float = float("nan")  # mean over the statistic's pixels of w trace C (px^2)
     bands: dict = field(default_factory=dict)
+    # (gh, gw) bool: the pixels inside both cameras' corners' fields, where the statistic is taken (None: no field
+    # known, every valid pixel); `inside_rows` the same on the simulation rows (2 per valid pixel)
+    field: np.ndarray | None = None
+    inside_rows: np.ndarray | None = None
+
+    @property
+    def stat_pixels(self) -> np.ndarray:
+        """(gh, gw) bool: the pixels the ratio, the Mahalanobis median and their band are taken over."""
+        return self.ok if self.field is None else self.ok & self.field
+
+    def pooled(self, where: np.ndarray) -> tuple[float, float]:
+        """(sum w |e|^2, sum w trace C) over the valid pixels of `where` (gh, gw): the pooled ratio's terms."""
+        m = self.ok & where
+        w = self.weight[m]
+        return float(np.sum(w * np.sum(self.diff[m] ** 2, axis=-1))), float(np.sum(w * np.trace(self.cov[m], axis1=-2,
+                                                                                                   axis2=-1)))
+
+    def field_figures(self) -> dict | None:
+        """The pooled ratio sqrt(sum w |e|^2 / sum w trace C) inside both corners' fields and outside them, their
+        quotient, and where a right prediction's fall here (`band`); None without a field or a prediction."""
+        if self.field is None or self.cov is None or not (self.ok & self.field).any():
+            return None
+        (ni, di), (no, do) = self.pooled(self.field), self.pooled(~self.field)
+        inside, outside = np.sqrt(ni / di), (np.sqrt(no / do) if do > 0 else float("nan"))
+        out = {"pixels_inside": int((self.ok & self.field).sum()), "pixels_outside": int((self.ok & ~self.field).sum()),
+               "ratio_pooled_inside": float(inside), "ratio_pooled_outside": float(outside),
+               "outside_over_inside": float(outside / inside)}
+        band = self.band()
+        if "outside_over_inside" in band:
+            out["outside_over_inside_band_if_right"] = band["outside_over_inside"]
+        return out
 
     @property
     def rms(self) -> float:
-        """Observed rms difference over the valid pixels, weighted as the ratio (px)."""
-        w = self.weight[self.ok]
-        return float(np.sqrt(np.sum(w * np.sum(self.diff[self.ok] ** 2, axis=-1)) / np.sum(w)))
+        """Observed rms difference over the statistic's pixels (`stat_pixels`), weighted as the ratio (px)."""
+        m = self.stat_pixels
+        w = self.weight[m]
+        return float(np.sqrt(np.sum(w * np.sum(self.diff[m] ** 2, axis=-1)) / np.sum(w)))
 
     @property
     def predicted_rms(self) -> float:
         """What the prediction expects of `rms` (px), NaN without one."""
-        return float(np.sqrt(self.mean_trace_w * self.ok.sum() / np.sum(self.weight[self.ok])))
+        m = self.stat_pixels
+        return float(np.sqrt(self.mean_trace_w * m.sum() / np.sum(self.weight[m])))
 
     @property
     def ratio_vs_maps(self) -> float:
@@ -273,22 +338,28 @@ class ProjectionDiff:
         written maps alone predict, blind to what the fit absorbs (module docstring)."""
         if self.map_trace is None:
             return float("nan")
-        good = self.ok & np.isfinite(self.map_trace)
+        good = self.stat_pixels & np.isfinite(self.map_trace)
         w = self.weight[good]
         return float(np.sqrt(np.sum(w * np.sum(self.diff[good] ** 2, axis=-1)) / np.sum(w * self.map_trace[good])))
 
     @property
     def mahalanobis_median(self) -> float:
-        return float("nan") if self.mahalanobis is None else float(np.nanmedian(self.mahalanobis[self.ok]))
+        return float("nan") if self.mahalanobis is None else float(np.nanmedian(self.mahalanobis[self.stat_pixels]))
 
-    def simulate(self, err_a: np.ndarray, err_b: np.ndarray, per_pixel: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def simulate(self, err_a: np.ndarray, err_b: np.ndarray, per_pixel: bool = False, pooled: bool = False):
         """(ratio (D,), median Mahalanobis (D,)) of D simulated differences from lens errors err_a (D, G_A) and
-        err_b (D, G_B), computed as for the observed one; `per_pixel`: each valid pixel's Mahalanobis distance
-        (D, N) instead of their median."""
+        err_b (D, G_B), computed as for the observed one (over the statistic's pixels); `per_pixel`: each of those
+        pixels' Mahalanobis distance (D, N) instead of their median; `pooled`: a third element, (sum w |e|^2
+        inside the field (D,), outside it (D,)), the numerators of `pooled` (zeros outside without a field)."""
         e_w = err_a @ self.pf_a.T + err_b @ self.pf_b.T
-        ratio = np.sqrt(np.mean(e_w ** 2, axis=1) * 2.0 / self.mean_trace_w) / self.typical
-        maha = mahalanobis((e_w / self.root_w).reshape(len(e_w), -1, 2), self.inv_blocks)
-        return ratio, (maha if per_pixel else np.median(maha, axis=1))
+        rows = np.ones(e_w.shape[1], bool) if self.inside_rows is None else self.inside_rows
+        ratio = np.sqrt(np.mean(e_w[:, rows] ** 2, axis=1) * 2.0 / self.mean_trace_w) / self.typical
+        maha = mahalanobis((e_w[:, rows] / self.root_w[rows]).reshape(len(e_w), -1, 2), self.inv_blocks[rows[::2]])
+        out = (ratio, (maha if per_pixel else np.median(maha, axis=1)))
+        if pooled:
+            sq = e_w ** 2
+            out += ((np.sum(sq[:, rows], axis=1), np.sum(sq[:, ~rows], axis=1)),)
+        return out
 
     def band(self, draws: int = BAND_DRAWS, seed: int = 0) -> dict:
         """Where a right prediction's `ratio` and median Mahalanobis fall on this grid (BAND percentiles of
@@ -298,12 +369,17 @@ class ProjectionDiff:
         key = (draws, seed)
         if key not in self.bands:
             rng = np.random.default_rng(seed)
-            ratio, maha = self.simulate(rng.normal(size=(draws, self.root_a.shape[1])) @ self.root_a.T,
-                                        rng.normal(size=(draws, self.root_b.shape[1])) @ self.root_b.T)
+            ratio, maha, (n_in, n_out) = self.simulate(
+                rng.normal(size=(draws, self.root_a.shape[1])) @ self.root_a.T,
+                rng.normal(size=(draws, self.root_b.shape[1])) @ self.root_b.T, pooled=True)
             lo, hi = BAND
             self.bands[key] = {"percentiles": list(BAND), "draws": draws,
                                "ratio": [float(np.percentile(ratio, lo)), float(np.percentile(ratio, hi))],
                                "mahalanobis_median": [float(np.percentile(maha, lo)), float(np.percentile(maha, hi))]}
+            if self.field is not None and (self.ok & ~self.field).any():
+                (_, di), (_, do) = self.pooled(self.field), self.pooled(~self.field)
+                q = np.sqrt(n_out / do) / np.sqrt(n_in / di)
+                self.bands[key]["outside_over_inside"] = [float(np.percentile(q, lo)), float(np.percentile(q, hi))]
         return self.bands[key]
 
 
@@ -323,10 +399,13 @@ def fit_weights(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, in
 
 
 def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int, int] = GRID,
-                    image_size: tuple[int, int] | None = None, weighted: bool = True) -> ProjectionDiff:
+                    image_size: tuple[int, int] | None = None, weighted: bool = True,
+                    field: np.ndarray | None = None) -> ProjectionDiff:
     """The difference of camera `b` against camera `a` at `range_` (module docstring) on a `grid` (columns, rows)
     of pixel centres of `image_size` (default a's). `weighted`: the fit and the ratio weight each pixel by
-    1 / (trace C_A + trace C_B) of the cameras' pose-compensated maps where both have one (module docstring)."""
+    1 / (trace C_A + trace C_B) of the cameras' pose-compensated maps where both have one (module docstring).
+    `field` (gh, gw) bool: the pixels inside both cameras' corners' fields, where the statistic is taken (None:
+    every valid pixel)."""
     size = image_size or a.image_size
     if size is None:
         raise DstereoError(f"{a.label or 'camera A'}: no image size; give one")
@@ -350,6 +429,15 @@ def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int
     e[~ok] = np.nan
     out = ProjectionDiff(u, v, float(range_), e.reshape(gh, gw, 2), ok.reshape(gh, gw), t, w.reshape(gh, gw),
                          weighting, map_trace)
+    if field is not None:
+        field = np.asarray(field, bool)
+        if field.shape != (gh, gw):
+            raise DstereoError(f"corners' field {field.shape} on a {gh} x {gw} grid")
+        if not (field.ravel() & ok).any():
+            raise DstereoError("no valid grid pixel lies inside both calibrations' corners' fields; the two "
+                               "calibrations saw different parts of the image: compare with --distance/--grid over "
+                               "the whole image (no field) or calibrate with views that overlap")
+        out.field = field
     if a.cov is None or b.cov is None:
         return out
 
@@ -368,10 +456,13 @@ def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int
     inv_blocks = np.linalg.pinv(blocks, hermitian=True)
     maha = np.full(len(q), np.nan)
     maha[ok] = mahalanobis(e[ok], inv_blocks)
-    lin_w = lin * root_w[rows][:, None]
+    # the statistic's pixels (inside both fields) among the valid ones, and on the rows
+    inside = np.ones(n, bool) if field is None else field.ravel()[ok]
+    stat = ok & (np.ones(len(q), bool) if field is None else field.ravel())
+    lin_w = (lin * root_w[rows][:, None])[np.repeat(inside, 2)]
     lam = np.clip(np.linalg.eigvalsh(lin_w.T @ lin_w), 0.0, None)[::-1]
-    mean_trace_w = float(np.mean(w[ok] * np.trace(blocks, axis1=1, axis2=2)))
-    ratio_raw = float(np.sqrt(np.mean(w[ok] * np.sum(e[ok] ** 2, axis=1)) / mean_trace_w))
+    mean_trace_w = float(np.mean(w[stat] * np.trace(blocks[inside], axis1=1, axis2=2)))
+    ratio_raw = float(np.sqrt(np.mean(w[stat] * np.sum(e[stat] ** 2, axis=1)) / mean_trace_w))
     typical = float(np.exp(expected_log_ratio(lam)))
     cov = np.full((len(q), 2, 2), np.nan)
     cov[ok] = blocks
@@ -380,4 +471,5 @@ def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int
     out.modes, out.lam = float(lam.sum() ** 2 / np.sum(lam ** 2)), lam
     out.pf_a, out.pf_b, out.root_a, out.root_b = pf_a[rows], pf_b[rows], root_a, root_b
     out.root_w, out.inv_blocks, out.mean_trace_w = root_w[rows], inv_blocks, mean_trace_w
+    out.inside_rows = None if field is None else np.repeat(inside, 2)
     return out

@@ -55,26 +55,57 @@ def test_a_parameter_claimed_too_tight_is_named_first(halves):
 
 def test_an_excess_outside_the_corner_field_is_said_to_be_where_the_model_extrapolates(halves):
     """The split's differences tripled outside the corners' field: the pooled ratio there triples exactly (weights
-    and predictions unchanged), inside it stays, and the verdict says the excess lies where the lens model is
-    extrapolated; the same excess inside the field does not say so."""
+    and predictions unchanged), inside it stays, and, the quotient outside / inside then lying above the band a
+    right prediction's falls in (simulated from the halves' claimed uncertainty, over the same pixels), the verdict
+    says the excess lies where the lens model is extrapolated and states that band. Unplanted (a right
+    prediction's draw) and planted inside the field, it does not say so."""
     full, obs, a, b = halves
     names = cv._lens_names(full)
     s = cv.compare_halves(a, b, names, SIZE, 1000.0, corners=obs[:, :20].reshape(-1, 2))  # a partial field
     c = s.covered
     assert c.any() and (~c).any()
-    base = cv.CrossValidation([s] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2), np.zeros(2), names=names)
+    parts = [(np.arange(0, len(obs), 2), np.arange(1, len(obs), 2))] * 4
+    band = cv.band_if_right(parts, [a, b] * 4, [s] * 4)
+    lo, hi = band.outside_over_inside
+    assert lo < 1.0 < hi  # where a right prediction's quotient falls: around 1
+    base = cv.CrossValidation([s] * 4, 1000.0, parts, np.zeros(2), np.zeros(2), names=names, band=band)
+    d0 = base.diagnosis()
+    assert d0["outside_over_inside_band_if_right"] == [lo, hi]
+    # nothing planted: not above the band (the sentence is one-sided; this draw reads 0.84, below its lower end 0.86)
+    assert d0["outside_over_inside"] <= hi and d0["extrapolation_excess"] is False
     for where, clause in ((~c, True), (c, False)):
         diff = s.diff.copy()
         diff[where] *= 3.0
         planted = dataclasses.replace(s, diff=diff, ratio=3.0)
-        xv = cv.CrossValidation([planted] * 4, 1000.0, [([0], [1])] * 4, np.zeros(2), np.zeros(2), names=names)
-        d, d0 = xv.diagnosis(), base.diagnosis()
+        xv = cv.CrossValidation([planted] * 4, 1000.0, parts, np.zeros(2), np.zeros(2), names=names, band=band)
+        d = xv.diagnosis()
         key = "ratio_pooled_outside_corner_field" if clause else "ratio_pooled_inside_corner_field"
         other = "ratio_pooled_inside_corner_field" if clause else "ratio_pooled_outside_corner_field"
         assert d[key] == pytest.approx(3.0 * d0[key], rel=1e-12)
         assert d[other] == pytest.approx(d0[other], rel=1e-12)
-        assert ("where the lens model is extrapolated" in xv.verdict()) == (d["ratio_pooled_outside_corner_field"]
-                                                                            > d["ratio_pooled_inside_corner_field"])
+        assert d["extrapolation_excess"] is clause
+        assert ("where the lens model is extrapolated" in xv.verdict()) is clause
+        assert f"a right prediction {lo:.2f}-{hi:.2f} here" in xv.verdict()
         if clause:
-            assert d0[key] * 3.0 > d0[other]  # so the planted case must say it
-            assert "where the lens model is extrapolated" in xv.verdict()
+            assert d0["outside_over_inside"] * 3.0 > hi  # so the planted case must say it
+    # without a simulated band the tool cannot judge the quotient: no claim
+    bare = cv.CrossValidation([dataclasses.replace(s, diff=s.diff * np.where(c, 1.0, 3.0)[..., None], ratio=3.0)] * 4,
+                              1000.0, parts, np.zeros(2), np.zeros(2), names=names)
+    assert bare.diagnosis()["extrapolation_excess"] is None
+    assert "where the lens model is extrapolated" not in bare.verdict()
+
+
+def test_the_quotient_band_holds_a_right_prediction(halves):
+    """Differences drawn from the prediction itself (the halves' claimed uncertainty, as `band_if_right` draws
+    them) fall above the quotient band's upper end in about 5 % of draws (its 95th percentile): over 400 fresh
+    draws, between 1 % and 11 % (binomial, 400 draws: sd 1.1 %; 5 sd either side, floored)."""
+    full, obs, a, b = halves
+    names = cv._lens_names(full)
+    s = cv.compare_halves(a, b, names, SIZE, 1000.0, corners=obs[:, :20].reshape(-1, 2))
+    parts = [(np.arange(0, len(obs), 2), np.arange(1, len(obs), 2))]
+    band = cv.band_if_right(parts, [a, b], [s], seed=0)
+    z = np.random.default_rng(7).normal(size=(400, len(obs), a.score_roots.shape[1]))
+    err = [np.einsum("vij,dvj->di", h.score_roots, z[:, part]) @ h.lens_gain.T for h, part in zip((a, b), parts[0])]
+    *_, (n_in, n_out) = s.projection.simulate(*err, pooled=True)
+    q = np.sqrt(n_out / s.projection.pooled(~s.covered)[1]) / np.sqrt(n_in / s.projection.pooled(s.covered)[1])
+    assert 0.01 <= np.mean(q > band.outside_over_inside[1]) <= 0.11

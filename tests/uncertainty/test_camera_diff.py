@@ -194,3 +194,79 @@ def test_two_calibrations_of_one_rendered_camera_read_inside_the_band_of_a_right
           f"prediction {band.round(3)}")
     assert band[0] <= gm <= band[1]
     assert not band[0] <= 3.0 * gm <= band[1]  # stds claimed 3x too small: every ratio triples (scaling test above)
+
+
+def test_the_corner_field_is_the_grid_pixels_within_its_reach():
+    """`corner_field` against its definition on a hand-made case: one corner at (100, 50) on a 10 px grid marks
+    exactly the pixels strictly closer than the reach, by default 1.5 grid steps = 15 px (|d|^2 < 225: (100, 50) +-
+    (10, 10) is in, +- 20 on one axis out; 30 px given: +- (20, 20) in, +- 30 out); NaN corners are ignored, and no
+    corner marks nothing."""
+    u, v = np.arange(0.0, 200.0, 10.0), np.arange(0.0, 120.0, 10.0)
+    uu, vv = np.meshgrid(u, v)
+    corners = np.array([[100.0, 50.0], [np.nan, np.nan]])
+    for reach, inside in ((None, 225.0), (30.0, 900.0)):
+        f = cd.corner_field(u, v, corners, reach)
+        np.testing.assert_array_equal(f, (uu - 100.0) ** 2 + (vv - 50.0) ** 2 < inside)
+    f = cd.corner_field(u, v, corners)
+    assert f[vv == 60.0][uu[vv == 60.0] == 110.0].all() and not f[vv == 50.0][uu[vv == 50.0] == 120.0].any()
+    assert not cd.corner_field(u, v, np.full((3, 2), np.nan)).any()
+
+
+@pytest.mark.parametrize("scale", [0.5, 2.0, 3.0])
+def test_the_corner_field_of_the_same_views_at_another_resolution_is_the_same(scale):
+    """The field is where the views measured the lens, whatever the pixel size: the same corners on an image
+    `scale` times larger, on its own grid (`grid_pixels`, GRID), mark the same grid pixels (a reach in pixels
+    did not: at 3x, 30 px marked a lace of the board's inside)."""
+    rng = np.random.default_rng(5)
+    size = (640, 480)
+    corners = rng.uniform([300.0, 200.0], [620.0, 470.0], (40, 2))  # one side and the bottom, as rig640's right
+    u, v, _ = cd.grid_pixels(size, cd.GRID)
+    f = cd.corner_field(u, v, corners)
+    big = tuple(int(round(scale * s)) for s in size)
+    ub, vb, _ = cd.grid_pixels(big, cd.GRID)
+    # grid_pixels spans 0..w-1: the same grid pixel at the larger size sits at scale * (p + 0.5) - 0.5 relative to it
+    fb = cd.corner_field(ub, vb, (corners + 0.5) * np.array(big) / np.array(size) - 0.5)
+    assert 0.2 < f.mean() < 0.8
+    assert (f != fb).mean() <= 0.01, (f.mean(), fb.mean(), (f != fb).sum())
+
+
+def test_the_statistic_is_taken_inside_the_field_and_the_outside_read_apart(calibrated):
+    """With a field, the ratio and the Mahalanobis median are those of the field's pixels alone: the difference
+    planted 10x outside the field leaves them unchanged to rounding (the prediction and the weights do not move),
+    and the pooled ratio outside grows 10x exactly while inside stays; the field over the whole grid is the
+    statistic without one. The pooled ratios are sqrt(sum w |e|^2 / sum w trace C) by definition, checked by hand."""
+    b = _perturbed(calibrated, 0.5 * np.sqrt(np.diag(calibrated.cov)))
+    whole = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE)
+    field = np.zeros((GRID[1], GRID[0]), bool)
+    field[2:7, 3:10] = True
+    d = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE, field=field)
+    same = cd.projection_diff(calibrated, b, 1000.0, GRID, SIZE, field=np.ones_like(field))
+    assert same.ratio == pytest.approx(whole.ratio, rel=1e-12) and d.ratio != pytest.approx(whole.ratio, rel=1e-3)
+    m = d.ok & field
+    w, e2, tr = d.weight[m], np.sum(d.diff[m] ** 2, axis=-1), np.trace(d.cov[m], axis1=-2, axis2=-1)
+    assert d.ratio_raw == pytest.approx(np.sqrt(np.sum(w * e2) / np.sum(w * tr)), rel=1e-12)
+    assert d.mahalanobis_median == pytest.approx(np.median(d.mahalanobis[m]), rel=1e-12)
+    f0 = d.field_figures()
+    planted = dataclasses.replace(d, diff=np.where(field[..., None], d.diff, 10.0 * d.diff), bands={})
+    f1 = planted.field_figures()
+    assert f1["ratio_pooled_inside"] == pytest.approx(f0["ratio_pooled_inside"], rel=1e-12)
+    assert f1["ratio_pooled_outside"] == pytest.approx(10.0 * f0["ratio_pooled_outside"], rel=1e-12)
+    assert planted.mahalanobis_median == pytest.approx(d.mahalanobis_median, rel=1e-12)
+    lo, hi = f0["outside_over_inside_band_if_right"]
+    assert lo < 1.0 < hi < f1["outside_over_inside"]
+
+
+def test_the_simulated_statistic_over_the_field_is_the_observed_one_to_first_order(calibrated):
+    """`simulate` (what every band draws) against the observed statistic: camera B = A moved by a small parameter
+    step delta (1e-3 of each std: second-order terms ~1e-3 relative) has the difference F_B delta after the fit, so
+    simulating the lens errors (0, delta) must give B's observed ratio and Mahalanobis median over the field's pixels,
+    and the pooled numerators inside and outside; 1e-2 relative leaves 10x the second-order room."""
+    rng = np.random.default_rng(5)
+    delta = 1e-3 * np.sqrt(np.diag(calibrated.cov)) * rng.choice([-1.0, 1.0], len(calibrated.cov))
+    field = np.zeros((GRID[1], GRID[0]), bool)
+    field[1:6, 2:8] = True
+    d = cd.projection_diff(calibrated, _perturbed(calibrated, delta), 1000.0, GRID, SIZE, field=field)
+    ratio, maha, (n_in, n_out) = d.simulate(np.zeros((1, len(delta))), delta[None], pooled=True)
+    assert ratio[0] == pytest.approx(d.ratio, rel=1e-2) and maha[0] == pytest.approx(d.mahalanobis_median, rel=1e-2)
+    assert n_in[0] == pytest.approx(d.pooled(field)[0], rel=1e-2)
+    assert n_out[0] == pytest.approx(d.pooled(~field)[0], rel=1e-2)
