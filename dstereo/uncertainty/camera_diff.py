@@ -435,8 +435,9 @@ def projection_diff(a: LensCamera, b: LensCamera, range_: float, grid: tuple[int
             raise DstereoError(f"corners' field {field.shape} on a {gh} x {gw} grid")
         if not (field.ravel() & ok).any():
             raise DstereoError("no valid grid pixel lies inside both calibrations' corners' fields; the two "
-                               "calibrations saw different parts of the image: compare with --distance/--grid over "
-                               "the whole image (no field) or calibrate with views that overlap")
+                               "calibrations saw different parts of the image: calibrate with views that overlap, or "
+                               "give --grid with a grid other than the files' (the files' fields are on theirs: the "
+                               "statistic is then taken over the whole image, with a note)")
         out.field = field
     if a.cov is None or b.cov is None:
         return out

@@ -270,3 +270,12 @@ def test_the_simulated_statistic_over_the_field_is_the_observed_one_to_first_ord
     assert ratio[0] == pytest.approx(d.ratio, rel=1e-2) and maha[0] == pytest.approx(d.mahalanobis_median, rel=1e-2)
     assert n_in[0] == pytest.approx(d.pooled(field)[0], rel=1e-2)
     assert n_out[0] == pytest.approx(d.pooled(~field)[0], rel=1e-2)
+
+
+def test_fields_that_share_no_pixel_are_refused_with_what_to_do(calibrated):
+    """Two calibrations whose corners' fields share no grid pixel leave the statistic nothing to be taken over: one
+    refusal naming what to do (views that overlap, or --grid), not a ratio of no pixels."""
+    from dstereo.errors import DstereoError
+
+    with pytest.raises(DstereoError, match="no valid grid pixel.*--grid"):
+        cd.projection_diff(calibrated, calibrated, 600.0, GRID, field=np.zeros((GRID[1], GRID[0]), bool))
