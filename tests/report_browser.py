@@ -38,19 +38,21 @@ VIEWS_READY_JS = """() => Array.from(document.querySelectorAll('.view3d')).every
 
 def browse(paths: list[Path], executable: Path, args, screenshot: Path | None = None, settle_ms: int = 400,
            viewport=(1280, 900)) -> list[dict]:
-    """Open each of `paths` (files) from file:// in one browser, one page each; returns per page: path, errors
-    (console errors and uncaught exceptions), outside (URLs requested outside the file), images (natural widths),
-    views3d (per 3D canvas: coloured pixels and their share), seconds (load to checked)."""
+    """Open each of `paths` (files) from file:// in a browser of its own, one page each; returns per page: path,
+    errors (console errors and uncaught exceptions), outside (URLs requested outside the file), images (natural
+    widths), views3d (per 3D canvas: coloured pixels and their share), seconds (load to checked). A browser per
+    page: chromium run as one process (`--single-process`, conftest.BROWSER_ARGS) ends with its first page closed,
+    and a second page in it failed ("Target page, context or browser has been closed")."""
     from playwright.sync_api import sync_playwright
 
     out = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(executable), args=list(args))
-        try:
-            for k, path in enumerate(paths):
+        for k, path in enumerate(paths):
+            browser = p.chromium.launch(executable_path=str(executable), args=list(args))
+            try:
                 out.append(_one(browser, Path(path).resolve(), screenshot if k == 0 else None, settle_ms, viewport))
-        finally:
-            browser.close()
+            finally:
+                browser.close()
     return out
 
 
