@@ -8,12 +8,16 @@ process (`jax.experimental.serialize_executable`, JAX's API for this) under a ke
 
 - what the program is: `name`, the `static` values its closure was built from (a problem layout, options) and
   the arguments' tree structure, shapes, dtypes;
-- what built it: a digest of every source file of the dstereo package (any edit rebuilds), the versions of
-  Python, jax, jaxlib and numpy, the JAX options that change traced programs (x64, promotion, matmul precision),
+- what built it: a digest of the source files of the dstereo modules the program can depend on (the import
+  closure of the module that defines it and of the classes of its static values, `source_modules`: an edit
+  elsewhere in the package keeps the file, one inside the closure rebuilds it), the versions of Python, jax,
+  jaxlib and numpy, the JAX options that change traced programs (x64, promotion, matmul precision),
   XLA_FLAGS, the compile options, the backend's platform and version, and the processor's instruction-set flags
   (an executable built for AVX-512 must not run on an AVX2 machine).
 
-The whole key is written at the head of the file and compared on load, so a stale or foreign file (another
+A build checks the closure against its own trace: every dstereo file in the traceback of an operation of the
+program must be in it, else the executable is not stored (the function runs as plain `jax.jit`) and the event says
+which file. The whole key is written at the head of the file and compared on load, so a stale or foreign file (another
 version, edit or machine), a colliding, truncated or unreadable one is never used: it is rebuilt (traced and
 compiled as `jax.jit` would) and overwritten. A loaded executable's first call is waited for, and a runtime
 refusal there also rebuilds; the executable checks its arguments' types at every call. Without a compilation
@@ -40,6 +44,7 @@ from typing import Callable, Hashable
 import jax
 import numpy as np
 
+from dstereo.runtime import source_modules
 from dstereo.runtime.jax_workarounds import fresh_compile, prepare_loaded_executables
 
 FORMAT = "dstereo-aot-1"  # bump when the file layout below changes
@@ -57,14 +62,8 @@ _compiling = threading.local()  # .hits: persistent-cache hits counted in this t
 
 
 def source_digest() -> str:
-    """sha256 of every .py file of the dstereo package, names and contents (~4 ms for ~150 files, measured)."""
-    if "source" not in _state:
-        root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256()
-        for path in sorted(root.rglob("*.py")):
-            h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
-        _state["source"] = h.hexdigest()
-    return _state["source"]
+    """sha256 of every .py file of the dstereo package, names and contents (~4 ms for ~220 files, measured)."""
+    return source_modules.digest()
 
 
 def _cpu_flags() -> str:
@@ -80,7 +79,13 @@ def _cpu_flags() -> str:
 
 
 def environment() -> str:
-    """Everything outside a program's own description that decides the executable it compiles to."""
+    """Everything outside a program's own description that decides the executable it compiles to, the whole
+    package's source included (prebuild's record of what was built under it)."""
+    return f"{environment_outside()}\ndstereo {source_digest()}"
+
+
+def environment_outside() -> str:
+    """`environment` but the package's source: the versions, options, flags, backend and processor."""
     if "environment" not in _state:
         import jaxlib
 
@@ -91,7 +96,7 @@ def environment() -> str:
             f"numpy {np.__version__}", f"options {sorted(options.items())}",
             f"XLA_FLAGS {os.environ.get('XLA_FLAGS', '')}",
             f"backend {device.platform} {device.client.platform_version} {device.device_kind}",
-            f"machine {platform.machine()} {_cpu_flags()}", f"dstereo {source_digest()}"])
+            f"machine {platform.machine()} {_cpu_flags()}"])
     return _state["environment"]
 
 
@@ -114,8 +119,10 @@ def builds_here() -> bool:
     """Whether a missing executable is compiled afresh and stored (DSTEREO_AOT=1), or the function runs as plain
     `jax.jit` instead (the persistent cache still fetches its compile). Default: only in the `dstereo` command's
     own process. A fresh compile costs about a cold one, and every edit of the package asks for one per program:
-    a test session or a library user after an edit would pay it where the persistent cache alone fetched the
-    compile; a command run pays it once and loads the file from then on."""
+    a library user after an edit would pay it where the persistent cache alone fetched the compile; a command run
+    pays it once and loads the file from then on. The test suite sets DSTEREO_AOT=1 (tests/conftest.py): its
+    programs recur across modules, workers and runs, and an edit rebuilds only the programs whose modules it
+    touched (the key's digest covers a program's import closure)."""
     setting = os.environ.get("DSTEREO_AOT", "")
     if setting:
         return setting == "1"
@@ -139,6 +146,7 @@ class AotFunction:
 
     def __init__(self, fn: Callable, name: str, static: Hashable, compiler_options: dict | None = None):
         self.fn, self.name, self.static = fn, name, static
+        self.modules = defining_modules(fn, static)  # the roots of the source the key covers
         self.compiler_options = dict(compiler_options or {})
         self.jitted = jax.jit(fn, compiler_options=compiler_options or None)
         self._loaded: dict[tuple, Callable] = {}
@@ -160,7 +168,8 @@ class AotFunction:
 
     def key(self, sig: tuple) -> str:
         return "\n".join([FORMAT, f"program {self.name}", f"static {self.static!r}", f"arguments {sig!r}",
-                          f"compiler options {sorted(self.compiler_options.items())!r}", environment()])
+                          f"compiler options {sorted(self.compiler_options.items())!r}", environment_outside(),
+                          f"dstereo modules {source_modules.digest(self.modules)}"])
 
     def path(self, key: str) -> Path | None:
         folder = cache_folder()
@@ -190,8 +199,10 @@ class AotFunction:
         if not builds_here():
             self.events.append(f"plain jit: {why}, and this process does not build (DSTEREO_AOT)")
             return self.jitted, self.jitted(*args)
-        compiled, fresh = self._compile(args)
-        if fresh:
+        compiled, fresh, outside = self._compile(args)
+        if outside:
+            why += f"; not stored (its trace ran dstereo code outside its key's modules: {', '.join(outside)})"
+        elif fresh:
             try:
                 _store(path, key, compiled)
             except Exception as exc:  # noqa: BLE001 - not serializable here, or no room: this process only
@@ -202,8 +213,9 @@ class AotFunction:
         return compiled, compiled(*args)
 
     def _compile(self, args: tuple):
-        """Lower and compile under a name of this build's own, so that XLA compiles afresh (`jax_workarounds`);
-        returns (compiled, fresh: no persistent-cache hit in this thread meanwhile)."""
+        """Trace, lower and compile under a name of this build's own, so that XLA compiles afresh
+        (`jax_workarounds`); returns (compiled, fresh: no persistent-cache hit in this thread meanwhile, the
+        package's files that the trace ran but the key's digest does not cover)."""
         if "listener" not in _state:
             jax.monitoring.register_event_listener(_count_cache_hits)
             _state["listener"] = True
@@ -216,10 +228,80 @@ class AotFunction:
         _compiling.hits = 0
         try:
             with fresh_compile():
-                compiled = jax.jit(program, compiler_options=self.compiler_options or None).lower(*args).compile()
-            return compiled, _compiling.hits == 0
+                traced = jax.jit(program, compiler_options=self.compiler_options or None).trace(*args)
+                compiled = traced.lower().compile()
+            return compiled, _compiling.hits == 0, self._outside_the_key(traced.jaxpr)
         finally:
             del _compiling.hits
+
+
+    def _outside_the_key(self, jaxpr) -> list[str]:
+        """The package's files (relative paths) in the program's own frames of its operations' tracebacks that
+        are not in the key's module closure (all of a traceback where the program's frame is not in it: a
+        sub-program traced first elsewhere; conservative, never a file left out)."""
+        covered = source_modules.closure(self.modules) if self.modules else None
+        if covered is None:
+            return []  # the key holds the whole package's digest: nothing can be outside it
+        files = {str(source_modules.modules()[m]) for m in covered}
+        me = str(Path(__file__).resolve())
+        outside = set()
+        for frames in _tracebacks(jaxpr):
+            for frame in frames:
+                if frame.file_name == me and frame.function_name.endswith("program"):
+                    break  # frames above are the caller's, outside the program
+                if frame.file_name.startswith(str(source_modules.ROOT)) and frame.file_name not in files:
+                    outside.add(str(Path(frame.file_name).relative_to(source_modules.ROOT.parent)))
+        return sorted(outside)
+
+
+def _tracebacks(closed):
+    """Each operation's traceback frames (innermost first) in a traced program and the programs inside it."""
+    from jax._src import core
+
+    stack, seen = [closed.jaxpr], set()
+    while stack:
+        jaxpr = stack.pop()
+        if id(jaxpr) in seen:
+            continue
+        seen.add(id(jaxpr))
+        for eqn in jaxpr.eqns:
+            tb = eqn.source_info.traceback
+            if tb is not None:
+                yield tb.frames
+            stack.extend(j.jaxpr if hasattr(j, "jaxpr") else j for j in core.jaxprs_in_params(eqn.params))
+
+
+def defining_modules(fn, static) -> tuple[str, ...] | None:
+    """The modules whose import closure the key's source digest covers: where `fn` (or the function a
+    `functools.partial` or `jax.vmap` wraps) is defined, and where the classes of `static`'s values are (their
+    methods may run in the trace). None (the whole package's digest) where `fn` is defined outside the package or
+    a module cannot be told."""
+    import functools
+
+    inner = fn
+    while isinstance(inner, functools.partial) or hasattr(inner, "__wrapped__"):
+        inner = inner.func if isinstance(inner, functools.partial) else inner.__wrapped__
+    home = getattr(inner, "__module__", None)
+    if not home or home.split(".")[0] != source_modules.PACKAGE:
+        return None  # a function outside the package: its own source is in no digest but the whole one's
+    found = {home}
+    stack, seen = [static], 0
+    while stack and seen < 10000:
+        value = stack.pop()
+        seen += 1
+        found.add(type(value).__module__)
+        if isinstance(value, (tuple, list, set, frozenset)):
+            stack.extend(value)
+        elif isinstance(value, dict):
+            stack.extend(value.keys())
+            stack.extend(value.values())
+        elif hasattr(value, "__dataclass_fields__"):
+            stack.extend(getattr(value, f) for f in value.__dataclass_fields__)
+        elif callable(value):
+            found.add(getattr(value, "__module__", None))
+    if stack or None in found:
+        return None
+    return tuple(sorted(m for m in found if m.split(".")[0] == source_modules.PACKAGE)) or None
 
 
 def _safe(name: str) -> str:

@@ -154,3 +154,22 @@ def test_the_solver_loads_in_a_new_process_and_equals_the_traced_solver(tmp_path
     second = _solve(tmp_path, "compare")
     assert second["events"] == ["loaded"]
     assert second["g"] == first["g"] == second["traced_g"]  # bit for bit (module docstring)
+
+
+def test_a_build_whose_trace_runs_code_outside_its_keys_modules_is_not_stored(folder):
+    """The key's digest covers the import closure of `modules`; a trace that ran package code outside it (here:
+    the closure narrowed by hand to a module that imports nothing of the rotation's) is used in this process
+    but not written, and the event names the file."""
+    from dstereo.models.pose import rodrigues
+
+    narrowed = aot.jit(rodrigues, "test.rodrigues", ())
+    assert narrowed.modules == ("dstereo.models.pose",)  # where the function is defined
+    narrowed.modules = ("dstereo.errors",)
+    r = np.array([0.1, -0.2, 0.3])
+    assert np.array_equal(np.asarray(narrowed(r)), np.asarray(jax.jit(rodrigues)(r)))
+    assert narrowed.events[0].startswith("built; not stored (its trace ran dstereo code outside its key's modules: "
+                                         "dstereo/models/pose.py"), narrowed.events
+    assert not list(folder.glob("*.jaxexe"))
+    kept = aot.jit(rodrigues, "test.rodrigues", ())
+    kept(r)
+    assert kept.events == ["built"] and len(list(folder.glob("*.jaxexe"))) == 1
