@@ -13,11 +13,6 @@ from pathlib import Path
 # start after this line has run in the controller, so their numpy and scipy load with it; one process without
 # workers may have loaded numpy already (through a plugin) and keeps its count: no second worker competes there.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-# Test processes build the executables kept on disk (dstereo/runtime/aot.py), as a `dstereo` command does: a
-# program traced in one module or worker is loaded, not traced again, by the next and by the next run, until an
-# edit inside the modules it depends on. Measured on 4fccc57's suite (2 workers, 2026-12-07): 834 s without,
-# 700 s with every file present; the run that builds them all took 1078 s. A setting given wins (DSTEREO_AOT=0).
-os.environ.setdefault("DSTEREO_AOT", "1")
 
 import numpy as np  # noqa: E402 - after the thread count above
 import pytest  # noqa: E402
