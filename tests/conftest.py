@@ -363,15 +363,17 @@ def open_reports(folders, screenshot: Path | None = None) -> list[dict]:
     release_compiled_programs()
     from report_browser import browse
 
-    with _one_browser_at_a_time():
+    with one_big_process_at_a_time():
         return browse([Path(f) / "report.html" for f in folders], BROWSER, BROWSER_ARGS, screenshot)
 
 
 @contextlib.contextmanager
-def _one_browser_at_a_time():
-    """An exclusive lock across the suite's processes while a browser runs: the two workers' browser tests met
-    (2026-12-06), two chromiums beside the two workers, and the process tree's summed RSS peaked at 3535 MiB
-    (25 processes). The other worker waits its turn (a browser test takes 5-20 s). No fcntl (not POSIX): no lock."""
+def one_big_process_at_a_time():
+    """An exclusive lock across the suite's processes while a test runs processes of its own that hold ~0.7-1.3 GB
+    (a browser, a calibration's child process, a Dask cluster's workers): two such tests met beside the two
+    workers and the process tree's summed RSS peaked at 3535 MiB (two chromiums, 2026-12-06) and 3239 MiB (a rig
+    calibration's child beside a Dask cluster's two workers, 2026-12-07). The other worker waits its turn (5-30 s
+    a time). No fcntl (not POSIX): no lock."""
     try:
         import fcntl
     except ImportError:

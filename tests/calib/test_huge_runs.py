@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from conftest import require_data, run_cli
+from conftest import one_big_process_at_a_time, release_compiled_programs, require_data, run_cli
 from dstereo.calib import subset_runs, subset_table
 from dstereo.calib.robust_steps import run_steps
 from dstereo.calib.subset_runs import estimate_run, solve_in_blocks
@@ -229,7 +229,9 @@ def test_blocks_on_a_dask_cluster_give_the_serial_files(tmp_path, left_images, m
     monkeypatch.setattr(subset_runs, "BLOCK_TARGET", 64)
     code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "serial")
     assert code == 0, err
-    code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "dask", "--workers", "2")
+    release_compiled_programs()
+    with one_big_process_at_a_time():  # two worker processes of ~350 MB each: not beside a browser or a child run
+        code, _, err = run_cli("calibrate", "--images", images, *FLAGS, "--out", tmp_path / "dask", "--workers", "2")
     assert code == 0, err
     for name in ("subsets.csv", "camera.yml", "stats/step_2.txt", "stats/parameter_fx.txt"):
         assert (tmp_path / "serial" / name).read_bytes() == (tmp_path / "dask" / name).read_bytes(), name

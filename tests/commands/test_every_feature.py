@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import release_compiled_programs
+from conftest import one_big_process_at_a_time, release_compiled_programs
 from dstereo.config.capabilities import CAPABILITIES, KINDS, RIGHT_LENS, SPLINED, NotApplicable, refusal
 
 # 12 frames, one exposed 1 mm away by the cameras but the reference: on exact corners with 0.03 px of noise the
@@ -60,8 +60,9 @@ def _cli(*args) -> tuple[int, str]:
     its earlier tests compiled, so the two peaks do not add up."""
     release_compiled_programs()
     env = dict(os.environ, DSTEREO_SERVE="0")
-    done = subprocess.run([sys.executable, "-m", "dstereo.cli", "calibrate", *map(str, args)], env=env,
-                          capture_output=True, text=True, timeout=1800)
+    with one_big_process_at_a_time():  # the child holds ~1 GB: not beside another test's browser or cluster
+        done = subprocess.run([sys.executable, "-m", "dstereo.cli", "calibrate", *map(str, args)], env=env,
+                              capture_output=True, text=True, timeout=1800)
     return done.returncode, done.stdout + done.stderr
 
 
