@@ -274,9 +274,9 @@ def _tracebacks(closed):
 
 def defining_modules(fn, static) -> tuple[str, ...] | None:
     """The modules whose import closure the key's source digest covers: where `fn` (or the function a
-    `functools.partial` or `jax.vmap` wraps) is defined, and where the classes of `static`'s values are (their
-    methods may run in the trace). None (the whole package's digest) where `fn` is defined outside the package or
-    a module cannot be told."""
+    `functools.partial`, `jax.jit` or `jax.vmap` wraps) is defined, where the functions and values its closure
+    captured are from, and where the classes of `static`'s values are (their methods may run in the trace). None
+    (the whole package's digest) where `fn` is defined outside the package or a module cannot be told."""
     import functools
 
     inner = fn
@@ -285,11 +285,13 @@ def defining_modules(fn, static) -> tuple[str, ...] | None:
     home = getattr(inner, "__module__", None)
     if not home or home.split(".")[0] != source_modules.PACKAGE:
         return None  # a function outside the package: its own source is in no digest but the whole one's
-    found = {home}
-    stack, seen = [static], 0
-    while stack and seen < 10000:
+    found, visited = {home}, set()
+    stack = [fn, static]
+    while stack and len(visited) < 10000:
         value = stack.pop()
-        seen += 1
+        if id(value) in visited:
+            continue
+        visited.add(id(value))
         found.add(type(value).__module__)
         if isinstance(value, (tuple, list, set, frozenset)):
             stack.extend(value)
@@ -298,11 +300,27 @@ def defining_modules(fn, static) -> tuple[str, ...] | None:
             stack.extend(value.values())
         elif hasattr(value, "__dataclass_fields__"):
             stack.extend(getattr(value, f) for f in value.__dataclass_fields__)
-        elif callable(value):
+        elif isinstance(value, functools.partial):
+            stack.extend([value.func, *value.args, *value.keywords.values()])
+        elif callable(value) and not isinstance(value, type):
             found.add(getattr(value, "__module__", None))
+            if hasattr(value, "__wrapped__"):
+                stack.append(value.__wrapped__)
+            # what a closure captured (the residual functions a solver closes over, a problem layout) runs in the
+            # trace as well
+            stack.extend(cell.cell_contents for cell in (getattr(value, "__closure__", None) or ())
+                         if _filled(cell))
     if stack or None in found:
         return None
-    return tuple(sorted(m for m in found if m.split(".")[0] == source_modules.PACKAGE)) or None
+    return tuple(sorted(m for m in found if m and m.split(".")[0] == source_modules.PACKAGE)) or None
+
+
+def _filled(cell) -> bool:
+    try:
+        cell.cell_contents
+    except ValueError:  # an empty cell (a name assigned after the function was made)
+        return False
+    return True
 
 
 def _safe(name: str) -> str:

@@ -66,3 +66,18 @@ def test_the_calibration_solver_depends_on_its_engine_not_on_the_writers_or_comm
     assert {"dstereo.calib.problem", "dstereo.solver.lm", "dstereo.models.camera"} <= reach
     rooms = {name.split(".")[1] for name in reach if name.count(".") >= 1}
     assert not rooms & {"io", "jobs", "commands", "stereo", "recession", "demo"}, sorted(reach)
+
+
+def test_what_a_program_captures_counts_among_its_modules():
+    """A value `fn` captures (a partial's argument, a closure cell) brings its module into the key's roots, as
+    the classes of the static values do; a function defined outside the package makes it the whole package."""
+    import functools
+
+    from dstereo.models.pose import rodrigues
+    from dstereo.runtime import aot
+    from dstereo.solver.cholesky import cholesky
+
+    assert aot.defining_modules(functools.partial(rodrigues), ()) == ("dstereo.models.pose",)
+    captured = functools.partial(rodrigues, helper=cholesky)
+    assert aot.defining_modules(captured, ()) == ("dstereo.models.pose", "dstereo.solver.cholesky")
+    assert aot.defining_modules(lambda x: x, ()) is None
