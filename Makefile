@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench bench-check install lock clean
+.PHONY: demo test test-slow bench bench-check install lock clean
 
 LOCK := requirements.lock
 
@@ -20,8 +20,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/dstereo demo --out demo_out --force
 
-# Then the numerically sensitive tests (marker `numerics`) again on a second CPU code path: XLA limited to
-# SSE4.2 vector code, the farthest from AVX-512/AVX2 machines, so no tolerance depends on one processor.
+# Two tiers: `make test` runs every test not marked slow (a whole command end to end, or a study over many solves:
+# pyproject.toml's marker), `make test-slow` those; CI runs both (.ci/run). Each tier then runs its numerically
+# sensitive tests (marker `numerics`) again on a second CPU code path: XLA limited to SSE4.2 vector code, the farthest
+# from AVX-512/AVX2 machines, so no tolerance depends on one processor.
 # Exit 5 (no test collected) fails: the second pass must check something.
 # Two worker processes (pytest-xdist; tests/conftest.py schedules by module and keeps the memory-heavy modules in
 # one worker, so that the two stay under 3 GB together); TEST_WORKERS=0 runs one process.
@@ -30,13 +32,21 @@ SECOND_ISA := SSE4_2
 # tests/conftest.py refuses a numerics mark written outside its test file, which this would miss.
 NUMERICS_FILES = $(shell grep -rlw --include='test_*.py' numerics tests | sort)
 TEST_WORKERS ?= 2
-test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
+# $(1): the tier's marker expression
+define run_tier
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m "$(1)"
 	@echo "--- numerics tests again with XLA_FLAGS=--xla_cpu_max_isa=$(SECOND_ISA)"
 	@[ "$$(uname -m)" = x86_64 ] || echo "make test: $$(uname -m) is not x86-64; the flag names an x86 ISA and changes nothing here" >&2
-	@XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(SECOND_ISA)" $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m numerics -p no:cacheprovider $(NUMERICS_FILES); \
+	@XLA_FLAGS="$$XLA_FLAGS --xla_cpu_max_isa=$(SECOND_ISA)" $(BIN)/python -m pytest -q -n $(TEST_WORKERS) -m "numerics and ($(1))" -p no:cacheprovider $(NUMERICS_FILES); \
 	rc=$$?; if [ $$rc -eq 5 ]; then echo "make test: no test is marked numerics; the second pass checked nothing" >&2; fi; \
 	exit $$rc
+endef
+
+test: $(STAMP)
+	$(call run_tier,not slow)
+
+test-slow: $(STAMP)
+	$(call run_tier,slow)
 
 # Two figures of docs/validation.md recomputed and compared with the file (each prints recomputed / documented;
 # a figure off by more than its last digit fails): the Middlebury table (seconds) and the rig-consistency table

@@ -52,6 +52,29 @@ def marked_outside_their_file(items) -> list[str]:
     return out
 
 
+# `make test` is the tier a developer runs after each change (under 8 minutes on 2 cores); tests marked slow (whole
+# commands end to end, studies over many solves: pyproject.toml) run in `make test-slow`, and CI runs both. A test
+# left in the quick tier whose set-up or call took longer than this is named at the end of the run, so that the
+# tier does not grow back unseen (a note, not a failure: no test fails on time).
+QUICK_TIER_NOTE_S = 10.0
+_long_in_quick_tier: list[str] = []
+
+
+def pytest_runtest_logreport(report):
+    """Runs in the process that reports (xdist's controller too): notes a long test not marked slow."""
+    if report.when in ("setup", "call") and report.duration > QUICK_TIER_NOTE_S and "slow" not in report.keywords:
+        _long_in_quick_tier.append(f"{report.duration:.0f} s {report.when} {report.nodeid}")
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _long_in_quick_tier and not hasattr(terminalreporter.config, "workerinput"):
+        terminalreporter.write_line(f"{len(_long_in_quick_tier)} test(s) not marked slow took over "
+                                    f"{QUICK_TIER_NOTE_S:.0f} s (mark them slow, see pyproject.toml, or make them "
+                                    "quicker):")
+        for line in _long_in_quick_tier:
+            terminalreporter.write_line(f"  {line}")
+
+
 # Figures drawn in the test process, not in figure workers (dstereo.runtime.figure_pool; the files are the same
 # either way, its docstring): each test process that ran a command in process kept two ~100 MB workers (the
 # suite's two xdist workers, four) and paid their start. tests/runtime, which tests the workers, has the default

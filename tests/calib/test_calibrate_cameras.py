@@ -18,6 +18,8 @@ from dstereo.synth.board import Board
 from dstereo.synth.poses import compose
 from dstereo.synth.render import camera_rays, render_board
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 
 def _cli(*args):
     code, out, err = run_cli("calibrate", *args)

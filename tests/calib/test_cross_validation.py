@@ -48,6 +48,7 @@ def test_too_few_views_is_refused(honest):
         cv.cross_validate(full, obj, obs[:7], SIZE)
 
 
+@pytest.mark.slow
 def test_calibrate_cross_validate_writes_verdict_map_and_method(tmp_path):
     from conftest import require_data, run_cli
 

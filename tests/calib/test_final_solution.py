@@ -131,6 +131,7 @@ def test_warning_fires_when_the_mean_fits_clearly_worse(free, seed, worse):
         assert fs.check.ratio < 1.005 and warnings == []
 
 
+@pytest.mark.slow
 def test_cli_final_mean_writes_the_thesis_mean(tmp_path):
     """`--final mean` reproduces the thesis's camera: camera.yml = the mean of subsets.csv's surviving rows."""
     import csv
@@ -162,6 +163,7 @@ def test_final_option_in_toml_and_its_errors():
         validate(cfg.with_overrides(final="median"))
 
 
+@pytest.mark.slow
 def test_cli_stereo_final_mean_says_what_the_rig_holds(tmp_path):
     """Stereo with `--final mean` (issue 29: every rig runs the K-camera job, whose rig is the solve on the surviving
     frames): each camera's own camera.yml holds its subset mean (the thesis's answer), stereo.yml the joint rig on

@@ -123,6 +123,7 @@ FLAGS = ["--pattern", "9x6", "--square", "10", "--model", "k1,k2,p1,p2,k3", "--p
          "--step", "re=0.5", "--step", "fx=1.5,fy=1.5", "-q"]
 
 
+@pytest.mark.slow
 def test_streamed_run_writes_the_same_folder(tmp_path, left_images, monkeypatch):
     images = tmp_path / "images"
     images.mkdir()
@@ -219,6 +220,7 @@ def test_a_stopped_run_resumes_from_its_kept_blocks(tmp_path, monkeypatch):
     assert len(solved) == 15
 
 
+@pytest.mark.slow
 def test_blocks_on_a_dask_cluster_give_the_serial_files(tmp_path, left_images, monkeypatch):
     """`--workers 2`: the subset blocks are tasks of a local Dask cluster (two processes); the run's files are the
     serial run's, byte for byte (the blocks are the same problems in the same compiled program)."""
@@ -251,6 +253,7 @@ def test_resume_without_an_earlier_run_and_blocks_without_resume_are_refused_fir
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.slow
 def test_a_stopped_calibration_resumes_and_writes_the_uninterrupted_files(tmp_path, left_images, monkeypatch):
     """The command: a run of streamed blocks (as above) stopped by Ctrl-C in its third block keeps two blocks in
     OUT.partial and no results folder; `--resume` solves only the others and writes the uninterrupted run's files,

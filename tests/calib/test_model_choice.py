@@ -12,6 +12,8 @@ from dstereo.calib.model_choice import Candidate, choose, choose_model, fold_pla
 from dstereo.config.calibration import Config, config_from_toml, to_toml, validate
 from dstereo.errors import DstereoError
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 N_VIEWS, SIGMA = 12, 0.1  # the same view count and board for both lenses: one compile per model for the file
 
 

@@ -13,6 +13,8 @@ from conftest import lm_agreement
 
 from opencv_reference import FIVE, calibrate_multiview, float32_corners, opencv_cameras
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 CASES = ((3, 3), (4, 4))  # (cameras, seed)
 
 

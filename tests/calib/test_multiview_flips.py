@@ -2,12 +2,15 @@
 cameras' poses say so) keeps its corners' inlier flags: a rejected corner stays rejected after the re-read."""
 
 import numpy as np
+import pytest
 
 from dstereo.calib.multiview import as_solved, calibrate_views
 from dstereo.calib.rig_consistency import of_multiview
 from dstereo.models.board import Board
 from dstereo.synth import multiview_corners, multiview_poses, ring_rig
 from dstereo.synth.multiview import MULTIVIEW_BOARD
+
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
 
 NOISE_PX, OUTLIER_PX, J = 0.1, 15.0, 3
 

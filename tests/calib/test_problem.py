@@ -113,6 +113,7 @@ def rig_frames():
     return _rig_frames()
 
 
+@pytest.mark.slow
 def test_three_cameras_from_exact_corners_recover_the_truth(rig_frames):
     obj, obs, vis, _ = rig_frames
     assert 0.1 < (1 - vis.mean(axis=0)).min() and (1 - vis.mean(axis=0)).max() < 0.6  # really partial
@@ -231,6 +232,7 @@ def _corners(cam, pose, obj):
     return np.asarray(jax.vmap(project, in_axes=(None, None, 0))(cam.k, jnp.asarray(cam.dist.coeffs), jnp.asarray(p)))
 
 
+@pytest.mark.slow
 def test_each_camera_its_own_lens_model_a_fisheye_among_pinholes():
     """Camera 2 a Kannala-Brandt fisheye, the others pinhole: the start (board poses through each camera's own
     lens) and the joint solve handle the mix; exact corners are fitted to rounding, the truth recovered."""

@@ -27,6 +27,7 @@ def _consistency(case):
 SEEDS = (0, 1, 2, 3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [2, 3])
 def test_simultaneous_frames_read_one_on_average_and_are_not_flagged(k):
     ratios = []
@@ -40,6 +41,7 @@ def test_simultaneous_frames_read_one_on_average_and_are_not_flagged(k):
     assert abs(np.mean(ratios) - 1.0) < 0.2, ratios
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k", [2, 3])
 def test_a_board_moved_between_the_exposures_is_flagged_on_every_seed(k):
     for seed in SEEDS:
@@ -69,6 +71,7 @@ def _rejecting(case, reject=True):
                                       [f"f{i:02d}" for i in range(n)], reject)
 
 
+@pytest.mark.slow
 def test_a_frame_the_rig_cannot_explain_is_rejected_like_an_outlier_view(k=3):
     """One frame exposed 1 mm away by every camera but the reference (the others simultaneous): it is the frame
     removed, and the rig without it is consistent (measured: 17 of 18 seeds of K = 2, 3, 4 remove it, the 18th

@@ -18,6 +18,7 @@ def _run(k, seed, splits=4):
                               tuple(f"cam{c}" for c in range(k)), splits, seed=seed)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k,seed", [(2, 0), (3, 1)])
 def test_a_right_uncertainty_reads_inside_its_band(k, seed):
     cv = _run(k, seed)
@@ -27,6 +28,7 @@ def test_a_right_uncertainty_reads_inside_its_band(k, seed):
     assert len(cv.as_dict()["per_split"]) == 4
 
 
+@pytest.mark.slow
 def test_a_shrunk_uncertainty_fails(monkeypatch):
     """Every half's covariance divided by 4 (its +- 2x optimistic): chi^2 / dof x 4, past the band's top (2.10
     for K = 2's 6 placement parameters) unless the right statistic were below 0.53; it measured 0.6-0.8."""

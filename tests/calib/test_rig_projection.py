@@ -2,12 +2,15 @@
 (runtime/buckets.py) give the unpadded figures. (Against mrcal: tests/io/test_cameramodel.py.)"""
 
 import numpy as np
+import pytest
 
 from dstereo.calib.multiview import calibrate_views
 from dstereo.calib.rig_projection import camera_poses, frames_covariance
 from dstereo.models.distortion import PRESETS
 from dstereo.runtime import buckets
 from dstereo.synth.rig_corners import rig_corners
+
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
 
 
 def test_frames_padded_to_their_bucket_give_the_unpadded_covariance_and_poses(monkeypatch):

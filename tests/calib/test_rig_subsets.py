@@ -20,6 +20,7 @@ def _held(case):
     return cams, held
 
 
+@pytest.mark.slow
 @pytest.mark.numerics
 def test_two_cameras_give_each_subsets_own_stereo_columns():
     """K = 2: a subset's stereo columns (Tnorm, RVnorm, stereo_re) are those of its frames calibrated on their own
@@ -70,6 +71,7 @@ def _one_frame_moved(k, n_frames, bad, seed, shift_mm):
     return clean
 
 
+@pytest.mark.slow
 def test_a_frame_the_rig_cannot_explain_leaves_the_rig_by_the_stereo_steps():
     """Three cameras, one frame (seen by all three) exposed by two of them with the board 3 mm away. A clean
     subset's pair RMS is the 2-D noise, 0.1 px x sqrt(2) = 0.141 px, give or take 2.4 % (~430 corners of m = 4

@@ -57,6 +57,7 @@ def _heldout_rms(free, train, test, start) -> float:
     return float(np.sqrt(np.mean(sse) / len(OBJ)))
 
 
+@pytest.mark.slow
 def test_splined_predicts_held_out_views_of_an_odd_lens_better_than_every_parametric_model(odd_views):
     errors = {name: _heldout_rms(PRESETS[name], *odd_views) for name in model_choice.PARAMETRIC}
     splined = _heldout_rms(GRID, *odd_views)

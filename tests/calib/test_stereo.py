@@ -231,6 +231,7 @@ def _solve(obj, obs, mode, cameras):
                            labels=LABELS)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("noise_px", [0.0, 0.1])
 def test_synthetic_rig_of_different_cameras_is_recovered(synthetic, noise_px):
     """Fixed mode with the true cameras and joint mode from a poor start both recover the truth."""
@@ -373,6 +374,7 @@ def test_no_common_board_view_is_an_error(tmp_path):
 # --- command line ----------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_thesis_layout_equals_cameras_with_the_same_two_folders(tmp_path):
     """PROJECT/images/images_left, images_right, images_stereo_left, images_stereo_right (links to the same
     pairs) runs the one K-camera job (issue 29): its stereo.yml equals `--cameras` with the same two cameras'

@@ -12,6 +12,8 @@ from scipy.spatial.transform import Rotation
 from dstereo.calib.multiview import calibrate_views
 from dstereo.synth.rig_corners import rig_corners
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 SAG = (0.3, 0.0)
 
 

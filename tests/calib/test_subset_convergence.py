@@ -52,6 +52,7 @@ def test_a_calibration_with_no_converged_subset_is_refused(monkeypatch):
         calibrate_camera(folder, CONFIG.with_overrides(glob="left*.jpg"))
 
 
+@pytest.mark.slow
 def test_unconverged_rig_subsets_are_left_out_of_the_rig(monkeypatch):
     """A stereo rig (the K-camera job, K = 2): the rig's frame subsets whose solves did not converge are left out of
     the statistics the stereo steps and the survivors are computed from, with a warning."""

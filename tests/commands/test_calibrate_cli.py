@@ -188,6 +188,7 @@ def test_results_folder_is_complete_and_well_formed(thesis_run):
     assert not [p for p in results.parent.iterdir() if p.name.startswith(".results.")]  # no temporary left
 
 
+@pytest.mark.slow
 def test_toml_and_flags_alone_give_identical_results(thesis_run, tmp_path, left_images):
     reference = thesis_run[0]
     project = tmp_path / "proj"

@@ -23,6 +23,8 @@ import pytest
 from conftest import one_big_process_at_a_time, release_compiled_programs
 from dstereo.config.capabilities import CAPABILITIES, KINDS, RIGHT_LENS, SPLINED, NotApplicable, refusal
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 # 12 frames, one exposed 1 mm away by the cameras but the reference: on exact corners with 0.03 px of noise the
 # rig of two then removes it and is consistent after (3 of 3 seeds; 10 frames at 2 mm: 2 of 3)
 FRAMES, MOVED_MM, SEED = 12, 1.0, 3

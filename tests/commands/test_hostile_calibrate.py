@@ -36,6 +36,7 @@ def _stereo_images(tmp_path: Path, n: int, right_from: str = "right") -> tuple[P
 
 # --- 1. the unit travels ------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_calibration_in_cm_reconstructs_in_mm(tmp_path):
     """calibrate --square 2.5 --unit cm: stereo.yml says cm, and reconstruct's depths (mm) are those of the same
     calibration written in mm, not 10x short (before: no unit in the file, T read as mm)."""
@@ -123,6 +124,7 @@ def test_a_unit_must_be_a_length_and_a_model_must_be_named(tmp_path, args, menti
 
 # --- 3. a rig with no baseline ------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_right_folder_of_left_copies_is_refused_after_the_rig_solve(tmp_path):
     """Before: stereo.yml written with |T| = 2.2e-9 mm and no warning. Now one line, nothing written."""
     left, right = _stereo_images(tmp_path, 8, right_from="left")
@@ -134,6 +136,7 @@ def test_a_right_folder_of_left_copies_is_refused_after_the_rig_solve(tmp_path):
     assert not out.exists() and not list(tmp_path.glob(".out*"))
 
 
+@pytest.mark.slow
 def test_two_cameras_of_one_rig_with_the_same_images_are_refused(tmp_path):
     """--cameras: a camera folder holding another's images gets the same refusal, nothing written."""
     data = require_data("opencv_stereo")

@@ -30,6 +30,8 @@ from dstereo.io.calib_files import read_stereo_calibration
 from dstereo.models.camera import Camera
 from dstereo.synth import plasmatron_rig, read_truth
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):

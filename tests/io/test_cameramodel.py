@@ -10,6 +10,8 @@ from dstereo.errors import DstereoError
 from dstereo.io.cameramodel import NO_TWIN, lensmodel_for, read_cameramodel, write_cameramodel
 from dstereo.models.distortion import PRESETS
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 K = np.array([1766.07, 1765.89, 1944.07, 1064.52])
 COEFFS = np.array([-0.21, 0.08, 1e-4, -3e-4, -0.012, 0.3, -0.05, 0.01])  # OpenCV order k1 k2 p1 p2 k3 k4 k5 k6
 

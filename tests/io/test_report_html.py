@@ -156,6 +156,7 @@ def _sphere_points(h=120, w=160):
     return pts, 0.1 + 0.001 * (x ** 2 + y ** 2)
 
 
+@pytest.mark.slow
 def test_reports_in_a_browser_and_controls_that_fail(tmp_path):
     """A report with a cloud passes every check; a page that asks for an outside image
     (refused by the page's own policy: a console error; without the policy: the request, caught and refused), one

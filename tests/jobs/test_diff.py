@@ -168,6 +168,7 @@ def test_bad_input_is_one_line_and_writes_nothing(folders, tmp_path):
     assert (fa / "camera.yml").is_file()
 
 
+@pytest.mark.slow
 def test_a_splined_camera_diffs_through_its_files(tmp_path):
     """A splined lens (camera.yml's splined section, its knots' covariance): read back and compared; against
     itself the difference is 0, and a knot moved by its std gives a finite ratio with a prediction."""

@@ -13,6 +13,8 @@ import pytest
 
 from conftest import release_compiled_programs, run_cli
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 N_FRAMES = 6
 ARGS = ("--grid", "1", "--z-min", "550", "--z-max", "650")
 

@@ -4,6 +4,8 @@ built for other view buckets, so that a later data set of another size loads its
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 
 @pytest.fixture
 def executables(tmp_path, monkeypatch):

@@ -48,6 +48,7 @@ def _linked(folder, pairs):
     return sorted(folder / name for name, _ in pairs)
 
 
+@pytest.mark.slow
 def test_a_left_right_rig_through_the_k_camera_job_equals_its_cameras_folders(rendered, tmp_path):
     """The same images as `--cameras` cam0/cam1 and as left_/right_ pairs in one folder: the same corners in the same
     frame order through the same solves, so every number is equal to the last bit."""
@@ -67,6 +68,7 @@ def test_a_left_right_rig_through_the_k_camera_job_equals_its_cameras_folders(re
     np.testing.assert_array_equal(stereo.pair_files[0].cov, folders.pair_files[0].cov)
 
 
+@pytest.mark.slow
 def test_each_camera_calibrates_on_its_own_images_and_the_rig_on_the_pairs(rendered, tmp_path):
     """The thesis's layout with individual and stereo folders: the left camera's own images are 8 of the frames, the
     pairs every frame under other names. The left calibration uses its 8, the rig sees every pair, and a pair image

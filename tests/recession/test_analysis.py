@@ -21,6 +21,8 @@ from dstereo.io.sequence_files import discover, time_from_name
 from dstereo.recession.surface import Grid, cell_heights, frame_from_axis
 from dstereo.synth.recession import RecessionProfile
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 N_FRAMES = 11
 SIZE = (320, 240)
 ARGS = ("--grid", "1", "--z-min", "550", "--z-max", "650")

@@ -236,6 +236,7 @@ def sphere_matches(all_sphere_matches):
     return _sampled(all_sphere_matches, 0)
 
 
+@pytest.mark.slow
 def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
     """Dense SGBM matches on a rendered 120 mm sphere: the baseline scale from +1 % to within 0.3 % (measured:
     -0.18 %); a sphere does not determine the rest of the rig (second solve)."""
@@ -252,6 +253,7 @@ def test_sphere_recovers_baseline_scale(sphere_view, sphere_matches, truth):
     assert "w_x" in everything.report()["poorly_determined"]  # row-wise matching cannot see vertical misalignment
 
 
+@pytest.mark.slow
 def test_mesh_reference_on_sphere_pair(all_sphere_matches, truth):
     """The same sphere as a triangle mesh (icosphere) with a start pose 2.4 mm off, over four samples of 2000 of
     the ~46,000 matches: the baseline as the analytic sphere gives it, scattered as the reported std says.
@@ -308,6 +310,7 @@ def test_metric_scale_of_unscaled_points(sphere_matches, truth, board_view):
     assert b.factor == pytest.approx(5.0, rel=0.01) and b.std < 0.05
 
 
+@pytest.mark.slow
 def test_cli_end_to_end(tmp_path, board_view, truth):
     import cv2
 

@@ -147,6 +147,7 @@ def _solve(cache: Path, mode: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_the_solver_loads_in_a_new_process_and_equals_the_traced_solver(tmp_path):
     first = _solve(tmp_path, "build")
     assert first["events"] == ["built"] and first["status"] == [1]

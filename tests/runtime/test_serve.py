@@ -91,6 +91,7 @@ def _without_timings(stdout: str) -> str:
     return "\n".join(line for line in stdout.splitlines() if not line.startswith("timings:"))
 
 
+@pytest.mark.slow
 def test_served_calibration_writes_the_files_of_a_run_in_its_own_process(server, images, tmp_path):
     """A calibration with subsets (`--per-set 5`: 6 subsets of the 6 views) in its own process, served by a cold
     server, and served again: the same output, code and files. One run covers the plain calibration too: a run

@@ -80,6 +80,7 @@ def test_no_server_is_started_under_pytest_or_when_off(tmp_path):
         assert not os.path.exists(wire.sibling(path, ".log")), extra
 
 
+@pytest.mark.slow
 def test_first_command_runs_here_and_starts_a_server_that_serves_the_next(tmp_path):
     run_dir = tmp_path / "run"
     env = _env(run_dir, DSTEREO_SERVE_IDLE="600")

@@ -53,6 +53,7 @@ def views(tmp_path_factory) -> Path:
     return render_views(tmp_path_factory.mktemp("views") / "images", 16)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
 def test_a_served_command_stopped_by_sigterm_ends_the_client_and_its_processes_not_the_server(tmp_path, views):
     run_dir = tmp_path / "run"
@@ -175,6 +176,7 @@ def test_status_shows_memory_age_commands_and_what_differs():
     assert json.dumps(state)  # what the server sends is JSON as it is
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
 def test_a_served_command_stuck_in_a_compile_ends_the_client_and_the_server(tmp_path, views):
     """A signal while the served command compiles (native code: no Python handler runs until it returns): after

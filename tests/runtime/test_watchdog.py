@@ -58,6 +58,7 @@ def test_a_finished_call_is_timed_and_a_watched_block_passes_its_result():
     assert 0.05 <= watchdog._longest[key] < 5.0 and not watchdog._running
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="children are listed from /proc")
 def test_a_call_that_never_returns_ends_the_command_with_one_line(tmp_path):
     views = render_views(tmp_path / "images", 16)

@@ -43,6 +43,7 @@ def test_a_matrix_that_is_not_positive_definite_gives_nan():
     assert np.isfinite(np.asarray(cholesky(jnp.asarray(np.eye(2)[None])))).all()
 
 
+@pytest.mark.slow
 def test_the_compiled_calibration_solver_holds_no_custom_call(monkeypatch):
     """Every program the solver compiles for a calibration (full set and subsets), lowered from the arguments it
     was called with: its StableHLO text names no custom call (LAPACK kernels are custom calls on the CPU)."""

@@ -20,6 +20,9 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
 
 CHILD = textwrap.dedent("""
     import sys

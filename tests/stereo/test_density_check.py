@@ -163,6 +163,7 @@ def test_the_demo_sample_on_a_blank_background_is_not_called_sparse(demo_sample)
     assert result.summary["refine"]["dropped_fraction"] < 0.01
 
 
+@pytest.mark.slow
 def test_a_denser_rank_try_whose_fills_disagree_with_the_grey_levels_is_not_kept():
     """Middlebury's Piano (quarter size) with its texture weakened in both views (levels pulled to the image's mean,
     contrast x0.25, rounded to 8 bits: lit alike, so the default takes the grey levels): their map is under the

@@ -22,6 +22,8 @@ from dstereo.synth import (Board, Plane, calibration_set, object_pair, wide_boar
                            write_calibration_set)
 from dstereo.synth.scenes import CALIBRATION_OPTIONS, OBJECT_OPTIONS
 
+pytestmark = pytest.mark.slow  # see pyproject.toml: `make test` leaves these out, `make test-slow` runs them
+
 PATTERN, SQUARE = (9, 6), 30.0
 BOARD_MM, DISTANCE = (400.0, 300.0), 600.0
 

@@ -254,6 +254,7 @@ def test_false_matches_on_a_repeated_pattern_are_dropped():
 
 # --- issue 14's own case: converging rig fx 4700 / 4900 px, 100 mm, 600 mm, tilted sample, no depth flags ----
 
+@pytest.mark.slow
 def test_converging_rig_of_the_issue_gets_the_whole_face(tmp_path):
     """At half size (fx 2350 / 2450 px, 320 x 240; 4 frames): `dstereo recession` without depth flags prints its
     range, reaches the face's negative disparities without saturating, and measures on the whole face. Before

@@ -162,6 +162,7 @@ def test_expected_log_ratio_is_the_one_cross_validation_uses():
     assert cv.expected_log_ratio is cd.expected_log_ratio
 
 
+@pytest.mark.slow
 def test_two_calibrations_of_one_rendered_camera_read_inside_the_band_of_a_right_prediction():
     """The synthetic webcam rendered in two independent sets of 10 views (poses and sensor noise from their own
     seeds), detected and calibrated as `dstereo calibrate` solves a full set, twice over (2 pairs): the geometric
