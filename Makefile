@@ -44,6 +44,7 @@ endef
 
 test: $(STAMP)
 	$(call run_tier,not slow)
+	@echo "make test: the tests marked slow were left out; make test-slow runs them (CI runs both)"
 
 test-slow: $(STAMP)
 	$(call run_tier,slow)
