@@ -25,6 +25,7 @@ def test_the_relative_pose_matches_the_solutions_and_its_jacobian_finite_differe
     x = np.concatenate([ext[1], ext[2]])
     R, T = joint3.relative(1, 2)
     got = np.asarray(_relative(x[:6], x[6:]))
+    # two closed forms (matrices here, quaternions in scipy), no iteration: rounding of O(1) rotations, ~1e-15
     np.testing.assert_allclose(got[:3], rotation_vector(R), atol=1e-12)
     np.testing.assert_allclose(got[3:], T, rtol=1e-12, atol=1e-9)
     jac = np.asarray(jax.jacfwd(lambda v: _relative(v[:6], v[6:]))(x))
