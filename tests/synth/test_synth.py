@@ -345,6 +345,7 @@ def test_recession_sequence_truth(small_rig, tmp_path):
     times = np.array([f.truth_left["time_s"] for f in frames])
     stag = np.array([f.truth_left["recession_stagnation_mm"] for f in frames])
     assert len(frames) == 10 and np.all(np.diff(times) > 0)
+    # stag[-1] = (0.02 + 0.03) mm/s x 40 s: two roundings of 2.0
     assert stag[0] == 0.0 and np.all(np.diff(stag) > 0) and abs(stag[-1] - 2.0) < 1e-12
     prof = frames[0].truth_left["profile"]
     # The profile is linear in time: both sides are the same two products, rounding only.
