@@ -371,7 +371,8 @@ def test_covariance_survives_badly_scaled_parameters():
     d = np.logspace(-3, 6, 9)
     schur = corr * np.outer(d, d)
     assert np.linalg.cond(schur) > 1e15
-    # Scaling to unit diagonal and back is exact in exact arithmetic; corr is well conditioned, so the rounding left is ~cond(corr) eps << 1e-9.
+    # Scaling to unit diagonal and back is exact in exact arithmetic; corr is well conditioned, so the rounding
+    # left is ~cond(corr) eps << 1e-9.
     np.testing.assert_allclose(scaled_inverse(schur) * np.outer(d, d), np.linalg.inv(corr), rtol=1e-9, atol=1e-12)
     # The raw pseudo-inverse is what this replaced: it loses the weak directions entirely.
     raw = np.linalg.pinv(schur, rcond=1e-15, hermitian=True) * np.outer(d, d)

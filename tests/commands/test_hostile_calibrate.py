@@ -57,7 +57,8 @@ def test_a_calibration_in_cm_reconstructs_in_mm(tmp_path):
     for name in ("left", "right"):
         assert json.loads((tmp_path / "cal" / name / "camera.json").read_text())["unit"] == "cm"
     calib = read_stereo_calibration(stereo)
-    np.testing.assert_allclose(calib.T, 10 * T_cm, rtol=1e-12)  # one multiplication by 10 of the same numbers: a few ulp on any processor
+    # one multiplication by 10 of the same numbers: a few ulp on any processor
+    np.testing.assert_allclose(calib.T, 10 * T_cm, rtol=1e-12)
     assert calib.unit_note == "stereo.yml is in cm: converted to mm (x 10)"
     assert calib.extras["board_depth_min"] > 10 * 5  # the boards stood >= ~20 cm away: in mm now
     # the same calibration written in mm by hand: reconstruct must give the same depths from both files

@@ -177,7 +177,8 @@ def test_rigid_fit_and_rotation_error():
     angle = np.radians(3.0)
     r = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
     r_fit, t_fit = rigid_fit(a, a @ r.T + [1.0, 2.0, 3.0])
-    # Exact correspondences: the SVD rigid fit recovers R, t to rounding of a well-conditioned 3x3 (~1e-15); 1e-12 holds on any processor.
+    # Exact correspondences: the SVD rigid fit recovers R, t to rounding of a well-conditioned 3x3 (~1e-15);
+    # 1e-12 holds on any processor.
     np.testing.assert_allclose(r_fit, r, atol=1e-12)
     np.testing.assert_allclose(t_fit, [1.0, 2.0, 3.0], atol=1e-12)
     assert rotation_error_deg(r, np.eye(3)) == pytest.approx(3.0)

@@ -165,6 +165,10 @@ print(json.dumps({'n_measurements': int(x.size), 'n_board': nv * H * W * 2, 'rej
                                                                        what='worstdirection-stdev'))}))
 """
 SYSTEM_PYTHON = "/usr/bin/python3"
+# mrcal re-evaluates the residuals with its own projection code: each differs from dstereo's by rounding of a pixel
+# coordinate (< 800 px: a few dozen roundings, ~1e-12 px), not of the residual (~0.15 px), so the two RMS values
+# agree to ~1e-11 relative at worst (measured 1e-15 to 9e-15: the rounding errors average out over the corners)
+RMS_RTOL = 1e-10
 
 
 def _mrcal_or_skip() -> None:
@@ -197,9 +201,8 @@ def test_mrcal_reevaluates_and_resolves_the_solve_the_file_holds(left_results):
     # regularization off: the measurements are the board corners' residuals only
     assert got["n_measurements"] == got["n_board"]
     assert got["rejected"] == len(summary["outliers"]["corners"]) > 0 and not summary["outliers"]["views"]
-    # the same residuals at the same parameters, summed in another order: float64 rounding (1e-15 relative per
-    # residual) is all that separates the two RMS values
-    assert abs(got["rms"] / full["rms"] - 1) < 1e-12, (got["rms"], full["rms"])
+    # the same residuals at the same parameters, computed by mrcal: rounding only (RMS_RTOL)
+    assert abs(got["rms"] / full["rms"] - 1) < RMS_RTOL, (got["rms"], full["rms"])
     cam = read_cameramodel(out / "camera.cameramodel")
     values = np.concatenate([cam.intrinsics, cam.coeffs[:5]])
     names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -416,8 +419,8 @@ def test_every_file_of_a_three_camera_rig_carries_the_joint_solve_mrcal_reevalua
     got = json.loads(done.stdout)
     assert [g["icam"] for g in got] == [0, 1, 2] and all(g["cameras"] == 3 for g in got)
     assert all(g["observations"] == int(visible.sum()) for g in got)
-    # the same residuals at the same parameters: float64 rounding apart (sum of squares over every inlier corner)
-    assert abs(got[0]["rms"] / sol.rms - 1) < 1e-12, (got[0]["rms"], sol.rms)
+    # the same residuals at the same parameters, computed by mrcal: rounding only (RMS_RTOL)
+    assert abs(got[0]["rms"] / sol.rms - 1) < RMS_RTOL, (got[0]["rms"], sol.rms)
     sigma = dict(zip(sol.names, sol.std_jacobian if sol.std_jacobian is not None else sol.std))
     for k, cam in enumerate(sol.cameras):
         values = np.concatenate([np.asarray(cam.k), cam.coeffs()[:5]])
@@ -458,8 +461,8 @@ def test_a_real_stereo_rigs_files_carry_the_joint_solve_mrcal_reevaluates(tmp_pa
     assert done.returncode == 0, done.stderr[-2000:]
     got = json.loads(done.stdout)
     assert [g["icam"] for g in got] == [0, 1] and all(g["cameras"] == 2 for g in got)
-    # the same residuals at the same parameters: float64 rounding apart (sums of squares in another order)
-    assert abs(got[0]["rms"] / joint["rms"] - 1) < 1e-12, (got[0]["rms"], joint["rms"])
+    # the same residuals at the same parameters, computed by mrcal: rounding only (RMS_RTOL)
+    assert abs(got[0]["rms"] / joint["rms"] - 1) < RMS_RTOL, (got[0]["rms"], joint["rms"])
     value, sigma = joint["parameters"], joint["std_jacobian"]
     names = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
     for k, side in enumerate(("left", "right")):

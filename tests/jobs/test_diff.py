@@ -61,9 +61,9 @@ def diffed(folders):
 
 
 def test_the_files_give_the_statistic_computed_in_memory(folders, diffed):
-    """camera.yml holds K and D to OpenCV's 16 significant digits and the covariance file the covariance
-    exactly: the ratio read from the files equals the in-memory one to 1e-9 (measured 1e-14); the distance and
-    grid are the covariance file's (A's map)."""
+    """camera.yml holds K and D as OpenCV's %.16e (17 significant digits: a float64 round trip, exact) and the
+    covariance file the covariance exactly: the ratio read from the files equals the in-memory one to 1e-9
+    (measured 1e-14); the distance and grid are the covariance file's (A's map)."""
     root, fa, fb, a, b = folders
     out = diffed[1]
     s = json.loads((root / "out" / "diff.json").read_text())
@@ -74,7 +74,8 @@ def test_the_files_give_the_statistic_computed_in_memory(folders, diffed):
     assert s["weighting"].startswith("uniform")  # no joint covariance: said, in a note too
     assert any("weights every pixel alike" in n for n in s["notes"])
     assert f"ratio {d.ratio:.2f}" in out and "wrote" in out
-    with np.load(root / "out" / "diff.npz") as z:  # the same program, run by the CLI and here, on one machine
+    # the same program on the same (round-tripped) numbers, run by the CLI and here on one machine: measured equal
+    with np.load(root / "out" / "diff.npz") as z:
         np.testing.assert_allclose(z["diff"], d.diff, rtol=1e-9, atol=1e-12)
         assert z["cov"].shape == (9, 12, 2, 2)
     assert (root / "out" / "diff.png").stat().st_size > 1000

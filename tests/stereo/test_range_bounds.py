@@ -73,6 +73,7 @@ def scene():
     calib = StereoCalibration(k, np.zeros(8), k, np.zeros(8), np.eye(3), np.array([-B, 0, 0]), (W, H),
                               source="rendered parallel rig")
     maps = rectifying_maps(calib, (W, H))
+    # R = I and T along -x: R1 is I up to the rounding of O(1) entries (~1e-16)
     assert np.abs(np.asarray(maps.rect.R1) - np.eye(3)).max() < 1e-12
     Q = np.asarray(maps.rect.Q)
     rect = [cv2.remap(img, mx, my, cv2.INTER_LINEAR) for img, (mx, my) in zip((render.left, render.right), maps.remap)]
