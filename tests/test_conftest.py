@@ -64,3 +64,20 @@ def test_the_longest_units_are_handed_out_first():
     assert conftest.longest_first(queue)[: len(conftest.LONGEST_FIRST)] == list(conftest.LONGEST_FIRST)
     assert [u for u in conftest.longest_first(queue) if u not in conftest.LONGEST_FIRST] == [
         "tests/b.py", "tests/a.py", "tests/c.py"]
+
+
+def test_a_long_test_left_in_the_quick_tier_is_named_and_a_slow_or_short_one_is_not(monkeypatch):
+    """`make test` names the tests not marked slow whose set-up or call took over QUICK_TIER_NOTE_S."""
+    from types import SimpleNamespace
+
+    noted = []
+    monkeypatch.setattr(conftest, "_long_in_quick_tier", noted)
+    long_s = conftest.QUICK_TIER_NOTE_S + 1
+    for when, duration, keywords, nodeid in [("call", long_s, {}, "a.py::long"),
+                                             ("setup", long_s, {}, "a.py::long_setup"),
+                                             ("call", long_s, {"slow": 1}, "a.py::marked"),
+                                             ("teardown", long_s, {}, "a.py::teardown_only"),
+                                             ("call", 0.5, {}, "a.py::short")]:
+        conftest.pytest_runtest_logreport(SimpleNamespace(when=when, duration=duration, keywords=keywords,
+                                                          nodeid=nodeid))
+    assert [line.split()[-1] for line in noted] == ["a.py::long", "a.py::long_setup"]

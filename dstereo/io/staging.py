@@ -1,5 +1,5 @@
-"""Staging folders beside a results folder OUT: `.OUT.tmp-<pid>@<host>-XXXX` (the folder being written, renamed to
-OUT at the end) and `.OUT.figures-<pid>@<host>-XXXX` (figures drawn early).
+"""Staging folders beside a results folder OUT: `.OUT.tmp-<pid>@<host>-<random>` (the folder being written, renamed to
+OUT at the end) and `.OUT.figures-<pid>@<host>-<random>` (figures drawn early).
 
 The owner's pid and host are in the name so that a later run can tell a folder left by a process that no longer
 exists (`kill -9`, a power cut: no cleanup ran) from one that a live run is writing: `clean_stale` removes the
@@ -27,7 +27,7 @@ def _host() -> str:
 
 
 def make(parent: str | Path | None, name: str, kind: str) -> Path:
-    """A new staging folder `.NAME.KIND-<pid>@<host>-XXXX` in `parent` (None: the system's temporary folder),
+    """A new staging folder `.NAME.KIND-<pid>@<host>-<random>` in `parent` (None: the system's temporary folder),
     registered for the watchdog; `done` unregisters it."""
     folder = Path(tempfile.mkdtemp(prefix=f".{name}.{kind}-{os.getpid()}@{_host()}-", dir=parent))
     interrupts.staging(folder)
